@@ -1,0 +1,71 @@
+"""OpenEXR read/write for float maps: half float, lossless ZIP compression, finite values only."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+_DEFAULT_CHANNELS = {1: ("Y",), 2: ("Y", "A"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
+
+
+def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | None = None,
+              half: bool = True) -> Path:
+    """Write an (H, W) or (H, W, C) float array as an EXR file.
+
+    Args:
+        path: destination; written under a temporary name and renamed, so readers never see half a file.
+        array: (H, W) or (H, W, C) with C in 1..4 (or any C when ``channels`` names them).
+        channels: channel names, default Y / YA / RGB / RGBA by channel count.
+        half: store as half float (the release format) instead of float32.
+
+    Raises:
+        ValueError: non-finite values, a wrong shape, or values beyond the half-float range.
+    """
+    path = Path(path)
+    arr = np.asarray(array)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3:
+        raise ValueError(f"{path}: expected (H, W) or (H, W, C), got shape {np.shape(array)}")
+    n_channels = arr.shape[2]
+    names = channels or _DEFAULT_CHANNELS.get(n_channels)
+    if names is None or len(names) != n_channels:
+        raise ValueError(f"{path}: {n_channels} channels need explicit names, got {channels}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{path}: refusing to write non-finite values (NaN or Inf)")
+    dtype = np.float16 if half else np.float32
+    if half and np.abs(arr).max(initial=0.0) > 65504.0:
+        raise ValueError(f"{path}: values exceed the half-float range (65504)")
+    data = {name: np.ascontiguousarray(arr[:, :, i].astype(dtype)) for i, name in enumerate(names)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with OpenEXR.File(header, data) as exr_file:
+        exr_file.write(str(tmp))
+    os.replace(tmp, path)
+    return path
+
+
+def read_exr(path: str | Path, channels: tuple[str, ...] | None = None) -> np.ndarray:
+    """Read an EXR file as float32: (H, W) for one channel, else (H, W, C) in the named order.
+
+    Default order: R, G, B, A when present, else Y (and A), else the file's channels sorted.
+    """
+    path = Path(path)
+    with OpenEXR.File(str(path), separate_channels=True) as exr_file:
+        planes = exr_file.channels()
+        available = list(planes.keys())
+        if channels is None:
+            for candidate in (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)):
+                if set(candidate) <= set(available) and len(candidate) == len(available):
+                    channels = candidate
+                    break
+            else:
+                channels = tuple(sorted(available))
+        missing = [c for c in channels if c not in planes]
+        if missing:
+            raise ValueError(f"{path}: channels {missing} not in file (has {available})")
+        stack = [np.asarray(planes[c].pixels, dtype=np.float32) for c in channels]
+    return stack[0] if len(stack) == 1 else np.stack(stack, axis=-1)
