@@ -1,0 +1,358 @@
+"""Planning and executing the stage graph.
+
+Planning computes every task's cache key from an explicit record (stage, version, scope, the config
+fields that change output, upstream keys, raw-input digests). A task whose key is already committed in
+the store is resolved while planning and never reaches the scheduler; each decision is logged as one
+line with its reason. Execution submits the remaining tasks to an executor (in-process, or
+dask.distributed), one task per (stage, scope) or per (stage, action, camera) for per-view stages.
+
+A task never raises into the scheduler: it returns a result record, and a failed upstream turns its
+downstream tasks into "skipped", so one bad action never stops the others.
+"""
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.capture import Capture
+from pipeline.config import key_fields
+from pipeline.errors import InputError
+from pipeline.hashing import DigestCache, record_key
+from pipeline.stage import Stage, StageContext
+from pipeline.store import ArtifactStore, short
+
+log = logging.getLogger("ultrastage.plan")
+
+
+@dataclass
+class Task:
+    """One (stage, scope) of the plan."""
+
+    stage: Stage
+    scope_id: str
+    session_id: str
+    action_id: str | None
+    key: str
+    record: dict[str, Any]
+    status: str
+    """"cached", "run", or "failed" (bad input found while planning) / "blocked" (upstream failed)."""
+    reason: str
+    upstream: dict[str, "Task"]
+    raw_inputs: dict[str, Path]
+    views: list[str] = field(default_factory=list)
+    error: str | None = None
+    seconds: float = 0.0
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return f"{self.stage.name} {self.scope_id}"
+
+
+@dataclass
+class Plan:
+    tasks: list[Task]
+    store: ArtifactStore
+
+    def for_scope(self, scope_id: str) -> list[Task]:
+        return [t for t in self.tasks if t.scope_id == scope_id]
+
+    def to_run(self) -> list[Task]:
+        return [t for t in self.tasks if t.status == "run"]
+
+
+def topo_order(stages: Sequence[Stage]) -> list[Stage]:
+    """Stages ordered so that every stage comes after what it requires; unknown requirements are errors."""
+    by_name = {s.name: s for s in stages}
+    ordered: list[Stage] = []
+    state: dict[str, int] = {}
+
+    def visit(name: str, chain: tuple[str, ...]) -> None:
+        if name not in by_name:
+            raise ValueError(f"stage {chain[-1]} requires unknown stage {name}")
+        if state.get(name) == 2:
+            return
+        if state.get(name) == 1:
+            raise ValueError(f"stage cycle: {' -> '.join(chain + (name,))}")
+        state[name] = 1
+        for req in by_name[name].requires:
+            visit(req, chain + (name,))
+        state[name] = 2
+        ordered.append(by_name[name])
+
+    for s in stages:
+        visit(s.name, ())
+    return ordered
+
+
+def downstream_of(stages: Sequence[Stage], name: str) -> set[str]:
+    """``name`` and every stage that depends on it, directly or not."""
+    out = {name}
+    changed = True
+    while changed:
+        changed = False
+        for s in stages:
+            if s.name not in out and any(r in out for r in s.requires):
+                out.add(s.name)
+                changed = True
+    return out
+
+
+def _why(record: dict[str, Any], previous: dict[str, Any] | None) -> str:
+    """Human reason for a rerun: which part of the record changed since the last committed run."""
+    if previous is None:
+        return "no earlier result"
+    old = previous.get("record", {})
+    changes = []
+    if old.get("version") != record.get("version"):
+        changes.append(f"version {old.get('version')} -> {record.get('version')}")
+    for k in sorted(set(old.get("config", {})) | set(record["config"])):
+        if old.get("config", {}).get(k) != record["config"].get(k):
+            changes.append(f"config.{k} {old.get('config', {}).get(k)!r} -> {record['config'].get(k)!r}")
+    for k in sorted(set(old.get("upstream", {})) | set(record["upstream"])):
+        if old.get("upstream", {}).get(k) != record["upstream"].get(k):
+            changes.append(f"upstream {k} changed")
+    inputs_old, inputs_new = old.get("inputs", {}), record["inputs"]
+    changed_inputs = [k for k in sorted(set(inputs_old) | set(inputs_new)) if inputs_old.get(k) != inputs_new.get(k)]
+    if changed_inputs:
+        changes.append(f"{len(changed_inputs)} raw input(s) changed (e.g. {changed_inputs[0]})")
+    if not changes:
+        return "result missing from store"
+    return "; ".join(changes[:4])
+
+
+def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, digests: DigestCache,
+              actions: Iterable[str] | None = None, force: set[str] | None = None,
+              echo: Callable[[str], None] | None = None) -> Plan:
+    """Resolve every (stage, scope) task: its key, and whether it is cached, to run, or failed."""
+    force = force or set()
+    ordered = topo_order(stages)
+    by_name = {s.name: s for s in ordered}
+    wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
+    unknown = [a for a in wanted if a not in {x.action_id for x in capture.actions}]
+    if unknown:
+        raise InputError(capture.root / "capture.json", f"unknown action(s) {unknown}")
+    tasks: list[Task] = []
+    index: dict[tuple[str, str], Task] = {}
+    emit = echo or (lambda line: log.info(line))
+
+    def plan_one(stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
+        upstream = {}
+        for req in stage.requires:
+            req_scope = session_id if by_name[req].scope == "session" else scope_id
+            upstream[req] = index[(req, req_scope)]
+        error = None
+        raw: dict[str, Path] = {}
+        inputs: dict[str, str] = {}
+        try:
+            raw = stage.raw_inputs(capture, scope_id)
+            for name, path in sorted(raw.items()):
+                inputs[name] = digests.digest(path)["sha256"]
+        except InputError as exc:
+            error = str(exc)
+        except FileNotFoundError as exc:
+            error = f"{exc.filename}: file disappeared while planning"
+        views = list(capture.sessions[session_id].camera_ids)
+        record = {"stage": stage.name, "version": stage.version, "scope": scope_id,
+                  "config": key_fields(stage.config), "upstream": {n: t.key for n, t in sorted(upstream.items())},
+                  "inputs": inputs}
+        key = record_key(record)
+        bad_up = [n for n, t in upstream.items() if t.status in ("failed", "blocked")]
+        if error:
+            status, reason = "failed", error
+        elif bad_up:
+            status, reason = "blocked", f"upstream {bad_up[0]} failed"
+            error = f"not run: upstream {bad_up[0]} failed ({upstream[bad_up[0]].error})"
+        elif stage.name in force:
+            status, reason = "run", "forced by --only/--from"
+        elif store.is_complete(stage.name, scope_id, key):
+            status, reason = "cached", f"key {short(key)} already in store"
+        else:
+            status, reason = "run", _why(record, store.latest_record(stage.name, scope_id))
+        task = Task(stage, scope_id, session_id, action_id, key, record, status, reason, upstream, raw,
+                    views=views, error=error)
+        emit(f"{stage.name:<12} {scope_id:<8} {status:<7} {reason}")
+        index[(stage.name, scope_id)] = task
+        tasks.append(task)
+        return task
+
+    sessions_needed = sorted({capture.action(a).session_id for a in wanted})
+    for session_id in sessions_needed:
+        for stage in ordered:
+            if stage.scope == "session":
+                plan_one(stage, session_id, session_id, None)
+    for action_id in wanted:
+        session_id = capture.action(action_id).session_id
+        for stage in ordered:
+            if stage.scope == "action":
+                plan_one(stage, action_id, session_id, action_id)
+    return Plan(tasks, store)
+
+
+# --- execution -------------------------------------------------------------------------------------
+
+def _context(task: Task, store: ArtifactStore, capture: Capture) -> StageContext:
+    upstream_dirs = {n: store.final_dir(n, t.scope_id, t.key) for n, t in task.upstream.items()}
+    return StageContext(stage=task.stage.name, scope_id=task.scope_id, session_id=task.session_id,
+                        action_id=task.action_id, out_dir=store.tmp_dir(task.stage.name, task.scope_id, task.key),
+                        upstream=upstream_dirs, raw_inputs=task.raw_inputs,
+                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=task.views)
+
+
+def _failure(exc: BaseException) -> str:
+    if isinstance(exc, InputError):
+        return str(exc)
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+def _upstream_failed(results: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    for res in results:
+        if not res.get("ok"):
+            return {"ok": False, "skipped": True, "error": f"not run: {res.get('error')}", "seconds": 0.0}
+    return None
+
+
+def run_view_task(stage: Stage, ctx: StageContext, view: str, *upstream: dict[str, Any]) -> dict[str, Any]:
+    """One camera of a per-view stage (runs on a worker)."""
+    skipped = _upstream_failed(upstream)
+    if skipped:
+        return skipped
+    start = time.perf_counter()
+    try:
+        stats = stage.run_view(ctx, view)
+        return {"ok": True, "view": view, "stats": stats, "seconds": time.perf_counter() - start}
+    except Exception as exc:  # noqa: BLE001 - every failure becomes a record naming the file and reason
+        return {"ok": False, "view": view, "error": _failure(exc), "seconds": time.perf_counter() - start,
+                "traceback": traceback.format_exc()}
+
+
+def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
+                *parts: dict[str, Any]) -> dict[str, Any]:
+    """Finalize a per-view stage, or run a whole-scope stage, then commit its folder (runs on a worker)."""
+    start = time.perf_counter()
+    view_seconds = sum(p.get("seconds", 0.0) for p in parts if "view" in p)
+    try:
+        failed = [p for p in parts if not p.get("ok")]
+        if failed:
+            store.discard(ctx.stage, ctx.scope_id, key)
+            first = failed[0]
+            return {"ok": False, "skipped": bool(first.get("skipped")), "error": first.get("error"),
+                    "traceback": first.get("traceback"), "seconds": view_seconds}
+        if stage.per_view:
+            stats = stage.finalize(ctx, {p["view"]: p["stats"] for p in parts})
+        else:
+            stats = stage.run(ctx)
+        seconds = view_seconds + time.perf_counter() - start
+        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds)
+        return {"ok": True, "stats": stats, "seconds": seconds}
+    except Exception as exc:  # noqa: BLE001
+        store.discard(ctx.stage, ctx.scope_id, key)
+        return {"ok": False, "error": _failure(exc), "traceback": traceback.format_exc(),
+                "seconds": view_seconds + time.perf_counter() - start}
+
+
+class SyncExecutor:
+    """Runs tasks in this process, in submission order (for tests, debugging and tiny runs)."""
+
+    name = "sync"
+
+    def submit(self, fn: Callable[..., Any], *args: Any, key: str, resources: dict | None = None) -> Any:
+        return fn(*args)
+
+    def as_completed(self, handles: list[Any]) -> Iterable[tuple[Any, Any]]:
+        for handle in handles:
+            yield handle, handle
+
+    def close(self) -> None:
+        pass
+
+
+class DaskExecutor:
+    """dask.distributed: a local cluster sized to the machine, or an existing scheduler by address."""
+
+    def __init__(self, address: str | None = None, workers: int = 0, threads_per_worker: int = 1,
+                 memory_limit: str = "auto"):
+        import os
+
+        from distributed import Client, LocalCluster
+
+        if address:
+            self.client = Client(address)
+            self.cluster = None
+            self.name = f"dask scheduler at {address}"
+        else:
+            n_workers = workers or max(1, min(os.cpu_count() or 1, 8))
+            self.cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
+                                        processes=True, memory_limit=memory_limit, dashboard_address=None,
+                                        silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+            self.name = f"local dask cluster, {n_workers} worker process(es)"
+        info = self.client.scheduler_info()
+        self._resources = set()
+        for worker in info.get("workers", {}).values():
+            self._resources |= set(worker.get("resources", {}))
+
+    def submit(self, fn: Callable[..., Any], *args: Any, key: str, resources: dict | None = None) -> Any:
+        # Only annotate resources the cluster has: a GPU stage on a CPU-only cluster still runs.
+        usable = {k: v for k, v in (resources or {}).items() if k in self._resources} or None
+        return self.client.submit(fn, *args, key=key, pure=False, resources=usable)
+
+    def as_completed(self, handles: list[Any]) -> Iterable[tuple[Any, Any]]:
+        from distributed import as_completed
+
+        for future in as_completed(handles):
+            yield future, future.result()
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def execute(plan: Plan, capture: Capture, executor: Any,
+            on_done: Callable[[Task, dict[str, Any], int, int], None] | None = None) -> None:
+    """Run every task the plan marked "run"; fill in each task's status, seconds, stats and error."""
+    store = plan.store
+    handles: dict[tuple[str, str], Any] = {}
+    owner: dict[int, Task] = {}
+    for task in plan.to_run():
+        ctx = _context(task, store, capture)
+        ups = [handles[(n, t.scope_id)] for n, t in task.upstream.items() if (n, t.scope_id) in handles]
+        store.begin(task.stage.name, task.scope_id, task.key)
+        tag = f"{task.stage.name}-{task.scope_id}-{short(task.key)}"
+        res = task.stage.resources
+        if task.stage.per_view:
+            views = task.stage.views(ctx)
+            parts = [executor.submit(run_view_task, task.stage, ctx, v, *ups, key=f"{tag}-{v}", resources=res)
+                     for v in views]
+        else:
+            parts = list(ups)
+        handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, *parts,
+                                 key=f"{tag}-commit")
+        handles[(task.stage.name, task.scope_id)] = handle
+        owner[id(handle)] = task
+    total = len(handles)
+    done = 0
+    for handle, result in executor.as_completed(list(handles.values())):
+        task = owner[id(handle)]
+        done += 1
+        task.seconds = float(result.get("seconds", 0.0))
+        if result.get("ok"):
+            task.status, task.stats = "ran", result.get("stats", {})
+        else:
+            task.status = "skipped" if result.get("skipped") else "failed"
+            task.error = result.get("error")
+            if result.get("traceback") and not task.error.startswith("not run"):
+                log.debug("%s failed:\n%s", task.name, result["traceback"])
+        if on_done:
+            on_done(task, result, done, total)
+    for task in plan.tasks:
+        if task.status == "cached":
+            task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})

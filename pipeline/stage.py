@@ -1,0 +1,82 @@
+"""The stage contract (DESIGN.md): what a stage declares and what it sees when it runs.
+
+A stage declares ``name``, ``version``, ``scope`` ("action" or "session"), ``requires`` (upstream stage
+names), ``outputs`` (named slots, each a folder in its artifact) and ``resources``. A per-view stage
+(``per_view = True``) is run as one task per camera plus a ``finalize`` task, so full-resolution frames
+never leave the process that decodes them; every other stage runs as one task.
+
+A stage sees only its :class:`StageContext`: its config, its upstream artifact folders, its raw input
+files and the rig. It writes into ``ctx.out_dir`` (a temporary folder the engine renames into place).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+
+@dataclass
+class StageContext:
+    """Everything one stage task may look at."""
+
+    stage: str
+    scope_id: str
+    session_id: str
+    action_id: str | None
+    out_dir: Path
+    """Temporary output folder; renamed into the artifact store when the stage completes."""
+    upstream: dict[str, Path]
+    """Upstream stage name -> its committed artifact folder."""
+    raw_inputs: dict[str, Path]
+    """Raw input files by a stage-defined name (e.g. "full_on/00003")."""
+    rig: dict[str, Any]
+    capture_root: Path
+    views: list[str] = field(default_factory=list)
+
+    @property
+    def log(self) -> logging.Logger:
+        return logging.getLogger(f"ultrastage.{self.stage}")
+
+
+class Stage:
+    """Base class; subclasses set the class attributes and implement ``run`` or ``run_view``/``finalize``."""
+
+    name: ClassVar[str]
+    version: ClassVar[str] = "1"
+    scope: ClassVar[str] = "action"
+    requires: ClassVar[tuple[str, ...]] = ()
+    outputs: ClassVar[tuple[str, ...]] = ()
+    resources: ClassVar[dict[str, float]] = {}
+    per_view: ClassVar[bool] = False
+    config_section: ClassVar[str | None] = None
+    """The section of the pipeline config this stage reads (defaults to its name)."""
+
+    def __init__(self, config: Any):
+        self.config = config
+
+    # --- planning ---------------------------------------------------------------------------------
+    def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
+        """The raw files this stage reads for a scope, by name; their digests enter the cache key."""
+        return {}
+
+    def views(self, ctx: StageContext) -> list[str]:
+        """Camera ids to run ``run_view`` on (per-view stages)."""
+        return list(ctx.views)
+
+    # --- execution --------------------------------------------------------------------------------
+    def run(self, ctx: StageContext) -> dict[str, Any]:
+        """Whole-scope stages: do the work, return a JSON-able stats record."""
+        raise NotImplementedError
+
+    def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
+        """Per-view stages: the work for one camera; returns a JSON-able stats record."""
+        raise NotImplementedError
+
+    def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        """Per-view stages: after every view ran; returns the stage's stats record."""
+        return {"views": view_stats}
+
+    def output_paths(self, artifact_dir: Path) -> dict[str, Path]:
+        """A path per output slot."""
+        return {slot: artifact_dir / slot for slot in self.outputs}

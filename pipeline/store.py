@@ -1,0 +1,77 @@
+"""The artifact store (Meshroom style): one folder per (stage, scope, cache key), complete or absent.
+
+Layout: ``<root>/<stage>/<scope_id>/<key16>/`` with ``_SUCCESS.json`` inside. Work goes to
+``<root>/<stage>/<scope_id>/.tmp-<key16>`` and is renamed into place when complete, so a crash leaves
+only a temporary folder that the next run removes. ``latest.json`` beside the keyed folders records the
+last committed record, so a plan can say *why* a stage reruns.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+SUCCESS = "_SUCCESS.json"
+
+
+def short(key: str) -> str:
+    return key[:16]
+
+
+class ArtifactStore:
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def final_dir(self, stage: str, scope_id: str, key: str) -> Path:
+        return self.root / stage / scope_id / short(key)
+
+    def tmp_dir(self, stage: str, scope_id: str, key: str) -> Path:
+        return self.root / stage / scope_id / f".tmp-{short(key)}"
+
+    def is_complete(self, stage: str, scope_id: str, key: str) -> bool:
+        return (self.final_dir(stage, scope_id, key) / SUCCESS).is_file()
+
+    def success_record(self, stage: str, scope_id: str, key: str) -> dict[str, Any]:
+        return json.loads((self.final_dir(stage, scope_id, key) / SUCCESS).read_text())
+
+    def latest_record(self, stage: str, scope_id: str) -> dict[str, Any] | None:
+        path = self.root / stage / scope_id / "latest.json"
+        try:
+            return json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
+
+    def begin(self, stage: str, scope_id: str, key: str) -> Path:
+        """A fresh, empty temporary folder for this key (a leftover from a crashed run is removed)."""
+        tmp = self.tmp_dir(stage, scope_id, key)
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir(parents=True)
+        return tmp
+
+    def commit(self, stage: str, scope_id: str, key: str, record: dict[str, Any],
+               stats: dict[str, Any], seconds: float) -> Path:
+        """Write the success record into the temporary folder and rename it into place."""
+        tmp = self.tmp_dir(stage, scope_id, key)
+        final = self.final_dir(stage, scope_id, key)
+        success = {"stage": stage, "scope_id": scope_id, "key": key, "record": record, "stats": stats,
+                   "seconds": seconds, "committed_at": time.time()}
+        (tmp / SUCCESS).write_text(json.dumps(success, indent=1, sort_keys=True))
+        if final.exists():  # forced rerun of the same key: swap, then drop the old copy
+            old = final.with_name(f".old-{short(key)}-{os.getpid()}")
+            os.rename(final, old)
+            os.rename(tmp, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, final)
+        latest = final.parent / "latest.json"
+        latest_tmp = final.parent / f".latest.{os.getpid()}.tmp"
+        latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
+        os.replace(latest_tmp, latest)
+        return final
+
+    def discard(self, stage: str, scope_id: str, key: str) -> None:
+        shutil.rmtree(self.tmp_dir(stage, scope_id, key), ignore_errors=True)
