@@ -1,0 +1,30 @@
+"""The release manifests: the only code in the project that reads or writes Parquet.
+
+- :mod:`manifests.schemas`: explicit Arrow schemas of the tables (actions, frames, assets, metrics,
+  stage_runs), a description per column in the field metadata.
+- :mod:`manifests.writer`: validated, atomic writes (:func:`write_table`, :func:`append_rows`) and
+  asset rows (:func:`asset_row`, :func:`file_sha256`).
+- :mod:`manifests.consumer`: :func:`open_release` (tables as Arrow/pandas, lazy asset loading) and
+  :func:`verify_release` (re-hash every asset).
+"""
+from manifests.consumer import ActionView, Release, ReleaseError, VerifyReport, open_release, verify_release
+from manifests.schemas import PRIMARY_KEYS, SCHEMAS, TABLE_SPECS
+from manifests.writer import append_rows, asset_row, file_sha256, read_manifest, validate_rows, write_table
+
+__all__ = [
+    "ActionView",
+    "PRIMARY_KEYS",
+    "Release",
+    "ReleaseError",
+    "SCHEMAS",
+    "TABLE_SPECS",
+    "VerifyReport",
+    "append_rows",
+    "asset_row",
+    "file_sha256",
+    "open_release",
+    "read_manifest",
+    "validate_rows",
+    "verify_release",
+    "write_table",
+]

@@ -1,0 +1,269 @@
+"""Explicit Arrow schemas of the release manifests (``RELEASE/manifests/<table>.parquet``).
+
+Every table is declared once here as a list of :class:`Column` specs; the Arrow schemas in
+:data:`SCHEMAS` are built from them, with each column's description in the Arrow field metadata
+(key ``description``) and the table's description, name and schema version in the schema metadata,
+so a Parquet file explains itself to any reader (pyarrow, pandas, polars, DuckDB, Spark).
+
+Each table also has a primary key (:data:`PRIMARY_KEYS`): no two rows of a table share it, rows are
+stored sorted by it (so the same content always gives the same file), and :func:`manifests.append_rows`
+upserts on it by default.
+
+Conventions used by all tables: paths are relative posix paths (``a/b/c.exr``, never absolute, never
+``..``); camera ids are 5-digit strings (``"00000"``); floats are finite (no NaN, no Inf); timestamps
+are UTC.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import pyarrow as pa
+
+SCHEMA_VERSION = "1"
+"""Bumped whenever a column is added, removed or changes meaning."""
+
+ILLUMINATIONS = ("full_on", "pos", "neg")
+CAMERA_ID_PATTERN = re.compile(r"^[0-9]{5}$")
+SHA256_PATTERN = re.compile(r"^[0-9a-f]{64}$")
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of a manifest table."""
+
+    name: str
+    """Column name, snake_case."""
+    type: pa.DataType
+    """Arrow type of the column."""
+    description: str
+    """What the column holds, with its unit; copied into the Arrow field metadata."""
+    nullable: bool = False
+    """Whether the column may hold null (a row may also omit a nullable column)."""
+    choices: tuple[str, ...] | None = None
+    """For string columns: the only allowed values (None: any string)."""
+    pattern: re.Pattern | None = None
+    """For string columns: a regular expression every non-null value must match in full."""
+    min_value: float | None = None
+    """For numeric columns: the smallest allowed value."""
+    relative_path: bool = False
+    """For string columns: values are relative posix paths (no leading '/', no '..', no backslash)."""
+    json: bool = False
+    """For string columns: values are JSON documents."""
+
+    def field(self) -> pa.Field:
+        """The Arrow field, with the description (and allowed values) in its metadata."""
+        meta = {"description": self.description}
+        if self.choices is not None:
+            meta["allowed_values"] = "|".join(self.choices)
+        return pa.field(self.name, self.type, nullable=self.nullable, metadata=meta)
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """A manifest table: its columns, primary key and description."""
+
+    name: str
+    description: str
+    columns: tuple[Column, ...]
+    primary_key: tuple[str, ...]
+
+    def schema(self) -> pa.Schema:
+        """The Arrow schema with table-level metadata."""
+        return pa.schema(
+            [c.field() for c in self.columns],
+            metadata={
+                "description": self.description,
+                "ultrastage.table": self.name,
+                "ultrastage.schema_version": SCHEMA_VERSION,
+                "ultrastage.primary_key": ",".join(self.primary_key),
+            },
+        )
+
+    def column(self, name: str) -> Column:
+        for c in self.columns:
+            if c.name == name:
+                return c
+        raise KeyError(f"table {self.name!r} has no column {name!r}")
+
+
+_STR = pa.string()
+_I32 = pa.int32()
+_I64 = pa.int64()
+_F64 = pa.float64()
+_TS = pa.timestamp("us", tz="UTC")
+
+
+def _action_id(nullable: bool = False, extra: str = "") -> Column:
+    return Column("action_id", _STR, "Action id (one pose of one subject), as in capture.json." + extra,
+                  nullable=nullable)
+
+
+def _camera_id(nullable: bool = False, extra: str = "") -> Column:
+    return Column("camera_id", _STR, "Camera id, a 5-digit string such as '00000'." + extra,
+                  nullable=nullable, pattern=CAMERA_ID_PATTERN)
+
+
+ACTIONS = TableSpec(
+    name="actions",
+    description="One row per action of the capture: its outcome in this release and the size of its maps.",
+    primary_key=("action_id",),
+    columns=(
+        _action_id(),
+        Column("session_id", _STR, "Capture session the action belongs to (its calibration), as in capture.json."),
+        Column("subject", _STR, "Subject of the action, as in capture.json (e.g. 'makehuman/young_lightskinned_female')."),
+        Column("status", _STR, "'ok' when every stage of the action succeeded, else 'failed'.",
+               choices=("ok", "failed")),
+        Column("error", _STR, "Null when status is 'ok'; otherwise the file at fault and the reason "
+               "('<path>: <reason>').", nullable=True),
+        Column("n_cameras", _I32, "Number of cameras of the action.", min_value=0),
+        Column("width", _I32, "Width in pixels of the action's maps (normal_alpha, albedo, mask, images); "
+               "null when the action failed before it was known.", nullable=True, min_value=0),
+        Column("height", _I32, "Height in pixels of the action's maps; null when the action failed before "
+               "it was known.", nullable=True, min_value=0),
+        Column("stages_run", _I32, "Number of stage tasks of this action that ran in the run that wrote "
+               "this row.", min_value=0),
+        Column("stages_cached", _I32, "Number of stage tasks of this action resolved from the cache "
+               "(same cache key, not run again).", min_value=0),
+        Column("seconds", _F64, "Wall-clock seconds spent on the action's stage tasks in that run.",
+               min_value=0.0),
+    ),
+)
+
+FRAMES = TableSpec(
+    name="frames",
+    description="One row per raw input frame (action x camera x illumination) with its content digest.",
+    primary_key=("action_id", "camera_id", "illumination"),
+    columns=(
+        _action_id(),
+        _camera_id(),
+        Column("illumination", _STR, "Illumination of the frame: 'full_on' (all LEDs white), "
+               "'pos' (gradient g+) or 'neg' (gradient g-).", choices=ILLUMINATIONS),
+        Column("raw_path", _STR, "Path of the raw file relative to the capture root (posix, e.g. "
+               "'actions/A0000/pos/00003.dng'); null when the frame is missing.",
+               nullable=True, relative_path=True),
+        Column("raw_bytes", _I64, "Size of the raw file in bytes; null when missing.", nullable=True,
+               min_value=0),
+        Column("raw_sha256", _STR, "SHA-256 of the raw file, lowercase hex; null when missing.",
+               nullable=True, pattern=SHA256_PATTERN),
+        Column("exposure_s", _F64, "Exposure time in seconds; null when unknown.", nullable=True,
+               min_value=0.0),
+        Column("width", _I32, "Width in pixels of the raw frame as decoded; null when unknown.",
+               nullable=True, min_value=0),
+        Column("height", _I32, "Height in pixels of the raw frame as decoded; null when unknown.",
+               nullable=True, min_value=0),
+        Column("status", _STR, "'ok' (decoded and usable), 'failed' (present but unusable: corrupt, "
+               "wrong size, black, saturated) or 'missing' (no file).",
+               choices=("ok", "failed", "missing")),
+        Column("error", _STR, "Null when status is 'ok'; otherwise the file at fault and the reason.",
+               nullable=True),
+    ),
+)
+
+ASSETS = TableSpec(
+    name="assets",
+    description="One row per file of the release (maps, previews, transforms, meshes, ...) with its size "
+                "and SHA-256, so the release can be verified (`ultrastage verify`) and loaded lazily.",
+    primary_key=("path",),
+    columns=(
+        _action_id(nullable=True, extra=" Null for release-level assets."),
+        _camera_id(nullable=True, extra=" Null for assets that are not per camera (transforms.json, "
+                   "previews of several cameras, release-level files)."),
+        Column("kind", _STR, "What the file is: 'full_on', 'pos', 'neg' (decoded linear sRGB RGB "
+               "half-float EXR), 'mask' (uint8 0/255 PNG), 'normal_alpha' (RGBA EXR: world normal xyz + "
+               "validity alpha), 'albedo' (RGB EXR), 'preview' (PNG), 'transforms' (JSON), ..."),
+        Column("path", _STR, "Path of the file relative to the release root (posix).", relative_path=True),
+        Column("bytes", _I64, "Size of the file in bytes.", min_value=0),
+        Column("sha256", _STR, "SHA-256 of the file, lowercase hex.", pattern=SHA256_PATTERN),
+        Column("media_type", _STR, "Media type from the file extension, e.g. 'image/x-exr', 'image/png', "
+               "'application/json'."),
+    ),
+)
+
+METRICS = TableSpec(
+    name="metrics",
+    description="Measured numbers (accuracy against ground truth, photometric statistics, ...), one value "
+                "per row, in long format.",
+    primary_key=("action_id", "camera_id", "metric", "region", "source"),
+    columns=(
+        _action_id(nullable=True, extra=" Null for release-level metrics."),
+        _camera_id(nullable=True, extra=" Null for metrics over all cameras of an action."),
+        Column("metric", _STR, "Metric name with its unit, e.g. 'normal_angular_error_mean_deg', "
+               "'albedo_psnr_db', 'valid_fraction'."),
+        Column("region", _STR, "Pixels the metric is taken over: 'valid' (alpha > 0.5), 'all' (subject "
+               "mask), 'occluded', 'unoccluded', ... ; '' when not applicable."),
+        Column("value", _F64, "The value (finite)."),
+        Column("source", _STR, "What produced the number, e.g. 'evaluate' (against ground truth), "
+               "'photometric' (a stage's own statistics)."),
+        Column("run_id", _STR, "Id of the run that measured it."),
+    ),
+)
+
+STAGE_RUNS = TableSpec(
+    name="stage_runs",
+    description="One row per stage task per run: ran, resolved from cache, failed or skipped; accumulated "
+                "over runs.",
+    primary_key=("run_id", "stage", "scope_id"),
+    columns=(
+        Column("run_id", _STR, "Id of the run (one `ultrastage run` invocation)."),
+        Column("stage", _STR, "Stage name."),
+        Column("version", _STR, "Stage version (part of the cache key), as a string."),
+        Column("scope", _STR, "'action' (one task per action) or 'session' (one per capture session).",
+               choices=("action", "session")),
+        Column("scope_id", _STR, "The action id or session id the task covered."),
+        Column("cache_key", _STR, "Hash of the stage's canonical input record (name, version, scope id, "
+               "output-changing config, upstream keys, raw input digests)."),
+        Column("status", _STR, "'ran', 'cached' (same key found, not run), 'failed' or 'skipped' "
+               "(not needed, or upstream failed).", choices=("ran", "cached", "failed", "skipped")),
+        Column("seconds", _F64, "Wall-clock seconds of the task (0 when cached or skipped).", min_value=0.0),
+        Column("error", _STR, "Null unless status is 'failed': the file at fault and the reason.",
+               nullable=True),
+        Column("started_at", _TS, "When the task started (UTC); null when it never started.", nullable=True),
+        Column("config_json", _STR, "The stage's resolved config as a JSON object.", json=True),
+    ),
+)
+
+TABLE_SPECS: dict[str, TableSpec] = {t.name: t for t in (ACTIONS, FRAMES, ASSETS, METRICS, STAGE_RUNS)}
+"""Every manifest table by name."""
+
+SCHEMAS: dict[str, pa.Schema] = {name: spec.schema() for name, spec in TABLE_SPECS.items()}
+"""Arrow schema of every manifest table by name."""
+
+PRIMARY_KEYS: dict[str, tuple[str, ...]] = {name: spec.primary_key for name, spec in TABLE_SPECS.items()}
+"""Primary-key columns of every manifest table by name."""
+
+MEDIA_TYPES: dict[str, str] = {
+    ".exr": "image/x-exr",
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".tif": "image/tiff",
+    ".tiff": "image/tiff",
+    ".json": "application/json",
+    ".yaml": "application/yaml",
+    ".yml": "application/yaml",
+    ".parquet": "application/vnd.apache.parquet",
+    ".ply": "application/ply",
+    ".obj": "model/obj",
+    ".mtl": "model/mtl",
+    ".txt": "text/plain",
+    ".md": "text/markdown",
+    ".csv": "text/csv",
+    ".npy": "application/x-npy",
+    ".npz": "application/x-npz",
+}
+"""Media type by lowercase file extension; anything else is 'application/octet-stream'."""
+
+
+def media_type(path: str) -> str:
+    """Media type of a file from its extension ('application/octet-stream' when unknown)."""
+    suffix = "." + path.rsplit(".", 1)[-1].lower() if "." in path.rsplit("/", 1)[-1] else ""
+    return MEDIA_TYPES.get(suffix, "application/octet-stream")
+
+
+def spec(name: str) -> TableSpec:
+    """The spec of a manifest table; ValueError naming the known tables for an unknown name."""
+    try:
+        return TABLE_SPECS[name]
+    except KeyError:
+        raise ValueError(f"unknown manifest table {name!r}; known tables: {', '.join(TABLE_SPECS)}") from None

@@ -1,0 +1,376 @@
+"""Writing the release manifests: validated rows in, atomically replaced Parquet files out.
+
+Every write validates the rows against the table's schema (:mod:`manifests.schemas`) before anything
+touches the disk, writes a temporary file in ``RELEASE/manifests/`` and renames it into place, so a
+reader never sees half a table and a crash leaves the previous table intact. Rows are stored sorted by
+the table's primary key, so the same content always gives the same file.
+
+Writers in one release are serialised with an advisory lock on the ``manifests/`` folder (POSIX
+``flock``), so :func:`append_rows` from two processes of one machine does not lose rows. Prefer writing
+manifests from the driver process anyway.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import uuid
+from collections import Counter
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from datetime import datetime, timezone
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from manifests.schemas import Column, TableSpec, media_type, spec
+
+MANIFEST_DIR = "manifests"
+"""Folder of the manifests inside a release."""
+
+_INT_RANGES = {pa.int32(): (-(2**31), 2**31 - 1), pa.int64(): (-(2**63), 2**63 - 1)}
+
+# Status values after which `error` must be null, and those for which it must be given.
+_STATUS_RULES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "actions": (("ok",), ("failed",)),
+    "frames": (("ok",), ("failed",)),
+    "stage_runs": (("ran", "cached"), ("failed",)),
+}
+
+
+def manifest_path(release_dir: str | Path, name: str) -> Path:
+    """Path of a table's Parquet file: ``RELEASE/manifests/<name>.parquet``."""
+    spec(name)
+    return Path(release_dir) / MANIFEST_DIR / f"{name}.parquet"
+
+
+# ----------------------------------------------------------------------------------------------------
+# validation
+
+
+def _fail(table: str, index: int, column: str, reason: str) -> ValueError:
+    return ValueError(f"{table} row {index}: column {column!r} {reason}")
+
+
+def _check_value(table: str, index: int, col: Column, value):
+    """The value converted for Arrow, or ValueError naming the table, row and column."""
+    if value is None:
+        if not col.nullable:
+            raise _fail(table, index, col.name, "is null but required")
+        return None
+    t = col.type
+    if pa.types.is_string(t):
+        if not isinstance(value, str):
+            raise _fail(table, index, col.name, f"must be a str, got {type(value).__name__} {value!r}")
+        if col.choices is not None and value not in col.choices:
+            raise _fail(table, index, col.name, f"is {value!r}, expected one of {list(col.choices)}")
+        if col.pattern is not None and not col.pattern.fullmatch(value):
+            raise _fail(table, index, col.name, f"is {value!r}, which does not match {col.pattern.pattern}")
+        if col.relative_path:
+            parts = PurePosixPath(value).parts
+            if not value or value.startswith("/") or "\\" in value or ".." in parts or ":" in value.split("/")[0]:
+                raise _fail(table, index, col.name, f"is {value!r}, expected a relative posix path")
+        if col.json:
+            try:
+                json.loads(value)
+            except ValueError as exc:
+                raise _fail(table, index, col.name, f"is not valid JSON ({exc})") from None
+        return value
+    if pa.types.is_integer(t):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise _fail(table, index, col.name, f"must be an int, got {type(value).__name__} {value!r}")
+        value = int(value)
+        lo, hi = _INT_RANGES[t]
+        if not lo <= value <= hi:
+            raise _fail(table, index, col.name, f"is {value}, out of range for {t}")
+    elif pa.types.is_floating(t):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise _fail(table, index, col.name, f"must be a number, got {type(value).__name__} {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise _fail(table, index, col.name, f"is {value} (NaN and Inf are not allowed)")
+    elif pa.types.is_timestamp(t):
+        if not isinstance(value, datetime):
+            raise _fail(table, index, col.name, f"must be a datetime, got {type(value).__name__} {value!r}")
+        if value.tzinfo is None or value.utcoffset() is None:
+            raise _fail(table, index, col.name, f"is a naive datetime ({value}); give it a timezone (UTC)")
+        return value.astimezone(timezone.utc)
+    else:  # pragma: no cover - every schema type is handled above
+        raise TypeError(f"unhandled Arrow type {t} of column {col.name}")
+    if col.min_value is not None and value < col.min_value:
+        raise _fail(table, index, col.name, f"is {value}, below the minimum {col.min_value}")
+    return value
+
+
+def _check_status(table: str, index: int, row: dict) -> None:
+    rules = _STATUS_RULES.get(table)
+    if rules is None:
+        return
+    no_error, needs_error = rules
+    status, error = row.get("status"), row.get("error")
+    if status in no_error and error is not None:
+        raise _fail(table, index, "error", f"must be null when status is {status!r}, got {error!r}")
+    if status in needs_error and not error:
+        raise _fail(table, index, "error", f"must name the file and reason when status is {status!r}")
+
+
+def _duplicates(table: str, keys: Sequence[str], columns: Mapping[str, Sequence]) -> None:
+    counts = Counter(zip(*(columns[k] for k in keys)))
+    dup = [k for k, n in counts.items() if n > 1]
+    if dup:
+        shown = ", ".join(str(dict(zip(keys, k))) for k in dup[:3])
+        more = f" (and {len(dup) - 3} more)" if len(dup) > 3 else ""
+        raise ValueError(f"{table}: duplicate key {tuple(keys)}: {shown}{more}")
+
+
+def _sorted(table: pa.Table, ts: TableSpec) -> pa.Table:
+    if table.num_rows < 2:
+        return table
+    return table.sort_by([(k, "ascending") for k in ts.primary_key])
+
+
+def validate_rows(name: str, rows: Iterable[Mapping]) -> pa.Table:
+    """Validate rows (dicts keyed by column name) against a table's schema and build the Arrow table.
+
+    Nullable columns may be omitted from a row (they become null). The result is sorted by the
+    table's primary key.
+
+    Raises:
+        ValueError: unknown table; a row that is not a dict; an unknown column or a missing required
+            one (named); a value of the wrong type, out of its allowed values, pattern or range; NaN or
+            Inf in a float column; a naive timestamp; an inconsistent status/error pair; two rows with
+            the same primary key.
+    """
+    ts = spec(name)
+    known = [c.name for c in ts.columns]
+    known_set = set(known)
+    columns: dict[str, list] = {c: [] for c in known}
+    for index, row in enumerate(rows):
+        if not isinstance(row, Mapping):
+            raise ValueError(f"{name} row {index}: expected a dict of column -> value, got {type(row).__name__}")
+        unknown = [k for k in row if k not in known_set]
+        if unknown:
+            raise ValueError(f"{name} row {index}: unknown column {unknown[0]!r} "
+                             f"(table {name} has columns {known})")
+        for col in ts.columns:
+            if col.name not in row and not col.nullable:
+                raise ValueError(f"{name} row {index}: missing required column {col.name!r}")
+            columns[col.name].append(_check_value(name, index, col, row.get(col.name)))
+        _check_status(name, index, row)
+    _duplicates(name, ts.primary_key, columns)
+    schema = ts.schema()
+    arrays = [pa.array(columns[c.name], type=c.type) for c in ts.columns]
+    return _sorted(pa.Table.from_arrays(arrays, schema=schema), ts)
+
+
+# ----------------------------------------------------------------------------------------------------
+# reading (shared with the consumer)
+
+
+def conform(table: pa.Table, name: str, source: str | Path = "") -> pa.Table:
+    """Cast a table read from disk to the current schema of ``name``.
+
+    Columns the file lacks become null when nullable; columns the schema does not know are kept after
+    the known ones (forward compatibility).
+
+    Raises:
+        ValueError: a required column is missing or cannot be cast (naming the file and column).
+    """
+    ts = spec(name)
+    where = f"{source}: " if source else f"{name}: "
+    arrays, fields = [], []
+    for col in ts.columns:
+        if col.name in table.column_names:
+            try:
+                arrays.append(table.column(col.name).cast(col.type))
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+                raise ValueError(f"{where}column {col.name!r} cannot be read as {col.type}: {exc}") from None
+        elif col.nullable:
+            arrays.append(pa.nulls(table.num_rows, col.type))
+        else:
+            raise ValueError(f"{where}required column {col.name!r} is missing")
+        fields.append(col.field())
+    for extra in table.schema:
+        if extra.name not in {c.name for c in ts.columns}:
+            arrays.append(table.column(extra.name))
+            fields.append(extra)
+    schema = pa.schema(fields, metadata=ts.schema().metadata)
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def read_manifest(release_dir: str | Path, name: str) -> pa.Table | None:
+    """The table ``RELEASE/manifests/<name>.parquet`` in the current schema, or None when absent."""
+    path = manifest_path(release_dir, name)
+    if not path.is_file():
+        return None
+    return conform(pq.read_table(path), name, path)
+
+
+# ----------------------------------------------------------------------------------------------------
+# writing
+
+
+@contextlib.contextmanager
+def _locked(directory: Path) -> Iterator[None]:
+    """Advisory exclusive lock on a folder (POSIX flock on the folder itself; no lock file left behind)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
+def _write_atomic(directory: Path, name: str, table: pa.Table) -> Path:
+    dest = directory / f"{name}.parquet"
+    tmp = directory / f".{name}.parquet.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    try:
+        with open(tmp, "wb") as fh:
+            pq.write_table(table, fh, compression="zstd")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, dest)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    with contextlib.suppress(OSError):  # make the rename durable where the platform allows it
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    return dest
+
+
+def write_table(release_dir: str | Path, name: str, rows: Iterable[Mapping]) -> Path:
+    """Validate ``rows`` and write them as ``RELEASE/manifests/<name>.parquet``, replacing the table.
+
+    The file is written under a temporary name in the same folder and renamed into place (atomic).
+    No rows give an empty table with the full schema.
+
+    Returns:
+        The path of the Parquet file.
+
+    Raises:
+        ValueError: see :func:`validate_rows`; nothing is written then.
+    """
+    table = validate_rows(name, rows)
+    directory = Path(release_dir) / MANIFEST_DIR
+    directory.mkdir(parents=True, exist_ok=True)
+    with _locked(directory):
+        return _write_atomic(directory, name, table)
+
+
+def append_rows(release_dir: str | Path, name: str, rows: Iterable[Mapping],
+                key_columns: Sequence[str] | None = None) -> Path:
+    """Upsert ``rows`` into a table: existing rows whose ``key_columns`` equal a new row's are replaced.
+
+    Reads the existing table (if any), drops the rows matched by the new ones, adds the new rows and
+    writes the result atomically, under the release's manifest lock. Null key values match null.
+
+    Args:
+        key_columns: columns that identify a row; default the table's primary key
+            (:data:`manifests.schemas.PRIMARY_KEYS`), e.g. ``(action_id, camera_id, metric, region,
+            source)`` for metrics and ``(run_id, stage, scope_id)`` for stage_runs.
+
+    Raises:
+        ValueError: an unknown key column, invalid rows (:func:`validate_rows`), new rows sharing a key,
+            or a result in which two rows share the primary key.
+    """
+    ts = spec(name)
+    keys = tuple(key_columns) if key_columns is not None else ts.primary_key
+    if not keys:
+        raise ValueError(f"{name}: key_columns must name at least one column")
+    known = {c.name for c in ts.columns}
+    for k in keys:
+        if k not in known:
+            raise ValueError(f"{name}: unknown key column {k!r}")
+    rows = list(rows)
+    new = validate_rows(name, rows)
+    new_keys_list = list(zip(*(new.column(k).to_pylist() for k in keys)))
+    _duplicates(name, keys, {k: new.column(k).to_pylist() for k in keys})
+    directory = Path(release_dir) / MANIFEST_DIR
+    directory.mkdir(parents=True, exist_ok=True)
+    with _locked(directory):
+        old = read_manifest(release_dir, name)
+        if old is None or old.num_rows == 0:
+            combined = new
+        else:
+            new_keys = set(new_keys_list)
+            old_keys = zip(*(old.column(k).to_pylist() for k in keys))
+            kept = old.filter(pa.array([k not in new_keys for k in old_keys], type=pa.bool_()))
+            kept = kept.select([c.name for c in ts.columns]).cast(new.schema)
+            combined = pa.concat_tables([kept, new])
+            _duplicates(name, ts.primary_key, {k: combined.column(k).to_pylist() for k in ts.primary_key})
+        return _write_atomic(directory, name, _sorted(combined, ts))
+
+
+# ----------------------------------------------------------------------------------------------------
+# asset rows
+
+
+def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
+    """SHA-256 of a file's content, lowercase hex, read ``chunk`` bytes at a time."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def release_relpath(release_dir: str | Path, path: str | Path) -> str:
+    """``path`` (absolute, or relative to the release root) as a posix path relative to the release root.
+
+    Raises:
+        ValueError: the path lies outside the release.
+    """
+    root = Path(os.path.abspath(release_dir))
+    p = Path(path)
+    full = Path(os.path.abspath(p if p.is_absolute() else root / p))
+    try:
+        rel = full.relative_to(root)
+    except ValueError:
+        try:  # the same places spelled through symlinks (e.g. /tmp vs /private/tmp)
+            rel = Path(os.path.realpath(full)).relative_to(os.path.realpath(root))
+        except ValueError:
+            raise ValueError(f"{path}: not inside the release {release_dir}") from None
+    if rel == Path("."):
+        raise ValueError(f"{path}: is the release root, not a file in it")
+    return rel.as_posix()
+
+
+def asset_row(release_dir: str | Path, path: str | Path, kind: str,
+              action_id: str | None = None, camera_id: str | None = None) -> dict:
+    """The ``assets`` row of a file of the release: relative path, bytes, sha256 and media type.
+
+    Args:
+        release_dir: the release root.
+        path: the file, absolute or relative to the release root.
+        kind: what the file is ('normal_alpha', 'mask', 'preview', 'transforms', ...).
+
+    Raises:
+        ValueError: the path lies outside the release.
+        FileNotFoundError: the file does not exist.
+    """
+    rel = release_relpath(release_dir, path)
+    full = Path(release_dir) / rel
+    if not full.is_file():
+        raise FileNotFoundError(f"{full}: asset file not found (kind {kind!r}, action {action_id}, "
+                                f"camera {camera_id})")
+    return {
+        "action_id": action_id,
+        "camera_id": camera_id,
+        "kind": kind,
+        "path": rel,
+        "bytes": full.stat().st_size,
+        "sha256": file_sha256(full),
+        "media_type": media_type(rel),
+    }
