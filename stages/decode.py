@@ -95,6 +95,7 @@ class DecodeStage(Stage):
             stats[f"{illum}_mean"] = float(frame.rgb.mean())
             stats[f"{illum}_clipped_fraction"] = float(frame.clipped.mean())
         write_png(ctx.out_dir / "clipped" / f"{view}.png", clipped)
+        stats["height"], stats["width"] = int(shape[0]), int(shape[1])
         return stats
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:

@@ -1,0 +1,267 @@
+"""One pipeline run: plan, execute, publish complete actions into the release, write the manifests.
+
+This module is the engine's "action" layer (OpenSfM style): it knows the stage contract, the store and
+the release layout, but nothing about what the stages compute.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import secrets
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.capture import Capture, open_capture
+from pipeline.config import Documented, dump_yaml
+from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of, execute, make_plan
+from pipeline.hashing import DigestCache
+from pipeline.stage import Stage
+from pipeline.store import ArtifactStore
+
+log = logging.getLogger("ultrastage.run")
+CONVENTIONS = Path(__file__).with_name("conventions.md")
+
+
+@dataclass(frozen=True)
+class ExecutionConfig(Documented):
+    scheduler: str = "local"
+    """"local" (a dask.distributed cluster on this machine), "sync" (in this process), or the address
+    of an existing dask scheduler (e.g. tcp://10.0.0.5:8786)."""
+    workers: int = 0
+    """Worker processes of the local cluster; 0 = one per CPU core (at most 8)."""
+    memory_limit: str = "auto"
+    """Memory limit per local worker (dask syntax, e.g. "4GiB")."""
+
+    not_in_key = ("scheduler", "workers", "memory_limit")
+
+
+@dataclass
+class RunResult:
+    run_id: str
+    plan: Plan
+    action_status: dict[str, str]
+    action_errors: dict[str, str]
+    published: list[str]
+    seconds: float
+    executor: str
+    metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def new_run_id() -> str:
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + secrets.token_hex(3)
+
+
+def make_executor(cfg: ExecutionConfig) -> Any:
+    if cfg.scheduler == "sync":
+        return SyncExecutor()
+    if cfg.scheduler == "local":
+        return DaskExecutor(workers=cfg.workers, memory_limit=cfg.memory_limit)
+    return DaskExecutor(address=cfg.scheduler)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _swap_into_place(tmp: Path, final: Path) -> None:
+    if final.exists():
+        old = final.with_name(f".old-{final.name}-{os.getpid()}")
+        os.rename(final, old)
+        os.rename(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(tmp, final)
+
+
+def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task],
+                   echo: Callable[[str], None]) -> list[dict[str, Any]]:
+    """Hard-link an action's release files from the store into ``release/actions/<id>`` atomically.
+
+    Skipped when the same stage keys were already published (one log line says so). Returns the asset
+    rows (path, bytes, sha256) of the action, hashed once at publish time.
+    """
+    from manifests import asset_row
+
+    keys = {t.stage.name: t.key for t in tasks}
+    record_path = work / "published" / f"{action_id}.json"
+    final = release / "actions" / action_id
+    if record_path.exists() and final.is_dir():
+        record = json.loads(record_path.read_text())
+        if record.get("keys") == keys:
+            echo(f"{'release':<12} {action_id:<8} cached  same stage keys already published")
+            return record["assets"]
+    tmp = release / "actions" / f".tmp-{action_id}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    entries = []
+    for task in tasks:
+        if not hasattr(task.stage, "release_files"):
+            continue
+        artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
+        for src, rel, kind, camera in task.stage.release_files(artifact):
+            _link_or_copy(src, tmp / rel)
+            entries.append((rel, kind, camera))
+    rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera) for rel, kind, camera in entries]
+    prefix = f"actions/.tmp-{action_id}/"
+    for row in rows:  # rows were hashed in the temporary folder; record their final paths
+        row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
+    _swap_into_place(tmp, final)
+    record_path.parent.mkdir(parents=True, exist_ok=True)
+    record_path.write_text(json.dumps({"keys": keys, "assets": rows}))
+    echo(f"{'release':<12} {action_id:<8} written {len(rows)} files")
+    return rows
+
+
+def unpublish_action(release: Path, work: Path, action_id: str) -> bool:
+    """Remove a failed action from the release (nothing of a failed action may appear there)."""
+    (work / "published" / f"{action_id}.json").unlink(missing_ok=True)
+    final = release / "actions" / action_id
+    if final.exists():
+        shutil.rmtree(final)
+        return True
+    return False
+
+
+def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
+                 execution: ExecutionConfig, only: str | None = None, from_stage: str | None = None,
+                 actions: Sequence[str] | None = None, echo: Callable[[str], None] = print,
+                 progress: Callable[[Task, dict, int, int], None] | None = None) -> RunResult:
+    """Run the DAG over a capture and publish the release. ``config`` is saved beside the run."""
+    start = time.perf_counter()
+    capture = open_capture(capture_dir)
+    release.mkdir(parents=True, exist_ok=True)
+    work.mkdir(parents=True, exist_ok=True)
+    store = ArtifactStore(work / "artifacts")
+    digests = DigestCache(work / "digests.json")
+    run_id = new_run_id()
+    names = {s.name for s in stages}
+    for flag, name in (("--only", only), ("--from", from_stage)):
+        if name and name not in names:
+            raise ValueError(f"{flag} {name}: no such stage; stages are {sorted(names)}")
+    force = {only} if only else (downstream_of(stages, from_stage) if from_stage else set())
+
+    echo(f"run {run_id}: capture {capture_dir} -> release {release}")
+    plan = make_plan(capture, stages, store, digests, actions=actions, force=force, echo=echo)
+    digests.save()
+    executor_name = "none (everything cached)"
+    if plan.to_run():
+        executor = make_executor(execution)
+        executor_name = executor.name
+        echo(f"executing {len(plan.to_run())} stage task(s) on {executor_name}")
+        try:
+            execute(plan, capture, executor, on_done=progress)
+        finally:
+            executor.close()
+    else:
+        for task in plan.tasks:
+            if task.status == "cached":
+                task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})
+
+    action_status, action_errors, published = {}, {}, []
+    asset_rows: list[dict[str, Any]] = []
+    wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
+    for action_id in wanted:
+        session_id = capture.action(action_id).session_id
+        tasks = [t for t in plan.tasks if t.scope_id in (action_id, session_id)]
+        bad = [t for t in tasks if t.status not in ("ran", "cached")]
+        if bad:
+            first = next((t for t in bad if t.status == "failed"), bad[0])
+            action_status[action_id] = "failed"
+            action_errors[action_id] = f"{first.stage.name}: {first.error}"
+            if unpublish_action(release, work, action_id):
+                echo(f"{'release':<12} {action_id:<8} removed (action failed)")
+            continue
+        action_status[action_id] = "ok"
+        asset_rows += publish_action(release, work, store, action_id, tasks, echo)
+        published.append(action_id)
+
+    _write_release_docs(release, config, capture)
+    _write_manifests(release, work, capture, plan, run_id, action_status, action_errors, asset_rows, config)
+    (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
+    (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
+    return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
+                     executor_name)
+
+
+def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
+    shutil.copyfile(CONVENTIONS, release / "CONVENTIONS.md")
+    (release / "config.yaml").write_text(dump_yaml(config))
+    sim = capture.meta.get("simulator")
+    lines = ["# Datasheet", "",
+             f"- Capture: `{capture.root.name}` ({len(capture.actions)} actions, "
+             f"{len(capture.sessions)} session(s), {len(next(iter(capture.sessions.values())).camera_ids)} cameras).",
+             f"- Origin: {'synthetic, rendered by the UltraStage simulator' if sim else 'light-stage capture'}.",
+             "- Contents: decoded linear images (full_on, pos, neg), world-space normals with validity alpha, "
+             "albedo from the white image, foreground masks, cameras (transforms.json).",
+             "- Known biases: photometric normals are biased where the lit hemisphere is occluded (armpits, "
+             "between limbs); the white-light albedo still contains ambient occlusion; see metrics.parquet.",
+             "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
+    (release / "DATASHEET.md").write_text("\n".join(lines))
+
+
+def _write_manifests(release: Path, work: Path, capture: Capture, plan: Plan, run_id: str,
+                     action_status: dict[str, str], action_errors: dict[str, str],
+                     asset_rows: list[dict[str, Any]], config: Any) -> None:
+    from manifests import append_rows, asset_row, write_table
+
+    digests = DigestCache(work / "digests.json")
+    action_rows, frame_rows, metric_rows = [], [], []
+    for action_id, status in action_status.items():
+        info = capture.action(action_id)
+        session = capture.sessions[info.session_id]
+        tasks = [t for t in plan.tasks if t.scope_id == action_id]
+        decode = next((t for t in tasks if t.stage.name == "decode"), None)
+        views = (decode.stats.get("views", {}) if decode else {}) or {}
+        first_view = next(iter(views.values()), {})
+        cams = session.rig["cameras"]
+        action_rows.append({
+            "action_id": action_id, "session_id": info.session_id, "subject": info.subject, "status": status,
+            "error": action_errors.get(action_id), "n_cameras": len(cams),
+            "width": int(first_view.get("width", cams[0]["width"])),
+            "height": int(first_view.get("height", cams[0]["height"])),
+            "stages_run": sum(t.status == "ran" for t in tasks), "stages_cached": sum(t.status == "cached" for t in tasks),
+            "seconds": float(sum(t.seconds for t in tasks))})
+        error = action_errors.get(action_id, "")
+        for illum in capture.illuminations:
+            for cam in cams:
+                path = capture.raw_path(action_id, illum, cam["camera_id"])
+                row = {"action_id": action_id, "camera_id": cam["camera_id"], "illumination": illum,
+                       "raw_path": None, "raw_bytes": None, "raw_sha256": None,
+                       "exposure_s": cam.get("exposure_s"), "width": cam["width"], "height": cam["height"],
+                       "status": "missing", "error": f"no raw file for camera {cam['camera_id']} under '{illum}'"}
+                if path is not None:
+                    d = digests.digest(path)
+                    failed_here = status == "failed" and str(path) in error
+                    row |= {"raw_path": path.relative_to(capture.root).as_posix(), "raw_bytes": d["bytes"],
+                            "raw_sha256": d["sha256"], "status": "failed" if failed_here else "ok",
+                            "error": error if failed_here else None}
+                frame_rows.append(row)
+        for task in tasks:
+            for cam, stats in (task.stats.get("views", {}) or {}).items():
+                for metric, value in (stats or {}).items():
+                    if isinstance(value, (int, float)) and not isinstance(value, bool):
+                        metric_rows.append({"action_id": action_id, "camera_id": cam, "metric": metric,
+                                            "region": "", "value": float(value), "source": task.stage.name,
+                                            "run_id": run_id})
+    stage_rows = [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
+                   "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
+                   "seconds": float(t.seconds), "error": t.error,
+                   "started_at": None, "config_json": json.dumps(t.record["config"], sort_keys=True)}
+                  for t in plan.tasks]
+    for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml"):
+        asset_rows.append(asset_row(release, release / name, "document"))
+    write_table(release, "actions", action_rows)
+    write_table(release, "frames", frame_rows)
+    write_table(release, "assets", asset_rows)
+    append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
+    if metric_rows:
+        append_rows(release, "metrics", metric_rows, ["action_id", "camera_id", "metric", "region", "source"])
