@@ -1,0 +1,87 @@
+"""Action stage ``photometric``: normals (eq. 1), validity alpha, albedo and mask, one task per camera.
+
+Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.image import preview_linear, preview_normals, read_png, write_png
+from pipeline.config import Documented
+from pipeline.stage import Stage, StageContext
+from stages.cameras import load_cameras
+from stages.numerics.photometric import PhotometricParams, photometric_maps
+
+
+@dataclass(frozen=True)
+class PhotometricConfig(Documented):
+    params: PhotometricParams = field(default_factory=PhotometricParams)
+    """Thresholds of the validity alpha and the mask (see PhotometricParams)."""
+    use_clean_plate: bool = True
+    """Segment the foreground against the session's clean plate when one exists (else a threshold)."""
+    previews: bool = True
+    """Write PNG previews (normals, albedo, mask) and a contact sheet per action."""
+
+
+def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
+    """Tile equally sized uint8 (H, W, 3) pictures into one (rows*H, columns*W, 3) picture."""
+    h, w = pictures[0].shape[:2]
+    rows = -(-len(pictures) // columns)
+    sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
+    for i, pic in enumerate(pictures):
+        r, c = divmod(i, columns)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = pic[..., :3]
+    return sheet
+
+
+class PhotometricStage(Stage):
+    name = "photometric"
+    version = "1"
+    scope = "action"
+    requires = ("decode", "plates")
+    outputs = ("normal_alpha", "albedo", "mask", "previews")
+    per_view = True
+
+    def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
+        decoded = ctx.upstream["decode"]
+        cam = load_cameras(decoded / "cameras.json")[view]
+        full_on = read_exr(decoded / "full_on" / f"{view}.exr")
+        pos = read_exr(decoded / "pos" / f"{view}.exr")
+        neg = read_exr(decoded / "neg" / f"{view}.exr")
+        clipped = read_png(decoded / "clipped" / f"{view}.png") > 0
+        plate_path = ctx.upstream["plates"] / "plates" / f"{view}.exr"
+        background = read_exr(plate_path) if self.config.use_clean_plate and plate_path.exists() else None
+        maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam["white_reference"], np.float32),
+                                background=background, params=self.config.params)
+        out = ctx.out_dir
+        write_exr(out / "normal_alpha" / f"{view}.exr", np.concatenate([maps.normals, maps.alpha[..., None]], -1))
+        write_exr(out / "albedo" / f"{view}.exr", maps.albedo)
+        write_png(out / "mask" / f"{view}.png", maps.mask)
+        if self.config.previews:
+            write_png(out / "previews" / f"normal_{view}.png", preview_normals(maps.normals, maps.alpha))
+            write_png(out / "previews" / f"albedo_{view}.png", preview_linear(maps.albedo, exposure=1.0))
+        mask = maps.mask
+        valid = (maps.alpha > 0.5) & mask
+        return {"mask_fraction": float(mask.mean()),
+                "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
+                "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,
+                "plate": background is not None}
+
+    def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        if self.config.previews:
+            pics = [read_png(ctx.out_dir / "previews" / f"normal_{v}.png") for v in sorted(view_stats)]
+            write_png(ctx.out_dir / "previews" / "normals_sheet.png", contact_sheet(pics))
+        fractions = [s["valid_fraction"] for s in view_stats.values()]
+        return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        files = []
+        for slot, ext in (("normal_alpha", "exr"), ("albedo", "exr"), ("mask", "png")):
+            files += [(p, f"{slot}/{p.name}", slot, p.stem) for p in sorted((artifact / slot).glob(f"*.{ext}"))]
+        files += [(p, f"previews/{p.name}", "preview", None) for p in sorted((artifact / "previews").glob("*sheet*.png"))]
+        return files
