@@ -134,8 +134,9 @@ def load_overrides(path: str | Path) -> dict[str, Any]:
 
 
 def dump_yaml(config: Any) -> str:
-    """The resolved config as YAML, saved beside each run."""
-    return yaml.safe_dump(json.loads(json.dumps(to_dict(config))), sort_keys=True)
+    """The resolved config (a config dataclass or a plain dict) as YAML, saved beside each run."""
+    data = to_dict(config) if dataclasses.is_dataclass(config) else config
+    return yaml.safe_dump(json.loads(json.dumps(data)), sort_keys=True)
 
 
 class Documented:

@@ -236,6 +236,11 @@ def run_view_task(stage: Stage, ctx: StageContext, view: str, *upstream: dict[st
 def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
                 *parts: dict[str, Any]) -> dict[str, Any]:
     """Finalize a per-view stage, or run a whole-scope stage, then commit its folder (runs on a worker)."""
+    if not stage.per_view:  # its parts are upstream results: a failure there means "not run"
+        skipped = _upstream_failed(parts)
+        if skipped:
+            store.discard(ctx.stage, ctx.scope_id, key)
+            return skipped
     start = time.perf_counter()
     view_seconds = sum(p.get("seconds", 0.0) for p in parts if "view" in p)
     try:

@@ -1,0 +1,41 @@
+# UltraStage pipeline. `make dataset` and `make test` work on a fresh machine: `setup` installs everything.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+RUN ?= runs/default
+ARGS ?=
+
+.PHONY: setup dataset test bench lint clean-runs
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml requirements.lock
+	@# open3d needs libusb-1.0 at import time (a Debian package).
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
+	  else echo "setup: libusb-1.0-0 is missing; install it (sudo apt-get install libusb-1.0-0)" >&2; exit 1; fi; fi
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements.lock
+	$(PY) -m pip install -q --no-deps -e .
+	touch $(STAMP)
+
+# Simulate the embedded default capture (skipped when it is already there with the same settings),
+# run the whole DAG, publish the release and print the summary with accuracy against ground truth.
+dataset: setup
+	$(VENV)/bin/ultrastage simulate --out $(RUN)/capture
+	$(VENV)/bin/ultrastage run --capture $(RUN)/capture --release $(RUN)/release $(ARGS)
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(PY) bench/run_all.py --out bench/out
+
+lint: setup
+	$(PY) -m compileall -q pipeline stages manifests calibration synthetic
+
+clean-runs:
+	rm -rf runs
