@@ -1,0 +1,666 @@
+"""Photometric maps from the three light-stage illuminations: normals (seed paper eq. 1), alpha, albedo, mask.
+
+Pure functions, arrays in and arrays out. Conventions (docs/CONTRACTS.md): images are float32 linear sRGB
+``(H, W, 3)``; under the gradient ``pos`` (g+) the red, green and blue LEDs at direction ``w`` shine
+``(1 + w_x)/2, (1 + w_y)/2, (1 + w_z)/2`` and ``neg`` (g-) the complement, so per channel
+
+    d = (g+ - g-) / (g+ + g-),    n = d / |d|                (R -> x, G -> y, B -> z, stage frame)
+
+and ``|d| = 2/3`` for an ideal unoccluded Lambertian point. Occlusion, specular reflection, noise,
+saturation and dark pixels break the ratio; :func:`normal_alpha` turns those into a continuous
+confidence in ``[0, 1]`` ("valid" means ``alpha > 0.5``). No output ever holds NaN or Inf, whatever the
+input (zeros, negative values, NaN, Inf).
+
+The per-pixel work is one fused pass over blocks of rows that fit in cache, writing into preallocated
+outputs (no chain of full-size temporaries), shared by a few threads, so it runs near memory bandwidth
+(bench/bench_photometric.py measures it against a plain copy of the same bytes). The thread count
+defaults to the CPUs available (at most 8); set ``ULTRASTAGE_NUMERIC_THREADS`` (or ``threads=``) when
+several worker processes share a machine. The mask (:func:`foreground_mask`) is separate: a per-pixel
+threshold (numexpr) and morphology on the bool image (scipy.ndimage).
+"""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Sequence
+
+import numexpr as ne
+import numpy as np
+from scipy import ndimage
+
+__all__ = [
+    "PhotometricParams",
+    "PhotometricMaps",
+    "IDEAL_RATIO_NORM",
+    "gradient_normals",
+    "normal_alpha",
+    "albedo_from_white",
+    "foreground_mask",
+    "photometric_maps",
+]
+
+#: ``|d|`` of an ideal, unoccluded Lambertian point under the LED gradients.
+IDEAL_RATIO_NORM = 2.0 / 3.0
+
+_BIG = np.float32(1e30)  # sums above this (Inf) count as undefined
+_TINY = np.float32(1e-12)
+_LUMA = (0.2126, 0.7152, 0.0722)  # Rec. 709 luminance weights (linear sRGB)
+
+
+@dataclass(frozen=True)
+class PhotometricParams:
+    """Thresholds of the photometric maps. Every term of the alpha is 0.5 exactly at its threshold."""
+
+    eps: float = 1e-6
+    """Smallest ``g+ + g-`` (per channel, decoded linear units) for which the ratio is computed; below it
+    the channel's ratio is 0 (and the normal 0 if all three are)."""
+    min_signal: float = 0.03
+    """Low-signal threshold relative to ``white_reference``: the darkest channel of ``full_on`` must reach
+    this fraction of the white reference (an albedo-times-visibility of 3%) for alpha > 0.5."""
+    min_signal_abs: float = 0.002
+    """Absolute floor of the low-signal threshold in decoded linear units (guards against a tiny
+    ``white_reference``): the threshold per channel is ``max(min_signal * white_reference, min_signal_abs)``."""
+    signal_softness: float = 1.0
+    """Width of the low-signal ramp as a multiple of the threshold: alpha's signal term goes smoothly from 0
+    at ``(1 - s/2)`` times the threshold to 1 at ``(1 + s/2)`` times it."""
+    ratio_min: float = 0.3
+    """Smallest plausible ``|d|`` (ideal 2/3): below it the point is heavily occluded or the ratio is noise."""
+    ratio_max: float = 1.05
+    """Largest plausible ``|d|``: above it the ratio is dominated by specular reflection or a bad exposure."""
+    ratio_softness: float = 0.1
+    """Width of the smooth ramps at ``ratio_min`` and ``ratio_max`` (in units of ``|d|``)."""
+    albedo_max: float = 4.0
+    """Albedo values are clipped to ``[0, albedo_max]`` (specular highlights can exceed 1)."""
+    plate_brighter: float = 0.15
+    """With a clean plate: a pixel is foreground where some channel exceeds the plate by this fraction of the
+    plate's value (plus the noise term)."""
+    plate_darker: float = 0.5
+    """With a clean plate: ... or falls below the plate by this fraction (larger than ``plate_brighter``
+    because the subject's occlusion of the LEDs darkens the background around it)."""
+    plate_noise_sigmas: float = 4.0
+    """With a clean plate: noise term of the threshold, in standard deviations of the frame-minus-plate
+    difference (estimated robustly, per channel, from the median absolute difference)."""
+    plate_min_diff: float = 0.002
+    """With a clean plate: absolute floor of the difference threshold (decoded linear units)."""
+    no_plate_threshold: float = 0.15
+    """Without a plate: foreground where luminance exceeds this fraction of the image's 99.5th percentile
+    luminance (the stage background is dim, 2-5% grey)."""
+    open_radius: float = 0.002
+    """Morphological opening radius (removes specks), as a fraction of min(H, W); at least 1 pixel, 0 = off."""
+    close_radius: float = 0.004
+    """Morphological closing radius (bridges cracks), as a fraction of min(H, W); at least 1 pixel, 0 = off."""
+    max_hole: float = 0.002
+    """Background holes enclosed by the foreground and smaller than this fraction of the image are filled
+    (dark eyes, nostrils); larger enclosed regions (gaps between arm and body) stay background."""
+    min_component: float = 0.0002
+    """Foreground components smaller than this fraction of the image (or than 1% of the largest component)
+    are dropped."""
+
+
+@dataclass(frozen=True, eq=False)
+class PhotometricMaps:
+    """Outputs of :func:`photometric_maps`, all ``(H, W[, 3])``.
+
+    Attributes:
+        normals: float32 (H, W, 3) unit stage-frame normals, 0 outside the mask or where undefined.
+        alpha: float32 (H, W) validity confidence in [0, 1]; valid = alpha > 0.5.
+        albedo: float32 (H, W, 3) ``full_on / white_reference`` in [0, albedo_max], 0 outside the mask.
+        mask: bool (H, W) foreground.
+        ratio_norm: float32 (H, W) ``|d|`` (2/3 ideal), everywhere the ratio is defined, 0 elsewhere.
+    """
+
+    normals: np.ndarray
+    alpha: np.ndarray
+    albedo: np.ndarray
+    mask: np.ndarray
+    ratio_norm: np.ndarray
+
+
+# --------------------------------------------------------------------------------------------- checks
+
+
+def _as_rgb(name: str, x: np.ndarray, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    x = np.asarray(x)
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"{name} must be (H, W, 3), got shape {x.shape}")
+    if shape is not None and x.shape[:2] != shape:
+        raise ValueError(f"{name} is {x.shape[:2]}, expected {shape} like the other images")
+    if x.dtype != np.float32:
+        x = x.astype(np.float32)
+    return x
+
+
+def _as_mask(name: str, x: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+    if x is None:
+        return None
+    x = np.asarray(x)
+    if x.shape != shape:
+        raise ValueError(f"{name} must be {shape}, got {x.shape}")
+    return x if x.dtype == bool else x != 0
+
+
+def _as_white(white_reference) -> np.ndarray:
+    w = np.asarray(white_reference, dtype=np.float32).reshape(-1)
+    if w.shape != (3,) or not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise ValueError(f"white_reference must be 3 positive finite values (RGB), got {white_reference!r}")
+    return w
+
+
+def _clip_masks(clipped, shape: tuple[int, int]) -> list[np.ndarray]:
+    """None, one (H, W) mask, an (H, W, k) / (k, H, W) stack or a sequence of (H, W) masks -> list of <= 3."""
+    if clipped is None:
+        return []
+    if isinstance(clipped, np.ndarray) and clipped.ndim == 2:
+        masks = [clipped]
+    elif isinstance(clipped, np.ndarray) and clipped.ndim == 3 and clipped.shape[:2] == shape:
+        masks = [clipped[..., i] for i in range(clipped.shape[2])]
+    elif isinstance(clipped, np.ndarray) and clipped.ndim == 3:
+        masks = list(clipped)
+    else:
+        masks = list(clipped)
+    masks = [_as_mask("clipped", m, shape) for m in masks]
+    while len(masks) > 3:  # fold extras so the fused expression sees at most three
+        masks = [masks[0] | masks[-1]] + masks[1:-1]
+    return masks
+
+
+# ------------------------------------------------------------------------------------------- kernel
+#
+# The per-pixel work runs over blocks of rows (~64K pixels) so that every temporary lives in the core's
+# cache: each full-size input is read once and each output written once, like a fused kernel. Blocks are
+# shared between a few threads (numpy releases the GIL inside its loops). Broadcasts over the 3-channel
+# axis are avoided (numpy runs them as a loop over length-3 rows): per-channel constants are tiled along
+# the row, per-pixel factors are applied channel by channel.
+
+_BLOCK_PIXELS = 1 << 16
+
+
+def _default_threads() -> int:
+    env = os.environ.get("ULTRASTAGE_NUMERIC_THREADS")
+    if env:
+        return max(1, int(env))
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, min(n, 8))
+
+
+@dataclass
+class _Job:
+    """Arrays and constants of one call; ``None`` for the parts not asked for."""
+
+    W: int
+    pos: np.ndarray | None = None
+    neg: np.ndarray | None = None
+    full_on: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    clips: tuple = ()
+    normals: np.ndarray | None = None  # out
+    ratio: np.ndarray | None = None  # out, or in when normals is None
+    albedo: np.ndarray | None = None  # out (or None: scratch only, for alpha)
+    alpha: np.ndarray | None = None  # out
+    eps: np.float32 = np.float32(1e-6)
+    amax: np.float32 = np.float32(4.0)
+    iw_row: np.ndarray | None = None  # 1 / white_reference tiled to (W * 3,)
+    k_row: np.ndarray | None = None  # white_reference / signal threshold tiled to (W * 3,)
+    ramps: tuple = ()  # (a, b) pairs: term = clip(a * x + b, 0, 1); signal, ratio low, ratio high
+
+
+def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
+    n, W = r1 - r0, job.W
+    P, N = scratch["P"][:n], scratch["N"][:n]
+    t1, t2 = scratch["t1"][:n], scratch["t2"][:n]
+    m = job.mask[r0:r1] if job.mask is not None else None
+
+    # ---- normals: d = (p - q) / max(p + q, eps), r = |d|, n = d / r (0 outside the mask)
+    if job.normals is not None:
+        D, R = job.normals[r0:r1], job.ratio[r0:r1]
+        p, q = job.pos[r0:r1], job.neg[r0:r1]
+        np.subtract(p, q, out=D)
+        np.add(p, q, out=P)
+        np.maximum(P, job.eps, out=P)
+        np.divide(D, P, out=D)
+        np.multiply(D, D, out=P)
+        np.matmul(P, _ONES3, out=R)
+        if not np.isfinite(R.sum()):  # NaN/Inf inputs (or absurd negative ones): zero those channels
+            np.nan_to_num(D, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+            np.clip(D, -1.0, 1.0, out=D)
+            np.multiply(D, D, out=P)
+            np.matmul(P, _ONES3, out=R)
+        np.sqrt(R, out=R)
+        np.maximum(R, _TINY, out=t1)
+        if m is not None:
+            np.divide(m, t1, out=t1)
+        else:
+            np.divide(1.0, t1, out=t1)
+        for c in range(3):
+            np.multiply(D[..., c], t1, out=D[..., c])
+        R_in = R
+    elif job.ratio is not None:
+        R_in = np.nan_to_num(job.ratio[r0:r1], nan=0.0, posinf=0.0, neginf=0.0)
+    else:
+        R_in = None
+
+    # ---- albedo: clip(full_on / white, 0, amax) (unmasked in A for the signal term, masked on output)
+    if job.full_on is None:
+        return
+    A = job.albedo[r0:r1] if job.albedo is not None else N
+    A2 = A.reshape(n, W * 3)
+    f = job.full_on[r0:r1]
+    np.multiply(f.reshape(n, W * 3), job.iw_row, out=A2)
+    np.fmax(A2, 0, out=A2)  # NaN -> 0
+    np.minimum(A2, job.amax, out=A2)
+
+    # ---- alpha: product of linear ramps, times mask, zero where clipped
+    if job.alpha is not None:
+        AL = job.alpha[r0:r1]
+        (sa, sb), (la, lb), (ha, hb) = job.ramps
+        np.multiply(A2, job.k_row, out=P.reshape(n, W * 3))
+        np.minimum(P[..., 0], P[..., 1], out=AL)
+        np.minimum(AL, P[..., 2], out=AL)  # q = darkest channel relative to its threshold
+        np.multiply(AL, sa, out=AL)
+        np.add(AL, sb, out=AL)
+        np.clip(AL, 0.0, 1.0, out=AL)
+        for a, b in ((la, lb), (ha, hb)):
+            np.multiply(R_in, a, out=t2)
+            np.add(t2, b, out=t2)
+            np.clip(t2, 0.0, 1.0, out=t2)
+            np.multiply(AL, t2, out=AL)
+        if m is not None:
+            np.multiply(AL, m, out=AL)
+        for c in job.clips:
+            np.copyto(AL, 0.0, where=c[r0:r1])
+
+    if job.albedo is not None and m is not None:
+        for c in range(3):
+            np.multiply(A[..., c], m, out=A[..., c])
+
+
+_ONES3 = np.ones(3, dtype=np.float32)
+
+
+def _run(job: _Job, H: int, threads: int | None) -> None:
+    W = job.W
+    rows = max(1, _BLOCK_PIXELS // max(W, 1))
+    blocks = [(r, min(H, r + rows)) for r in range(0, H, rows)]
+    threads = _default_threads() if threads is None else max(1, int(threads))
+    threads = min(threads, len(blocks))
+
+    def scratch() -> dict:
+        return {
+            "P": np.empty((rows, W, 3), np.float32),
+            "N": np.empty((rows, W, 3), np.float32),
+            "t1": np.empty((rows, W), np.float32),
+            "t2": np.empty((rows, W), np.float32),
+        }
+
+    def work(i: int) -> None:
+        s = scratch()
+        # NaN/Inf inputs are handled explicitly; numpy's floating-point warnings (thread-local) would be noise
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            for r0, r1 in blocks[i::threads]:
+                _block(job, r0, r1, s)
+
+    if threads <= 1:
+        work(0)
+        return
+
+    with ThreadPoolExecutor(max_workers=threads) as ex:
+        for fut in [ex.submit(work, i) for i in range(threads)]:
+            fut.result()
+
+
+def _signal_rows(white: np.ndarray, params: PhotometricParams, W: int) -> tuple[np.ndarray, np.ndarray]:
+    thr = np.maximum(np.float32(params.min_signal) * white, np.float32(params.min_signal_abs))
+    iw = (np.float32(1.0) / white).astype(np.float32)
+    k = (white / thr).astype(np.float32)  # albedo * k = full_on / threshold
+    return np.tile(iw, W), np.tile(k, W)
+
+
+def _ramps(params: PhotometricParams) -> tuple:
+    """(a, b) with term = clip(a x + b, 0, 1): 0.5 at the threshold, 0..1 over one width."""
+    f = np.float32
+    isw = 1.0 / max(params.signal_softness, 1e-6)
+    irw = 1.0 / max(params.ratio_softness, 1e-6)
+    return (
+        (f(isw), f(0.5 - isw)),  # signal: q = 1 at the threshold
+        (f(irw), f(0.5 - params.ratio_min * irw)),
+        (f(-irw), f(0.5 + params.ratio_max * irw)),
+    )
+
+
+# --------------------------------------------------------------------------------------------- normals
+
+
+def gradient_normals(
+    pos: np.ndarray,
+    neg: np.ndarray,
+    eps: float = PhotometricParams.eps,
+    mask: np.ndarray | None = None,
+    threads: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals from the gradient pair: ``d = (g+ - g-) / (g+ + g-)`` per channel, ``n = d / |d|``.
+
+    Args:
+        pos: (H, W, 3) decoded linear image under g+ (float32 preferred; other dtypes are converted).
+        neg: (H, W, 3) decoded linear image under g-.
+        eps: floor of the denominator: ``d_c = (g+ - g-) / max(g+ + g-, eps)``, so ``d_c`` fades to 0
+            continuously as the channel's signal vanishes.
+        mask: optional (H, W) bool; normals are 0 outside it (``ratio_norm`` is not masked).
+        threads: worker threads (default: the CPUs available, at most 8; env ULTRASTAGE_NUMERIC_THREADS).
+
+    Returns:
+        normals: float32 (H, W, 3), unit length where ``|d| > 0`` (and inside ``mask``), 0 elsewhere.
+        ratio_norm: float32 (H, W), ``|d|`` (2/3 for an unoccluded Lambertian point), in [0, sqrt(3)].
+
+    For non-negative inputs each ``d_c`` is in [-1, 1]. Negative inputs (noise around the black level) can
+    give ``|d_c| > 1`` on dark pixels, which :func:`normal_alpha` rejects (low signal, ``ratio_max``); a
+    channel with a NaN or Inf input gets ``d_c = 0``. The result never holds NaN or Inf.
+    """
+    pos = _as_rgb("pos", pos)
+    neg = _as_rgb("neg", neg, pos.shape[:2])
+    H, W = pos.shape[:2]
+    mask = _as_mask("mask", mask, (H, W))
+    normals = np.empty(pos.shape, dtype=np.float32)
+    ratio = np.empty((H, W), dtype=np.float32)
+    _run(_Job(W=W, pos=pos, neg=neg, mask=mask, normals=normals, ratio=ratio, eps=np.float32(eps)), H, threads)
+    return normals, ratio
+
+
+# ----------------------------------------------------------------------------------------------- alpha
+
+
+def normal_alpha(
+    ratio_norm: np.ndarray,
+    full_on: np.ndarray,
+    white_reference,
+    clipped: np.ndarray | Sequence[np.ndarray] | None = None,
+    mask: np.ndarray | None = None,
+    params: PhotometricParams = PhotometricParams(),
+    threads: int | None = None,
+) -> np.ndarray:
+    """Validity confidence of the eq. 1 normals: a product of ramps, each exactly 0.5 at its threshold.
+
+    ``alpha = signal * ratio_low * ratio_high * (not clipped) * mask`` where
+
+    - ``signal`` = ramp of ``q = min_c albedo_c * white_reference_c / max(min_signal * white_reference_c,
+      min_signal_abs)`` (i.e. ``full_on_c`` over its threshold) around ``q = 1``, width ``signal_softness``:
+      dark pixels have noisy ratios;
+    - ``ratio_low`` / ``ratio_high`` = ramps of ``|d|`` rising at ``ratio_min`` and falling at ``ratio_max``
+      (width ``ratio_softness``): ``|d|`` far from the ideal 2/3 means occlusion, specularity or noise;
+    - ``not clipped`` is 0 where any frame's decode saturated (the ratio of clipped values is wrong);
+    - ``mask`` is 0 outside the foreground.
+
+    The ramps are piecewise linear (``clip(a x + b, 0, 1)``), so alpha is continuous in the image values
+    (the binary masks aside), and "valid" = ``alpha > 0.5`` means every term is well above its threshold.
+
+    Args:
+        ratio_norm: (H, W) ``|d|`` from :func:`gradient_normals` (NaN/Inf read as 0).
+        full_on: (H, W, 3) decoded linear white image (NaN/negative read as 0).
+        white_reference: (3,) RGB value an albedo-1 unoccluded Lambertian point gives under full_on.
+        clipped: None, an (H, W) bool mask, or a sequence/stack of them (one per illumination); any True -> 0.
+        mask: optional (H, W) bool foreground; alpha is 0 outside.
+        params: thresholds.
+        threads: worker threads (see :func:`gradient_normals`).
+
+    Returns:
+        float32 (H, W) alpha in [0, 1].
+    """
+    full_on = _as_rgb("full_on", full_on)
+    H, W = full_on.shape[:2]
+    ratio_norm = np.asarray(ratio_norm)
+    if ratio_norm.shape != (H, W):
+        raise ValueError(f"ratio_norm must be {(H, W)}, got {ratio_norm.shape}")
+    white = _as_white(white_reference)
+    iw_row, k_row = _signal_rows(white, params, W)
+    alpha = np.empty((H, W), dtype=np.float32)
+    job = _Job(W=W, full_on=full_on, ratio=ratio_norm.astype(np.float32, copy=False),
+               mask=_as_mask("mask", mask, (H, W)), clips=tuple(_clip_masks(clipped, (H, W))), alpha=alpha,
+               amax=np.float32(params.albedo_max), iw_row=iw_row, k_row=k_row, ramps=_ramps(params))
+    _run(job, H, threads)
+    return alpha
+
+
+# ---------------------------------------------------------------------------------------------- albedo
+
+
+def albedo_from_white(
+    full_on: np.ndarray,
+    white_reference,
+    mask: np.ndarray | None = None,
+    albedo_max: float = PhotometricParams.albedo_max,
+    threads: int | None = None,
+) -> np.ndarray:
+    """Albedo from the white image: ``full_on / white_reference`` per channel.
+
+    Args:
+        full_on: (H, W, 3) decoded linear white image.
+        white_reference: (3,) RGB decoded value of an ideal white unoccluded Lambertian point (> 0).
+        mask: optional (H, W) bool; 0 outside it.
+        albedo_max: clip ceiling (specular highlights exceed 1).
+        threads: worker threads (see :func:`gradient_normals`).
+
+    Returns:
+        float32 (H, W, 3) in [0, albedo_max]; NaN and negative inputs give 0, +Inf gives ``albedo_max``.
+
+    The white image still holds ambient occlusion (the DESIGN's note): this is albedo times visibility.
+    """
+    full_on = _as_rgb("full_on", full_on)
+    H, W = full_on.shape[:2]
+    white = _as_white(white_reference)
+    out = np.empty(full_on.shape, dtype=np.float32)
+    job = _Job(W=W, full_on=full_on, mask=_as_mask("mask", mask, (H, W)), albedo=out,
+               amax=np.float32(albedo_max), iw_row=np.tile((np.float32(1.0) / white).astype(np.float32), W))
+    _run(job, H, threads)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ mask
+
+
+def _radius(frac: float, shape: tuple[int, int]) -> int:
+    if frac <= 0:
+        return 0
+    return max(1, int(round(frac * min(shape))))
+
+
+def _or_window(x: np.ndarray, r: int, axis: int) -> np.ndarray:
+    """``out[i] = OR(x[i - r .. i + r])`` along ``axis`` (False outside), by doubling: O(log r) bool ORs."""
+    if r <= 0:
+        return x.copy()
+    x = np.moveaxis(x, axis, 0)
+    L = x.shape[0]
+    n = 2 * r + 1
+    acc = x.copy()  # acc[i] = OR x[i .. i + w - 1]
+    w = 1
+    while 2 * w <= n:
+        if w < L:
+            acc[: L - w] |= acc[w:].copy()
+        w *= 2
+    if w < n and n - w < L:
+        acc[: L - (n - w)] |= acc[n - w :].copy()
+    out = np.zeros_like(acc)
+    if r < L:
+        out[r:] = acc[: L - r]  # centre the window
+    for i in range(min(r, L)):
+        out[i] = np.logical_or.reduce(x[: min(L, i + r + 1)], axis=0)
+    return np.moveaxis(out, 0, axis)
+
+
+def _dilate(x: np.ndarray, r: int) -> np.ndarray:
+    """Binary dilation by a (2r+1) square; outside the image counts as background."""
+    return _or_window(_or_window(x, r, 0), r, 1) if r > 0 else x
+
+
+def _erode(x: np.ndarray, r: int) -> np.ndarray:
+    """Binary erosion by a (2r+1) square; outside the image counts as foreground (subjects cut by the frame
+    edge are not eaten from it)."""
+    return ~_dilate(~x, r) if r > 0 else x
+
+
+def _bbox(x: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    rows = np.flatnonzero(x.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(x[rows[0] : rows[-1] + 1].any(axis=0))
+    h, w = x.shape
+    return (slice(max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)),
+            slice(max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)))
+
+
+def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
+    """Opening, closing, small-hole filling and small-component removal (on the foreground's bounding box)."""
+    shape = fg.shape
+    area = fg.size
+    r_open, r_close = _radius(params.open_radius, shape), _radius(params.close_radius, shape)
+    if r_open:
+        fg = _dilate(_erode(fg, r_open), r_open)
+    box = _bbox(fg, r_close + 1)
+    out = np.zeros(shape, dtype=bool)
+    if box is None:
+        return out
+    sub = fg[box]
+    if r_close:
+        sub = _erode(_dilate(sub, r_close), r_close)
+    # fill small enclosed holes; the box has a background margin, so a hole touching its edge is not enclosed
+    if params.max_hole > 0:
+        holes, n = ndimage.label(~sub)
+        if n:
+            sizes = np.bincount(holes.ravel())
+            border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
+            fill = sizes <= params.max_hole * area
+            fill[0] = False
+            fill[border] = False
+            if fill.any():
+                sub = sub | fill[holes]
+    # drop small components
+    labels, n = ndimage.label(sub)
+    if n > 1 or params.min_component > 0:
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        keep = sizes >= max(params.min_component * area, 0.01 * sizes.max(), 1)
+        keep[0] = False
+        if not keep[1:].all():
+            sub = keep[labels]
+    out[box] = sub
+    return out
+
+
+def _robust_sigma(x: np.ndarray) -> float:
+    """1.4826 x median absolute deviation of a (sub-sampled) array; a noise estimate robust to < 50% outliers."""
+    step = max(1, int(np.sqrt(x.size / 100_000)))
+    s = x[::step, ::step]
+    s = s[np.isfinite(s)]
+    if s.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(s - np.median(s))))
+
+
+def foreground_mask(
+    full_on: np.ndarray,
+    background: np.ndarray | None = None,
+    params: PhotometricParams = PhotometricParams(),
+) -> np.ndarray:
+    """Foreground (subject) mask of the white image.
+
+    With a clean plate (``background``, the empty stage under full_on): a pixel is foreground where any
+    channel ``c`` satisfies ``f_c > b_c (1 + plate_brighter) + t_c`` or ``f_c < b_c (1 - plate_darker) - t_c``
+    with the noise term ``t_c = max(plate_noise_sigmas * sigma_c, plate_min_diff)`` and ``sigma_c`` the
+    robust (MAD) spread of ``f_c - b_c`` over the frame (valid while the subject covers under half of it).
+    Without a plate: luminance above ``no_plate_threshold`` times the 99.5th percentile luminance.
+    Then cleanup on the bool image: opening, closing, filling small enclosed holes, dropping small components.
+
+    Args:
+        full_on: (H, W, 3) decoded linear white image.
+        background: optional (H, W, 3) clean plate, same decode settings.
+        params: thresholds (``plate_*``, ``no_plate_threshold``, ``open_radius``, ``close_radius``, ``max_hole``,
+            ``min_component``).
+
+    Returns:
+        bool (H, W).
+    """
+    full_on = _as_rgb("full_on", full_on)
+    shape = full_on.shape[:2]
+    if background is not None:
+        background = _as_rgb("background", background, shape)
+        loc: dict = {"big": _BIG}
+        terms = []
+        for c in range(3):
+            f, b = full_on[..., c], background[..., c]
+            step = max(1, int(np.ceil(np.sqrt(f.size / 100_000))))
+            diff = f[::step, ::step] - b[::step, ::step]
+            t = max(params.plate_noise_sigmas * _robust_sigma(diff), params.plate_min_diff)
+            loc.update({f"f{c}": f, f"b{c}": b, f"t{c}": np.float32(t)})
+            F, B = f"where(f{c} < big, f{c}, 0)", f"where(b{c} > 0, b{c}, 0)"  # NaN-safe comparisons
+            terms.append(f"({F} > {B} * hi + t{c}) | ({F} < {B} * lo - t{c})")
+        loc["hi"] = np.float32(1.0 + params.plate_brighter)
+        loc["lo"] = np.float32(1.0 - params.plate_darker)
+        fg = ne.evaluate(" | ".join(terms), local_dict=loc)
+    else:
+        loc = {f"f{c}": full_on[..., c] for c in range(3)}
+        loc.update({f"w{c}": np.float32(_LUMA[c]) for c in range(3)})
+        loc["big"] = _BIG
+        lum = ne.evaluate(
+            " + ".join(f"where((f{c} > 0) & (f{c} < big), f{c}, 0) * w{c}" for c in range(3)), local_dict=loc
+        )
+        step = max(1, int(np.sqrt(lum.size / 250_000)))
+        ref = float(np.percentile(lum[::step, ::step], 99.5))
+        if ref <= 0:
+            return np.zeros(shape, dtype=bool)
+        fg = lum > np.float32(params.no_plate_threshold * ref)
+    return _clean_mask(np.asarray(fg, dtype=bool), params)
+
+
+# ---------------------------------------------------------------------------------------------- driver
+
+
+def photometric_maps(
+    full_on: np.ndarray,
+    pos: np.ndarray,
+    neg: np.ndarray,
+    clipped: np.ndarray | Sequence[np.ndarray] | None,
+    white_reference,
+    background: np.ndarray | None = None,
+    params: PhotometricParams = PhotometricParams(),
+    mask: np.ndarray | None = None,
+    threads: int | None = None,
+) -> PhotometricMaps:
+    """All photometric maps of one camera view.
+
+    Args:
+        full_on, pos, neg: (H, W, 3) decoded linear images under white light, g+ and g-.
+        clipped: None, an (H, W) bool mask (e.g. the OR of the three decodes' ``clipped``), or a sequence of
+            up to three (H, W) masks.
+        white_reference: (3,) the camera's RGB white reference (rig.json).
+        background: optional (H, W, 3) clean plate under full_on for the mask.
+        params: thresholds, see :class:`PhotometricParams`.
+        mask: optional precomputed (H, W) bool foreground; skips :func:`foreground_mask`.
+        threads: worker threads of the per-pixel kernel (see :func:`gradient_normals`).
+
+    Returns:
+        :class:`PhotometricMaps` (normals, alpha, albedo, mask, ratio_norm).
+    """
+    full_on = _as_rgb("full_on", full_on)
+    shape = full_on.shape[:2]
+    pos = _as_rgb("pos", pos, shape)
+    neg = _as_rgb("neg", neg, shape)
+    white = _as_white(white_reference)
+    clip_list = _clip_masks(clipped, shape)
+    if mask is None:
+        mask = foreground_mask(full_on, background, params)
+    else:
+        mask = _as_mask("mask", mask, shape)
+
+    H, W = shape
+    normals = np.empty(full_on.shape, dtype=np.float32)
+    ratio = np.empty(shape, dtype=np.float32)
+    albedo = np.empty(full_on.shape, dtype=np.float32)
+    alpha = np.empty(shape, dtype=np.float32)
+    iw_row, k_row = _signal_rows(white, params, W)
+    job = _Job(W=W, pos=pos, neg=neg, full_on=full_on, mask=mask, clips=tuple(clip_list), normals=normals,
+               ratio=ratio, albedo=albedo, alpha=alpha, eps=np.float32(params.eps),
+               amax=np.float32(params.albedo_max), iw_row=iw_row, k_row=k_row, ramps=_ramps(params))
+    _run(job, H, threads)
+    return PhotometricMaps(normals=normals, alpha=alpha, albedo=albedo, mask=mask, ratio_norm=ratio)
