@@ -1,0 +1,82 @@
+"""Configuration of the light-stage simulator."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """What `synthetic.simulate` renders: subject, rig, lighting, sensor and output options."""
+
+    actions: int = 2
+    """Number of actions (poses) to render; each gets its own skin, yaw, cloth pattern and folds."""
+    width: int = 320
+    """Image width in pixels. Height is `width * 6016 / 4016` rounded to an even number: the D750s are
+    mounted in portrait, so the 24 x 35.9 mm sensor is 24 mm wide and 35.9 mm tall."""
+    seed: int = 0
+    """Seed of every random choice (rig jitter, LED errors, subject variations, sensor noise)."""
+    mesh: str | None = None
+    """Subject OBJ path. None: `../shared/data/meshes/makehuman_base.obj` beside the repository when it
+    exists, else the procedural subject. "procedural" forces the procedural subject. An OBJ with a
+    MakeHuman `body` group gets skins, clothes and folds; any other OBJ gets a procedural albedo."""
+    n_leds: int = 512
+    """Number of LEDs on the sphere (Fibonacci directions)."""
+    led_error: float = 0.03
+    """Relative standard deviation of the per-LED, per-channel intensity errors (fixed per session)."""
+    noise: bool = True
+    """Add shot and read noise to the raw frames."""
+    sessions: int = 1
+    """Number of capture sessions; actions are split into contiguous blocks, one per session. Each
+    session has its own slightly perturbed rig, LED errors and clean plates."""
+    background: bool = True
+    """Write clean plates (`sessions/<sid>/background/<cam>.dng`, full_on, no subject)."""
+    n_cameras: int = 32
+    """Number of cameras. The stage has 32; tests use fewer. Cameras are spread over four rings."""
+    specular: bool = True
+    """Render the GGX specular lobe. False gives a purely Lambertian subject (physics tests)."""
+    fold_amplitude_m: float = 0.004
+    """Peak displacement of the cloth folds along the normal, metres (0 disables folds)."""
+    subdivisions: int = 1
+    """Loop subdivision steps applied to a mesh subject before the folds are displaced."""
+    led_radius_m: float = 1.6
+    """Radius of the LED sphere, metres (lights are treated as distant: the sphere is much larger
+    than the subject)."""
+    full_well_e: float = 40000.0
+    """Electrons at the raw clip level; shot-noise variance of a normalised raw value s is s / full_well_e."""
+    read_noise_dn: float = 2.5
+    """Standard deviation of the Gaussian read noise in 14-bit digital numbers."""
+    exposure_target: float = 0.5
+    """Normalised green raw value of an albedo-1 unoccluded Lambertian under full_on (per-camera
+    exposures jitter by +-8% around it)."""
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.actions >= 1, "actions must be >= 1"),
+            (self.width >= 16 and self.width % 2 == 0, "width must be an even number >= 16"),
+            (self.n_leds >= 16, "n_leds must be >= 16"),
+            (self.led_error >= 0.0, "led_error must be >= 0"),
+            (1 <= self.sessions <= self.actions, "sessions must be in 1..actions"),
+            (1 <= self.n_cameras <= 99999, "n_cameras must be >= 1"),
+            (self.fold_amplitude_m >= 0.0, "fold_amplitude_m must be >= 0"),
+            (0 <= self.subdivisions <= 3, "subdivisions must be in 0..3"),
+            (self.full_well_e > 0.0 and self.read_noise_dn >= 0.0, "noise parameters must be positive"),
+            (0.0 < self.exposure_target < 0.9, "exposure_target must be in (0, 0.9)"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"SimConfig: {message}")
+
+    @property
+    def height(self) -> int:
+        """Image height in pixels (portrait D750 aspect, rounded to even)."""
+        return image_height(self.width)
+
+    def to_json(self) -> dict[str, Any]:
+        """The config as a JSON-ready dict (for capture.json)."""
+        return asdict(self)
+
+
+def image_height(width: int) -> int:
+    """Height of a portrait D750 frame (6016 x 4016 sensor pixels) of the given width, rounded to even."""
+    return int(2 * round(width * 6016 / 4016 / 2))

@@ -1,0 +1,308 @@
+"""Light transport on the stage: self-occlusion, Lambertian + GGX shading, the dim LED-sphere background.
+
+Scheme (chosen to be faithful yet fit the time budget; no interreflections, direct light only):
+
+1. Visibility is computed once per action, view independently, at every vertex of the (subdivided,
+   displaced) mesh against every LED: one shadow ray per (vertex, LED) pair with the LED above the
+   vertex's horizon, origin offset 1 mm along the normal to avoid self-intersection acne
+   (Embree `test_occlusions`). LEDs are distant directional lights.
+2. Diffuse: per vertex, irradiance E_v = sum_l V(v,l) max(0, n_v.w_l) I(l) (4pi/L) for the 9 channels
+   (full_on, pos, neg x RGB) as one matrix product, and the cosine-weighted visible fraction. A pixel
+   interpolates E with the barycentrics of its primary-ray hit (Gouraud irradiance) and multiplies by
+   albedo / pi. For an unoccluded point E is affine in n, so the interpolated E equals E at the
+   interpolated normal: the gradient ratio stays exact there.
+3. Specular (GGX, height-correlated Smith, Schlick Fresnel) is view dependent, per pixel and LED. To fit
+   the budget, LEDs are grouped into direction clusters whose count follows the lobe width: 64 clusters
+   for rough cloth (alpha >= 0.35), 256 for skin (alpha >= 0.12), every LED for shinier materials. A
+   cluster sums its members' irradiance, sits at their mean direction, and its visibility at a vertex
+   is the fraction of its members the vertex sees; pixels interpolate it with barycentrics.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from . import geometry
+from .rig import Camera, LedSphere
+from .subject import ActionSubject
+
+SHADOW_OFFSET_M = 1e-3
+CLUSTER_LEVELS = ((0.35, 64), (0.12, 256), (0.0, None))  # (min GGX alpha, cluster count; None = all LEDs)
+PIXEL_CHUNK = 4096
+INVALID_ID = np.iinfo(np.uint32).max
+
+
+def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
+    """An Embree scene holding one triangle mesh (vertices (V, 3), triangles (T, 3))."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
+    return scene
+
+
+def vertex_visibility(scene: o3d.t.geometry.RaycastingScene, vertices: np.ndarray, normals: np.ndarray,
+                      directions: np.ndarray, offset_m: float = SHADOW_OFFSET_M, chunk: int = 8192) -> np.ndarray:
+    """V(v, l): True where vertex v sees distant light direction l unoccluded, (V, L) bool.
+
+    Only LEDs above the vertex's horizon (n.w > 0) are traced; the rest are False.
+    vertices, normals: (V, 3); directions: (L, 3) unit.
+    """
+    n_vertices, n_dirs = len(vertices), len(directions)
+    visible = np.zeros((n_vertices, n_dirs), dtype=bool)
+    dirs32 = directions.astype(np.float32)
+    for start in range(0, n_vertices, chunk):
+        stop = min(start + chunk, n_vertices)
+        normal = normals[start:stop].astype(np.float32)
+        origins = vertices[start:stop].astype(np.float32) + offset_m * normal
+        li, vi = np.nonzero(dirs32 @ normal.T > 0.0)  # LED-major order: coherent rays trace faster
+        if len(vi) == 0:
+            continue
+        rays = np.empty((len(vi), 6), np.float32)
+        rays[:, :3] = origins[vi]
+        rays[:, 3:] = dirs32[li]
+        occluded = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
+        visible[start + vi, li] = ~occluded
+    return visible
+
+
+@dataclass(frozen=True)
+class LedClusters:
+    """LED direction clusters: directions (C, 3) float32, irradiance (C, 9) float32, members: cluster
+    index per LED (L,), sorted LED order (L,), cluster start offsets in that order (C,), counts (C,)."""
+    directions: np.ndarray
+    irradiance: np.ndarray
+    member_of: np.ndarray
+    order: np.ndarray
+    starts: np.ndarray
+    counts: np.ndarray
+
+
+def cluster_leds(directions: np.ndarray, irradiance: np.ndarray, count: int | None) -> LedClusters:
+    """Group LEDs (directions (L, 3), irradiance (L, 9)) by nearest of `count` Fibonacci centres
+    (None or >= L: one cluster per LED). Empty clusters are dropped."""
+    n_leds = len(directions)
+    if count is None or count >= n_leds:
+        member_of = np.arange(n_leds)
+    else:
+        centres = geometry.fibonacci_sphere(count)
+        _, member_of = np.unique(np.argmax(directions @ centres.T, axis=1), return_inverse=True)
+    order = np.argsort(member_of, kind="stable")
+    counts = np.bincount(member_of)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    sums = np.stack([np.bincount(member_of, weights=directions[:, c]) for c in range(3)], axis=1)
+    cluster_irradiance = np.stack([np.bincount(member_of, weights=irradiance[:, c])
+                                   for c in range(irradiance.shape[1])], axis=1)
+    return LedClusters(geometry.normalize(sums).astype(np.float32), cluster_irradiance.astype(np.float32),
+                       member_of, order, starts, counts)
+
+
+@dataclass(frozen=True)
+class SurfaceLighting:
+    """View-independent lighting of one action's mesh.
+
+    irradiance: (V, 9) float32 per vertex (full_on, pos, neg x RGB); visible_fraction: (V,) float32;
+    clusters: one LedClusters per specular level; cluster_visibility: per level (V, C) uint8 (255 = all
+    members visible).
+    """
+    irradiance: np.ndarray
+    visible_fraction: np.ndarray
+    clusters: tuple[LedClusters, ...]
+    cluster_visibility: tuple[np.ndarray, ...]
+
+
+def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere,
+                     with_specular: bool = True, chunk: int = 8192) -> SurfaceLighting:
+    """Per-vertex irradiance and visible fraction from V (V, L) bool and vertex normals (V, 3)."""
+    irradiance_table = leds.irradiance
+    dirs32 = leds.directions.astype(np.float32)
+    n_vertices = len(normals)
+    irradiance = np.zeros((n_vertices, 9), np.float32)
+    fraction = np.zeros(n_vertices, np.float32)
+    for start in range(0, n_vertices, chunk):
+        stop = min(start + chunk, n_vertices)
+        cos = np.maximum(normals[start:stop].astype(np.float32) @ dirs32.T, 0.0)
+        weighted = cos * visible[start:stop]
+        irradiance[start:stop] = weighted @ irradiance_table
+        total = cos.sum(axis=1)
+        fraction[start:stop] = np.where(total > 0, weighted.sum(axis=1) / np.maximum(total, 1e-12), 0.0)
+    clusters, cluster_vis = [], []
+    if with_specular:
+        by_led = np.ascontiguousarray(visible.T).view(np.uint8)  # (L, V): cluster sums over contiguous rows
+        for _, count in CLUSTER_LEVELS:
+            level = cluster_leds(leds.directions, irradiance_table, count)
+            clusters.append(level)
+            if len(level.counts) == leds.count:
+                cluster_vis.append(visible.view(np.uint8) * np.uint8(255))
+            else:
+                sums = np.add.reduceat(by_led[level.order], level.starts, axis=0, dtype=np.uint16)
+                scaled = np.round(sums * (255.0 / level.counts)[:, None].astype(np.float32)).astype(np.uint8)
+                cluster_vis.append(np.ascontiguousarray(scaled.T))
+    return SurfaceLighting(irradiance, fraction, tuple(clusters), tuple(cluster_vis))
+
+
+def level_of(alpha: np.ndarray) -> np.ndarray:
+    """Specular cluster level index (N,) for GGX alphas (N,)."""
+    level = np.full(alpha.shape, len(CLUSTER_LEVELS) - 1)
+    for index in reversed(range(len(CLUSTER_LEVELS))):
+        level[alpha >= CLUSTER_LEVELS[index][0]] = index
+    return level
+
+
+def ggx_weights(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, alpha: np.ndarray,
+                f0: np.ndarray) -> np.ndarray:
+    """GGX specular radiance per unit irradiance, times the cosine: F D Vis (n.l), (N, C) float32.
+
+    normals, view (towards the camera): (N, 3) unit; light_dirs: (C, 3) unit; alpha (GGX alpha =
+    roughness**2), f0: (N,). Vis = G2 / (4 n.l n.v) with the height-correlated Smith G2; Schlick F.
+    """
+    a2 = (alpha * alpha).astype(np.float32)[:, None]
+    f0 = f0.astype(np.float32)[:, None]
+    nl = np.maximum(normals @ light_dirs.T, 0.0)
+    vl = view @ light_dirs.T
+    nv = np.maximum(np.sum(normals * view, axis=1, keepdims=True), 1e-3)
+    one_plus = np.maximum(1.0 + vl, 1e-6)
+    nh2 = np.minimum((nl + nv) ** 2 / (2.0 * one_plus), 1.0)
+    d = nh2 * (a2 - 1.0) + 1.0
+    distribution = a2 / (np.pi * d * d)
+    vh = np.sqrt(0.5 * one_plus)
+    f = 1.0 - vh
+    f2 = f * f
+    fresnel = f0 + (1.0 - f0) * (f2 * f2 * f)
+    lambda_v = np.sqrt(nv * nv * (1.0 - a2) + a2)
+    lambda_l = np.sqrt(nl * nl * (1.0 - a2) + a2)
+    vis = 0.5 / (nl * lambda_v + nv * lambda_l)
+    return (fresnel * distribution * vis * nl).astype(np.float32)
+
+
+def pixel_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera centre (3,), unit world ray directions (H, W, 3) float32 through pixel centres, and the
+    camera-z component of each unit direction (H, W) (depth = t_hit * that)."""
+    K, rotation = camera.K, camera.cam_from_world[:, :3]
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    return camera.centre_world, (d_cam @ rotation).astype(np.float32), d_cam[..., 2].astype(np.float32)
+
+
+def background_reflectance(directions: np.ndarray) -> np.ndarray:
+    """Dim reflectance (N,) float32 of the LED sphere's inside at unit directions (N, 3) from its centre:
+    ~3.5% grey, slightly darker struts every 15 degrees of latitude / longitude, faint cell shading and
+    slow mottling."""
+    x, y, z = directions[:, 0], directions[:, 1], directions[:, 2]
+    lat = np.degrees(np.arcsin(np.clip(y, -1, 1)))
+    lon = np.degrees(np.arctan2(z, x))
+    strut_lat = np.abs(np.mod(lat + 7.5, 15.0) - 7.5)
+    strut_lon = np.abs(np.mod(lon + 7.5, 15.0) - 7.5) * np.cos(np.radians(lat))
+    strut = np.minimum(strut_lat, strut_lon) < 0.5
+    mottle = 1.0 + 0.15 * np.sin(3.1 * x + 1.3) * np.sin(2.3 * y + 0.4) * np.sin(2.7 * z + 2.1)
+    cell = 1.0 + 0.05 * np.cos(np.radians(lat) * 24.0) * np.cos(np.radians(lon) * 24.0)
+    value = 0.035 * mottle * cell
+    return np.where(strut, 0.028 * mottle, value).astype(np.float32)
+
+
+def background_radiance(centre: np.ndarray, ray_dirs: np.ndarray, sphere_radius: float,
+                        mean_intensity: np.ndarray) -> np.ndarray:
+    """Radiance (N, 9) of the LED sphere's far inside wall seen along rays (N, 3) from `centre`, lit by
+    the mean LED intensity of each illumination channel (9,). Rays missing the sphere see a darker room."""
+    b = ray_dirs @ centre
+    c = float(centre @ centre) - sphere_radius ** 2
+    disc = b * b - c
+    t = -b + np.sqrt(np.maximum(disc, 0.0))
+    hit_dirs = geometry.normalize(centre + t[:, None] * ray_dirs)
+    reflectance = np.where(disc > 0, background_reflectance(hit_dirs), 0.006)
+    return (reflectance[:, None] * mean_intensity[None, :]).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class ViewRender:
+    """One camera's render: radiance (H, W, 9) float32 linear sRGB (full_on, pos, neg x RGB) and the
+    ground truth maps: mask (H, W) bool, normals_world (H, W, 3), albedo (H, W, 3), roughness (H, W),
+    depth_m (H, W) camera z, visibility (H, W) (0 where the mask is 0)."""
+    radiance: np.ndarray
+    mask: np.ndarray
+    normals_world: np.ndarray
+    albedo: np.ndarray
+    roughness: np.ndarray
+    depth_m: np.ndarray
+    visibility: np.ndarray
+
+
+def render_background(camera: Camera, leds: LedSphere) -> np.ndarray:
+    """Radiance (H, W, 9) of the empty stage (clean plate) seen by a camera."""
+    centre, dirs, _ = pixel_rays(camera)
+    flat = background_radiance(centre, dirs.reshape(-1, 3).astype(np.float64), leds.radius_m,
+                               leds.mean_intensity())
+    return flat.reshape(camera.height, camera.width, 9)
+
+
+def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, lighting: SurfaceLighting,
+                leds: LedSphere, camera: Camera, specular: bool = True) -> ViewRender:
+    """Render one camera: primary rays, interpolated surface attributes, diffuse + specular shading."""
+    h, w = camera.height, camera.width
+    centre, dirs, dir_z = pixel_rays(camera)
+    flat_dirs = dirs.reshape(-1, 3)
+    rays = np.concatenate([np.broadcast_to(centre.astype(np.float32), flat_dirs.shape), flat_dirs], axis=1)
+    hits = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+    prim = hits["primitive_ids"].numpy()
+    mask = prim != INVALID_ID
+    radiance = background_radiance(centre, flat_dirs.astype(np.float64), leds.radius_m, leds.mean_intensity())
+
+    pix = np.nonzero(mask)[0]
+    tri_ids = prim[pix].astype(np.int64)
+    tri = subject.triangles[tri_ids]
+    bary_uv = hits["primitive_uvs"].numpy()[pix]
+    bary = np.column_stack([1.0 - bary_uv[:, 0] - bary_uv[:, 1], bary_uv[:, 0], bary_uv[:, 1]]).astype(np.float32)
+    view = -flat_dirs[pix]
+    backface = np.sum(hits["primitive_normals"].numpy()[pix] * view, axis=1) < 0.0
+
+    def interp(values: np.ndarray) -> np.ndarray:
+        return sum(bary[:, k:k + 1] * values[tri[:, k]] for k in range(3))
+
+    normals = geometry.normalize(interp(subject.normals_world.astype(np.float32)), fallback=(0.0, 0.0, 1.0))
+    normals = np.where(backface[:, None], -normals, normals).astype(np.float32)
+    points_rest = interp(subject.vertices_rest)
+    uvs = None
+    if subject.base.corner_uvs is not None:
+        uvs = np.einsum("nk,nkc->nc", bary.astype(np.float64), subject.base.corner_uvs[tri_ids])
+    albedo, roughness, f0, _ = subject.materials(points_rest, uvs)
+    irradiance = interp(lighting.irradiance)
+    visibility = interp(lighting.visible_fraction[:, None])[:, 0]
+    irradiance[backface] = 0.0   # looking into the body through a hole: its inside is dark
+    visibility[backface] = 0.0
+    shaded = np.tile(albedo / np.pi, 3) * irradiance
+    if specular and lighting.clusters:
+        shaded += specular_radiance(normals, view, roughness, f0, tri, bary, lighting) * (~backface)[:, None]
+    radiance[pix] = shaded
+
+    def image(values: np.ndarray, channels: int) -> np.ndarray:
+        out = np.zeros((h * w, channels), np.float32)
+        out[pix] = values.reshape(len(pix), channels)
+        return out.reshape(h, w, channels) if channels > 1 else out.reshape(h, w)
+
+    depth = hits["t_hit"].numpy()[pix] * dir_z.reshape(-1)[pix]
+    return ViewRender(radiance.reshape(h, w, 9), mask.reshape(h, w), image(normals, 3), image(albedo, 3),
+                      image(roughness, 1), image(depth, 1), image(np.clip(visibility, 0, 1), 1))
+
+
+def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarray, f0: np.ndarray,
+                      tri: np.ndarray, bary: np.ndarray, lighting: SurfaceLighting) -> np.ndarray:
+    """GGX radiance (N, 9) at N pixels against the LED clusters of each pixel's lobe width.
+
+    normals, view: (N, 3); roughness, f0: (N,); tri: (N, 3) vertex ids; bary: (N, 3).
+    """
+    alpha = roughness.astype(np.float32) ** 2
+    levels = level_of(alpha)
+    out = np.zeros((len(normals), 9), np.float32)
+    for level_index, (clusters, cluster_vis) in enumerate(zip(lighting.clusters, lighting.cluster_visibility)):
+        members = np.nonzero(levels == level_index)[0]
+        for start in range(0, len(members), PIXEL_CHUNK):
+            sel = members[start:start + PIXEL_CHUNK]
+            weights = ggx_weights(normals[sel], view[sel], clusters.directions, alpha[sel], f0[sel])
+            t, b = tri[sel], bary[sel] * np.float32(1.0 / 255.0)
+            vis = cluster_vis[t[:, 0]] * b[:, 0:1]
+            vis += cluster_vis[t[:, 1]] * b[:, 1:2]
+            vis += cluster_vis[t[:, 2]] * b[:, 2:3]
+            out[sel] = (weights * vis) @ clusters.irradiance
+    return out

@@ -1,0 +1,209 @@
+"""`simulate()`: render a complete light-stage capture (raw DNGs, rig, clean plates, ground truth).
+
+Layout and conventions: docs/CONTRACTS.md. Randomness is keyed by (seed, purpose, indices) so every
+file is reproducible on its own: the same config gives byte-identical raw files.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import open3d as o3d
+
+from . import files, sensor, shading
+from .config import SimConfig
+from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds
+from .subject import (MATERIALS, ActionSubject, BaseSubject, load_base_subject, make_action_subject,
+                      resolve_mesh)
+
+CAPTURE_FORMAT = "ultrastage-capture/1"
+RIG_FORMAT = "ultrastage-rig/1"
+TRUTH_FORMAT = "ultrastage-truth/1"
+
+# purposes of the random streams: default_rng([seed, PURPOSE, ...])
+_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE = range(1, 7)
+
+
+@dataclass(frozen=True)
+class Session:
+    """One capture session: cameras, LEDs, per-camera exposure gain (normalised raw per unit radiance)
+    and white reference (decoded linear RGB of an albedo-1 unoccluded Lambertian under full_on)."""
+    session_id: str
+    index: int
+    cameras: list[Camera]
+    leds: LedSphere
+    gains: list[float]
+    white_references: list[np.ndarray]
+
+    def rig_json(self) -> dict:
+        return {"format": RIG_FORMAT, "session_id": self.session_id,
+                "stage_frame": "origin at LED-sphere centre, +y up, metres",
+                "camera_convention": "opencv",
+                "raw": {"black_level": sensor.BLACK_LEVEL, "white_level": sensor.WHITE_LEVEL, "cfa": sensor.CFA},
+                "cameras": [cam.to_json(ref) for cam, ref in zip(self.cameras, self.white_references)],
+                "leds": {"count": self.leds.count, "radius_m": self.leds.radius_m,
+                         "directions": np.round(self.leds.directions, 6).tolist()}}
+
+
+def make_session(config: SimConfig, base: BaseSubject, index: int) -> Session:
+    """Rig, LEDs and exposures of session `index` (session 0 has the nominal rig)."""
+    session_rng = np.random.default_rng([config.seed, _SESSION_RIG, index]) if index > 0 else None
+    cameras = make_cameras(config.n_cameras, config.width, config.height, base.radius_xz, base.y_range,
+                           np.random.default_rng([config.seed, _RIG]), session_rng)
+    leds = make_leds(config.n_leds, config.led_error, config.led_radius_m,
+                     np.random.default_rng([config.seed, _LEDS, index]))
+    white_radiance = leds.white_radiance()
+    gains, references = [], []
+    for camera in cameras:
+        target = config.exposure_target * camera.exposure_s / NOMINAL_EXPOSURE_S
+        gain = sensor.exposure_gain(white_radiance, target)
+        gains.append(gain)
+        references.append(gain * sensor.decoded_scale() * white_radiance)
+    return Session(f"S{index:03d}", index, cameras, leds, gains, references)
+
+
+def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None = None) -> Path:
+    """Render a synthetic capture into `out_dir` (created if needed) and return its path.
+
+    Writes capture.json, sessions/<sid>/rig.json (+ background/<cam>.dng clean plates),
+    actions/<aid>/{full_on,pos,neg}/<cam>.dng, ground_truth/<aid>/... and previews/<aid>.png.
+    `progress(message)` is called per session, per camera of every action and at the end.
+    """
+    say = progress or (lambda message: None)
+    started = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh_path = resolve_mesh(config.mesh)
+    base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
+    say(f"subject {base.name}: {len(base.vertices)} vertices, {len(base.triangles)} triangles")
+
+    blocks = np.array_split(np.arange(config.actions), config.sessions)
+    sessions = []
+    for index in range(config.sessions):
+        session = make_session(config, base, index)
+        files.write_json(out / "sessions" / session.session_id / "rig.json", session.rig_json())
+        if config.background:
+            write_clean_plates(out, config, session)
+        sessions.append(session)
+        say(f"session {session.session_id}: rig with {len(session.cameras)} cameras, {session.leds.count} LEDs")
+
+    actions = []
+    for session, block in zip(sessions, blocks):
+        for action_index in block:
+            action_id = f"A{int(action_index):04d}"
+            label = render_action(out, config, base, session, int(action_index), action_id, say)
+            actions.append({"action_id": action_id, "session_id": session.session_id, "subject": label})
+
+    capture = {"format": CAPTURE_FORMAT,
+               "sessions": [{"session_id": s.session_id, "rig": f"sessions/{s.session_id}/rig.json"}
+                            for s in sessions],
+               "actions": actions,
+               "illuminations": list(ILLUMINATIONS),
+               "camera_ids": [cam.camera_id for cam in sessions[0].cameras],
+               "simulator": config.to_json()}
+    files.write_json(out / "capture.json", capture)
+    say(f"capture written to {out} in {time.perf_counter() - started:.1f} s")
+    return out
+
+
+def write_clean_plates(out: Path, config: SimConfig, session: Session) -> None:
+    """Clean plates: the empty stage under full_on, one DNG per camera."""
+    cam_from_xyz, neutral = sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral()
+    for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
+        radiance = shading.render_background(camera, session.leds)[..., 0:3]
+        rng = np.random.default_rng([config.seed, _PLATE_NOISE, session.index, cam_index]) if config.noise else None
+        raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
+        sensor.write_dng(out / "sessions" / session.session_id / "background" / f"{camera.camera_id}.dng",
+                         raw, cam_from_xyz, neutral)
+
+
+def prepare_action(config: SimConfig, base: BaseSubject, session: Session, action_index: int
+                   ) -> tuple[ActionSubject, o3d.t.geometry.RaycastingScene, shading.SurfaceLighting]:
+    """The action's subject, its ray-casting scene and its view-independent lighting."""
+    subject = make_action_subject(base, np.random.default_rng([config.seed, _SUBJECT, action_index]),
+                                  action_index, config.fold_amplitude_m)
+    scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
+    visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world,
+                                        session.leds.directions)
+    lighting = shading.surface_lighting(visible, subject.normals_world, session.leds,
+                                        with_specular=config.specular)
+    return subject, scene, lighting
+
+
+def render_views(config: SimConfig, action_index: int = 0, session_index: int = 0
+                 ) -> tuple[Session, ActionSubject, list[shading.ViewRender]]:
+    """Render one action for every camera in memory, writing nothing (tests, benchmarks, notebooks).
+
+    The radiance of each view is the pre-sensor linear-sRGB image; `gain * radiance` is the decoded
+    linear image without noise or demosaicing.
+    """
+    mesh_path = resolve_mesh(config.mesh)
+    base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
+    session = make_session(config, base, session_index)
+    subject, scene, lighting = prepare_action(config, base, session, action_index)
+    views = [shading.render_view(scene, subject, lighting, session.leds, camera, specular=config.specular)
+             for camera in session.cameras]
+    return session, subject, views
+
+
+def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Session, action_index: int,
+                  action_id: str, say: Callable[[str], None]) -> str:
+    """Render and write one action (all cameras and illuminations, ground truth, preview)."""
+    started = time.perf_counter()
+    subject, scene, lighting = prepare_action(config, base, session, action_index)
+    leds = session.leds
+    say(f"{action_id}: subject {subject.label}, visibility of {len(subject.vertices_world)} vertices x "
+        f"{leds.count} LEDs in {time.perf_counter() - started:.1f} s")
+
+    cam_from_xyz, neutral = sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral()
+    truth_dir = out / "ground_truth" / action_id
+    thumbnails = []
+    for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
+        view = shading.render_view(scene, subject, lighting, leds, camera, specular=config.specular)
+        for illum_index, illumination in enumerate(ILLUMINATIONS):
+            rng = (np.random.default_rng([config.seed, _NOISE, action_index, cam_index, illum_index])
+                   if config.noise else None)
+            radiance = view.radiance[..., 3 * illum_index:3 * illum_index + 3]
+            raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
+            sensor.write_dng(out / "actions" / action_id / illumination / f"{camera.camera_id}.dng",
+                             raw, cam_from_xyz, neutral)
+        files.write_ground_truth(truth_dir, camera.camera_id, view.normals_world, view.albedo, view.roughness,
+                                 view.depth_m, view.visibility, view.mask)
+        thumbnails.append(files.thumbnail(view.radiance[..., 0:3] * (gain * sensor.decoded_scale())))
+        if (cam_index + 1) % 8 == 0 or cam_index + 1 == len(session.cameras):
+            say(f"{action_id}: {cam_index + 1}/{len(session.cameras)} cameras")
+
+    files.write_ply(truth_dir / "mesh.ply", subject.vertices_world, subject.triangles, subject.normals_world)
+    files.write_json(truth_dir / "truth.json", truth_record(config, subject, session, action_id))
+    files.write_png(out / "previews" / f"{action_id}.png", files.contact_sheet(thumbnails))
+    say(f"{action_id}: done in {time.perf_counter() - started:.1f} s")
+    return subject.label
+
+
+def truth_record(config: SimConfig, subject: ActionSubject, session: Session, action_id: str) -> dict:
+    """truth.json: subject, materials, LEDs and the rendering scheme of one action."""
+    base = subject.base
+    return {
+        "format": TRUTH_FORMAT, "action_id": action_id, "session_id": session.session_id,
+        "subject": {"label": subject.label, "kind": base.kind, "source": base.source,
+                    "metres_per_unit": base.units_m, "yaw_deg": round(float(np.degrees(subject.yaw_rad)), 4),
+                    "skin": subject.skin_name, "skin_tone": subject.skin_tone.tolist(),
+                    "vertices": len(subject.vertices_world), "triangles": len(subject.triangles),
+                    "cloth": subject.cloth.to_json() if base.kind != "obj" else None},
+        "materials": {name: {"roughness": rough, "f0": f0, "ggx_alpha": round(rough ** 2, 4),
+                             "model": "lambert + GGX (Smith height-correlated, Schlick)" if config.specular
+                             else "lambert"} for name, rough, f0 in MATERIALS.values()},
+        "leds": {"count": session.leds.count, "led_error": config.led_error,
+                 "solid_angle_sr": session.leds.solid_angle,
+                 "gains": np.round(session.leds.gains, 6).tolist(),
+                 "white_radiance": session.leds.white_radiance().tolist()},
+        "rendering": {"lights": "distant directional LEDs, irradiance I * 4pi/L each",
+                      "visibility": "per vertex x LED shadow rays (1 mm normal offset), barycentric interpolation",
+                      "diffuse": "per-vertex irradiance interpolated (Gouraud), times albedo/pi",
+                      "specular": f"per pixel GGX against LED clusters {[c for _, c in shading.CLUSTER_LEVELS]}"
+                                  if config.specular else "off",
+                      "interreflections": "none"},
+    }

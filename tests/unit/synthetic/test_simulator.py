@@ -1,0 +1,283 @@
+"""Tests of the light-stage simulator: physics of the gradient ratio, occlusion, sensor/DNG path, files."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from synthetic import SimConfig, simulate
+from synthetic import geometry, sensor, subject
+from synthetic.simulate import render_views
+
+SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+MAKEHUMAN = SHARED_DATA / "meshes" / "makehuman_base.obj"
+needs_shared = pytest.mark.skipif(not MAKEHUMAN.is_file(),
+                                  reason=f"shared data not found ({MAKEHUMAN}); a fresh clone has no ../shared")
+
+TINY = dict(width=64, n_cameras=4, n_leds=128)
+
+
+def rawpy_decode(path: Path, half_size: bool = False) -> np.ndarray:
+    """Decoded linear values (1.0 = raw green clip) of a raw file, float32 (H, W, 3)."""
+    import rawpy
+
+    with rawpy.imread(str(path)) as raw:
+        rgb = raw.postprocess(use_camera_wb=True, output_color=rawpy.ColorSpace.sRGB, gamma=(1, 1),
+                              no_auto_bright=True, output_bps=16, user_flip=0, half_size=half_size)
+    return rgb.astype(np.float32) / 65535.0
+
+
+@pytest.fixture(scope="module")
+def sphere_obj(tmp_path_factory) -> Path:
+    """A convex subject: a UV-less sphere of radius 0.4 m as an OBJ (metres)."""
+    icosahedron_t = (1 + 5 ** 0.5) / 2
+    vertices = np.array([[-1, icosahedron_t, 0], [1, icosahedron_t, 0], [-1, -icosahedron_t, 0],
+                         [1, -icosahedron_t, 0], [0, -1, icosahedron_t], [0, 1, icosahedron_t],
+                         [0, -1, -icosahedron_t], [0, 1, -icosahedron_t], [icosahedron_t, 0, -1],
+                         [icosahedron_t, 0, 1], [-icosahedron_t, 0, -1], [-icosahedron_t, 0, 1]], float)
+    faces = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                      [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                      [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    for _ in range(5):
+        vertices, faces, _ = geometry.loop_subdivide(vertices, faces)
+        vertices = geometry.normalize(vertices)
+    vertices *= 0.4
+    path = tmp_path_factory.mktemp("mesh") / "sphere.obj"
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def ratio_normals(radiance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d = (pos - neg) / (pos + neg) per channel (H, W, 3) and its unit direction."""
+    pos, neg = radiance[..., 3:6], radiance[..., 6:9]
+    d = (pos - neg) / np.maximum(pos + neg, 1e-12)
+    return d, geometry.normalize(d)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+# --- numerics -----------------------------------------------------------------------------------------
+
+def test_config_defaults_and_portrait_height():
+    config = SimConfig()
+    assert (config.actions, config.width, config.height, config.n_leds, config.n_cameras) == (2, 320, 480, 512, 32)
+    assert SimConfig(width=64).height == 96
+    with pytest.raises(ValueError):
+        SimConfig(width=63)
+    with pytest.raises(Exception):
+        config.width = 10  # frozen
+
+
+def test_loop_subdivision_of_a_closed_mesh():
+    vertices = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    triangles = np.array([[0, 1, 2], [0, 3, 1], [0, 2, 3], [1, 3, 2]])
+    new_vertices, new_triangles, _ = geometry.loop_subdivide(vertices, triangles)
+    assert new_vertices.shape == (4 + 6, 3) and new_triangles.shape == (16, 3)
+    # closed and consistently wound: every directed edge appears exactly once, its reverse once
+    edges = np.concatenate([new_triangles[:, [0, 1]], new_triangles[:, [1, 2]], new_triangles[:, [2, 0]]])
+    assert len({tuple(e) for e in edges}) == len(edges)
+    assert {tuple(e[::-1]) for e in edges} == {tuple(e) for e in edges}
+    # Loop smoothing shrinks the tetrahedron towards its centre
+    assert np.linalg.norm(new_vertices[:4], axis=1).max() < np.sqrt(3)
+
+
+def test_ratio_normals_on_a_convex_sphere(sphere_obj):
+    """Unoccluded Lambertian, ideal LEDs: (pos-neg)/(pos+neg) = 2/3 n and pos + neg = full_on."""
+    config = SimConfig(mesh=str(sphere_obj), led_error=0.0, noise=False, specular=False, **TINY)
+    _, _, views = render_views(config)
+    errors, lengths, sum_errors = [], [], []
+    for view in views:
+        inside = view.mask & (view.visibility > 0.999)
+        d, d_unit = ratio_normals(view.radiance)
+        errors.append(angle_deg(d_unit, view.normals_world)[inside])
+        lengths.append(np.linalg.norm(d, axis=-1)[inside])
+        full_on, both = view.radiance[..., 0:3], view.radiance[..., 3:6] + view.radiance[..., 6:9]
+        sum_errors.append((np.abs(both - full_on) / np.maximum(full_on, 1e-9))[inside])
+    errors, lengths = np.concatenate(errors), np.concatenate(lengths)
+    assert len(errors) > 1000
+    print(f"\nconvex sphere ratio-normal error: mean {errors.mean():.3f} deg, p99 {np.percentile(errors, 99):.3f}"
+          f" deg, max {errors.max():.3f} deg; |d| {lengths.min():.4f}..{lengths.max():.4f}")
+    assert errors.mean() < 0.3 and np.percentile(errors, 99) < 0.8
+    assert np.all(np.abs(lengths - 2 / 3) < 0.02)
+    assert np.concatenate(sum_errors).max() < 1e-4
+
+
+def test_occlusion_biases_normals_on_the_concave_procedural_subject():
+    config = SimConfig(mesh="procedural", led_error=0.0, noise=False, specular=False, **TINY)
+    _, subj, views = render_views(config)
+    assert subj.base.kind == "procedural"
+    occluded_err, open_err = [], []
+    for view in views:
+        _, d_unit = ratio_normals(view.radiance)
+        err = angle_deg(d_unit, view.normals_world)
+        occluded_err.append(err[view.mask & (view.visibility < 0.9)])
+        open_err.append(err[view.mask & (view.visibility >= 0.9)])
+    occluded_err, open_err = np.concatenate(occluded_err), np.concatenate(open_err)
+    assert len(occluded_err) > 100 and len(open_err) > 1000
+    assert occluded_err.mean() > 2.0 * open_err.mean()
+    assert occluded_err.mean() > 5.0
+
+
+def test_specular_adds_view_dependent_light(sphere_obj):
+    base = dict(mesh=str(sphere_obj), led_error=0.0, noise=False, **TINY)
+    _, _, lambert = render_views(SimConfig(specular=False, **base))
+    _, _, glossy = render_views(SimConfig(specular=True, **base))
+    extra = glossy[0].radiance - lambert[0].radiance
+    assert np.all(extra[glossy[0].mask] >= -1e-6)
+    assert extra[glossy[0].mask].mean() > 0.005
+    np.testing.assert_allclose(glossy[0].radiance[~glossy[0].mask], lambert[0].radiance[~glossy[0].mask])
+
+
+def test_dng_decodes_to_the_simulated_linear_values(tmp_path):
+    """A flat patch of known linear-sRGB radiance decodes (rawpy, camera WB, sRGB) to gain x radiance."""
+    for colour in ([0.4, 0.4, 0.4], [0.30, 0.45, 0.12]):
+        radiance = np.broadcast_to(np.array(colour, np.float32), (32, 48, 3))
+        gain = 1.0
+        raw = sensor.raw_frame(radiance, gain, None, 40000.0, 0.0)
+        path = sensor.write_dng(tmp_path / "patch.dng", raw, sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral())
+        decoded = rawpy_decode(path)
+        assert decoded.shape == (32, 48, 3)
+        np.testing.assert_allclose(decoded[8:-8, 8:-8].mean(axis=(0, 1)), colour, rtol=0.006, atol=2e-4)
+
+
+# --- end to end ---------------------------------------------------------------------------------------
+
+def test_procedural_capture_files_when_no_mesh_exists(tmp_path, monkeypatch):
+    monkeypatch.setattr(subject, "DEFAULT_MESH", tmp_path / "missing" / "makehuman_base.obj")
+    messages: list[str] = []
+    config = SimConfig(actions=2, sessions=2, **TINY)
+    out = simulate(tmp_path / "cap", config, progress=messages.append)
+    assert messages and any("A0001" in m for m in messages)
+
+    capture = json.loads((out / "capture.json").read_text())
+    assert capture["format"] == "ultrastage-capture/1"
+    assert capture["illuminations"] == ["full_on", "pos", "neg"]
+    assert capture["camera_ids"] == ["00000", "00001", "00002", "00003"]
+    assert [a["action_id"] for a in capture["actions"]] == ["A0000", "A0001"]
+    assert [a["session_id"] for a in capture["actions"]] == ["S000", "S001"]
+    assert capture["actions"][0]["subject"].startswith("procedural")
+    assert capture["simulator"]["width"] == 64
+
+    from pipeline.codecs.exr import read_exr
+    from pipeline.codecs.image import read_png
+
+    for session in capture["sessions"]:
+        rig = json.loads((out / session["rig"]).read_text())
+        assert rig["format"] == "ultrastage-rig/1" and rig["camera_convention"] == "opencv"
+        assert rig["raw"] == {"black_level": 600, "white_level": 16383, "cfa": "RGGB"}
+        assert rig["leds"]["count"] == 128 and len(rig["leds"]["directions"]) == 128
+        for cam in rig["cameras"]:
+            assert (cam["width"], cam["height"]) == (64, 96)
+            assert np.asarray(cam["K"]).shape == (3, 3) and np.asarray(cam["cam_from_world"]).shape == (3, 4)
+            rotation = np.asarray(cam["cam_from_world"])[:, :3]
+            np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
+            assert 24 <= cam["focal_mm"] <= 120 and cam["sensor_mm"] == [24.0, 35.9]
+            assert 0.4 < cam["white_reference"][1] < 0.6
+            plate = out / "sessions" / session["session_id"] / "background" / f"{cam['camera_id']}.dng"
+            assert plate.is_file()
+    plate_rgb = rawpy_decode(out / "sessions" / "S000" / "background" / "00000.dng", half_size=True)
+    assert 0.005 < np.median(plate_rgb[..., 1]) < 0.05
+
+    for action in ("A0000", "A0001"):
+        for illumination in ("full_on", "pos", "neg"):
+            for cam in capture["camera_ids"]:
+                assert (out / "actions" / action / illumination / f"{cam}.dng").is_file()
+        truth_dir = out / "ground_truth" / action
+        for cam in capture["camera_ids"]:
+            mask = read_png(truth_dir / "mask" / f"{cam}.png")
+            assert mask.shape == (96, 64) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
+            assert (mask > 0).mean() > 0.05
+            for name, shape in (("normal", (96, 64, 3)), ("albedo", (96, 64, 3)), ("roughness", (96, 64)),
+                                ("depth", (96, 64)), ("visibility", (96, 64))):
+                values = read_exr(truth_dir / name / f"{cam}.exr")
+                assert values.shape == shape and np.all(np.isfinite(values)), name
+                assert np.all(values[mask == 0] == 0), name
+            normals = read_exr(truth_dir / "normal" / f"{cam}.exr")
+            np.testing.assert_allclose(np.linalg.norm(normals[mask > 0], axis=-1), 1.0, atol=2e-3)
+            assert read_exr(truth_dir / "depth" / f"{cam}.exr")[mask > 0].min() > 0.5
+        truth = json.loads((truth_dir / "truth.json").read_text())
+        assert truth["subject"]["kind"] == "procedural"
+        assert len(truth["leds"]["gains"]) == 128
+        assert {"skin", "cloth_shirt", "leather_shiny"} <= set(truth["materials"])
+        import open3d as o3d
+        mesh = o3d.io.read_triangle_mesh(str(truth_dir / "mesh.ply"))
+        assert len(mesh.triangles) > 1000
+        assert (out / "previews" / f"{action}.png").is_file()
+    frame = rawpy_decode(out / "actions" / "A0000" / "full_on" / "00000.dng")
+    assert frame.shape == (96, 64, 3)
+
+
+def test_white_reference_reproduces_albedo(tmp_path, sphere_obj):
+    """full_on / white_reference = albedo for unoccluded Lambertian points, on rawpy-decoded frames."""
+    config = SimConfig(mesh=str(sphere_obj), actions=1, width=128, n_cameras=2, n_leds=128, noise=False,
+                       specular=False, background=False)
+    out = simulate(tmp_path / "cap", config)
+    rig = json.loads((out / "sessions" / "S000" / "rig.json").read_text())
+    from pipeline.codecs.exr import read_exr
+
+    for cam in rig["cameras"]:
+        decoded = rawpy_decode(out / "actions" / "A0000" / "full_on" / f"{cam['camera_id']}.dng", half_size=True)
+        albedo = read_exr(out / "ground_truth" / "A0000" / "albedo" / f"{cam['camera_id']}.exr")
+        visibility = read_exr(out / "ground_truth" / "A0000" / "visibility" / f"{cam['camera_id']}.exr")
+        h, w = decoded.shape[:2]
+        albedo_half = albedo[:2 * h, :2 * w].reshape(h, 2, w, 2, 3).mean(axis=(1, 3))
+        solid = (visibility[:2 * h, :2 * w].reshape(h, 2, w, 2).min(axis=(1, 3)) > 0.999)
+        ratio = decoded[solid] / np.asarray(cam["white_reference"]) / albedo_half[solid]
+        assert solid.sum() > 100
+        np.testing.assert_allclose(np.median(ratio, axis=0), 1.0, atol=0.01)
+
+
+def test_same_seed_gives_identical_raw_files(tmp_path):
+    config = SimConfig(mesh="procedural", actions=1, **TINY)
+    first = simulate(tmp_path / "a", config)
+    second = simulate(tmp_path / "b", config)
+    raws = sorted(p.relative_to(first) for p in first.rglob("*.dng"))
+    assert len(raws) == 4 * 3 + 4
+    for rel in raws:
+        assert (first / rel).read_bytes() == (second / rel).read_bytes(), rel
+    other = simulate(tmp_path / "c", SimConfig(mesh="procedural", actions=1, seed=1, **TINY))
+    assert (other / raws[0]).read_bytes() != (first / raws[0]).read_bytes()
+
+
+# --- the MakeHuman subject (needs ../shared) ------------------------------------------------------------
+
+@needs_shared
+def test_makehuman_subject_geometry_and_materials():
+    base = subject.load_base_subject(str(MAKEHUMAN), 1)
+    height = base.y_range[1] - base.y_range[0]
+    assert base.kind == "makehuman" and 1.5 < height < 1.9
+    assert base.corner_uvs is not None and base.corner_uvs.shape == (len(base.triangles), 3, 2)
+    assert len(base.skins) >= 1
+    regions = subject.region_of(base, base.vertices)
+    assert set(np.unique(regions)) == {subject.SKIN, subject.SHIRT, subject.TROUSERS, subject.SHINY}
+    a = subject.make_action_subject(base, np.random.default_rng(1), 0, 0.004)
+    b = subject.make_action_subject(base, np.random.default_rng(2), 1, 0.004)
+    assert a.skin_name != b.skin_name or a.yaw_rad != b.yaw_rad
+    displacement = np.linalg.norm(a.vertices_rest - base.vertices, axis=1)
+    clothed = np.isin(regions, (subject.SHIRT, subject.TROUSERS))
+    assert displacement[clothed].max() > 0.002 and displacement[regions == subject.SKIN].max() < 0.004
+    albedo, roughness, f0, _ = a.materials(base.vertices[:5000], None)
+    assert albedo.shape == (5000, 3) and np.all((albedo >= 0) & (albedo <= 1))
+
+
+@needs_shared
+def test_makehuman_capture(tmp_path):
+    out = simulate(tmp_path / "cap", SimConfig(actions=2, **TINY))
+    capture = json.loads((out / "capture.json").read_text())
+    assert capture["actions"][0]["subject"].startswith("makehuman/")
+    truths = [json.loads((out / "ground_truth" / a / "truth.json").read_text()) for a in ("A0000", "A0001")]
+    assert truths[0]["subject"]["yaw_deg"] != truths[1]["subject"]["yaw_deg"]
+    assert truths[0]["subject"]["skin"] != truths[1]["subject"]["skin"]
+    from pipeline.codecs.exr import read_exr
+
+    roughness = np.concatenate([read_exr(out / "ground_truth" / "A0000" / "roughness" / f"{c:05d}.exr").ravel()
+                                for c in range(4)])
+    present = np.unique(roughness[roughness > 0]).astype(np.float64)
+    for expected in (0.25, 0.45, 0.7, 0.8):  # shiny leather, skin, trousers, shirt
+        assert np.isclose(present, expected, atol=2e-3).any(), (expected, present)
