@@ -53,8 +53,8 @@ class PhotometricParams:
     """Thresholds of the photometric maps. Every term of the alpha is 0.5 exactly at its threshold."""
 
     eps: float = 1e-6
-    """Smallest ``g+ + g-`` (per channel, decoded linear units) for which the ratio is computed; below it
-    the channel's ratio is 0 (and the normal 0 if all three are)."""
+    """Floor of the ratio's denominator (decoded linear units): ``d_c = (g+ - g-) / max(g+ + g-, eps)``, so a
+    channel's ratio fades continuously to 0 as its signal vanishes (alpha is 0 there long before)."""
     min_signal: float = 0.03
     """Low-signal threshold relative to ``white_reference``: the darkest channel of ``full_on`` must reach
     this fraction of the white reference (an albedo-times-visibility of 3%) for alpha > 0.5."""
@@ -80,14 +80,16 @@ class PhotometricParams:
     because the subject's occlusion of the LEDs darkens the background around it)."""
     plate_noise_sigmas: float = 4.0
     """With a clean plate: noise term of the threshold, in standard deviations of the frame-minus-plate
-    difference (estimated robustly, per channel, from the median absolute difference)."""
+    difference (estimated robustly, per channel, from the plate's own pixel-to-pixel differences)."""
     plate_min_diff: float = 0.002
     """With a clean plate: absolute floor of the difference threshold (decoded linear units)."""
     no_plate_threshold: float = 0.15
     """Without a plate: foreground where luminance exceeds this fraction of the image's 99.5th percentile
     luminance (the stage background is dim, 2-5% grey)."""
-    open_radius: float = 0.002
-    """Morphological opening radius (removes specks), as a fraction of min(H, W); at least 1 pixel, 0 = off."""
+    majority_radius: float = 0.002
+    """Radius of the majority (binary median) filter over a (2r+1) square that removes specks and fills
+    pinholes (a speckled threshold on dark, textured or noisy regions), as a fraction of min(H, W); at least
+    1 pixel, 0 = off."""
     close_radius: float = 0.004
     """Morphological closing radius (bridges cracks), as a fraction of min(H, W); at least 1 pixel, 0 = off."""
     max_hole: float = 0.002
@@ -148,7 +150,7 @@ def _as_white(white_reference) -> np.ndarray:
 
 
 def _clip_masks(clipped, shape: tuple[int, int]) -> list[np.ndarray]:
-    """None, one (H, W) mask, an (H, W, k) / (k, H, W) stack or a sequence of (H, W) masks -> list of <= 3."""
+    """None, one (H, W) mask, an (H, W, k) / (k, H, W) stack or a sequence of (H, W) masks -> list of masks."""
     if clipped is None:
         return []
     if isinstance(clipped, np.ndarray) and clipped.ndim == 2:
@@ -159,10 +161,7 @@ def _clip_masks(clipped, shape: tuple[int, int]) -> list[np.ndarray]:
         masks = list(clipped)
     else:
         masks = list(clipped)
-    masks = [_as_mask("clipped", m, shape) for m in masks]
-    while len(masks) > 3:  # fold extras so the fused expression sees at most three
-        masks = [masks[0] | masks[-1]] + masks[1:-1]
-    return masks
+    return [_as_mask("clipped", m, shape) for m in masks if m is not None]
 
 
 # ------------------------------------------------------------------------------------------- kernel
@@ -473,20 +472,33 @@ def _or_window(x: np.ndarray, r: int, axis: int) -> np.ndarray:
     x = np.moveaxis(x, axis, 0)
     L = x.shape[0]
     n = 2 * r + 1
-    acc = x.copy()  # acc[i] = OR x[i .. i + w - 1]
-    w = 1
+
+    def shift_or(a: np.ndarray, k: int) -> np.ndarray:  # b[i] = a[i] | a[i + k]
+        b = a.copy() if k >= L else np.empty_like(a)
+        if k < L:
+            np.logical_or(a[: L - k], a[k:], out=b[: L - k])
+            b[L - k :] = a[L - k :]
+        return b
+
+    acc, w = x, 1  # acc[i] = OR x[i .. i + w - 1]
     while 2 * w <= n:
-        if w < L:
-            acc[: L - w] |= acc[w:].copy()
+        acc = shift_or(acc, w)
         w *= 2
-    if w < n and n - w < L:
-        acc[: L - (n - w)] |= acc[n - w :].copy()
-    out = np.zeros_like(acc)
+    if w < n:
+        acc = shift_or(acc, n - w)
+    out = np.empty_like(acc)
     if r < L:
         out[r:] = acc[: L - r]  # centre the window
-    for i in range(min(r, L)):
+    for i in range(min(r, L)):  # the first r rows see a truncated window x[0 .. i + r]
         out[i] = np.logical_or.reduce(x[: min(L, i + r + 1)], axis=0)
     return np.moveaxis(out, 0, axis)
+
+
+def _majority(x: np.ndarray, r: int) -> np.ndarray:
+    """Binary median over a (2r+1) square: True where more than half the window is (edges replicated)."""
+    u8 = np.where(x, np.uint8(255), np.uint8(0))
+    mean = ndimage.uniform_filter(u8, size=2 * r + 1, mode="nearest")
+    return mean > 127
 
 
 def _dilate(x: np.ndarray, r: int) -> np.ndarray:
@@ -511,12 +523,13 @@ def _bbox(x: np.ndarray, margin: int) -> tuple[slice, slice] | None:
 
 
 def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
-    """Opening, closing, small-hole filling and small-component removal (on the foreground's bounding box)."""
+    """Majority filter, closing, small-hole filling and small-component removal (the last three on the
+    foreground's bounding box)."""
     shape = fg.shape
     area = fg.size
-    r_open, r_close = _radius(params.open_radius, shape), _radius(params.close_radius, shape)
-    if r_open:
-        fg = _dilate(_erode(fg, r_open), r_open)
+    r_major, r_close = _radius(params.majority_radius, shape), _radius(params.close_radius, shape)
+    if r_major:
+        fg = _majority(fg, r_major)
     box = _bbox(fg, r_close + 1)
     out = np.zeros(shape, dtype=bool)
     if box is None:
@@ -548,14 +561,21 @@ def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
     return out
 
 
-def _robust_sigma(x: np.ndarray) -> float:
-    """1.4826 x median absolute deviation of a (sub-sampled) array; a noise estimate robust to < 50% outliers."""
-    step = max(1, int(np.sqrt(x.size / 100_000)))
-    s = x[::step, ::step]
-    s = s[np.isfinite(s)]
-    if s.size == 0:
+def _pair_sigma(x: np.ndarray) -> float:
+    """Noise of ``frame - plate`` from the plate alone: the robust (MAD) spread of differences of pixels two
+    columns apart, ``std(b[i + 2] - b[i]) = sqrt(2) sigma_b``, which equals ``std(f - b)`` when frame and plate
+    have the same noise (same camera and exposure). Two apart, not adjacent: demosaicing correlates
+    neighbours. Smooth structure of the plate barely moves it; its edges are outliers the median ignores.
+    """
+    if x.shape[1] < 3:
         return 0.0
-    return float(1.4826 * np.median(np.abs(s - np.median(s))))
+    step = max(1, int(np.sqrt(x.size / 200_000)))
+    rows = x[::step]
+    d = (rows[:, 2:] - rows[:, :-2])[:, ::step]
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))))
 
 
 def foreground_mask(
@@ -567,16 +587,18 @@ def foreground_mask(
 
     With a clean plate (``background``, the empty stage under full_on): a pixel is foreground where any
     channel ``c`` satisfies ``f_c > b_c (1 + plate_brighter) + t_c`` or ``f_c < b_c (1 - plate_darker) - t_c``
-    with the noise term ``t_c = max(plate_noise_sigmas * sigma_c, plate_min_diff)`` and ``sigma_c`` the
-    robust (MAD) spread of ``f_c - b_c`` over the frame (valid while the subject covers under half of it).
+    with the noise term ``t_c = max(plate_noise_sigmas * sigma_c, plate_min_diff)``; ``sigma_c``, the noise of
+    ``f_c - b_c``, is estimated from the plate alone (robust spread of pixel differences, see
+    :func:`_pair_sigma`), so it does not depend on how much of the frame the subject covers.
     Without a plate: luminance above ``no_plate_threshold`` times the 99.5th percentile luminance.
-    Then cleanup on the bool image: opening, closing, filling small enclosed holes, dropping small components.
+    Then cleanup on the bool image: a majority filter (specks out, pinholes in), closing, filling small
+    enclosed holes, dropping small components.
 
     Args:
         full_on: (H, W, 3) decoded linear white image.
         background: optional (H, W, 3) clean plate, same decode settings.
-        params: thresholds (``plate_*``, ``no_plate_threshold``, ``open_radius``, ``close_radius``, ``max_hole``,
-            ``min_component``).
+        params: thresholds (``plate_*``, ``no_plate_threshold``, ``majority_radius``, ``close_radius``,
+            ``max_hole``, ``min_component``).
 
     Returns:
         bool (H, W).
@@ -589,9 +611,7 @@ def foreground_mask(
         terms = []
         for c in range(3):
             f, b = full_on[..., c], background[..., c]
-            step = max(1, int(np.ceil(np.sqrt(f.size / 100_000))))
-            diff = f[::step, ::step] - b[::step, ::step]
-            t = max(params.plate_noise_sigmas * _robust_sigma(diff), params.plate_min_diff)
+            t = max(params.plate_noise_sigmas * _pair_sigma(b), params.plate_min_diff)
             loc.update({f"f{c}": f, f"b{c}": b, f"t{c}": np.float32(t)})
             F, B = f"where(f{c} < big, f{c}, 0)", f"where(b{c} > 0, b{c}, 0)"  # NaN-safe comparisons
             terms.append(f"({F} > {B} * hi + t{c}) | ({F} < {B} * lo - t{c})")

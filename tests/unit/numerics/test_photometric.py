@@ -256,7 +256,8 @@ def test_mask_subject_touching_frame_edge_is_kept():
     img = np.full((60, 60, 3), 0.03, np.float32)
     img[30:, 20:40] = 0.5  # legs cut by the bottom of the frame
     mask = foreground_mask(img)
-    assert mask[59, 20:40].all() and mask[30:, 20:40].all() and not mask[:29].any()
+    assert mask[45:, 20:40].all()  # not eaten from the frame edge (only the free corners round off)
+    assert mask[31:, 21:39].all() and not mask[:29].any() and not mask[:, :19].any()
 
 
 # ---------------------------------------------------------------------------------------------- driver
@@ -304,3 +305,20 @@ def test_photometric_maps_black_and_saturated_frames(level):
     assert not maps.normals.any()  # pos == neg: d = 0, normal undefined -> 0
     maps = photometric_maps(img, img, img, None, WHITE)  # mask from the image itself
     assert_finite(maps.normals, maps.alpha, maps.albedo, maps.ratio_norm)
+
+
+def test_mask_large_speckled_subject_with_and_without_plate():
+    # the subject covers ~70% of the frame and its albedo varies per pixel (some pixels as dark as the
+    # background): the plate's noise estimate must not depend on coverage, and specks/pinholes are voted away
+    rng = np.random.default_rng(2)
+    h, w = 120, 100
+    yy, xx = np.mgrid[0:h, 0:w]
+    subject = ((yy - 60) / 58.0) ** 2 + ((xx - 50) / 46.0) ** 2 < 1
+    plate = (0.03 + 0.01 * np.sin(xx / 5.0))[..., None] * np.ones(3)
+    img = plate + rng.normal(0, 0.002, (h, w, 3))
+    albedo = rng.uniform(0.05, 0.8, (h, w, 1))
+    img = np.where(subject[..., None], albedo * WHITE, img).astype(np.float32)
+    plate_obs = (plate + rng.normal(0, 0.002, plate.shape)).astype(np.float32)
+    assert subject.mean() > 0.65
+    assert _iou(foreground_mask(img, plate_obs), subject) > 0.97
+    assert _iou(foreground_mask(img), subject) > 0.95
