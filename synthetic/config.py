@@ -53,7 +53,7 @@ class SimConfig:
     def __post_init__(self) -> None:
         checks = [
             (self.actions >= 1, "actions must be >= 1"),
-            (self.width >= 16 and self.width % 2 == 0, "width must be an even number >= 16"),
+            (self.width >= 16, "width must be >= 16"),
             (self.n_leds >= 16, "n_leds must be >= 16"),
             (self.led_error >= 0.0, "led_error must be >= 0"),
             (1 <= self.sessions <= self.actions, "sessions must be in 1..actions"),

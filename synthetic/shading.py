@@ -103,18 +103,22 @@ class SurfaceLighting:
     """View-independent lighting of one action's mesh.
 
     irradiance: (V, 9) float32 per vertex (full_on, pos, neg x RGB); visible_fraction: (V,) float32;
-    clusters: one LedClusters per specular level; cluster_visibility: per level (V, C) uint8 (255 = all
-    members visible).
+    levels: the (min GGX alpha, cluster count) table used; clusters: one LedClusters per level;
+    cluster_visibility: per level (V, C) uint8 (255 = all members visible).
     """
     irradiance: np.ndarray
     visible_fraction: np.ndarray
+    levels: tuple[tuple[float, int | None], ...]
     clusters: tuple[LedClusters, ...]
     cluster_visibility: tuple[np.ndarray, ...]
 
 
-def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere,
-                     with_specular: bool = True, chunk: int = 8192) -> SurfaceLighting:
-    """Per-vertex irradiance and visible fraction from V (V, L) bool and vertex normals (V, 3)."""
+def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere, with_specular: bool = True,
+                     levels: tuple[tuple[float, int | None], ...] = CLUSTER_LEVELS,
+                     chunk: int = 8192) -> SurfaceLighting:
+    """Per-vertex irradiance and visible fraction from V (V, L) bool and vertex normals (V, 3), and the
+    specular LED clusters of `levels` ((min alpha, count) rows by decreasing alpha; count None = all LEDs,
+    the last row's min alpha must be 0)."""
     irradiance_table = leds.irradiance
     dirs32 = leds.directions.astype(np.float32)
     n_vertices = len(normals)
@@ -130,7 +134,7 @@ def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere,
     clusters, cluster_vis = [], []
     if with_specular:
         by_led = np.ascontiguousarray(visible.T).view(np.uint8)  # (L, V): cluster sums over contiguous rows
-        for _, count in CLUSTER_LEVELS:
+        for _, count in levels:
             level = cluster_leds(leds.directions, irradiance_table, count)
             clusters.append(level)
             if len(level.counts) == leds.count:
@@ -139,14 +143,14 @@ def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere,
                 sums = np.add.reduceat(by_led[level.order], level.starts, axis=0, dtype=np.uint16)
                 scaled = np.round(sums * (255.0 / level.counts)[:, None].astype(np.float32)).astype(np.uint8)
                 cluster_vis.append(np.ascontiguousarray(scaled.T))
-    return SurfaceLighting(irradiance, fraction, tuple(clusters), tuple(cluster_vis))
+    return SurfaceLighting(irradiance, fraction, tuple(levels), tuple(clusters), tuple(cluster_vis))
 
 
-def level_of(alpha: np.ndarray) -> np.ndarray:
-    """Specular cluster level index (N,) for GGX alphas (N,)."""
-    level = np.full(alpha.shape, len(CLUSTER_LEVELS) - 1)
-    for index in reversed(range(len(CLUSTER_LEVELS))):
-        level[alpha >= CLUSTER_LEVELS[index][0]] = index
+def level_of(alpha: np.ndarray, levels: tuple[tuple[float, int | None], ...] = CLUSTER_LEVELS) -> np.ndarray:
+    """Specular cluster level index (N,) for GGX alphas (N,): the first row whose min alpha they reach."""
+    level = np.full(alpha.shape, len(levels) - 1)
+    for index in reversed(range(len(levels))):
+        level[alpha >= levels[index][0]] = index
     return level
 
 
@@ -293,10 +297,10 @@ def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarr
     normals, view: (N, 3); roughness, f0: (N,); tri: (N, 3) vertex ids; bary: (N, 3).
     """
     alpha = roughness.astype(np.float32) ** 2
-    levels = level_of(alpha)
+    pixel_levels = level_of(alpha, lighting.levels)
     out = np.zeros((len(normals), 9), np.float32)
     for level_index, (clusters, cluster_vis) in enumerate(zip(lighting.clusters, lighting.cluster_visibility)):
-        members = np.nonzero(levels == level_index)[0]
+        members = np.nonzero(pixel_levels == level_index)[0]
         for start in range(0, len(members), PIXEL_CHUNK):
             sel = members[start:start + PIXEL_CHUNK]
             weights = ggx_weights(normals[sel], view[sel], clusters.directions, alpha[sel], f0[sel])
