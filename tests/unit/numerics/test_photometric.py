@@ -322,3 +322,26 @@ def test_mask_large_speckled_subject_with_and_without_plate():
     assert subject.mean() > 0.65
     assert _iou(foreground_mask(img, plate_obs), subject) > 0.97
     assert _iou(foreground_mask(img), subject) > 0.95
+
+
+def test_mask_edge_at_half_coverage():
+    # anti-aliased disc, slightly blurred (demosaic-like): the plate difference alone takes the whole rim;
+    # edge refinement keeps pixels at least half covered
+    from scipy.ndimage import gaussian_filter
+
+    h, w, ss = 80, 80, 8
+    yy, xx = (np.mgrid[0 : h * ss, 0 : w * ss] + 0.5) / ss
+    cover = (((yy - 40.3) ** 2 + (xx - 39.6) ** 2) < 25.0**2).reshape(h, ss, w, ss).mean(axis=(1, 3))
+    rng = np.random.default_rng(4)
+    plate = np.full((h, w, 3), 0.03) * np.array([1.0, 0.9, 1.1])
+    subject = np.array([0.45, 0.3, 0.25])
+    img = cover[..., None] * subject + (1 - cover[..., None]) * plate
+    img = np.stack([gaussian_filter(img[..., c], 0.6) for c in range(3)], -1)
+    img = (img + rng.normal(0, 0.001, img.shape)).astype(np.float32)
+    plate_obs = (plate + rng.normal(0, 0.001, plate.shape)).astype(np.float32)
+    truth = cover >= 0.5
+    refined = foreground_mask(img, plate_obs)
+    rough = foreground_mask(img, plate_obs, PhotometricParams(refine_edges=False))
+    assert _iou(refined, truth) > 0.98
+    assert _iou(refined, truth) > _iou(rough, truth) + 0.02
+    assert _iou(foreground_mask(img), truth) > 0.98  # without a plate: exterior neighbours as background
