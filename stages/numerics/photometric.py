@@ -586,7 +586,6 @@ def _refine_edges(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None) -> np.nda
     if ys.size == 0:
         return fg
     h, w = fg.shape
-    fz = np.nan_to_num(f, nan=0.0, posinf=0.0, neginf=0.0)
     s_sum = np.zeros((ys.size, 3), np.float64)
     s_cnt = np.zeros(ys.size, np.float64)
     o_sum = np.zeros((ys.size, 3), np.float64) if b is None else None
@@ -595,7 +594,7 @@ def _refine_edges(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None) -> np.nda
         yy = np.clip(ys + dy, 0, h - 1)
         for dx in range(-_EDGE_R, _EDGE_R + 1):
             xx = np.clip(xs + dx, 0, w - 1)
-            col = fz[yy, xx]
+            col = np.nan_to_num(f[yy, xx], nan=0.0, posinf=0.0, neginf=0.0)
             wi = inner[yy, xx]
             s_sum += col * wi[:, None]
             s_cnt += wi
@@ -603,7 +602,7 @@ def _refine_edges(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None) -> np.nda
                 wo = outer[yy, xx]
                 o_sum += col * wo[:, None]
                 o_cnt += wo
-    here = fz[ys, xs].astype(np.float64)
+    here = np.nan_to_num(f[ys, xs].astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if b is None:
         bgc = o_sum / np.maximum(o_cnt, 1)[:, None]
         known = (s_cnt > 0) & (o_cnt > 0)
