@@ -243,3 +243,14 @@ def test_real_coolscan_nef_is_not_a_camera_frame():
     with pytest.raises(RawDecodeError) as ei:
         decode_raw(RAW_DIR / "Nikon_COOLSCAN_uncompressed.nef")
     assert "not a Bayer light-stage camera frame" in _reason(ei) and "COOLSCAN" in _reason(ei)
+
+
+@pytest.mark.shared
+@needs_shared
+def test_real_dng_truncated(tmp_path):
+    data = (RAW_DIR / "Blackmagic_PocketCinema4K.dng").read_bytes()
+    cut = tmp_path / "cut.dng"
+    cut.write_bytes(data[: int(len(data) * 0.7)])
+    with pytest.raises(RawDecodeError) as ei:
+        decode_raw(cut)
+    assert "truncated" in _reason(ei)
