@@ -83,14 +83,37 @@ def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     import dataclasses
+    import shutil
 
     from synthetic import SimConfig, simulate
 
     overrides = {k: v for k, v in {"mesh": args.mesh, "actions": args.actions, "width": args.width,
                                    "seed": args.seed}.items() if v is not None}
     config = dataclasses.replace(SimConfig(), **overrides)
+    out = Path(args.out)
+    index = out / "capture.json"
+    if index.exists() and not args.force:
+        try:
+            recorded = json.loads(index.read_text()).get("simulator")
+        except json.JSONDecodeError:
+            recorded = None
+        if recorded == json.loads(json.dumps(config.to_json())):
+            print(f"capture {out} is up to date with these simulator settings: skipped (--force to redo)")
+            return 0
+    # Render beside the target and swap it in, so an interrupted run never leaves half a capture.
+    tmp = out.with_name(f".{out.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
     start = time.perf_counter()
-    out = simulate(Path(args.out), config, progress=lambda msg: print(f"  {msg}", flush=True))
+    simulate(tmp, config, progress=lambda msg: print(f"  {msg}", flush=True))
+    if out.exists():
+        old = out.with_name(f".{out.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        out.rename(old)
+        tmp.rename(out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp.rename(out)
     print(f"simulated capture written to {out} in {time.perf_counter() - start:.1f}s")
     return 0
 
@@ -206,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--actions", type=int, help="number of actions")
     p.add_argument("--width", type=int, help="image width in pixels (height follows the D750's 2:3 portrait)")
     p.add_argument("--seed", type=int, help="random seed")
+    p.add_argument("--force", action="store_true", help="render again even if the capture is up to date")
     p.set_defaults(fn=cmd_simulate)
 
     p = sub.add_parser("run", help="run the DAG on a capture and write the release")

@@ -288,6 +288,10 @@ class DaskExecutor:
 
         from distributed import Client, LocalCluster
 
+        # The scheduler of a local cluster lives in this process; its INFO chatter is not progress.
+        for name in ("distributed", "distributed.scheduler", "distributed.nanny", "distributed.core",
+                     "distributed.worker", "distributed.http.proxy"):
+            logging.getLogger(name).setLevel(logging.ERROR)
         if address:
             self.client = Client(address)
             self.cluster = None
