@@ -298,6 +298,10 @@ class DaskExecutor:
             self.name = f"dask scheduler at {address}"
         else:
             n_workers = workers or max(1, min(os.cpu_count() or 1, 8))
+            # Worker processes inherit this: numeric kernels split the cores instead of each taking all.
+            per_worker = str(max(1, (os.cpu_count() or 1) // n_workers))
+            for var in ("ULTRASTAGE_NUMERIC_THREADS", "OMP_NUM_THREADS"):
+                os.environ.setdefault(var, per_worker)
             self.cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
                                         processes=True, memory_limit=memory_limit, dashboard_address=None,
                                         silence_logs=logging.ERROR)
