@@ -97,7 +97,7 @@ def _demosaic_algorithm(name: str):
 # --------------------------------------------------------------------------------------------- TIFF header
 
 
-def _tiff_info(path: Path, file_size: int) -> tuple[int | None, str | None]:
+def _tiff_info(path: Path) -> tuple[int | None, str | None]:
     """(end of the raw data the TIFF header declares, camera name) for TIFF-based raws, else (None, None).
 
     The raw data is taken as the image (IFD or SubIFD) with the most declared strip/tile bytes. Only the
@@ -110,12 +110,14 @@ def _tiff_info(path: Path, file_size: int) -> tuple[int | None, str | None]:
         return None, None
     if magic not in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
         return None, None
-    try:
-        import logging
+    import logging
 
+    log = logging.getLogger("tifffile")
+    was_disabled = log.disabled
+    log.disabled = True  # a truncated header makes tifffile log an error per tag; the reason we raise says it
+    try:
         import tifffile
 
-        logging.getLogger("tifffile").setLevel(logging.ERROR)
         best_bytes, best_end, make, model, unique = -1, None, None, None, None
         with tifffile.TiffFile(path) as tif:
             stack = list(tif.pages)
@@ -144,6 +146,8 @@ def _tiff_info(path: Path, file_size: int) -> tuple[int | None, str | None]:
         return best_end, camera
     except Exception:  # noqa: BLE001 - a header tifffile cannot parse is LibRaw's call
         return None, None
+    finally:
+        log.disabled = was_disabled
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -249,7 +253,7 @@ def decode_raw(
     if size == 0:
         raise RawDecodeError(path, "empty file (0 bytes)")
 
-    declared_end, camera = _tiff_info(path, size)
+    declared_end, camera = _tiff_info(path)
     if declared_end is not None and declared_end > size:
         raise RawDecodeError(
             path,
