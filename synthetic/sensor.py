@@ -88,13 +88,12 @@ def mosaic_rggb(camera_rgb: np.ndarray) -> np.ndarray:
 def raw_frame(radiance_srgb: np.ndarray, gain: float, rng: np.random.Generator | None,
               full_well_e: float, read_noise_dn: float) -> np.ndarray:
     """14-bit raw DN (H, W) uint16 of a linear-sRGB radiance image (H, W, 3); rng None = no noise."""
-    camera_rgb = (radiance_srgb.astype(np.float64) @ (gain * cam_from_srgb()).T)
-    signal = mosaic_rggb(camera_rgb)
+    signal = mosaic_rggb(radiance_srgb.astype(np.float32) @ (gain * cam_from_srgb()).T.astype(np.float32))
     span = WHITE_LEVEL - BLACK_LEVEL
-    if rng is not None:
-        shot = np.sqrt(np.maximum(signal, 0.0) / full_well_e)
-        signal = signal + shot * rng.standard_normal(signal.shape) + (read_noise_dn / span) * rng.standard_normal(signal.shape)
-    dn = np.round(BLACK_LEVEL + signal * span)
+    if rng is not None:  # shot + read noise as one Gaussian of the summed variance
+        sigma = np.sqrt(np.maximum(signal, 0.0) / full_well_e + (read_noise_dn / span) ** 2)
+        signal = signal + sigma * rng.standard_normal(signal.shape, dtype=np.float32)
+    dn = np.rint(BLACK_LEVEL + signal * span)
     return np.clip(dn, 0, WHITE_LEVEL).astype(np.uint16)
 
 

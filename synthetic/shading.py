@@ -30,7 +30,7 @@ from .subject import ActionSubject
 
 SHADOW_OFFSET_M = 1e-3
 CLUSTER_LEVELS = ((0.35, 64), (0.12, 256), (0.0, None))  # (min GGX alpha, cluster count; None = all LEDs)
-PIXEL_CHUNK = 4096
+CHUNK_ELEMENTS = 1 << 17  # pixels x LED clusters per specular chunk: arrays stay cache-resident (2-3x faster)
 INVALID_ID = np.iinfo(np.uint32).max
 
 
@@ -56,14 +56,17 @@ def vertex_visibility(scene: o3d.t.geometry.RaycastingScene, vertices: np.ndarra
         stop = min(start + chunk, n_vertices)
         normal = normals[start:stop].astype(np.float32)
         origins = vertices[start:stop].astype(np.float32) + offset_m * normal
-        li, vi = np.nonzero(dirs32 @ normal.T > 0.0)  # LED-major order: coherent rays trace faster
+        above = dirs32 @ normal.T > 0.0  # (L, chunk): LED-major ray order, coherent rays trace faster
+        li, vi = np.nonzero(above)
         if len(vi) == 0:
             continue
         rays = np.empty((len(vi), 6), np.float32)
         rays[:, :3] = origins[vi]
         rays[:, 3:] = dirs32[li]
         occluded = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
-        visible[start + vi, li] = ~occluded
+        seen = np.zeros_like(above)
+        seen[above] = ~occluded
+        visible[start:stop] = seen.T
     return visible
 
 
@@ -206,17 +209,23 @@ def background_reflectance(directions: np.ndarray) -> np.ndarray:
     return np.where(strut, 0.028 * mottle, value).astype(np.float32)
 
 
-def background_radiance(centre: np.ndarray, ray_dirs: np.ndarray, sphere_radius: float,
-                        mean_intensity: np.ndarray) -> np.ndarray:
-    """Radiance (N, 9) of the LED sphere's far inside wall seen along rays (N, 3) from `centre`, lit by
-    the mean LED intensity of each illumination channel (9,). Rays missing the sphere see a darker room."""
+def sphere_wall_reflectance(centre: np.ndarray, ray_dirs: np.ndarray, sphere_radius: float) -> np.ndarray:
+    """Reflectance (N,) float32 of the LED sphere's far inside wall seen along unit rays (N, 3) from
+    `centre` (inside or outside the sphere); rays missing the sphere see a darker room (0.6%)."""
     b = ray_dirs @ centre
     c = float(centre @ centre) - sphere_radius ** 2
     disc = b * b - c
     t = -b + np.sqrt(np.maximum(disc, 0.0))
     hit_dirs = geometry.normalize(centre + t[:, None] * ray_dirs)
-    reflectance = np.where(disc > 0, background_reflectance(hit_dirs), 0.006)
-    return (reflectance[:, None] * mean_intensity[None, :]).astype(np.float32)
+    return np.where(disc > 0, background_reflectance(hit_dirs), 0.006).astype(np.float32)
+
+
+def background_image(camera: Camera, sphere_radius: float) -> np.ndarray:
+    """Reflectance (H, W) float32 of the stage background behind the subject, as a camera sees it.
+    Its radiance under an illumination is this times the mean LED intensity of each channel."""
+    centre, dirs, _ = pixel_rays(camera)
+    flat = sphere_wall_reflectance(centre, dirs.reshape(-1, 3).astype(np.float64), sphere_radius)
+    return flat.reshape(camera.height, camera.width)
 
 
 @dataclass(frozen=True)
@@ -233,17 +242,19 @@ class ViewRender:
     visibility: np.ndarray
 
 
-def render_background(camera: Camera, leds: LedSphere) -> np.ndarray:
-    """Radiance (H, W, 9) of the empty stage (clean plate) seen by a camera."""
-    centre, dirs, _ = pixel_rays(camera)
-    flat = background_radiance(centre, dirs.reshape(-1, 3).astype(np.float64), leds.radius_m,
-                               leds.mean_intensity())
-    return flat.reshape(camera.height, camera.width, 9)
+def render_background(camera: Camera, leds: LedSphere, background: np.ndarray | None = None) -> np.ndarray:
+    """Radiance (H, W, 9) of the empty stage (clean plate) seen by a camera; `background` is its
+    precomputed `background_image` (H, W), or None to compute it."""
+    if background is None:
+        background = background_image(camera, leds.radius_m)
+    return (background[..., None] * leds.mean_intensity().astype(np.float32)).astype(np.float32)
 
 
 def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, lighting: SurfaceLighting,
-                leds: LedSphere, camera: Camera, specular: bool = True) -> ViewRender:
-    """Render one camera: primary rays, interpolated surface attributes, diffuse + specular shading."""
+                leds: LedSphere, camera: Camera, specular: bool = True,
+                background: np.ndarray | None = None) -> ViewRender:
+    """Render one camera: primary rays, interpolated surface attributes, diffuse + specular shading.
+    `background`: the camera's precomputed `background_image` (H, W), or None to compute it."""
     h, w = camera.height, camera.width
     centre, dirs, dir_z = pixel_rays(camera)
     flat_dirs = dirs.reshape(-1, 3)
@@ -251,7 +262,7 @@ def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, l
     hits = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
     prim = hits["primitive_ids"].numpy()
     mask = prim != INVALID_ID
-    radiance = background_radiance(centre, flat_dirs.astype(np.float64), leds.radius_m, leds.mean_intensity())
+    radiance = render_background(camera, leds, background).reshape(-1, 9)
 
     pix = np.nonzero(mask)[0]
     tri_ids = prim[pix].astype(np.int64)
@@ -301,8 +312,9 @@ def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarr
     out = np.zeros((len(normals), 9), np.float32)
     for level_index, (clusters, cluster_vis) in enumerate(zip(lighting.clusters, lighting.cluster_visibility)):
         members = np.nonzero(pixel_levels == level_index)[0]
-        for start in range(0, len(members), PIXEL_CHUNK):
-            sel = members[start:start + PIXEL_CHUNK]
+        chunk = max(64, CHUNK_ELEMENTS // len(clusters.directions))
+        for start in range(0, len(members), chunk):
+            sel = members[start:start + chunk]
             weights = ggx_weights(normals[sel], view[sel], clusters.directions, alpha[sel], f0[sel])
             t, b = tri[sel], bary[sel] * np.float32(1.0 / 255.0)
             vis = cluster_vis[t[:, 0]] * b[:, 0:1]

@@ -5,6 +5,8 @@ file is reproducible on its own: the same config gives byte-identical raw files.
 """
 from __future__ import annotations
 
+import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +24,7 @@ from .subject import (MATERIALS, ActionSubject, BaseSubject, load_base_subject, 
 CAPTURE_FORMAT = "ultrastage-capture/1"
 RIG_FORMAT = "ultrastage-rig/1"
 TRUTH_FORMAT = "ultrastage-truth/1"
+CAPTURE_ENTRIES = ("capture.json", "sessions", "actions", "ground_truth", "previews")
 
 # purposes of the random streams: default_rng([seed, PURPOSE, ...])
 _RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE = range(1, 7)
@@ -30,13 +33,15 @@ _RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE = range(1, 7)
 @dataclass(frozen=True)
 class Session:
     """One capture session: cameras, LEDs, per-camera exposure gain (normalised raw per unit radiance)
-    and white reference (decoded linear RGB of an albedo-1 unoccluded Lambertian under full_on)."""
+    and white reference (decoded linear RGB of an albedo-1 unoccluded Lambertian under full_on), and
+    the background reflectance image (H, W) each camera sees behind the subject."""
     session_id: str
     index: int
     cameras: list[Camera]
     leds: LedSphere
     gains: list[float]
     white_references: list[np.ndarray]
+    backgrounds: list[np.ndarray]
 
     def rig_json(self) -> dict:
         return {"format": RIG_FORMAT, "session_id": self.session_id,
@@ -62,7 +67,8 @@ def make_session(config: SimConfig, base: BaseSubject, index: int) -> Session:
         gain = sensor.exposure_gain(white_radiance, target)
         gains.append(gain)
         references.append(gain * sensor.decoded_scale() * white_radiance)
-    return Session(f"S{index:03d}", index, cameras, leds, gains, references)
+    backgrounds = [shading.background_image(camera, leds.radius_m) for camera in cameras]
+    return Session(f"S{index:03d}", index, cameras, leds, gains, references, backgrounds)
 
 
 def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None = None) -> Path:
@@ -70,12 +76,14 @@ def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] |
 
     Writes capture.json, sessions/<sid>/rig.json (+ background/<cam>.dng clean plates),
     actions/<aid>/{full_on,pos,neg}/<cam>.dng, ground_truth/<aid>/... and previews/<aid>.png.
+    capture.json is written last, so a folder without it is an interrupted capture. A previous simulated
+    capture in `out_dir` is replaced; a folder holding anything else is refused (FileExistsError).
     `progress(message)` is called per session, per camera of every action and at the end.
     """
     say = progress or (lambda message: None)
     started = time.perf_counter()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    clear_previous_capture(out)
     mesh_path = resolve_mesh(config.mesh)
     base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
     say(f"subject {base.name}: {len(base.vertices)} vertices, {len(base.triangles)} triangles")
@@ -109,11 +117,33 @@ def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] |
     return out
 
 
+def clear_previous_capture(out: Path) -> None:
+    """Make `out` an empty folder for a new capture. A folder holding only what the simulator writes
+    (a previous or interrupted capture) is emptied of it; any other non-empty folder is refused."""
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"{out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    entries = list(out.iterdir())
+    foreign = sorted(p.name for p in entries if p.name not in CAPTURE_ENTRIES)
+    if foreign:
+        raise FileExistsError(f"{out} is not empty and not a simulated capture (it holds {foreign[:5]}); "
+                              f"choose a new folder")
+    if (out / "capture.json").exists():
+        meta = json.loads((out / "capture.json").read_text())
+        if "simulator" not in meta:
+            raise FileExistsError(f"{out} holds a real capture (capture.json without 'simulator'); refusing to "
+                                  f"overwrite it")
+        (out / "capture.json").unlink()
+    for entry in entries:
+        if entry.is_dir():
+            shutil.rmtree(entry)
+
+
 def write_clean_plates(out: Path, config: SimConfig, session: Session) -> None:
     """Clean plates: the empty stage under full_on, one DNG per camera."""
     cam_from_xyz, neutral = sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral()
     for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
-        radiance = shading.render_background(camera, session.leds)[..., 0:3]
+        radiance = shading.render_background(camera, session.leds, session.backgrounds[cam_index])[..., 0:3]
         rng = np.random.default_rng([config.seed, _PLATE_NOISE, session.index, cam_index]) if config.noise else None
         raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
         sensor.write_dng(out / "sessions" / session.session_id / "background" / f"{camera.camera_id}.dng",
@@ -123,8 +153,9 @@ def write_clean_plates(out: Path, config: SimConfig, session: Session) -> None:
 def prepare_action(config: SimConfig, base: BaseSubject, session: Session, action_index: int
                    ) -> tuple[ActionSubject, o3d.t.geometry.RaycastingScene, shading.SurfaceLighting]:
     """The action's subject, its ray-casting scene and its view-independent lighting."""
+    cycle_offset = int(np.random.default_rng([config.seed, _SUBJECT]).integers(1 << 16))
     subject = make_action_subject(base, np.random.default_rng([config.seed, _SUBJECT, action_index]),
-                                  action_index, config.fold_amplitude_m)
+                                  action_index, config.fold_amplitude_m, cycle_offset)
     scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
     visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world,
                                         session.leds.directions)
@@ -144,8 +175,9 @@ def render_views(config: SimConfig, action_index: int = 0, session_index: int = 
     base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
     session = make_session(config, base, session_index)
     subject, scene, lighting = prepare_action(config, base, session, action_index)
-    views = [shading.render_view(scene, subject, lighting, session.leds, camera, specular=config.specular)
-             for camera in session.cameras]
+    views = [shading.render_view(scene, subject, lighting, session.leds, camera, specular=config.specular,
+                                 background=background)
+             for camera, background in zip(session.cameras, session.backgrounds)]
     return session, subject, views
 
 
@@ -162,7 +194,8 @@ def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Sess
     truth_dir = out / "ground_truth" / action_id
     thumbnails = []
     for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
-        view = shading.render_view(scene, subject, lighting, leds, camera, specular=config.specular)
+        view = shading.render_view(scene, subject, lighting, leds, camera, specular=config.specular,
+                                   background=session.backgrounds[cam_index])
         for illum_index, illumination in enumerate(ILLUMINATIONS):
             rng = (np.random.default_rng([config.seed, _NOISE, action_index, cam_index, illum_index])
                    if config.noise else None)

@@ -240,14 +240,16 @@ def procedural_body_mesh(step: float = 0.012) -> tuple[np.ndarray, np.ndarray]:
 # --- per action ----------------------------------------------------------------------------------------
 
 def make_action_subject(base: BaseSubject, rng: np.random.Generator, action_index: int,
-                        fold_amplitude_m: float) -> ActionSubject:
-    """Vary the base subject for one action: skin, yaw, cloth, folds (all from `rng`)."""
+                        fold_amplitude_m: float, cycle_offset: int = 0) -> ActionSubject:
+    """Vary the base subject for one action: yaw, cloth colours and folds from `rng`; skin, skin tone
+    and cloth pattern kinds cycle with `cycle_offset + action_index`, so consecutive actions differ."""
+    cycle = cycle_offset + action_index
     yaw = float(rng.uniform(-np.pi, np.pi))
-    cloth = random_cloth(rng, fold_amplitude_m)
-    skin_tone = SKIN_TONES[int(rng.integers(len(SKIN_TONES)))]
+    cloth = random_cloth(rng, fold_amplitude_m, cycle)
+    skin_tone = SKIN_TONES[cycle % len(SKIN_TONES)]
     skin_texture, skin_name = None, "procedural"
     if base.skins:
-        skin_path = base.skins[(action_index + int(rng.integers(len(base.skins)))) % len(base.skins)]
+        skin_path = base.skins[cycle % len(base.skins)]
         skin_texture = load_skin(skin_path)
         skin_name = Path(skin_path).stem.removesuffix("_diffuse").removesuffix("_diffuse2")
     normals_rest = geometry.vertex_normals(base.vertices, base.triangles)
@@ -263,10 +265,10 @@ def make_action_subject(base: BaseSubject, rng: np.random.Generator, action_inde
                          vertices_world, normals_world)
 
 
-def random_cloth(rng: np.random.Generator, fold_amplitude_m: float) -> ClothStyle:
-    """A random shirt / trousers style and fold pattern."""
-    shirt_pattern = ("stripes", "checks", "plain")[int(rng.integers(3))]
-    trousers_pattern = ("denim", "checks", "plain")[int(rng.integers(3))]
+def random_cloth(rng: np.random.Generator, fold_amplitude_m: float, cycle: int) -> ClothStyle:
+    """A shirt / trousers style (pattern kinds cycle with `cycle`, colours random) and fold pattern."""
+    shirt_pattern = ("stripes", "checks", "plain")[cycle % 3]
+    trousers_pattern = ("denim", "checks", "plain")[(cycle + 1) % 3]
     shirt_colours = FABRIC_COLOURS[rng.choice(len(FABRIC_COLOURS), 2, replace=False)]
     trousers_colours = FABRIC_COLOURS[rng.choice(len(FABRIC_COLOURS), 2, replace=False)]
     if trousers_pattern == "denim":
@@ -276,9 +278,10 @@ def random_cloth(rng: np.random.Generator, fold_amplitude_m: float) -> ClothStyl
     directions = geometry.normalize(np.column_stack([rng.normal(0, 0.45, n_folds), np.ones(n_folds),
                                                      rng.normal(0, 0.45, n_folds)]))
     wavelengths = rng.uniform(0.035, 0.08, n_folds)
-    return ClothStyle(shirt_pattern, shirt_colours, float(rng.uniform(0.018, 0.045)),
+    # periods of a few centimetres: patterns stay resolved (a pixel is ~4 mm at the default width)
+    return ClothStyle(shirt_pattern, shirt_colours, float(rng.uniform(0.025, 0.05)),
                       float(rng.uniform(-0.3, 0.3)), trousers_pattern, trousers_colours,
-                      float(rng.uniform(0.025, 0.06)),
+                      float(rng.uniform(0.04, 0.08)),
                       directions * (2 * np.pi / wavelengths)[:, None], rng.uniform(0, 2 * np.pi, n_folds),
                       fold_amplitude_m * float(rng.uniform(0.75, 1.25)))
 
@@ -380,8 +383,8 @@ def cloth_albedo(points: np.ndarray, pattern: str, colours: np.ndarray, period_m
         s = smoothstep(0.35, 0.5, np.abs(np.mod(coord, 1.0) - 0.5))[:, None]
         out = a * (1 - s) + b * s
     elif pattern == "checks":
-        u = smoothstep(0.33, 0.42, np.abs(np.mod(points[:, 0] / period_m, 1.0) - 0.5))
-        v = smoothstep(0.33, 0.42, np.abs(np.mod(points[:, 1] / period_m, 1.0) - 0.5))
+        u = smoothstep(0.27, 0.4, np.abs(np.mod(points[:, 0] / period_m, 1.0) - 0.5))
+        v = smoothstep(0.27, 0.4, np.abs(np.mod(points[:, 1] / period_m, 1.0) - 0.5))
         mix = (0.5 * (u + v))[:, None]  # gingham: 0 base, 0.5 single band, 1 crossing
         out = a * (1 - mix) + b * mix
     elif pattern == "denim":  # faded blotches and a soft diagonal wale (real twill is finer than a pixel)

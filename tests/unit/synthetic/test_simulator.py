@@ -268,6 +268,20 @@ def test_same_seed_gives_identical_raw_files(tmp_path):
     assert (other / raws[0]).read_bytes() != (first / raws[0]).read_bytes()
 
 
+def test_output_folder_rules(tmp_path):
+    config = SimConfig(mesh="procedural", actions=1, width=32, n_cameras=1, n_leds=32, background=False)
+    out = simulate(tmp_path / "cap", config)
+    (out / "actions" / "A0000" / "full_on" / "00099.dng").write_bytes(b"stale")
+    simulate(out, config)  # a previous simulated capture is replaced, stale files included
+    assert not (out / "actions" / "A0000" / "full_on" / "00099.dng").exists()
+    assert (out / "capture.json").is_file()
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError):
+        simulate(tmp_path / "other", config)
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
 # --- the MakeHuman subject (needs ../shared) ------------------------------------------------------------
 
 @needs_shared
@@ -281,7 +295,8 @@ def test_makehuman_subject_geometry_and_materials():
     assert set(np.unique(regions)) == {subject.SKIN, subject.SHIRT, subject.TROUSERS, subject.SHINY}
     a = subject.make_action_subject(base, np.random.default_rng(1), 0, 0.004)
     b = subject.make_action_subject(base, np.random.default_rng(2), 1, 0.004)
-    assert a.skin_name != b.skin_name or a.yaw_rad != b.yaw_rad
+    assert a.skin_name != b.skin_name and a.yaw_rad != b.yaw_rad
+    assert a.cloth.shirt_pattern != b.cloth.shirt_pattern
     displacement = np.linalg.norm(a.vertices_rest - base.vertices, axis=1)
     clothed = np.isin(regions, (subject.SHIRT, subject.TROUSERS))
     assert displacement[clothed].max() > 0.002 and displacement[regions == subject.SKIN].max() < 0.004
