@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -56,7 +57,7 @@ def read_obj(path: str | Path) -> ObjMesh:
                    faces, groups)
 
 
-def triangulate(obj: ObjMesh, keep_group: callable) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def triangulate(obj: ObjMesh, keep_group: Callable[[str], bool]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Fan-triangulate the faces whose group passes `keep_group`, dropping unused vertices.
 
     Returns:
@@ -207,7 +208,7 @@ def smooth_union(distances: np.ndarray, k: float) -> np.ndarray:
     return result
 
 
-def mesh_from_sdf(sdf: callable, lo: np.ndarray, hi: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+def mesh_from_sdf(sdf: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     """Marching-cubes surface of sdf(points (N,3)) -> (N,) over the box [lo, hi] sampled every `step` m.
 
     Returns vertices (V, 3) float64 and outward-wound triangles (T, 3) int64.

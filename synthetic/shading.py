@@ -250,55 +250,89 @@ def render_background(camera: Camera, leds: LedSphere, background: np.ndarray | 
     return (background[..., None] * leds.mean_intensity().astype(np.float32)).astype(np.float32)
 
 
-def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, lighting: SurfaceLighting,
-                leds: LedSphere, camera: Camera, specular: bool = True,
-                background: np.ndarray | None = None) -> ViewRender:
-    """Render one camera: primary rays, interpolated surface attributes, diffuse + specular shading.
-    `background`: the camera's precomputed `background_image` (H, W), or None to compute it."""
-    h, w = camera.height, camera.width
+@dataclass(frozen=True)
+class SurfaceHits:
+    """Primary-ray hits of one camera: flat pixel indices (N,) of the H*W image, hit triangle ids (N,),
+    their vertex ids (N, 3), barycentrics (N, 3) float32, unit directions towards the camera (N, 3)
+    float32, backface flags (N,) (the ray entered the mesh through a hole) and camera-z depths (N,)."""
+    pixels: np.ndarray
+    triangle_ids: np.ndarray
+    corners: np.ndarray
+    barycentrics: np.ndarray
+    view_dirs: np.ndarray
+    backface: np.ndarray
+    depth_m: np.ndarray
+
+    def interpolate(self, per_vertex: np.ndarray) -> np.ndarray:
+        """Barycentric interpolation of per-vertex values (V, C) at the hits, (N, C)."""
+        b = self.barycentrics
+        return sum(b[:, k:k + 1] * per_vertex[self.corners[:, k]] for k in range(3))
+
+
+def cast_primary_rays(scene: o3d.t.geometry.RaycastingScene, camera: Camera, triangles: np.ndarray) -> SurfaceHits:
+    """One ray through every pixel centre of `camera`; the hits on the mesh (triangles (T, 3))."""
     centre, dirs, dir_z = pixel_rays(camera)
     flat_dirs = dirs.reshape(-1, 3)
     rays = np.concatenate([np.broadcast_to(centre.astype(np.float32), flat_dirs.shape), flat_dirs], axis=1)
-    hits = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
-    prim = hits["primitive_ids"].numpy()
-    mask = prim != INVALID_ID
-    radiance = render_background(camera, leds, background).reshape(-1, 9)
+    result = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+    primitive = result["primitive_ids"].numpy()
+    pixels = np.nonzero(primitive != INVALID_ID)[0]
+    triangle_ids = primitive[pixels].astype(np.int64)
+    uv = result["primitive_uvs"].numpy()[pixels]
+    barycentrics = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]]).astype(np.float32)
+    view_dirs = -flat_dirs[pixels]
+    backface = np.sum(result["primitive_normals"].numpy()[pixels] * view_dirs, axis=1) < 0.0
+    depth = result["t_hit"].numpy()[pixels] * dir_z.reshape(-1)[pixels]
+    return SurfaceHits(pixels, triangle_ids, triangles[triangle_ids], barycentrics, view_dirs, backface, depth)
 
-    pix = np.nonzero(mask)[0]
-    tri_ids = prim[pix].astype(np.int64)
-    tri = subject.triangles[tri_ids]
-    bary_uv = hits["primitive_uvs"].numpy()[pix]
-    bary = np.column_stack([1.0 - bary_uv[:, 0] - bary_uv[:, 1], bary_uv[:, 0], bary_uv[:, 1]]).astype(np.float32)
-    view = -flat_dirs[pix]
-    backface = np.sum(hits["primitive_normals"].numpy()[pix] * view, axis=1) < 0.0
 
-    def interp(values: np.ndarray) -> np.ndarray:
-        return sum(bary[:, k:k + 1] * values[tri[:, k]] for k in range(3))
+def shade_hits(hits: SurfaceHits, subject: ActionSubject, lighting: SurfaceLighting,
+               specular: bool = True) -> tuple[np.ndarray, ...]:
+    """Radiance and surface attributes at the hits.
 
-    normals = geometry.normalize(interp(subject.normals_world.astype(np.float32)), fallback=(0.0, 0.0, 1.0))
-    normals = np.where(backface[:, None], -normals, normals).astype(np.float32)
-    points_rest = interp(subject.vertices_rest)
+    Returns radiance (N, 9) float32 (full_on, pos, neg x RGB), normals_world (N, 3) (facing the camera),
+    albedo (N, 3), roughness (N,), visibility (N,) (0 on backfaces: the inside of the body is dark).
+    """
+    normals = geometry.normalize(hits.interpolate(subject.normals_world.astype(np.float32)),
+                                 fallback=(0.0, 0.0, 1.0))
+    normals = np.where(hits.backface[:, None], -normals, normals).astype(np.float32)
+    points_rest = hits.interpolate(subject.vertices_rest)
     uvs = None
     if subject.base.corner_uvs is not None:
-        uvs = np.einsum("nk,nkc->nc", bary.astype(np.float64), subject.base.corner_uvs[tri_ids])
+        uvs = np.einsum("nk,nkc->nc", hits.barycentrics.astype(np.float64),
+                        subject.base.corner_uvs[hits.triangle_ids])
     albedo, roughness, f0, _ = subject.materials(points_rest, uvs)
-    irradiance = interp(lighting.irradiance)
-    visibility = interp(lighting.visible_fraction[:, None])[:, 0]
-    irradiance[backface] = 0.0   # looking into the body through a hole: its inside is dark
-    visibility[backface] = 0.0
-    shaded = np.tile(albedo / np.pi, 3) * irradiance
+    irradiance = hits.interpolate(lighting.irradiance)
+    visibility = np.clip(hits.interpolate(lighting.visible_fraction[:, None])[:, 0], 0.0, 1.0)
+    irradiance[hits.backface] = 0.0
+    visibility[hits.backface] = 0.0
+    radiance = np.tile(albedo / np.pi, 3) * irradiance
     if specular and lighting.clusters:
-        shaded += specular_radiance(normals, view, roughness, f0, tri, bary, lighting) * (~backface)[:, None]
-    radiance[pix] = shaded
+        glossy = specular_radiance(normals, hits.view_dirs, roughness, f0, hits.corners, hits.barycentrics, lighting)
+        radiance += glossy * (~hits.backface)[:, None]
+    return radiance.astype(np.float32), normals, albedo, roughness, visibility.astype(np.float32)
+
+
+def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, lighting: SurfaceLighting,
+                leds: LedSphere, camera: Camera, specular: bool = True,
+                background: np.ndarray | None = None) -> ViewRender:
+    """Render one camera: primary rays, interpolated surface attributes, diffuse + specular shading,
+    the dim stage behind. `background`: the camera's precomputed `background_image` (H, W), or None."""
+    h, w = camera.height, camera.width
+    hits = cast_primary_rays(scene, camera, subject.triangles)
+    radiance_hits, normals, albedo, roughness, visibility = shade_hits(hits, subject, lighting, specular)
+    radiance = render_background(camera, leds, background).reshape(-1, 9)
+    radiance[hits.pixels] = radiance_hits
 
     def image(values: np.ndarray, channels: int) -> np.ndarray:
         out = np.zeros((h * w, channels), np.float32)
-        out[pix] = values.reshape(len(pix), channels)
+        out[hits.pixels] = values.reshape(len(hits.pixels), channels)
         return out.reshape(h, w, channels) if channels > 1 else out.reshape(h, w)
 
-    depth = hits["t_hit"].numpy()[pix] * dir_z.reshape(-1)[pix]
+    mask = np.zeros(h * w, bool)
+    mask[hits.pixels] = True
     return ViewRender(radiance.reshape(h, w, 9), mask.reshape(h, w), image(normals, 3), image(albedo, 3),
-                      image(roughness, 1), image(depth, 1), image(np.clip(visibility, 0, 1), 1))
+                      image(roughness, 1), image(hits.depth_m, 1), image(visibility, 1))
 
 
 def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarray, f0: np.ndarray,

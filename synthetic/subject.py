@@ -15,7 +15,7 @@ position (solid textures move with the body) and UV.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +111,6 @@ class ActionSubject:
     vertices_rest: np.ndarray
     vertices_world: np.ndarray
     normals_world: np.ndarray
-    extras: dict = field(default_factory=dict)
 
     @property
     def triangles(self) -> np.ndarray:
