@@ -30,16 +30,30 @@ def _resolve_config(preset: str, config_file: str | None, scheduler: str | None)
     return config
 
 
-def _progress_printer() -> Any:
+def _progress_printer() -> tuple[Any, Any]:
+    """Callbacks for stage completions (one line each) and camera completions (a live status line on a
+    terminal; in a log, one line per tenth of the cameras)."""
     start = time.perf_counter()
+    tty = sys.stdout.isatty()
+    state = {"tenth": -1}
+
+    def on_view(task: Any, result: dict, done: int, total: int) -> None:
+        line = f"  cameras {done}/{total} ({100 * done / total:.0f}%), {time.perf_counter() - start:.0f}s"
+        if tty:
+            print(f"\r{line}  last: {task.stage.name} {task.scope_id}/{result.get('view')}   ", end="", flush=True)
+        elif (tenth := 10 * done // total) > state["tenth"]:
+            state["tenth"] = tenth
+            print(line, flush=True)
 
     def on_done(task: Any, result: dict, done: int, total: int) -> None:
+        if tty:
+            print("\r" + " " * 100 + "\r", end="")
         status = "ok" if result.get("ok") else ("skipped" if result.get("skipped") else "FAILED")
         extra = "" if result.get("ok") else f": {result.get('error')}"
         print(f"  [{done:>3}/{total}] {time.perf_counter() - start:6.1f}s  {task.stage.name:<12} "
               f"{task.scope_id:<8} {status} ({result.get('seconds', 0.0):.1f}s cpu){extra}", flush=True)
 
-    return on_done
+    return on_done, on_view
 
 
 def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
@@ -144,9 +158,10 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         counts = {s: sum(t.status == s for t in plan.tasks) for s in ("run", "cached", "failed", "blocked")}
         print("plan: " + ", ".join(f"{v} {k}" for k, v in counts.items()))
         return 0
+    on_done, on_view = _progress_printer()
     result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
                           only=args.only, from_stage=args.from_stage, actions=actions,
-                          progress=_progress_printer())
+                          progress=on_done, view_progress=on_view)
     (release / "run.json").write_text(json.dumps({"run_id": result.run_id, "capture": str(Path(args.capture).resolve()),
                                                   "work": str(work.resolve()), "preset": args.preset}, indent=1))
     metrics = None

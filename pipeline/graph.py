@@ -330,11 +330,18 @@ class DaskExecutor:
 
 
 def execute(plan: Plan, capture: Capture, executor: Any,
-            on_done: Callable[[Task, dict[str, Any], int, int], None] | None = None) -> None:
-    """Run every task the plan marked "run"; fill in each task's status, seconds, stats and error."""
+            on_done: Callable[[Task, dict[str, Any], int, int], None] | None = None,
+            on_view: Callable[[Task, dict[str, Any], int, int], None] | None = None) -> None:
+    """Run every task the plan marked "run"; fill in each task's status, seconds, stats and error.
+
+    ``on_done(task, result, done, total)`` is called as each (stage, scope) completes and
+    ``on_view(task, result, done, total)`` as each camera of a per-view stage does (progress display).
+    """
     store = plan.store
     handles: dict[tuple[str, str], Any] = {}
     owner: dict[int, Task] = {}
+    view_owner: dict[int, Task] = {}
+    view_handles: list[Any] = []
     for task in plan.to_run():
         ctx = _context(task, store, capture)
         ups = [handles[(n, t.scope_id)] for n, t in task.upstream.items() if (n, t.scope_id) in handles]
@@ -345,6 +352,8 @@ def execute(plan: Plan, capture: Capture, executor: Any,
             views = task.stage.views(ctx)
             parts = [executor.submit(run_view_task, task.stage, ctx, v, *ups, key=f"{tag}-{v}", resources=res)
                      for v in views]
+            view_owner.update({id(p): task for p in parts})
+            view_handles += parts
         else:
             parts = list(ups)
         handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, *parts,
@@ -352,8 +361,13 @@ def execute(plan: Plan, capture: Capture, executor: Any,
         handles[(task.stage.name, task.scope_id)] = handle
         owner[id(handle)] = task
     total = len(handles)
-    done = 0
-    for handle, result in executor.as_completed(list(handles.values())):
+    done = views_done = 0
+    watched = (view_handles if on_view else []) + list(handles.values())
+    for handle, result in executor.as_completed(watched):
+        if id(handle) in view_owner:
+            views_done += 1
+            on_view(view_owner[id(handle)], result, views_done, len(view_handles))
+            continue
         task = owner[id(handle)]
         done += 1
         task.seconds = float(result.get("seconds", 0.0))

@@ -134,7 +134,8 @@ def unpublish_action(release: Path, work: Path, action_id: str) -> bool:
 def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
                  execution: ExecutionConfig, only: str | None = None, from_stage: str | None = None,
                  actions: Sequence[str] | None = None, echo: Callable[[str], None] = print,
-                 progress: Callable[[Task, dict, int, int], None] | None = None) -> RunResult:
+                 progress: Callable[[Task, dict, int, int], None] | None = None,
+                 view_progress: Callable[[Task, dict, int, int], None] | None = None) -> RunResult:
     """Run the DAG over a capture and publish the release. ``config`` is saved beside the run."""
     start = time.perf_counter()
     capture = open_capture(capture_dir)
@@ -158,7 +159,7 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
         executor_name = executor.name
         echo(f"executing {len(plan.to_run())} stage task(s) on {executor_name}")
         try:
-            execute(plan, capture, executor, on_done=progress)
+            execute(plan, capture, executor, on_done=progress, on_view=view_progress)
         finally:
             executor.close()
     else:
