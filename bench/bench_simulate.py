@@ -2,8 +2,9 @@
 
 1. `simulate()` with the default SimConfig (2 actions, 32 cameras, 320 x 480, 512 LEDs) into a temporary
    folder: total wall time and the time of each phase (from the progress messages).
-2. Specular LED clusters against exact per-LED GGX: one action, 8 cameras, rendered both ways; time per
-   camera and the error of the clustered radiance (PSNR in decoded units, peak 1.0; relative RMS).
+2. Specular LED clusters (SimConfig.specular_led_clusters) against exact per-LED GGX (the default):
+   one action, 8 cameras, rendered both ways; time per camera and the error of the clustered radiance
+   (PSNR in decoded units, peak 1.0; relative RMS).
 3. The gradient-ratio normals n = normalize((pos - neg) / (pos + neg)) against the ground-truth normals
    on pre-sensor radiance (no noise, no demosaicing): ideal Lambertian LEDs, + LED errors, + specular,
    split by ground-truth visibility; and on the rawpy-decoded DNGs of part 1 (noise and demosaicing).
@@ -60,7 +61,7 @@ def specular_clusters_vs_exact(config: SimConfig, cameras: list[int]) -> dict:
                                         session.leds.directions)
     result = {"subject": subject.label, "cameras": len(cameras)}
     renders = {}
-    for name, levels in (("clusters", shading.CLUSTER_LEVELS), ("exact", ((0.0, None),))):
+    for name, levels in (("clusters", shading.CLUSTER_LEVELS), ("exact", shading.EXACT_LEVELS)):
         lighting = shading.surface_lighting(visible, subject.normals_world, session.leds, levels=levels)
         start = time.perf_counter()
         renders[name] = [shading.render_view(scene, subject, lighting, session.leds, session.cameras[c])

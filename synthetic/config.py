@@ -35,6 +35,9 @@ class SimConfig:
     """Number of cameras. The stage has 32; tests use fewer. Cameras are spread over four rings."""
     specular: bool = True
     """Render the GGX specular lobe. False gives a purely Lambertian subject (physics tests)."""
+    specular_led_clusters: bool = False
+    """Evaluate the specular lobe against LED direction clusters sized to the lobe width instead of every
+    LED (~40% faster per camera, ~1.7% RMS radiance error; see synthetic.shading)."""
     fold_amplitude_m: float = 0.004
     """Peak displacement of the cloth folds along the normal, metres (0 disables folds)."""
     subdivisions: int = 1

@@ -11,11 +11,14 @@ Scheme (chosen to be faithful yet fit the time budget; no interreflections, dire
    interpolates E with the barycentrics of its primary-ray hit (Gouraud irradiance) and multiplies by
    albedo / pi. For an unoccluded point E is affine in n, so the interpolated E equals E at the
    interpolated normal: the gradient ratio stays exact there.
-3. Specular (GGX, height-correlated Smith, Schlick Fresnel) is view dependent, per pixel and LED. To fit
-   the budget, LEDs are grouped into direction clusters whose count follows the lobe width: 64 clusters
-   for rough cloth (alpha >= 0.35), 256 for skin (alpha >= 0.12), every LED for shinier materials. A
-   cluster sums its members' irradiance, sits at their mean direction, and its visibility at a vertex
-   is the fraction of its members the vertex sees; pixels interpolate it with barycentrics.
+3. Specular (GGX, height-correlated Smith, Schlick Fresnel) is view dependent: per pixel and LED, with
+   the LED's visibility interpolated from the pixel's triangle corners (fraction of corners that see
+   it), in cache-sized chunks. Optionally (`CLUSTER_LEVELS`, SimConfig.specular_led_clusters) LEDs are
+   grouped into direction clusters whose count follows the lobe width: 64 clusters for rough cloth
+   (alpha >= 0.35), 256 for skin (alpha >= 0.12), every LED for shinier materials; a cluster sums its
+   members' irradiance, sits at their mean direction, and its visibility at a vertex is the fraction of
+   its members the vertex sees. bench/bench_simulate.py measures that at ~1.7% relative RMS radiance
+   error for ~40% less render time per camera.
 """
 from __future__ import annotations
 
@@ -29,7 +32,8 @@ from .rig import Camera, LedSphere
 from .subject import ActionSubject
 
 SHADOW_OFFSET_M = 1e-3
-CLUSTER_LEVELS = ((0.35, 64), (0.12, 256), (0.0, None))  # (min GGX alpha, cluster count; None = all LEDs)
+EXACT_LEVELS = ((0.0, None),)  # (min GGX alpha, LED cluster count; None = every LED on its own)
+CLUSTER_LEVELS = ((0.35, 64), (0.12, 256), (0.0, None))
 CHUNK_ELEMENTS = 1 << 17  # pixels x LED clusters per specular chunk: arrays stay cache-resident (2-3x faster)
 INVALID_ID = np.iinfo(np.uint32).max
 
@@ -117,7 +121,7 @@ class SurfaceLighting:
 
 
 def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere, with_specular: bool = True,
-                     levels: tuple[tuple[float, int | None], ...] = CLUSTER_LEVELS,
+                     levels: tuple[tuple[float, int | None], ...] = EXACT_LEVELS,
                      chunk: int = 8192) -> SurfaceLighting:
     """Per-vertex irradiance and visible fraction from V (V, L) bool and vertex normals (V, 3), and the
     specular LED clusters of `levels` ((min alpha, count) rows by decreasing alpha; count None = all LEDs,
@@ -136,20 +140,22 @@ def surface_lighting(visible: np.ndarray, normals: np.ndarray, leds: LedSphere, 
         fraction[start:stop] = np.where(total > 0, weighted.sum(axis=1) / np.maximum(total, 1e-12), 0.0)
     clusters, cluster_vis = [], []
     if with_specular:
-        by_led = np.ascontiguousarray(visible.T).view(np.uint8)  # (L, V): cluster sums over contiguous rows
+        by_led = None
         for _, count in levels:
             level = cluster_leds(leds.directions, irradiance_table, count)
             clusters.append(level)
             if len(level.counts) == leds.count:
                 cluster_vis.append(visible.view(np.uint8) * np.uint8(255))
             else:
+                if by_led is None:  # (L, V): cluster sums over contiguous rows
+                    by_led = np.ascontiguousarray(visible.T).view(np.uint8)
                 sums = np.add.reduceat(by_led[level.order], level.starts, axis=0, dtype=np.uint16)
                 scaled = np.round(sums * (255.0 / level.counts)[:, None].astype(np.float32)).astype(np.uint8)
                 cluster_vis.append(np.ascontiguousarray(scaled.T))
     return SurfaceLighting(irradiance, fraction, tuple(levels), tuple(clusters), tuple(cluster_vis))
 
 
-def level_of(alpha: np.ndarray, levels: tuple[tuple[float, int | None], ...] = CLUSTER_LEVELS) -> np.ndarray:
+def level_of(alpha: np.ndarray, levels: tuple[tuple[float, int | None], ...] = EXACT_LEVELS) -> np.ndarray:
     """Specular cluster level index (N,) for GGX alphas (N,): the first row whose min alpha they reach."""
     level = np.full(alpha.shape, len(levels) - 1)
     for index in reversed(range(len(levels))):

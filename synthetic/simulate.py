@@ -159,8 +159,9 @@ def prepare_action(config: SimConfig, base: BaseSubject, session: Session, actio
     scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
     visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world,
                                         session.leds.directions)
+    levels = shading.CLUSTER_LEVELS if config.specular_led_clusters else shading.EXACT_LEVELS
     lighting = shading.surface_lighting(visible, subject.normals_world, session.leds,
-                                        with_specular=config.specular)
+                                        with_specular=config.specular, levels=levels)
     return subject, scene, lighting
 
 
@@ -237,7 +238,8 @@ def truth_record(config: SimConfig, subject: ActionSubject, session: Session, ac
         "rendering": {"lights": "distant directional LEDs, irradiance I * 4pi/L each",
                       "visibility": "per vertex x LED shadow rays (1 mm normal offset), barycentric interpolation",
                       "diffuse": "per-vertex irradiance interpolated (Gouraud), times albedo/pi",
-                      "specular": f"per pixel GGX against LED clusters {[c for _, c in shading.CLUSTER_LEVELS]}"
-                                  if config.specular else "off",
+                      "specular": ("off" if not config.specular else
+                                   f"per pixel GGX against LED clusters {shading.CLUSTER_LEVELS}"
+                                   if config.specular_led_clusters else "per pixel and LED GGX"),
                       "interreflections": "none"},
     }

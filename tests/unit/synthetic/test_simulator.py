@@ -135,6 +135,15 @@ def test_specular_adds_view_dependent_light(sphere_obj):
     np.testing.assert_allclose(glossy[0].radiance[~glossy[0].mask], lambert[0].radiance[~glossy[0].mask])
 
 
+def test_specular_led_clusters_approximate_the_exact_lobe(sphere_obj):
+    base = dict(mesh=str(sphere_obj), led_error=0.0, noise=False, **TINY)
+    _, _, exact = render_views(SimConfig(**base))
+    _, _, clustered = render_views(SimConfig(specular_led_clusters=True, **base))
+    mask = exact[0].mask
+    difference = clustered[0].radiance[mask] - exact[0].radiance[mask]
+    assert np.sqrt(np.mean(difference ** 2) / np.mean(exact[0].radiance[mask] ** 2)) < 0.05
+
+
 def test_dng_decodes_to_the_simulated_linear_values(tmp_path):
     """A flat patch of known linear-sRGB radiance decodes (rawpy, camera WB, sRGB) to gain x radiance."""
     for colour in ([0.4, 0.4, 0.4], [0.30, 0.45, 0.12]):
