@@ -10,6 +10,8 @@ import numpy as np
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import preview_linear, write_png
 
+from .sensor import BLACK_LEVEL, WHITE_LEVEL
+
 
 def _tmp(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -83,3 +85,37 @@ def contact_sheet(thumbnails: list[np.ndarray], columns: int = 8, gap: int = 2) 
         r, c = divmod(index, columns)
         sheet[r * (th + gap):r * (th + gap) + th, c * (tw + gap):c * (tw + gap) + tw] = thumb
     return sheet
+
+
+def _rationals(values: np.ndarray, denominator: int = 1_000_000) -> list[int]:
+    return [x for v in np.ravel(values) for x in (int(round(float(v) * denominator)), denominator)]
+
+
+def write_dng(path: str | Path, raw: np.ndarray, cam_from_xyz: np.ndarray, neutral: np.ndarray) -> Path:
+    """Write an uncompressed 16-bit RGGB CFA DNG that LibRaw reads; atomic (temporary name + rename).
+
+    raw: (H, W) uint16 DN; cam_from_xyz: (3, 3) ColorMatrix1 (D65); neutral: (3,) AsShotNeutral.
+    """
+    import tifffile
+
+    path = Path(path)
+    extratags = [
+        (33421, "H", 2, (2, 2), True),                  # CFARepeatPatternDim
+        (33422, "B", 4, (0, 1, 1, 2), True),            # CFAPattern RGGB
+        (50706, "B", 4, (1, 4, 0, 0), True),            # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),            # DNGBackwardVersion
+        (50708, "s", 0, "UltraStage Simulated D750", True),
+        (50714, "I", 1, BLACK_LEVEL, True),
+        (50717, "I", 1, WHITE_LEVEL, True),
+        (50721, "2i", 9, _rationals(cam_from_xyz), True),   # ColorMatrix1, XYZ -> camera
+        (50728, "2I", 3, _rationals(neutral), True),        # AsShotNeutral
+        (50778, "H", 1, 21, True),                      # CalibrationIlluminant1 = D65
+        (271, "s", 0, "UltraStage", True),
+        (272, "s", 0, "SimD750", True),
+    ]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp(path)
+    tifffile.imwrite(tmp, np.ascontiguousarray(raw, dtype=np.uint16), photometric=32803, extratags=extratags,
+                     subfiletype=0, compression=None, metadata=None)
+    os.replace(tmp, path)
+    return path

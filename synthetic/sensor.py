@@ -1,4 +1,5 @@
-"""The camera sensor: linear sRGB radiance -> Nikon-like camera RGB -> RGGB mosaic -> noisy 14-bit raw -> DNG.
+"""The camera sensor: linear sRGB radiance -> Nikon-like camera RGB -> RGGB mosaic -> noisy 14-bit raw
+(written as DNG by `synthetic.files.write_dng`).
 
 Colour model. The camera's colour matrix is fitted once from colour-science data: the spectral
 sensitivities `MSDS_CAMERA_SENSITIVITIES['Nikon 5100 (NPL)']` (the closest Nikon in the library to a
@@ -16,8 +17,6 @@ Gaussian read noise; black level 600, white level 16383, clipped, rounded to int
 from __future__ import annotations
 
 import functools
-import os
-from pathlib import Path
 
 import numpy as np
 
@@ -95,37 +94,3 @@ def raw_frame(radiance_srgb: np.ndarray, gain: float, rng: np.random.Generator |
         signal = signal + sigma * rng.standard_normal(signal.shape, dtype=np.float32)
     dn = np.rint(BLACK_LEVEL + signal * span)
     return np.clip(dn, 0, WHITE_LEVEL).astype(np.uint16)
-
-
-def _rationals(values: np.ndarray, denominator: int = 1_000_000) -> list[int]:
-    return [x for v in np.ravel(values) for x in (int(round(float(v) * denominator)), denominator)]
-
-
-def write_dng(path: str | Path, raw: np.ndarray, cam_from_xyz: np.ndarray, neutral: np.ndarray) -> Path:
-    """Write an uncompressed 16-bit RGGB CFA DNG that LibRaw reads; atomic (temporary name + rename).
-
-    raw: (H, W) uint16 DN; cam_from_xyz: (3, 3) ColorMatrix1 (D65); neutral: (3,) AsShotNeutral.
-    """
-    import tifffile
-
-    path = Path(path)
-    extratags = [
-        (33421, "H", 2, (2, 2), True),                  # CFARepeatPatternDim
-        (33422, "B", 4, (0, 1, 1, 2), True),            # CFAPattern RGGB
-        (50706, "B", 4, (1, 4, 0, 0), True),            # DNGVersion
-        (50707, "B", 4, (1, 1, 0, 0), True),            # DNGBackwardVersion
-        (50708, "s", 0, "UltraStage Simulated D750", True),
-        (50714, "I", 1, BLACK_LEVEL, True),
-        (50717, "I", 1, WHITE_LEVEL, True),
-        (50721, "2i", 9, _rationals(cam_from_xyz), True),   # ColorMatrix1, XYZ -> camera
-        (50728, "2I", 3, _rationals(neutral), True),        # AsShotNeutral
-        (50778, "H", 1, 21, True),                      # CalibrationIlluminant1 = D65
-        (271, "s", 0, "UltraStage", True),
-        (272, "s", 0, "SimD750", True),
-    ]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tifffile.imwrite(tmp, np.ascontiguousarray(raw, dtype=np.uint16), photometric=32803, extratags=extratags,
-                     subfiletype=0, compression=None, metadata=None)
-    os.replace(tmp, path)
-    return path

@@ -146,7 +146,7 @@ def write_clean_plates(out: Path, config: SimConfig, session: Session) -> None:
         radiance = shading.render_background(camera, session.leds, session.backgrounds[cam_index])[..., 0:3]
         rng = np.random.default_rng([config.seed, _PLATE_NOISE, session.index, cam_index]) if config.noise else None
         raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
-        sensor.write_dng(out / "sessions" / session.session_id / "background" / f"{camera.camera_id}.dng",
+        files.write_dng(out / "sessions" / session.session_id / "background" / f"{camera.camera_id}.dng",
                          raw, cam_from_xyz, neutral)
 
 
@@ -202,7 +202,7 @@ def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Sess
                    if config.noise else None)
             radiance = view.radiance[..., 3 * illum_index:3 * illum_index + 3]
             raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
-            sensor.write_dng(out / "actions" / action_id / illumination / f"{camera.camera_id}.dng",
+            files.write_dng(out / "actions" / action_id / illumination / f"{camera.camera_id}.dng",
                              raw, cam_from_xyz, neutral)
         files.write_ground_truth(truth_dir, camera.camera_id, view.normals_world, view.albedo, view.roughness,
                                  view.depth_m, view.visibility, view.mask)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from synthetic import SimConfig, simulate
-from synthetic import geometry, sensor, subject
+from synthetic import files, geometry, sensor, subject
 from synthetic.simulate import render_views
 
 SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
@@ -150,7 +150,7 @@ def test_dng_decodes_to_the_simulated_linear_values(tmp_path):
         radiance = np.broadcast_to(np.array(colour, np.float32), (32, 48, 3))
         gain = 1.0
         raw = sensor.raw_frame(radiance, gain, None, 40000.0, 0.0)
-        path = sensor.write_dng(tmp_path / "patch.dng", raw, sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral())
+        path = files.write_dng(tmp_path / "patch.dng", raw, sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral())
         decoded = rawpy_decode(path)
         assert decoded.shape == (32, 48, 3)
         np.testing.assert_allclose(decoded[8:-8, 8:-8].mean(axis=(0, 1)), colour, rtol=0.006, atol=2e-4)
