@@ -124,7 +124,8 @@ def clear_previous_capture(out: Path) -> None:
         raise NotADirectoryError(f"{out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     entries = list(out.iterdir())
-    foreign = sorted(p.name for p in entries if p.name not in CAPTURE_ENTRIES)
+    leftovers = [p for p in entries if p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file()]
+    foreign = sorted(p.name for p in entries if p.name not in CAPTURE_ENTRIES and p not in leftovers)
     if foreign:
         raise FileExistsError(f"{out} is not empty and not a simulated capture (it holds {foreign[:5]}); "
                               f"choose a new folder")
@@ -137,6 +138,8 @@ def clear_previous_capture(out: Path) -> None:
     for entry in entries:
         if entry.is_dir():
             shutil.rmtree(entry)
+        elif entry in leftovers:
+            entry.unlink()
 
 
 def write_clean_plates(out: Path, config: SimConfig, session: Session) -> None:
