@@ -48,6 +48,8 @@ class Task:
     error: str | None = None
     seconds: float = 0.0
     stats: dict[str, Any] = field(default_factory=dict)
+    started_at: float | None = None
+    """Epoch seconds when its first piece of work started (None: cached, failed at plan, skipped)."""
 
     @property
     def name(self) -> str:
@@ -224,13 +226,14 @@ def run_view_task(stage: Stage, ctx: StageContext, view: str, *upstream: dict[st
     skipped = _upstream_failed(upstream)
     if skipped:
         return skipped
-    start = time.perf_counter()
+    start, started_at = time.perf_counter(), time.time()
     try:
         stats = stage.run_view(ctx, view)
-        return {"ok": True, "view": view, "stats": stats, "seconds": time.perf_counter() - start}
+        return {"ok": True, "view": view, "stats": stats, "seconds": time.perf_counter() - start,
+                "started_at": started_at}
     except Exception as exc:  # noqa: BLE001 - every failure becomes a record naming the file and reason
         return {"ok": False, "view": view, "error": _failure(exc), "seconds": time.perf_counter() - start,
-                "traceback": traceback.format_exc()}
+                "started_at": started_at, "traceback": traceback.format_exc()}
 
 
 def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
@@ -243,24 +246,26 @@ def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str,
             return skipped
     start = time.perf_counter()
     view_seconds = sum(p.get("seconds", 0.0) for p in parts if "view" in p)
+    started_at = min([p["started_at"] for p in parts if "view" in p and "started_at" in p] + [time.time()])
     try:
         failed = [p for p in parts if not p.get("ok")]
         if failed:
             store.discard(ctx.stage, ctx.scope_id, key)
             first = failed[0]
             return {"ok": False, "skipped": bool(first.get("skipped")), "error": first.get("error"),
-                    "traceback": first.get("traceback"), "seconds": view_seconds}
+                    "traceback": first.get("traceback"), "seconds": view_seconds,
+                    "started_at": None if first.get("skipped") else started_at}
         if stage.per_view:
             stats = stage.finalize(ctx, {p["view"]: p["stats"] for p in parts})
         else:
             stats = stage.run(ctx)
         seconds = view_seconds + time.perf_counter() - start
         store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds)
-        return {"ok": True, "stats": stats, "seconds": seconds}
+        return {"ok": True, "stats": stats, "seconds": seconds, "started_at": started_at}
     except Exception as exc:  # noqa: BLE001
         store.discard(ctx.stage, ctx.scope_id, key)
         return {"ok": False, "error": _failure(exc), "traceback": traceback.format_exc(),
-                "seconds": view_seconds + time.perf_counter() - start}
+                "seconds": view_seconds + time.perf_counter() - start, "started_at": started_at}
 
 
 class SyncExecutor:
@@ -371,6 +376,7 @@ def execute(plan: Plan, capture: Capture, executor: Any,
         task = owner[id(handle)]
         done += 1
         task.seconds = float(result.get("seconds", 0.0))
+        task.started_at = result.get("started_at")
         if result.get("ok"):
             task.status, task.stats = "ran", result.get("stats", {})
         else:

@@ -5,6 +5,7 @@ the release layout, but nothing about what the stages compute.
 """
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import os
@@ -186,11 +187,15 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
         published.append(action_id)
 
     _write_release_docs(release, config, capture)
-    _write_manifests(release, work, capture, plan, run_id, action_status, action_errors, asset_rows, config)
+    _write_manifests(release, work, capture, plan, run_id, action_status, action_errors, asset_rows)
     (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
     (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
     return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
                      executor_name)
+
+
+def _utc(epoch: float | None) -> datetime.datetime | None:
+    return None if epoch is None else datetime.datetime.fromtimestamp(epoch, datetime.timezone.utc)
 
 
 def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
@@ -210,8 +215,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
 
 
 def _write_manifests(release: Path, work: Path, capture: Capture, plan: Plan, run_id: str,
-                     action_status: dict[str, str], action_errors: dict[str, str],
-                     asset_rows: list[dict[str, Any]], config: Any) -> None:
+                     action_status: dict[str, str],
+                     action_errors: dict[str, str], asset_rows: list[dict[str, Any]]) -> None:
     from manifests import append_rows, asset_row, write_table
 
     digests = DigestCache(work / "digests.json")
@@ -256,7 +261,7 @@ def _write_manifests(release: Path, work: Path, capture: Capture, plan: Plan, ru
     stage_rows = [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
                    "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
                    "seconds": float(t.seconds), "error": t.error,
-                   "started_at": None, "config_json": json.dumps(t.record["config"], sort_keys=True)}
+                   "started_at": _utc(t.started_at), "config_json": json.dumps(t.record["config"], sort_keys=True)}
                   for t in plan.tasks]
     for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml"):
         asset_rows.append(asset_row(release, release / name, "document"))

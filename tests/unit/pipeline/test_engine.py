@@ -107,7 +107,7 @@ def test_release_manifests_and_verify(toy_capture, tmp_path):
     from manifests import open_release, verify_release
 
     rel = open_release(tmp_path / "release")
-    assert set(rel.stage_runs.status) == {"ran"}
+    assert set(rel.stage_runs.status) == {"ran"} and rel.stage_runs.started_at.notna().all()
     assert len(rel.assets[rel.assets.kind == "frame"]) == 6
     assert verify_release(tmp_path / "release").ok
     path = tmp_path / "release" / "actions" / "A0000" / "summary.txt"
@@ -129,3 +129,12 @@ def test_dask_local_cluster_gives_the_same_release(toy_capture, tmp_path):
     assert text == "A0000 full_on 00000 x1.0".replace("A0000", "A0001")
     record = json.loads((tmp_path / "work" / "published" / "A0001.json").read_text())
     assert {r["kind"] for r in record["assets"]} == {"frame", "summary"}
+
+
+def test_existing_scheduler_by_address(toy_capture, tmp_path):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        result, _ = _run(toy_capture, tmp_path, execution=ExecutionConfig(scheduler=cluster.scheduler_address))
+    assert result.executor == f"dask scheduler at {cluster.scheduler_address}"
+    assert result.action_status == {"A0000": "ok", "A0001": "ok"}
