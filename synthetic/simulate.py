@@ -20,6 +20,7 @@ from .config import SimConfig
 from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds
 from .subject import (MATERIALS, ActionSubject, BaseSubject, load_base_subject, make_action_subject,
                       resolve_mesh)
+from .threads import limit_blas_threads
 
 CAPTURE_FORMAT = "ultrastage-capture/1"
 RIG_FORMAT = "ultrastage-rig/1"
@@ -80,6 +81,11 @@ def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] |
     capture in `out_dir` is replaced; a folder holding anything else is refused (FileExistsError).
     `progress(message)` is called per session, per camera of every action and at the end.
     """
+    with limit_blas_threads(1):
+        return _simulate(Path(out_dir), config, progress)
+
+
+def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None) -> Path:
     say = progress or (lambda message: None)
     started = time.perf_counter()
     out = Path(out_dir)
@@ -175,6 +181,12 @@ def render_views(config: SimConfig, action_index: int = 0, session_index: int = 
     The radiance of each view is the pre-sensor linear-sRGB image; `gain * radiance` is the decoded
     linear image without noise or demosaicing.
     """
+    with limit_blas_threads(1):
+        return _render_views(config, action_index, session_index)
+
+
+def _render_views(config: SimConfig, action_index: int, session_index: int
+                  ) -> tuple[Session, ActionSubject, list[shading.ViewRender]]:
     mesh_path = resolve_mesh(config.mesh)
     base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
     session = make_session(config, base, session_index)
