@@ -139,6 +139,7 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                  view_progress: Callable[[Task, dict, int, int], None] | None = None) -> RunResult:
     """Run the DAG over a capture and publish the release. ``config`` is saved beside the run."""
     start = time.perf_counter()
+    capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
     capture = open_capture(capture_dir)
     release.mkdir(parents=True, exist_ok=True)
     work.mkdir(parents=True, exist_ok=True)

@@ -138,3 +138,14 @@ def test_existing_scheduler_by_address(toy_capture, tmp_path):
         result, _ = _run(toy_capture, tmp_path, execution=ExecutionConfig(scheduler=cluster.scheduler_address))
     assert result.executor == f"dask scheduler at {cluster.scheduler_address}"
     assert result.action_status == {"A0000": "ok", "A0001": "ok"}
+
+
+def test_relative_paths_work_like_make_dataset(toy_capture, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = run_pipeline(Path("capture"), Path("runs/release"), Path("runs/release.work"), toy_stages(),
+                          {"toy": 1}, SYNC, echo=lambda line: None)
+    assert result.action_status == {"A0000": "ok", "A0001": "ok"}
+    from manifests import open_release, verify_release
+
+    assert verify_release(tmp_path / "runs" / "release").ok
+    assert set(open_release(tmp_path / "runs" / "release").assets.path.str.startswith("actions/").dropna()) >= {True}
