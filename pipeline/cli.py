@@ -167,9 +167,10 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
     metrics = None
     truth = Path(args.capture) / "ground_truth"
     if not args.no_evaluate and truth.is_dir() and result.published:
-        from stages.evaluate import evaluate_release
+        from stages.evaluate import evaluate_release_cached
 
-        summary = evaluate_release(release, truth, run_id=result.run_id)
+        summary, cached = evaluate_release_cached(release, truth, work, run_id=result.run_id)
+        print(f"{'evaluate':<12} {'release':<8} {'cached  release unchanged since its last evaluation' if cached else 'ran'}")
         metrics = summary.per_action
         result.metrics = metrics
     _summary(result, metrics)

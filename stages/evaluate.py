@@ -168,6 +168,27 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     return EvaluationSummary(overall, per_action, rows)
 
 
+def evaluate_release_cached(release: Path, truth_dir: Path, work: Path,
+                            run_id: str = "evaluate") -> tuple[EvaluationSummary, bool]:
+    """:func:`evaluate_release`, skipped when the published actions and the truth are what was last
+    evaluated (the key: every action's published stage keys, and the truth folder's path)."""
+    import hashlib
+    import json
+
+    published = sorted((work / "published").glob("*.json"))
+    key = hashlib.sha256(json.dumps({"truth": str(Path(truth_dir).resolve()),
+                                     "published": {p.stem: json.loads(p.read_text())["keys"] for p in published}},
+                                    sort_keys=True).encode()).hexdigest()
+    record = work / "evaluated.json"
+    if record.exists():
+        saved = json.loads(record.read_text())
+        if saved.get("key") == key:
+            return EvaluationSummary(saved["overall"], saved["per_action"]), True
+    summary = evaluate_release(release, truth_dir, run_id=run_id)
+    record.write_text(json.dumps({"key": key, "overall": summary.overall, "per_action": summary.per_action}))
+    return summary, False
+
+
 def print_overall(summary: EvaluationSummary) -> None:
     o = summary.overall
     print("accuracy against ground truth (all published actions):")
