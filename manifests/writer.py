@@ -12,7 +12,6 @@ manifests from the driver process anyway.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import math
 import os
@@ -27,6 +26,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from manifests.schemas import Column, TableSpec, media_type, spec
+from pipeline.hashing import file_sha256  # one implementation; re-exported by manifests
 
 MANIFEST_DIR = "manifests"
 """Folder of the manifests inside a release."""
@@ -315,15 +315,6 @@ def append_rows(release_dir: str | Path, name: str, rows: Iterable[Mapping],
 
 # ----------------------------------------------------------------------------------------------------
 # asset rows
-
-
-def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
-    """SHA-256 of a file's content, lowercase hex, read ``chunk`` bytes at a time."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def release_relpath(release_dir: str | Path, path: str | Path) -> str:

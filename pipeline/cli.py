@@ -99,6 +99,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import dataclasses
     import shutil
 
+    from pipeline.store import swap_into_place
     from synthetic import SimConfig, simulate
 
     overrides = {k: v for k, v in {"mesh": args.mesh, "actions": args.actions, "width": args.width,
@@ -119,15 +120,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     shutil.rmtree(tmp, ignore_errors=True)
     start = time.perf_counter()
     simulate(tmp, config, progress=lambda msg: print(f"  {msg}", flush=True))
-    if out.exists():
-        old = out.with_name(f".{out.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
-        out.rename(old)
-        tmp.rename(out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.rename(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    swap_into_place(tmp, out)
     print(f"simulated capture written to {out} in {time.perf_counter() - start:.1f}s")
     return 0
 

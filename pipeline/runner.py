@@ -22,7 +22,7 @@ from pipeline.config import Documented, dump_yaml
 from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of, execute, make_plan
 from pipeline.hashing import DigestCache
 from pipeline.stage import Stage
-from pipeline.store import ArtifactStore
+from pipeline.store import ArtifactStore, swap_into_place
 
 log = logging.getLogger("ultrastage.run")
 CONVENTIONS = Path(__file__).with_name("conventions.md")
@@ -73,16 +73,6 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def _swap_into_place(tmp: Path, final: Path) -> None:
-    if final.exists():
-        old = final.with_name(f".old-{final.name}-{os.getpid()}")
-        os.rename(final, old)
-        os.rename(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.rename(tmp, final)
-
-
 def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task],
                    echo: Callable[[str], None]) -> list[dict[str, Any]]:
     """Hard-link an action's release files from the store into ``release/actions/<id>`` atomically.
@@ -115,7 +105,7 @@ def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: s
     prefix = f"actions/.tmp-{action_id}/"
     for row in rows:  # rows were hashed in the temporary folder; record their final paths
         row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
-    _swap_into_place(tmp, final)
+    swap_into_place(tmp, final)
     record_path.parent.mkdir(parents=True, exist_ok=True)
     record_path.write_text(json.dumps({"keys": keys, "assets": rows}))
     echo(f"{'release':<12} {action_id:<8} written {len(rows)} files")

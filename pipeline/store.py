@@ -21,6 +21,17 @@ def short(key: str) -> str:
     return key[:16]
 
 
+def swap_into_place(tmp: Path, final: Path) -> None:
+    """Rename a complete folder ``tmp`` to ``final``, replacing (then deleting) any folder there."""
+    if final.exists():
+        old = final.with_name(f".old-{final.name}-{os.getpid()}")
+        os.rename(final, old)
+        os.rename(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(tmp, final)
+
+
 class ArtifactStore:
     def __init__(self, root: str | Path):
         self.root = Path(root)
@@ -60,13 +71,7 @@ class ArtifactStore:
         success = {"stage": stage, "scope_id": scope_id, "key": key, "record": record, "stats": stats,
                    "seconds": seconds, "committed_at": time.time()}
         (tmp / SUCCESS).write_text(json.dumps(success, indent=1, sort_keys=True))
-        if final.exists():  # forced rerun of the same key: swap, then drop the old copy
-            old = final.with_name(f".old-{short(key)}-{os.getpid()}")
-            os.rename(final, old)
-            os.rename(tmp, final)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, final)
+        swap_into_place(tmp, final)  # a forced rerun of the same key replaces the old copy
         latest = final.parent / "latest.json"
         latest_tmp = final.parent / f".latest.{os.getpid()}.tmp"
         latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
