@@ -105,6 +105,16 @@ def downstream_of(stages: Sequence[Stage], name: str) -> set[str]:
     return out
 
 
+def _changed_leaves(old: Any, new: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """(dotted path, old value, new value) for every leaf that differs between two nested dicts."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new)):
+            out += _changed_leaves(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k))
+        return out
+    return [] if old == new else [(prefix, old, new)]
+
+
 def _why(record: dict[str, Any], previous: dict[str, Any] | None) -> str:
     """Human reason for a rerun: which part of the record changed since the last committed run."""
     if previous is None:
@@ -113,9 +123,7 @@ def _why(record: dict[str, Any], previous: dict[str, Any] | None) -> str:
     changes = []
     if old.get("version") != record.get("version"):
         changes.append(f"version {old.get('version')} -> {record.get('version')}")
-    for k in sorted(set(old.get("config", {})) | set(record["config"])):
-        if old.get("config", {}).get(k) != record["config"].get(k):
-            changes.append(f"config.{k} {old.get('config', {}).get(k)!r} -> {record['config'].get(k)!r}")
+    changes += [f"config.{path} {a!r} -> {b!r}" for path, a, b in _changed_leaves(old.get("config", {}), record["config"])]
     for k in sorted(set(old.get("upstream", {})) | set(record["upstream"])):
         if old.get("upstream", {}).get(k) != record["upstream"].get(k):
             changes.append(f"upstream {k} changed")

@@ -111,7 +111,7 @@ def test_second_run_is_all_cached_and_config_change_reruns_only_photometric(firs
     st = _status(rerun)
     assert st[("decode", "A0000")] == "cached" and st[("plates", "S000")] == "cached"
     assert st[("photometric", "A0000")] == "ran" and st[("photometric", "A0001")] == "ran"
-    assert any("ratio_min" in line for line in lines)
+    assert any("config.params.ratio_min 0.3 -> 0.35" in line for line in lines)
 
 
 def _copy(capture: Path, dest: Path) -> Path:
