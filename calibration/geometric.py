@@ -1,0 +1,881 @@
+"""Geometric camera calibration: structure from motion with pycolmap, similarity alignment, pose errors.
+
+Conventions (docs/CONTRACTS.md): OpenCV cameras (x right, y down, z forward), ``cam_from_world`` is a
+3x4 ``[R | t]`` with ``x_cam = R @ x_world + t``, ``K`` is 3x3 with the centre of pixel ``i`` at
+continuous coordinate ``u = i``. COLMAP puts the centre of pixel ``i`` at ``i + 0.5``; every K that
+enters or leaves COLMAP is shifted by half a pixel here (:func:`K_from_colmap`, :func:`K_to_colmap`).
+
+Images are named by their file name (``image_paths[i].name``); names must be unique.
+
+Main entry points:
+
+- :func:`calibrate_images`: SIFT features, exhaustive (or sequential) matching, incremental mapping with
+  intrinsics priors, retries for unregistered images, optional alignment to known camera centres.
+- :func:`calibrate_folder`: the same on a folder of photos, writing transforms.json, a COLMAP text model
+  and an OpenCV intrinsics JSON.
+- :func:`pose_errors`, :func:`umeyama`, :func:`umeyama_ransac`: evaluation against ground truth.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".raw")
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+@dataclass(frozen=True)
+class GeometricConfig:
+    """Options of :func:`calibrate_images`."""
+
+    max_image_size: int = 1600
+    """Longest image side (pixels) at which SIFT features are extracted; larger images are downscaled
+    for extraction (keypoints are reported in full-resolution pixels). -1: full resolution."""
+    max_num_features: int = 8192
+    """Maximum SIFT features per image."""
+    peak_threshold: float = 0.0066666
+    """SIFT difference-of-Gaussian peak threshold (COLMAP default 0.02/3); lower finds more features on
+    weakly textured images."""
+    first_octave: int = -1
+    """SIFT first octave: -1 upsamples the image once (finer features on small images), 0 does not."""
+    domain_size_pooling: bool = False
+    """DSP-SIFT descriptors (pooled over scales): more and better matches on wide baselines, slower."""
+    estimate_affine_shape: bool = False
+    """Affine-adapted SIFT keypoints (more robust to oblique views, slower)."""
+    camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV. Exported as OpenCV
+    K and a 5-vector dist (k1 k2 p1 p2 k3)."""
+    shared_camera: bool = False
+    """One camera (intrinsics) for all images instead of one per image."""
+    refine_focal_length: bool = True
+    """Refine focal lengths in bundle adjustment. With an intrinsics prior, False keeps the prior."""
+    refine_principal_point: bool = False
+    """Refine principal points in bundle adjustment (poorly constrained; off by default)."""
+    refine_extra_params: bool = True
+    """Refine distortion parameters in bundle adjustment."""
+    matcher: str = "auto"
+    """"exhaustive", "sequential" (loop closure on, for an ordered ring) or "auto": exhaustive up to
+    ``exhaustive_max_images`` images, sequential above."""
+    exhaustive_max_images: int = 64
+    """Image count up to which "auto" matching is exhaustive."""
+    sequential_overlap: int = 10
+    """Neighbours matched on each side by sequential matching."""
+    guided_matching: bool = False
+    """Second, epipolar-guided matching pass per pair (more inliers, slower)."""
+    min_num_matches: int = 15
+    """Minimum verified matches for an image pair to be used by the mapper."""
+    retry_unregistered: bool = True
+    """When images stay unregistered, continue the largest model with relaxed registration thresholds."""
+    relaxed_min_num_inliers: int = 12
+    """Absolute-pose inlier minimum used by the relaxed retry (COLMAP default 30)."""
+    ba_function_tolerance: float = 1e-8
+    """Relative cost decrease at which the final global bundle adjustment stops."""
+    final_ba_iterations: int = 200
+    """Iterations of each final global bundle adjustment round run after all registrations (0: none)."""
+    final_ba_rounds: int = 2
+    """Rounds of (retriangulate when ``final_retriangulate``, bundle adjust, drop observations with
+    reprojection error above ``final_filter_max_error_px``) after mapping."""
+    final_ba_loss: str = "cauchy"
+    """Robust loss of the final bundle adjustment: "cauchy" (scale 1 px) or "trivial" (least squares)."""
+    final_filter_max_error_px: float = 2.0
+    """Observations with a larger reprojection error are dropped between final BA rounds."""
+    final_retriangulate: bool = False
+    """Re-triangulate all matches with the registered poses before the final bundle adjustment."""
+    alignment_max_error: float = 0.05
+    """RANSAC inlier threshold (units of ``known_centres``, metres on the stage) of the similarity
+    alignment of reconstructed to known camera centres."""
+    num_threads: int = -1
+    """Threads for extraction, matching and mapping (-1: all cores)."""
+    seed: int = 0
+    """Random seed of COLMAP's RANSAC and mapper (results can still vary with thread scheduling)."""
+    verbose: bool = False
+    """Let COLMAP log to stderr."""
+
+    def __post_init__(self) -> None:
+        if self.camera_model not in CAMERA_MODELS:
+            raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {self.camera_model!r}")
+        if self.matcher not in ("auto", "exhaustive", "sequential"):
+            raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
+        if self.max_image_size != -1 and self.max_image_size < 64:
+            raise ValueError("max_image_size must be -1 or >= 64")
+        if self.max_num_features < 64 or self.min_num_matches < 4 or self.alignment_max_error <= 0:
+            raise ValueError("max_num_features >= 64, min_num_matches >= 4 and alignment_max_error > 0")
+
+
+@dataclass
+class CameraCalibration:
+    """One registered image: OpenCV intrinsics and pose."""
+
+    K: np.ndarray
+    """(3, 3) OpenCV intrinsics (pixel centres at integer coordinates)."""
+    dist: np.ndarray
+    """(5,) OpenCV distortion k1 k2 p1 p2 k3."""
+    cam_from_world: np.ndarray
+    """(3, 4) [R | t], in the aligned frame when known centres were given."""
+    width: int
+    height: int
+
+    @property
+    def centre_world(self) -> np.ndarray:
+        """(3,) camera centre ``-R^T t``."""
+        return camera_centre(self.cam_from_world)
+
+
+@dataclass
+class CalibrationResult:
+    """What :func:`calibrate_images` found."""
+
+    cameras: dict[str, CameraCalibration]
+    """Registered images by name."""
+    unregistered: list[str]
+    """Names of the images not in the kept model (no features, no matches or failed registration)."""
+    reprojection_error_px: float
+    """Mean reprojection error over all observations of the kept model, pixels."""
+    alignment_residual_mm: tuple[float, float] | None
+    """(mean, max) distance between aligned and known camera centres over the RANSAC inliers, in
+    thousandths of the known centres' unit (mm for metres); None without known centres or when the
+    alignment failed."""
+    n_points3d: int
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per step: extract, match, map, retry, ba, align."""
+    aligned: bool = False
+    """True when the poses are in the frame of ``known_centres``."""
+    alignment_outliers: list[str] = field(default_factory=list)
+    """Images whose centre was a RANSAC outlier of the alignment."""
+    notes: list[str] = field(default_factory=list)
+    """Human-readable remarks (retries, models found, alignment problems)."""
+    reconstruction: Any = field(default=None, repr=False, compare=False)
+    """The pycolmap.Reconstruction (in the aligned frame), or None."""
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready summary without per-camera arrays."""
+        return {"registered": sorted(self.cameras), "unregistered": list(self.unregistered),
+                "reprojection_error_px": self.reprojection_error_px,
+                "alignment_residual_mm": list(self.alignment_residual_mm) if self.alignment_residual_mm else None,
+                "aligned": self.aligned, "alignment_outliers": list(self.alignment_outliers),
+                "n_points3d": self.n_points3d, "timings": dict(self.timings), "notes": list(self.notes)}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Small geometry helpers
+
+
+def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
+    """(3, 4) [R | t] -> (3,) centre ``-R^T t``."""
+    P = np.asarray(cam_from_world, dtype=float)
+    return -P[:3, :3].T @ P[:3, 3]
+
+
+def world_from_cam_4x4(cam_from_world: np.ndarray) -> np.ndarray:
+    """(3, 4) cam_from_world -> (4, 4) world_from_cam."""
+    P = np.asarray(cam_from_world, dtype=float)
+    out = np.eye(4)
+    out[:3, :3] = P[:3, :3].T
+    out[:3, 3] = camera_centre(P)
+    return out
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle (degrees) of a (3, 3) rotation matrix."""
+    c = (np.trace(R) - 1.0) / 2.0
+    # arccos is ill-conditioned near 0; use atan2 of the sine (norm of the skew part) and cosine
+    s = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.degrees(np.arctan2(s, c)))
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s * R @ src + t`` (Umeyama 1991).
+
+    src, dst: (N, 3), N >= 3 (not collinear). Returns (s, R (3, 3), t (3,)).
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or src.shape[0] < 3:
+        raise ValueError(f"umeyama needs two (N>=3, 3) arrays, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def umeyama_ransac(src: np.ndarray, dst: np.ndarray, max_error: float, with_scale: bool = True,
+                   iterations: int = 500, seed: int = 0) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Robust similarity ``dst ~ s R src + t``: RANSAC over 3-point samples, refit on the inliers.
+
+    src, dst: (N, 3). max_error: inlier distance in dst units. Returns (s, R, t, inliers (N,) bool).
+    With fewer than 4 points this is plain :func:`umeyama` (all points inliers).
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    n = len(src)
+    if n < 4:
+        s, R, t = umeyama(src, dst, with_scale)
+        return s, R, t, np.ones(n, bool)
+    rng = np.random.default_rng(seed)
+    best = np.zeros(n, bool)
+    best_err = np.inf
+    for _ in range(iterations):
+        idx = rng.choice(n, 3, replace=False)
+        try:
+            s, R, t = umeyama(src[idx], dst[idx], with_scale)
+        except np.linalg.LinAlgError:
+            continue
+        if not np.isfinite(s) or s <= 0:
+            continue
+        err = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+        inl = err < max_error
+        score = np.minimum(err, max_error).sum()
+        if inl.sum() > best.sum() or (inl.sum() == best.sum() and score < best_err):
+            best, best_err = inl, score
+    if best.sum() < 3:
+        best = np.ones(n, bool)
+    for _ in range(3):  # refit on inliers, re-classify
+        s, R, t = umeyama(src[best], dst[best], with_scale)
+        err = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+        new = err < max_error
+        if new.sum() < 3 or np.array_equal(new, best):
+            break
+        best = new
+    return s, R, t, best
+
+
+def transform_cam_from_world(cam_from_world: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Express a (3, 4) cam_from_world in the new world ``x_new = s R x_old + t``. Returns (3, 4)."""
+    P = np.asarray(cam_from_world, dtype=float)
+    R_new = P[:3, :3] @ R.T
+    c_new = s * R @ camera_centre(P) + t
+    return np.hstack([R_new, (-R_new @ c_new)[:, None]])
+
+
+def pose_errors(estimated: dict[str, np.ndarray], truth: dict[str, np.ndarray], align: bool = True,
+                robust_max_error: float | None = None) -> dict[str, Any]:
+    """Per-camera rotation and centre errors of estimated against true poses.
+
+    estimated, truth: name -> (3, 4) cam_from_world. Only names in both are compared (at least 3 when
+    ``align``). With ``align`` the estimated centres are first mapped onto the true ones by a least-squares
+    similarity (Umeyama; with ``robust_max_error`` a RANSAC one whose inliers are refit), which also
+    rotates the estimated orientations. Returns::
+
+        {"names": [...], "rotation_deg": {name: float}, "centre_error": {name: float} (input units),
+         "centre_error_mm": {name: float} (input units * 1000, i.e. mm for metres),
+         "rotation_deg_mean", "rotation_deg_max", "centre_error_mm_mean", "centre_error_mm_max",
+         "centre_error_mm_median", "similarity": {"scale", "R", "t"} or None, "missing": [names in truth only]}
+    """
+    names = sorted(set(estimated) & set(truth))
+    missing = sorted(set(truth) - set(estimated))
+    if not names:
+        raise ValueError("pose_errors: no camera names in common")
+    est = {n: np.asarray(estimated[n], dtype=float)[:3, :4] for n in names}
+    tru = {n: np.asarray(truth[n], dtype=float)[:3, :4] for n in names}
+    sim = None
+    if align:
+        if len(names) < 3:
+            raise ValueError("pose_errors: alignment needs at least 3 common cameras")
+        src = np.array([camera_centre(est[n]) for n in names])
+        dst = np.array([camera_centre(tru[n]) for n in names])
+        if robust_max_error is None:
+            s, R, t = umeyama(src, dst)
+        else:
+            s, R, t, _ = umeyama_ransac(src, dst, robust_max_error)
+        est = {n: transform_cam_from_world(est[n], s, R, t) for n in names}
+        sim = {"scale": s, "R": R.tolist(), "t": t.tolist()}
+    rot = {n: rotation_angle_deg(est[n][:, :3] @ tru[n][:, :3].T) for n in names}
+    cen = {n: float(np.linalg.norm(camera_centre(est[n]) - camera_centre(tru[n]))) for n in names}
+    r, c = np.array(list(rot.values())), np.array(list(cen.values())) * 1000.0
+    return {"names": names, "rotation_deg": rot, "centre_error": cen,
+            "centre_error_mm": {n: v * 1000.0 for n, v in cen.items()},
+            "rotation_deg_mean": float(r.mean()), "rotation_deg_max": float(r.max()),
+            "centre_error_mm_mean": float(c.mean()), "centre_error_mm_max": float(c.max()),
+            "centre_error_mm_median": float(np.median(c)), "similarity": sim, "missing": missing}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# COLMAP <-> OpenCV cameras
+
+
+def K_to_colmap(K: np.ndarray) -> np.ndarray:
+    """OpenCV (3, 3) K -> COLMAP convention (principal point + 0.5 px)."""
+    K = np.array(K, dtype=float)
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    return K
+
+
+def K_from_colmap(K: np.ndarray) -> np.ndarray:
+    """COLMAP (3, 3) K -> OpenCV convention (principal point - 0.5 px)."""
+    K = np.array(K, dtype=float)
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    return K
+
+
+def colmap_params_from_K(model: str, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
+    """COLMAP parameter vector of ``model`` from an OpenCV K (3, 3) and optional dist (5,)."""
+    Kc = K_to_colmap(K)
+    fx, fy, cx, cy = Kc[0, 0], Kc[1, 1], Kc[0, 2], Kc[1, 2]
+    f = 0.5 * (fx + fy)
+    d = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).ravel()
+    if model == "SIMPLE_PINHOLE":
+        return np.array([f, cx, cy])
+    if model == "PINHOLE":
+        return np.array([fx, fy, cx, cy])
+    if model == "SIMPLE_RADIAL":
+        return np.array([f, cx, cy, d[0]])
+    if model == "RADIAL":
+        return np.array([f, cx, cy, d[0], d[1]])
+    if model == "OPENCV":
+        return np.array([fx, fy, cx, cy, d[0], d[1], d[2], d[3]])
+    raise ValueError(f"unsupported camera model {model}")
+
+
+def opencv_from_colmap_camera(camera: Any) -> tuple[np.ndarray, np.ndarray]:
+    """pycolmap.Camera -> (K (3, 3) OpenCV convention, dist (5,) k1 k2 p1 p2 k3)."""
+    model = camera.model.name if hasattr(camera.model, "name") else str(camera.model)
+    p = np.asarray(camera.params, dtype=float)
+    dist = np.zeros(5)
+    if model == "SIMPLE_PINHOLE":
+        fx = fy = p[0]; cx, cy = p[1], p[2]  # noqa: E702
+    elif model == "PINHOLE":
+        fx, fy, cx, cy = p[:4]
+    elif model == "SIMPLE_RADIAL":
+        fx = fy = p[0]; cx, cy = p[1], p[2]; dist[0] = p[3]  # noqa: E702
+    elif model == "RADIAL":
+        fx = fy = p[0]; cx, cy = p[1], p[2]; dist[0:2] = p[3:5]  # noqa: E702
+    elif model in ("OPENCV", "FULL_OPENCV"):
+        fx, fy, cx, cy = p[:4]
+        dist[:4] = p[4:8]
+        if model == "FULL_OPENCV":
+            dist[4] = p[8]
+    else:
+        raise ValueError(f"camera model {model} has no OpenCV equivalent here")
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return K_from_colmap(K), dist
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Calibration
+
+
+def _stage_images(image_paths: list[Path], image_dir: Path) -> dict[str, str]:
+    """Link (or, for raw files, decode) the images into ``image_dir``. Returns name -> COLMAP image name."""
+    image_dir.mkdir(parents=True, exist_ok=True)
+    names: dict[str, str] = {}
+    for path in image_paths:
+        path = Path(path)
+        if path.name in names:
+            raise ValueError(f"duplicate image name {path.name!r}: image names must be unique")
+        suffix = path.suffix.lower()
+        if suffix in RAW_SUFFIXES:
+            colmap_name = path.stem + ".png"
+            target = image_dir / colmap_name
+            if not target.exists():
+                from pipeline.codecs.image import preview_linear, write_png
+                from pipeline.codecs.raw import decode_raw
+
+                write_png(target, preview_linear(decode_raw(path).rgb, exposure=1.0))
+        elif suffix in IMAGE_SUFFIXES:
+            colmap_name = path.name
+            target = image_dir / colmap_name
+            if target.is_symlink() or target.exists():
+                target.unlink()
+            try:
+                os.symlink(path.resolve(), target)
+            except OSError:
+                shutil.copyfile(path, target)
+        else:
+            raise ValueError(f"{path}: unsupported image type {path.suffix!r}")
+        if colmap_name in names.values():
+            raise ValueError(f"{path}: two images map to {colmap_name!r}")
+        names[path.name] = colmap_name
+    return names
+
+
+def _extraction_options(config: GeometricConfig, scale_features: float = 1.0) -> Any:
+    import pycolmap
+
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.max_image_size = config.max_image_size
+    opts.num_threads = config.num_threads
+    opts.use_gpu = False
+    opts.sift.max_num_features = int(config.max_num_features * scale_features)
+    opts.sift.peak_threshold = config.peak_threshold
+    opts.sift.first_octave = config.first_octave
+    opts.sift.domain_size_pooling = config.domain_size_pooling
+    opts.sift.estimate_affine_shape = config.estimate_affine_shape
+    return opts
+
+
+def _set_priors(database_path: Path, colmap_names: dict[str, str], config: GeometricConfig,
+                intrinsics_prior: dict[str, np.ndarray] | None, dist_prior: dict[str, np.ndarray] | None) -> None:
+    """Write the prior K (and dist) of each image into its database camera; mark the focal as a prior."""
+    import pycolmap
+
+    if not intrinsics_prior:
+        return
+    db = pycolmap.Database.open(str(database_path))
+    try:
+        by_colmap = {v: k for k, v in colmap_names.items()}
+        images = db.read_all_images()
+        per_camera: dict[int, list[str]] = {}
+        for image in images:
+            name = by_colmap.get(image.name)
+            if name is not None and name in intrinsics_prior:
+                per_camera.setdefault(image.camera_id, []).append(name)
+        for camera_id, names in per_camera.items():
+            camera = db.read_camera(camera_id)
+            K = np.mean([np.asarray(intrinsics_prior[n], dtype=float) for n in names], axis=0)
+            d = None
+            if dist_prior:
+                ds = [np.asarray(dist_prior[n], dtype=float) for n in names if n in dist_prior]
+                d = np.mean(ds, axis=0) if ds else None
+            camera.params = colmap_params_from_K(config.camera_model, K, d)
+            camera.has_prior_focal_length = True
+            db.update_camera(camera)
+    finally:
+        db.close()
+
+
+def _mapping_options(config: GeometricConfig, has_prior: bool, relaxed: bool = False) -> Any:
+    import pycolmap
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = config.num_threads
+    opts.random_seed = config.seed
+    opts.min_num_matches = config.min_num_matches
+    opts.multiple_models = True
+    opts.extract_colors = False
+    refine_focal = config.refine_focal_length or not has_prior
+    opts.ba_refine_focal_length = refine_focal
+    opts.ba_refine_principal_point = config.refine_principal_point
+    opts.ba_refine_extra_params = config.refine_extra_params
+    opts.mapper.abs_pose_refine_focal_length = refine_focal
+    opts.mapper.abs_pose_refine_extra_params = config.refine_extra_params
+    opts.mapper.random_seed = config.seed
+    opts.triangulation.random_seed = config.seed
+    opts.init_num_trials = 200
+    if relaxed:
+        opts.min_num_matches = max(6, config.min_num_matches // 2)
+        opts.mapper.abs_pose_min_num_inliers = config.relaxed_min_num_inliers
+        opts.mapper.abs_pose_min_inlier_ratio = 0.1
+        opts.mapper.abs_pose_max_error = 16.0
+        opts.mapper.max_reg_trials = 10
+        opts.mapper.init_min_num_inliers = 50
+        opts.mapper.init_min_tri_angle = 8.0
+        opts.init_num_trials = 400
+    return opts
+
+
+def _global_ba(reconstruction: Any, config: GeometricConfig, has_prior: bool) -> None:
+    import pycolmap
+
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = config.refine_focal_length or not has_prior
+    opts.refine_principal_point = config.refine_principal_point
+    opts.refine_extra_params = config.refine_extra_params
+    opts.print_summary = False
+    opts.ceres.loss_function_type = (pycolmap.LossFunctionType.CAUCHY if config.final_ba_loss == "cauchy"
+                                     else pycolmap.LossFunctionType.TRIVIAL)
+    opts.ceres.loss_function_scale = 1.0
+    opts.ceres.solver_options.max_num_iterations = config.final_ba_iterations
+    opts.ceres.solver_options.function_tolerance = config.ba_function_tolerance
+    opts.ceres.solver_options.gradient_tolerance = 1e-10
+    opts.ceres.solver_options.parameter_tolerance = 1e-10
+    opts.ceres.solver_options.num_threads = config.num_threads
+    pycolmap.bundle_adjustment(reconstruction, opts)
+
+
+def _largest(models: dict[int, Any]) -> Any | None:
+    if not models:
+        return None
+    return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+
+
+def calibrate_images(image_paths: list[Path], work_dir: Path, config: GeometricConfig = GeometricConfig(),
+                     intrinsics_prior: dict[str, np.ndarray] | None = None,
+                     known_centres: dict[str, np.ndarray] | None = None,
+                     dist_prior: dict[str, np.ndarray] | None = None) -> CalibrationResult:
+    """Calibrate the cameras of a set of overlapping photos (structure from motion).
+
+    image_paths: PNG/JPEG/TIFF files (or raw files, decoded to 8-bit sRGB PNG first), names unique.
+    work_dir: scratch folder (COLMAP database, linked images, models); reused runs start afresh.
+    intrinsics_prior: image name -> (3, 3) OpenCV K, e.g. from the rig spec. Cameras start from it and
+        keep it when ``config.refine_focal_length`` is False (principal point is only refined when
+        ``config.refine_principal_point``). With ``config.shared_camera`` the priors are averaged.
+    known_centres: image name -> (3,) nominal camera centre in the target frame. With 3 or more of them
+        registered, the reconstruction is mapped onto them by a RANSAC similarity (metric scale, target
+        frame) and ``alignment_residual_mm`` says how well they agree.
+    dist_prior: image name -> (5,) OpenCV distortion to start from (optional).
+
+    Images COLMAP cannot register (no features, too few matches) are listed in ``unregistered``; the
+    call only raises when no model at all could be built.
+    """
+    import pycolmap
+
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    notes: list[str] = []
+    image_paths = [Path(p) for p in image_paths]
+    if len(image_paths) < 2:
+        raise ValueError("calibrate_images needs at least 2 images")
+    for p in image_paths:
+        if not p.is_file():
+            raise FileNotFoundError(p)
+    work_dir = Path(work_dir)
+    for sub in ("images", "sparse", "database.db"):
+        target = work_dir / sub
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists() or target.is_symlink():
+            target.unlink()
+    work_dir.mkdir(parents=True, exist_ok=True)
+    image_dir, database_path, sparse_dir = work_dir / "images", work_dir / "database.db", work_dir / "sparse"
+    pycolmap.set_random_seed(config.seed)
+    if not config.verbose:
+        pycolmap.logging.minloglevel = 2  # warnings and errors only
+    colmap_names = _stage_images(image_paths, image_dir)
+    by_colmap = {v: k for k, v in colmap_names.items()}
+    has_prior = bool(intrinsics_prior)
+    timings["stage_images"] = time.perf_counter() - t_start
+
+    t0 = time.perf_counter()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    mode = pycolmap.CameraMode.SINGLE if config.shared_camera else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.extract_features(str(database_path), str(image_dir), image_names=sorted(colmap_names.values()),
+                              camera_mode=mode, reader_options=reader,
+                              extraction_options=_extraction_options(config), device=pycolmap.Device.cpu)
+    _set_priors(database_path, colmap_names, config, intrinsics_prior, dist_prior)
+    timings["extract"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = config.num_threads
+    matching.use_gpu = False
+    matching.guided_matching = config.guided_matching
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = config.seed
+    matcher = config.matcher
+    if matcher == "auto":
+        matcher = "exhaustive" if len(image_paths) <= config.exhaustive_max_images else "sequential"
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(str(database_path), matching_options=matching,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = config.sequential_overlap
+        pairing.loop_detection = False
+        pycolmap.match_sequential(str(database_path), matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+    timings["match"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    sparse_dir.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(str(database_path), str(image_dir), str(sparse_dir),
+                                          options=_mapping_options(config, has_prior))
+    rec = _largest(models)
+    timings["map"] = time.perf_counter() - t0
+    if len(models) > 1:
+        notes.append(f"mapper built {len(models)} models of sizes "
+                     f"{sorted((m.num_reg_images() for m in models.values()), reverse=True)}; kept the largest")
+    if rec is None:
+        # One more try with relaxed initialisation before giving up.
+        t0 = time.perf_counter()
+        models = pycolmap.incremental_mapping(str(database_path), str(image_dir), str(sparse_dir),
+                                              options=_mapping_options(config, has_prior, relaxed=True))
+        rec = _largest(models)
+        timings["retry"] = time.perf_counter() - t0
+        if rec is None:
+            raise RuntimeError(f"calibrate_images: COLMAP could not build any model from {len(image_paths)} "
+                               "images (too few features or matches)")
+        notes.append("first mapping failed; relaxed mapping built a model")
+
+    def registered_names(r: Any) -> set[str]:
+        return {by_colmap[r.image(i).name] for i in r.reg_image_ids()}
+
+    if config.retry_unregistered and len(registered_names(rec)) < len(image_paths):
+        t0 = time.perf_counter()
+        before = len(registered_names(rec))
+        model_dir = work_dir / "sparse_best"
+        if model_dir.exists():
+            shutil.rmtree(model_dir)
+        model_dir.mkdir()
+        rec.write(str(model_dir))
+        retry_dir = work_dir / "sparse_retry"
+        if retry_dir.exists():
+            shutil.rmtree(retry_dir)
+        retry_dir.mkdir()
+        opts = _mapping_options(config, has_prior, relaxed=True)
+        opts.multiple_models = False
+        try:
+            retried = pycolmap.incremental_mapping(str(database_path), str(image_dir), str(retry_dir),
+                                                   options=opts, input_path=str(model_dir))
+            cand = _largest(retried)
+            if cand is not None and len(registered_names(cand)) > before:
+                rec = cand
+        except Exception as exc:  # noqa: BLE001 - a failed retry keeps the first model
+            notes.append(f"relaxed retry failed: {exc}")
+        timings["retry"] = timings.get("retry", 0.0) + time.perf_counter() - t0
+        notes.append(f"relaxed registration retry: {before} -> {len(registered_names(rec))} images")
+
+    if config.final_ba_iterations > 0 and config.final_ba_rounds > 0:
+        t0 = time.perf_counter()
+        if config.final_retriangulate:
+            tri_dir = work_dir / "sparse_tri"
+            tri_dir.mkdir(exist_ok=True)
+            opts = _mapping_options(config, has_prior)
+            rec = pycolmap.triangulate_points(rec, str(database_path), str(image_dir), str(tri_dir),
+                                              clear_points=False, options=opts, refine_intrinsics=False)
+        for round_ in range(config.final_ba_rounds):
+            _global_ba(rec, config, has_prior)
+            if round_ + 1 < config.final_ba_rounds:
+                pycolmap.ObservationManager(rec).filter_all_points3D(config.final_filter_max_error_px, 1.5)
+        timings["ba"] = time.perf_counter() - t0
+
+    aligned, residual, outliers = False, None, []
+    if known_centres:
+        t0 = time.perf_counter()
+        reg = {by_colmap[rec.image(i).name]: i for i in rec.reg_image_ids()}
+        common = sorted(set(reg) & set(known_centres))
+        if len(common) < 3:
+            notes.append(f"alignment skipped: only {len(common)} registered images have known centres")
+        else:
+            src = np.array([np.asarray(rec.image(reg[n]).projection_center(), dtype=float) for n in common])
+            dst = np.array([np.asarray(known_centres[n], dtype=float).ravel() for n in common])
+            # RANSAC threshold is in target units; scale-free source is handled by sampling minimal sets.
+            s, R, t, inl = umeyama_ransac(src, dst, config.alignment_max_error, seed=config.seed)
+            if inl.sum() < 3:
+                notes.append("alignment failed: fewer than 3 inliers")
+            else:
+                rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+                err = np.linalg.norm(s * src @ R.T + t - dst, axis=1) * 1000.0
+                residual = (float(err[inl].mean()), float(err[inl].max()))
+                outliers = [n for n, ok in zip(common, inl) if not ok]
+                aligned = True
+                if outliers:
+                    notes.append(f"alignment outliers (centre off by > {config.alignment_max_error}): {outliers}")
+        timings["align"] = time.perf_counter() - t0
+
+    cameras: dict[str, CameraCalibration] = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        camera = rec.camera(image.camera_id)
+        K, dist = opencv_from_colmap_camera(camera)
+        cameras[by_colmap[image.name]] = CameraCalibration(
+            K=K, dist=dist, cam_from_world=np.asarray(image.cam_from_world().matrix(), dtype=float),
+            width=int(camera.width), height=int(camera.height))
+    unregistered = [p.name for p in image_paths if p.name not in cameras]
+    timings["total"] = time.perf_counter() - t_start
+    return CalibrationResult(cameras=dict(sorted(cameras.items())), unregistered=unregistered,
+                             reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+                             alignment_residual_mm=residual, n_points3d=int(rec.num_points3D()), timings=timings,
+                             aligned=aligned, alignment_outliers=outliers, notes=notes, reconstruction=rec)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Exports and imports
+
+
+def transforms_dict(result: CalibrationResult, image_dir_rel: str = "images") -> dict[str, Any]:
+    """transforms.json content: per-frame K, dist and ``transform_matrix`` = world_from_cam 4x4 (OpenCV axes).
+
+    Same schema as the release's transforms.json (stages.decode.transforms_json) with ``file_path`` the
+    image's own name under ``image_dir_rel``; ``units``/``frame`` say whether the poses were aligned.
+    """
+    frames = []
+    for name, cam in result.cameras.items():
+        K = np.asarray(cam.K, dtype=float)
+        frames.append({"camera_id": Path(name).stem, "file_path": f"{image_dir_rel}/{name}" if image_dir_rel else name,
+                       "w": int(cam.width), "h": int(cam.height), "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]),
+                       "cx": float(K[0, 2]), "cy": float(K[1, 2]), "K": K.tolist(),
+                       "dist": np.asarray(cam.dist, dtype=float).tolist(),
+                       "transform_matrix": world_from_cam_4x4(cam.cam_from_world).tolist()})
+    aligned = result.aligned
+    return {"camera_convention": "opencv", "transform_matrix": "world_from_cam",
+            "units": "metres" if aligned else "arbitrary (reconstruction scale, not aligned)",
+            "frame": "stage: origin at LED-sphere centre, +y up" if aligned else "reconstruction (not aligned)",
+            "unregistered": list(result.unregistered), "reprojection_error_px": result.reprojection_error_px,
+            "alignment_residual_mm": list(result.alignment_residual_mm) if result.alignment_residual_mm else None,
+            "frames": frames}
+
+
+def write_transforms_json(result: CalibrationResult, path: Path, image_dir_rel: str = "images") -> Path:
+    """Write :func:`transforms_dict` to ``path`` (atomically). Returns the path."""
+    return _write_json(Path(path), transforms_dict(result, image_dir_rel))
+
+
+def read_transforms_json(path: Path) -> dict[str, CameraCalibration]:
+    """Read a transforms.json (this module's or the release's) back: file name -> CameraCalibration."""
+    data = json.loads(Path(path).read_text())
+    out = {}
+    for frame in data["frames"]:
+        world_from_cam = np.asarray(frame["transform_matrix"], dtype=float)
+        cam_from_world = np.linalg.inv(world_from_cam)[:3, :4]
+        out[Path(frame["file_path"]).name] = CameraCalibration(
+            K=np.asarray(frame["K"], dtype=float), dist=np.asarray(frame.get("dist", [0.0] * 5), dtype=float),
+            cam_from_world=cam_from_world, width=int(frame["w"]), height=int(frame["h"]))
+    return out
+
+
+def write_opencv_intrinsics_json(result: CalibrationResult, path: Path) -> Path:
+    """OpenCV intrinsics per image: ``{name: {"K": 3x3, "dist": [k1,k2,p1,p2,k3], "width", "height"}}``.
+
+    The same format :func:`read_intrinsics_file` accepts, so a calibration can seed the next one.
+    """
+    data = {name: {"K": np.asarray(c.K).tolist(), "dist": np.asarray(c.dist).tolist(), "width": c.width,
+                   "height": c.height} for name, c in result.cameras.items()}
+    return _write_json(Path(path), data)
+
+
+def read_intrinsics_file(path: Path, image_names: list[str]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Read an intrinsics prior file; returns (name -> K (3, 3), name -> dist (5,)).
+
+    Accepted JSON forms (K in OpenCV convention, pixel centres at integer coordinates):
+    ``{"K": [[fx,0,cx],[0,fy,cy],[0,0,1]], "dist": [...]}`` (one K for every image), or
+    ``{"img1.png": {"K": [[...]], "dist": [...]}, ...}`` (per image; images not listed get no prior, and a
+    ``"*"`` entry, if present, is the default). ``dist`` is optional everywhere.
+    """
+    data = json.loads(Path(path).read_text())
+    K_out: dict[str, np.ndarray] = {}
+    d_out: dict[str, np.ndarray] = {}
+
+    def parse(entry: Any, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+        if not isinstance(entry, dict) or "K" not in entry:
+            raise ValueError(f"{path}: {where} needs a 'K' 3x3 matrix")
+        K = np.asarray(entry["K"], dtype=float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"{path}: {where}: K must be a finite 3x3 matrix with positive focal lengths")
+        d = entry.get("dist")
+        if d is not None:
+            d = np.zeros(5) if len(d) == 0 else np.pad(np.asarray(d, dtype=float), (0, max(0, 5 - len(d))))[:5]
+        return K, d
+
+    if "K" in data:
+        shared = parse(data, "top level")
+        per = {n: shared for n in image_names}
+    else:
+        default = parse(data["*"], "'*'") if "*" in data else None
+        per = {}
+        for n in image_names:
+            if n in data:
+                per[n] = parse(data[n], repr(n))
+            elif default is not None:
+                per[n] = default
+        unknown = sorted(set(data) - set(image_names) - {"*"})
+        if unknown:
+            raise ValueError(f"{path}: intrinsics for unknown images {unknown[:5]}")
+    for n, (K, d) in per.items():
+        K_out[n] = K
+        if d is not None:
+            d_out[n] = d
+    return K_out, d_out
+
+
+def write_colmap_text(result_or_reconstruction: Any, out_dir: Path) -> Path:
+    """Write a COLMAP text model (cameras.txt, images.txt, points3D.txt) into ``out_dir``.
+
+    Takes a :class:`CalibrationResult` (its reconstruction, in the aligned frame, with points) or a
+    pycolmap.Reconstruction. A result without a reconstruction is written from its cameras alone
+    (OPENCV cameras, no points). Note COLMAP's principal point is the OpenCV one + 0.5 px.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rec = result_or_reconstruction
+    if isinstance(rec, CalibrationResult):
+        if rec.reconstruction is None:
+            return _write_colmap_text_from_cameras(rec, out_dir)
+        rec = rec.reconstruction
+    rec.write_text(str(out_dir))
+    return out_dir
+
+
+def _write_colmap_text_from_cameras(result: CalibrationResult, out_dir: Path) -> Path:
+    from scipy.spatial.transform import Rotation
+
+    cams, ims = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], [
+        "# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME / POINTS2D[] as (X, Y, POINT3D_ID)"]
+    for i, (name, c) in enumerate(result.cameras.items(), start=1):
+        params = colmap_params_from_K("OPENCV", c.K, c.dist)
+        cams.append(f"{i} OPENCV {c.width} {c.height} " + " ".join(f"{p:.17g}" for p in params))
+        x, y, z, w = Rotation.from_matrix(np.asarray(c.cam_from_world)[:, :3]).as_quat()
+        t = np.asarray(c.cam_from_world)[:, 3]
+        ims.append(f"{i} {w:.17g} {x:.17g} {y:.17g} {z:.17g} {t[0]:.17g} {t[1]:.17g} {t[2]:.17g} {i} {name}")
+        ims.append("")
+    (out_dir / "cameras.txt").write_text("\n".join(cams) + "\n")
+    (out_dir / "images.txt").write_text("\n".join(ims) + "\n")
+    (out_dir / "points3D.txt").write_text("# 3D point list: POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n")
+    return out_dir
+
+
+def _write_json(path: Path, data: Any) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+    return path
+
+
+def calibrate_folder(images_dir: Path, out_dir: Path, intrinsics_file: Path | None = None,
+                     config: GeometricConfig | None = None,
+                     known_centres: dict[str, np.ndarray] | None = None) -> CalibrationResult:
+    """Calibrate every photo in ``images_dir`` and write the results into ``out_dir``.
+
+    Images: files in ``images_dir`` (not recursive) with a suffix in IMAGE_SUFFIXES or RAW_SUFFIXES
+    (raw files are decoded to 8-bit sRGB PNG first), sorted by name; names are the file names.
+
+    ``intrinsics_file`` (optional) is JSON with K in OpenCV convention (pixel centres at integer
+    coordinates), either one shared camera::
+
+        {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "dist": [k1, k2, p1, p2, k3]}
+
+    or per image (``"*"`` is an optional default for images not listed)::
+
+        {"img0001.png": {"K": [[...], [...], [...]], "dist": [...]}, "*": {"K": ...}}
+
+    ``dist`` is optional. With a file the focal lengths are kept fixed (``refine_focal_length=False``) and a
+    PINHOLE camera is used unless ``config`` says otherwise; without one COLMAP estimates SIMPLE_RADIAL
+    intrinsics. The file written as ``intrinsics_opencv.json`` has the per-image form and can be passed back.
+
+    Writes into ``out_dir``: ``transforms.json`` (:func:`write_transforms_json`, file paths relative to
+    out_dir pointing at the input images), ``colmap/{cameras,images,points3D}.txt``,
+    ``intrinsics_opencv.json``, ``calibration.json`` (summary: registered/unregistered, errors, timings)
+    and the scratch folder ``work/`` (COLMAP database). Raises ValueError when the folder holds fewer than
+    2 images and RuntimeError when no model could be built.
+    """
+    images_dir, out_dir = Path(images_dir), Path(out_dir)
+    suffixes = IMAGE_SUFFIXES + RAW_SUFFIXES
+    paths = sorted(p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    if len(paths) < 2:
+        raise ValueError(f"{images_dir}: fewer than 2 images ({', '.join(suffixes)})")
+    prior = dist = None
+    if intrinsics_file is not None:
+        prior, dist = read_intrinsics_file(Path(intrinsics_file), [p.name for p in paths])
+    if config is None:
+        config = GeometricConfig(camera_model="PINHOLE" if prior else "SIMPLE_RADIAL",
+                                 refine_focal_length=not prior)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result = calibrate_images(paths, out_dir / "work", config, intrinsics_prior=prior, known_centres=known_centres,
+                              dist_prior=dist or None)
+    rel = os.path.relpath(images_dir.resolve(), out_dir.resolve())
+    write_transforms_json(result, out_dir / "transforms.json", rel)
+    write_colmap_text(result, out_dir / "colmap")
+    write_opencv_intrinsics_json(result, out_dir / "intrinsics_opencv.json")
+    _write_json(out_dir / "calibration.json", {"config": {k: getattr(config, k) for k in config.__dataclass_fields__},
+                                               "intrinsics_file": str(intrinsics_file) if intrinsics_file else None,
+                                               **result.summary()})
+    return result
