@@ -15,7 +15,9 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
+from . import calibration as calib_frames
 from . import files, sensor, shading
+from .calibration import CalibrationConfig
 from .config import SimConfig
 from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds
 from .subject import (MATERIALS, ActionSubject, BaseSubject, load_base_subject, make_action_subject,
@@ -72,7 +74,8 @@ def make_session(config: SimConfig, base: BaseSubject, index: int) -> Session:
     return Session(f"S{index:03d}", index, cameras, leds, gains, references, backgrounds)
 
 
-def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None = None) -> Path:
+def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None = None,
+             calibration: CalibrationConfig | None = None) -> Path:
     """Render a synthetic capture into `out_dir` (created if needed) and return its path.
 
     Writes capture.json, sessions/<sid>/rig.json (+ background/<cam>.dng clean plates),
@@ -80,12 +83,15 @@ def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] |
     capture.json is written last, so a folder without it is an interrupted capture. A previous simulated
     capture in `out_dir` is replaced; a folder holding anything else is refused (FileExistsError).
     `progress(message)` is called per session, per camera of every action and at the end.
+    `calibration`: also write per-session colour-chart and diffuse-sphere frames and give every camera
+    its own colour-response error (synthetic.calibration); None (default) changes nothing.
     """
     with limit_blas_threads(1):
-        return _simulate(Path(out_dir), config, progress)
+        return _simulate(Path(out_dir), config, progress, calibration)
 
 
-def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None) -> Path:
+def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None,
+              calibration: CalibrationConfig | None = None) -> Path:
     say = progress or (lambda message: None)
     started = time.perf_counter()
     out = Path(out_dir)
@@ -95,20 +101,29 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
     say(f"subject {base.name}: {len(base.vertices)} vertices, {len(base.triangles)} triangles")
 
     blocks = np.array_split(np.arange(config.actions), config.sessions)
-    sessions = []
+    sessions, responses = [], []
     for index in range(config.sessions):
         session = make_session(config, base, index)
-        files.write_json(out / "sessions" / session.session_id / "rig.json", session.rig_json())
+        rig, response = session.rig_json(), None
+        if calibration is not None:
+            response = calib_frames.colour_responses(config.seed, index, len(session.cameras),
+                                                     calibration.colour_error)
+            centre = calib_frames.sphere_centre(base.y_range)
+            rig["calibration_objects"] = calib_frames.calibration_objects(centre, calibration)
+            calib_frames.write_session_calibration(out, config.seed, config.noise, config.full_well_e,
+                                                   config.read_noise_dn, calibration, session, response, centre)
+        files.write_json(out / "sessions" / session.session_id / "rig.json", rig)
         if config.background:
-            write_clean_plates(out, config, session)
+            write_clean_plates(out, config, session, response)
         sessions.append(session)
+        responses.append(response)
         say(f"session {session.session_id}: rig with {len(session.cameras)} cameras, {session.leds.count} LEDs")
 
     actions = []
-    for session, block in zip(sessions, blocks):
+    for session, response, block in zip(sessions, responses, blocks):
         for action_index in block:
             action_id = f"A{int(action_index):04d}"
-            label = render_action(out, config, base, session, int(action_index), action_id, say)
+            label = render_action(out, config, base, session, int(action_index), action_id, say, response)
             actions.append({"action_id": action_id, "session_id": session.session_id, "subject": label})
 
     capture = {"format": CAPTURE_FORMAT,
@@ -118,6 +133,8 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
                "illuminations": list(ILLUMINATIONS),
                "camera_ids": [cam.camera_id for cam in sessions[0].cameras],
                "simulator": config.to_json()}
+    if calibration is not None:
+        capture["simulator_calibration"] = calibration.to_json()
     files.write_json(out / "capture.json", capture)
     say(f"capture written to {out} in {time.perf_counter() - started:.1f} s")
     return out
@@ -148,11 +165,13 @@ def clear_previous_capture(out: Path) -> None:
             entry.unlink()
 
 
-def write_clean_plates(out: Path, config: SimConfig, session: Session) -> None:
-    """Clean plates: the empty stage under full_on, one DNG per camera."""
+def write_clean_plates(out: Path, config: SimConfig, session: Session, responses: np.ndarray | None = None) -> None:
+    """Clean plates: the empty stage under full_on, one DNG per camera (`responses`: per-camera colour
+    responses (n, 3, 3) of synthetic.calibration, None = nominal)."""
     cam_from_xyz, neutral = sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral()
     for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
         radiance = shading.render_background(camera, session.leds, session.backgrounds[cam_index])[..., 0:3]
+        radiance = calib_frames.as_seen(radiance, None if responses is None else responses[cam_index])
         rng = np.random.default_rng([config.seed, _PLATE_NOISE, session.index, cam_index]) if config.noise else None
         raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
         files.write_dng(out / "sessions" / session.session_id / "background" / f"{camera.camera_id}.dng",
@@ -198,8 +217,9 @@ def _render_views(config: SimConfig, action_index: int, session_index: int
 
 
 def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Session, action_index: int,
-                  action_id: str, say: Callable[[str], None]) -> str:
-    """Render and write one action (all cameras and illuminations, ground truth, preview)."""
+                  action_id: str, say: Callable[[str], None], responses: np.ndarray | None = None) -> str:
+    """Render and write one action (all cameras and illuminations, ground truth, preview); `responses`:
+    per-camera colour responses (n, 3, 3) of synthetic.calibration, None = nominal."""
     started = time.perf_counter()
     subject, scene, lighting = prepare_action(config, base, session, action_index)
     leds = session.leds
@@ -216,6 +236,7 @@ def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Sess
             rng = (np.random.default_rng([config.seed, _NOISE, action_index, cam_index, illum_index])
                    if config.noise else None)
             radiance = view.radiance[..., 3 * illum_index:3 * illum_index + 3]
+            radiance = calib_frames.as_seen(radiance, None if responses is None else responses[cam_index])
             raw = sensor.raw_frame(radiance, gain, rng, config.full_well_e, config.read_noise_dn)
             files.write_dng(out / "actions" / action_id / illumination / f"{camera.camera_id}.dng",
                              raw, cam_from_xyz, neutral)

@@ -1,0 +1,201 @@
+"""Per-session calibration captures of the simulator: a colour chart and a diffuse sphere.
+
+Opt-in: ``simulate(out, config, calibration=CalibrationConfig())`` (without it nothing changes, byte for
+byte). With it, every session gets
+
+- per-camera colour-response errors: camera k's raw is ``gain * cam_from_srgb @ R_k @ radiance`` with
+  ``R_k = I + U(-colour_error, colour_error)^{3x3}`` (all its frames: actions, clean plates, calibration).
+  The DNG keeps the nominal ColorMatrix (as a real camera's embedded matrix would), so a decoded frame is
+  ``gain * R_k @ radiance`` and ``inv(R_k)`` is the correction the colour calibration should find;
+- ``sessions/<sid>/calibration/chart/<cam>.dng``: under full_on, a flat ColorChecker card (the 24
+  reference colours of ``calibration.colour.reference_chart_srgb`` as Lambertian albedos in a 6 x 4
+  grid on a dark card, albedo 0.05) fills the middle of every frame, facing the camera; its irradiance
+  is that of a plane facing the camera under the session's LEDs (with their errors). Layout, reference
+  values and fitting target in ``sessions/<sid>/calibration/chart.json``;
+- ``sessions/<sid>/calibration/sphere/{full_on,pos,neg}/<cam>.dng``: a Lambertian sphere (default radius
+  0.15 m, albedo 0.8) at the point the cameras look at, per-pixel exact normals, unoccluded (distant
+  LEDs), in front of the stage background. Its centre and radius go to rig.json
+  ``"calibration_objects": {"sphere": {"centre": [...], "radius_m": ...}}``;
+- ``ground_truth/calibration/<sid>.json``: the ``R_k`` and their inverses, chart and sphere parameters.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibration.colour import REFERENCE_CHART, reference_chart_srgb
+
+from . import files, sensor, shading
+from .rig import Camera, LedSphere
+
+CHART_FORMAT = "ultrastage-chart/1"
+CALIBRATION_TRUTH_FORMAT = "ultrastage-calibration-truth/1"
+# purposes of the random streams (synthetic.simulate uses 1..6)
+_COLOUR_RESPONSE, _CALIB_NOISE = 7, 8
+CHART_COLUMNS, CHART_ROWS = 6, 4
+CARD_ALBEDO = 0.05
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """What the simulator adds per session for colour and light calibration."""
+
+    chart: bool = True
+    """Write the colour chart frames (sessions/<sid>/calibration/chart/<cam>.dng + chart.json)."""
+    sphere: bool = True
+    """Write the diffuse sphere frames (sessions/<sid>/calibration/sphere/{full_on,pos,neg}/<cam>.dng)."""
+    colour_error: float = 0.03
+    """Half-width of the uniform per-element error of each camera's 3x3 colour response R_k = I + E
+    (0 = every camera has the nominal response)."""
+    sphere_radius_m: float = 0.15
+    """Radius of the calibration sphere, metres."""
+    sphere_albedo: float = 0.8
+    """Grey Lambertian albedo of the calibration sphere."""
+    chart_width_fraction: float = 0.8
+    """Width of the chart's patch grid as a fraction of the image width (centred)."""
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.colour_error < 0.3):
+            raise ValueError("CalibrationConfig: colour_error must be in [0, 0.3)")
+        if not (self.sphere_radius_m > 0 and 0 < self.sphere_albedo <= 1):
+            raise ValueError("CalibrationConfig: sphere radius must be > 0 and albedo in (0, 1]")
+        if not (0.2 <= self.chart_width_fraction <= 1.0):
+            raise ValueError("CalibrationConfig: chart_width_fraction must be in [0.2, 1]")
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def colour_responses(seed: int, session_index: int, n_cameras: int, colour_error: float) -> np.ndarray:
+    """Per-camera colour responses R_k (n_cameras, 3, 3) = I + U(-e, e), keyed by (seed, session)."""
+    rng = np.random.default_rng([seed, _COLOUR_RESPONSE, session_index])
+    return np.eye(3) + rng.uniform(-colour_error, colour_error, size=(n_cameras, 3, 3))
+
+
+def as_seen(radiance: np.ndarray, response: np.ndarray | None) -> np.ndarray:
+    """Radiance (H, W, 3) as camera response `response` (3, 3) sees it (None: unchanged), float32."""
+    if response is None:
+        return radiance
+    return (radiance.astype(np.float32) @ response.T.astype(np.float32)).astype(np.float32)
+
+
+def chart_layout(width: int, height: int, width_fraction: float = 0.8) -> tuple[np.ndarray, np.ndarray, list]:
+    """The chart in an image: labels (H, W) uint8 (k = patch k-1, 25 = card, 0 = stage), the card box
+    and patch boxes [x0, y0, x1, y1] (pixel indices, end exclusive) in reading order."""
+    pitch = max(4, int(width * width_fraction) // CHART_COLUMNS)
+    gap = max(1, pitch // 6)
+    grid_w, grid_h = CHART_COLUMNS * pitch, CHART_ROWS * pitch
+    x0 = (width - grid_w) // 2
+    y0 = (height - grid_h) // 2
+    labels = np.zeros((height, width), np.uint8)
+    card = [max(0, x0 - gap), max(0, y0 - gap), min(width, x0 + grid_w + gap), min(height, y0 + grid_h + gap)]
+    labels[card[1]:card[3], card[0]:card[2]] = 25
+    boxes = []
+    for k in range(CHART_COLUMNS * CHART_ROWS):
+        r, c = divmod(k, CHART_COLUMNS)
+        box = [x0 + c * pitch + gap, y0 + r * pitch + gap, x0 + (c + 1) * pitch, y0 + (r + 1) * pitch]
+        labels[box[1]:box[3], box[0]:box[2]] = k + 1
+        boxes.append(box)
+    return labels, np.array(card), boxes
+
+
+def plane_irradiance(normal: np.ndarray, leds: LedSphere) -> np.ndarray:
+    """Irradiance (9,) (full_on, pos, neg x RGB) of an unoccluded plane with unit `normal` (3,)."""
+    cos = np.maximum(leds.directions @ np.asarray(normal, np.float64), 0.0)
+    return cos @ leds.irradiance.astype(np.float64)
+
+
+def render_chart(camera: Camera, leds: LedSphere, background: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """full_on radiance (H, W, 3) float32 of the chart card facing `camera` in front of the stage."""
+    _, reference = reference_chart_srgb()
+    albedo = np.zeros((26, 3))
+    albedo[1:25] = reference
+    albedo[25] = CARD_ALBEDO
+    rotation = camera.cam_from_world[:, :3]
+    facing = -rotation[2]                              # world direction from the card towards the camera
+    irradiance = plane_irradiance(facing, leds)[0:3]
+    card = (albedo[labels] * irradiance / np.pi).astype(np.float32)
+    stage = shading.render_background(camera, leds, background)[..., 0:3]
+    return np.where((labels > 0)[..., None], card, stage).astype(np.float32)
+
+
+def render_sphere(camera: Camera, leds: LedSphere, background: np.ndarray, centre: np.ndarray, radius: float,
+                  albedo: float, chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance (H, W, 9) float32 (full_on, pos, neg x RGB) of the Lambertian sphere in front of the stage
+    background, and its mask (H, W)."""
+    from calibration.light import sphere_normals
+
+    normals, mask = sphere_normals(camera.K, camera.cam_from_world, camera.width, camera.height, centre, radius)
+    radiance = shading.render_background(camera, leds, background).reshape(-1, 9)
+    pixels = np.nonzero(mask.reshape(-1))[0]
+    flat = normals.reshape(-1, 3)
+    dirs, table = leds.directions.astype(np.float32), leds.irradiance
+    for start in range(0, len(pixels), chunk):
+        sel = pixels[start:start + chunk]
+        cos = np.maximum(flat[sel] @ dirs.T, 0.0)
+        radiance[sel] = cos @ table * np.float32(albedo / np.pi)
+    return radiance.reshape(camera.height, camera.width, 9), mask
+
+
+def sphere_centre(y_range: tuple[float, float]) -> np.ndarray:
+    """Where the sphere sits: the point the cameras look at (subject's bounding-cylinder centre)."""
+    return np.array([0.0, 0.5 * (y_range[0] + y_range[1]), 0.0])
+
+
+def calibration_objects(centre: np.ndarray, calib: CalibrationConfig) -> dict:
+    """The rig.json entry of the calibration objects."""
+    return {"sphere": {"centre": [round(float(v), 6) for v in centre], "radius_m": calib.sphere_radius_m,
+                       "albedo": calib.sphere_albedo, "frames": "calibration/sphere/{full_on,pos,neg}/<cam>.dng"}}
+
+
+def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: float, read_noise_dn: float,
+                              calib: CalibrationConfig, session, responses: np.ndarray, centre: np.ndarray) -> None:
+    """Write one session's chart and sphere frames, chart.json and ground_truth/calibration/<sid>.json.
+
+    `session`: a synthetic.simulate.Session; responses: (n_cameras, 3, 3); centre: sphere centre (3,).
+    """
+    cam_from_xyz, neutral = sensor.nikon_cam_from_xyz(), sensor.as_shot_neutral()
+    folder = out / "sessions" / session.session_id / "calibration"
+    names, reference = reference_chart_srgb()
+    chart_cameras = {}
+    for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
+        background = session.backgrounds[cam_index]
+
+        def write(radiance: np.ndarray, path: Path, stream: int) -> None:
+            rng = (np.random.default_rng([seed, _CALIB_NOISE, session.index, cam_index, stream])
+                   if noise else None)
+            raw = sensor.raw_frame(as_seen(radiance, responses[cam_index]), gain, rng, full_well_e, read_noise_dn)
+            files.write_dng(path, raw, cam_from_xyz, neutral)
+
+        if calib.chart:
+            labels, card, boxes = chart_layout(camera.width, camera.height, calib.chart_width_fraction)
+            write(render_chart(camera, session.leds, background, labels), folder / "chart" / f"{camera.camera_id}.dng", 0)
+            chart_cameras[camera.camera_id] = {"frame": f"calibration/chart/{camera.camera_id}.dng",
+                                               "card_box": card.tolist(), "patch_boxes": boxes}
+        if calib.sphere:
+            radiance, _ = render_sphere(camera, session.leds, background, centre, calib.sphere_radius_m,
+                                        calib.sphere_albedo)
+            for illum_index, illumination in enumerate(("full_on", "pos", "neg")):
+                write(radiance[..., 3 * illum_index:3 * illum_index + 3],
+                      folder / "sphere" / illumination / f"{camera.camera_id}.dng", 1 + illum_index)
+    if calib.chart:
+        files.write_json(folder / "chart.json", {
+            "format": CHART_FORMAT, "chart": REFERENCE_CHART, "illumination": "full_on",
+            "reference_space": "linear sRGB (D65), Bradford-adapted from the chart's D50 xyY (colour-science)",
+            "patch_names": list(names), "reference_linear_srgb": np.round(reference, 6).tolist(),
+            "box_convention": "[x0, y0, x1, y1] pixel indices, end exclusive, reading order; shrink by ~2 px "
+                              "for demosaicing blur",
+            "target": "a patch's decoded linear value should be white_reference * reference_linear_srgb "
+                      "(per channel; white_reference from rig.json)",
+            "cameras": chart_cameras})
+    truth = {"format": CALIBRATION_TRUTH_FORMAT, "session_id": session.session_id,
+             "colour_error": calib.colour_error,
+             "colour_model": "decoded = gain * response @ radiance (linear sRGB); correction = inv(response)",
+             "cameras": {cam.camera_id: {"response": np.round(r, 8).tolist(),
+                                         "correction": np.round(np.linalg.inv(r), 8).tolist()}
+                         for cam, r in zip(session.cameras, responses)},
+             "sphere": {"centre": centre.tolist(), "radius_m": calib.sphere_radius_m, "albedo": calib.sphere_albedo},
+             "chart": {"card_albedo": CARD_ALBEDO}}
+    files.write_json(out / "ground_truth" / "calibration" / f"{session.session_id}.json", truth)
