@@ -388,7 +388,7 @@ def _stage_images(image_paths: list[Path], image_dir: Path) -> dict[str, str]:
                 from pipeline.codecs.image import preview_linear, write_png
                 from pipeline.codecs.raw import decode_raw
 
-                write_png(target, preview_linear(decode_raw(path).rgb, exposure=1.0))
+                write_png(target, preview_linear(decode_raw(path).rgb))
         elif suffix in IMAGE_SUFFIXES:
             colmap_name = path.name
             target = image_dir / colmap_name
