@@ -201,6 +201,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from calibration.geometric import calibrate_folder
+
+    result = calibrate_folder(Path(args.images), Path(args.out), Path(args.intrinsics) if args.intrinsics else None)
+    print(f"registered {len(result.cameras)} image(s), {len(result.unregistered)} not registered"
+          f"{': ' + ', '.join(result.unregistered) if result.unregistered else ''}; "
+          f"mean reprojection error {result.reprojection_error_px:.3f} px")
+    print(f"wrote {Path(args.out) / 'transforms.json'} and {Path(args.out) / 'colmap'}")
+    return 0 if not result.unregistered else 3
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from manifests import verify_release
 
@@ -266,6 +277,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", required=True, help="CAPTURE/ground_truth")
     p.add_argument("--json", help="also write one flat JSON object of metric name to number")
     p.set_defaults(fn=cmd_evaluate)
+
+    p = sub.add_parser("calibrate", help="calibrate the cameras of any folder of photos (pycolmap)")
+    p.add_argument("--images", required=True, help="folder of photos (PNG/JPEG/TIFF or raw)")
+    p.add_argument("--out", required=True, help="folder for transforms.json and the COLMAP text model")
+    p.add_argument("--intrinsics", help="JSON with known K (shared or per image); see calibration.geometric")
+    p.set_defaults(fn=cmd_calibrate)
 
     p = sub.add_parser("verify", help="re-check every asset of a release against its sha256")
     p.add_argument("release")

@@ -228,6 +228,11 @@ def _write_manifests(release: Path, work: Path, capture: Capture, plan: Plan, ru
             "stages_run": sum(t.status == "ran" for t in tasks), "stages_cached": sum(t.status == "cached" for t in tasks),
             "seconds": float(sum(t.seconds for t in tasks))})
         error = action_errors.get(action_id, "")
+        # Stages may report cameras they had to leave out (e.g. not calibrated): those frames failed.
+        missing_views: dict[str, str] = {}
+        for task in plan.tasks:
+            if task.scope_id in (action_id, info.session_id):
+                missing_views |= task.stats.get("missing_views", {}) or {}
         for illum in capture.illuminations:
             for cam in cams:
                 path = capture.raw_path(action_id, illum, cam["camera_id"])
@@ -238,9 +243,10 @@ def _write_manifests(release: Path, work: Path, capture: Capture, plan: Plan, ru
                 if path is not None:
                     d = digests.digest(path)
                     failed_here = status == "failed" and str(path) in error
+                    left_out = missing_views.get(cam["camera_id"])
                     row |= {"raw_path": path.relative_to(capture.root).as_posix(), "raw_bytes": d["bytes"],
-                            "raw_sha256": d["sha256"], "status": "failed" if failed_here else "ok",
-                            "error": error if failed_here else None}
+                            "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
+                            "error": error if failed_here else (f"camera {cam['camera_id']}: {left_out}" if left_out else None)}
                 frame_rows.append(row)
         for task in tasks:
             for cam, stats in (task.stats.get("views", {}) or {}).items():

@@ -19,7 +19,7 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
+from stages.cameras import load_cameras, unregistered_cameras
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 
@@ -77,7 +77,11 @@ class DecodeStage(Stage):
         return {f"{illum}/{cam}": path for (illum, cam), path in frames.items()}
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        cam = load_cameras(ctx.upstream["cameras"] / "cameras.json")[view]
+        cameras_json = ctx.upstream["cameras"] / "cameras.json"
+        cameras = load_cameras(cameras_json)
+        if view not in cameras:  # the session's calibration could not register it: a missing camera
+            return {"missing": unregistered_cameras(cameras_json).get(view, "camera has no calibration")}
+        cam = cameras[view]
         expected = (int(cam["height"]), int(cam["width"]))
         clipped = None
         stats: dict[str, Any] = {}

@@ -94,6 +94,38 @@ def _load_truth(truth_dir: Path, action_id: str, cam: str) -> dict[str, np.ndarr
             "visibility": read_exr(base / "visibility" / f"{cam}.exr")}
 
 
+def true_cameras(truth_dir: Path, session_id: str) -> dict[str, dict[str, Any]]:
+    """camera_id -> true camera record: ``ground_truth/cameras/<session>.json`` when the capture has it
+    (the simulator's true poses, which the rig spec only approximates), else the session's rig spec."""
+    import json
+
+    path = Path(truth_dir) / "cameras" / f"{session_id}.json"
+    if not path.exists():
+        path = Path(truth_dir).parent / "sessions" / session_id / "rig.json"
+    return {c["camera_id"]: c for c in json.loads(path.read_text())["cameras"]}
+
+
+def camera_errors(transforms: dict[str, Any], truth: dict[str, dict[str, Any]]) -> dict[str, float]:
+    """Rotation (deg), centre (mm) and focal (%) errors of a release's cameras against true ones, in the
+    stage frame as published (no re-alignment: the release claims this frame)."""
+    from calibration.geometric import pose_errors
+
+    est = {}
+    focal = []
+    for frame in transforms["frames"]:
+        cam = frame["camera_id"]
+        if cam not in truth:
+            continue
+        world_from_cam = np.asarray(frame["transform_matrix"], float)
+        est[cam] = np.linalg.inv(world_from_cam)[:3, :4]
+        K_true = np.asarray(truth[cam]["K"], float)
+        scale = frame["w"] / float(truth[cam]["width"])  # half-size releases: compare at the truth's size
+        focal.append(abs(frame["fl_x"] / scale - K_true[0, 0]) / K_true[0, 0] * 100.0)
+    errs = pose_errors(est, {c: np.asarray(t["cam_from_world"], float) for c, t in truth.items()}, align=False)
+    return {"cam_rotation_err_deg": float(errs["rotation_deg_mean"]), "cam_center_err_mm": float(errs["centre_error_mm_mean"]),
+            "cam_focal_err_pct": float(np.mean(focal)), "cameras_registered": float(len(est))}
+
+
 def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -> EvaluationSummary:
     """Evaluate every published action; writes rows to the metrics manifest (source "evaluate")."""
     from manifests import append_rows, open_release
@@ -159,6 +191,7 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
         "albedo_ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "mask_iou": float(np.mean(ious)) if ious else float("nan"),
         "actions_ok": float(len(ok_ids)), "actions_failed": float(len(actions) - len(ok_ids))}
+    overall |= _camera_overall(rel, truth_dir, ok_ids)
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     for metric, value in overall.items():
         rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
@@ -166,6 +199,28 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     if rows:
         append_rows(release, "metrics", rows, ["action_id", "camera_id", "metric", "region", "source"])
     return EvaluationSummary(overall, per_action, rows)
+
+
+def _camera_overall(rel: Any, truth_dir: Path, ok_ids: list[str]) -> dict[str, float]:
+    """Camera metrics of the release, per session (every action of a session shares its cameras)."""
+    import json
+
+    per_session: dict[str, dict[str, float]] = {}
+    for action_id in ok_ids:
+        session_id = rel.action(action_id).info["session_id"]
+        if session_id in per_session:
+            continue
+        view = rel.action(action_id)
+        metrics = camera_errors(view.transforms(), true_cameras(truth_dir, session_id))
+        calib = rel.path(f"actions/{action_id}/calibration.json")
+        if calib.exists():
+            summary = json.loads(calib.read_text())
+            metrics["reprojection_err_px"] = float(summary["reprojection_error_px"])
+        per_session[session_id] = metrics
+    if not per_session:
+        return {}
+    keys = sorted({k for m in per_session.values() for k in m})
+    return {k: float(np.mean([m[k] for m in per_session.values() if k in m])) for k in keys}
 
 
 def evaluate_release_cached(release: Path, truth_dir: Path, work: Path,
@@ -200,4 +255,8 @@ def print_overall(summary: EvaluationSummary) -> None:
     print(f"  normals, all fg       : mean {o.get('normal_mean_deg_all', float('nan')):.2f} deg")
     print(f"  albedo                : PSNR {o.get('albedo_psnr_db', float('nan')):.2f} dB, SSIM "
           f"{o.get('albedo_ssim', float('nan')):.3f}; mask IoU {o.get('mask_iou', float('nan')):.3f}")
+    if "cam_rotation_err_deg" in o:
+        print(f"  cameras               : rotation {o['cam_rotation_err_deg']:.4f} deg, centre {o['cam_center_err_mm']:.2f} mm, "
+              f"focal {o['cam_focal_err_pct']:.3f}%, reprojection {o.get('reprojection_err_px', float('nan')):.3f} px, "
+              f"{o['cameras_registered']:.0f} registered")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

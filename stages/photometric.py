@@ -49,7 +49,10 @@ class PhotometricStage(Stage):
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
         decoded = ctx.upstream["decode"]
-        cam = load_cameras(decoded / "cameras.json")[view]
+        cameras = load_cameras(decoded / "cameras.json")
+        if view not in cameras:
+            return {"missing": "camera has no calibration"}
+        cam = cameras[view]
         full_on = read_exr(decoded / "full_on" / f"{view}.exr")
         pos = read_exr(decoded / "pos" / f"{view}.exr")
         neg = read_exr(decoded / "neg" / f"{view}.exr")
@@ -74,9 +77,11 @@ class PhotometricStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            pics = [read_png(ctx.out_dir / "previews" / f"normal_{v}.png") for v in sorted(view_stats)]
-            write_png(ctx.out_dir / "previews" / "normals_sheet.png", contact_sheet(pics))
-        fractions = [s["valid_fraction"] for s in view_stats.values()]
+            pics = [read_png(ctx.out_dir / "previews" / f"normal_{v}.png") for v in sorted(view_stats)
+                    if "missing" not in view_stats[v]]
+            if pics:
+                write_png(ctx.out_dir / "previews" / "normals_sheet.png", contact_sheet(pics))
+        fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
