@@ -101,25 +101,28 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     from pipeline.store import swap_into_place
     from synthetic import SimConfig, simulate
+    from synthetic.calibration import CalibrationConfig
 
     overrides = {k: v for k, v in {"mesh": args.mesh, "actions": args.actions, "width": args.width,
                                    "seed": args.seed}.items() if v is not None}
     config = dataclasses.replace(SimConfig(), **overrides)
     out = Path(args.out)
     index = out / "capture.json"
+    calibration = CalibrationConfig()  # chart and diffuse-sphere frames for the session stages
+    wanted = json.loads(json.dumps({"simulator": config.to_json(), "simulator_calibration": calibration.to_json()}))
     if index.exists() and not args.force:
         try:
-            recorded = json.loads(index.read_text()).get("simulator")
+            meta = json.loads(index.read_text())
         except json.JSONDecodeError:
-            recorded = None
-        if recorded == json.loads(json.dumps(config.to_json())):
+            meta = {}
+        if {k: meta.get(k) for k in wanted} == wanted:
             print(f"capture {out} is up to date with these simulator settings: skipped (--force to redo)")
             return 0
     # Render beside the target and swap it in, so an interrupted run never leaves half a capture.
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     start = time.perf_counter()
-    simulate(tmp, config, progress=lambda msg: print(f"  {msg}", flush=True))
+    simulate(tmp, config, progress=lambda msg: print(f"  {msg}", flush=True), calibration=calibration)
     out.parent.mkdir(parents=True, exist_ok=True)
     swap_into_place(tmp, out)
     print(f"simulated capture written to {out} in {time.perf_counter() - start:.1f}s")

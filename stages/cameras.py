@@ -101,13 +101,17 @@ class CamerasStage(Stage):
         names = [p.name for p in paths]
         priors = {f"{c}.png": np.asarray(rig_cams[c]["K"], float) for c in rig_cams if f"{c}.png" in names}
         centres = {f"{c}.png": _centre(rig_cams[c]["cam_from_world"]) for c in rig_cams if f"{c}.png" in names}
-        result = calibrate_images(paths, ctx.out_dir / "work", self.config.geometric, intrinsics_prior=priors,
-                                  known_centres=centres)
+        where = ctx.raw_inputs["rig.json"]  # errors name the session's rig spec, not a scratch folder
+        try:
+            result = calibrate_images(paths, ctx.out_dir / "work", self.config.geometric, intrinsics_prior=priors,
+                                      known_centres=centres)
+        except RuntimeError as exc:
+            raise InputError(where, f"geometric calibration of session {ctx.scope_id} failed: {exc}") from exc
         if len(result.cameras) < max(3, self.config.min_registered_fraction * len(rig_cams)):
-            raise InputError(ctx.out_dir, f"calibration registered only {len(result.cameras)} of {len(rig_cams)} "
+            raise InputError(where, f"calibration of session {ctx.scope_id} registered only {len(result.cameras)} of {len(rig_cams)} "
                                           f"cameras (unregistered: {', '.join(sorted(Path(n).stem for n in result.unregistered))})")
         if not result.aligned:
-            raise InputError(ctx.out_dir, "calibration could not be aligned to the rig's nominal camera centres: "
+            raise InputError(where, "calibration could not be aligned to the rig's nominal camera centres: "
                                           + "; ".join(result.notes[-3:]))
         write_colmap_text(result, ctx.out_dir / "colmap")
         shutil.rmtree(ctx.out_dir / "work", ignore_errors=True)

@@ -19,7 +19,9 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from calibration.colour import apply_colour_matrix
 from stages.cameras import load_cameras, unregistered_cameras
+from stages.lightcolour import colour_matrix
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 
@@ -63,9 +65,9 @@ def transforms_json(cameras: list[dict[str, Any]], image_dir: str = "full_on") -
 
 class DecodeStage(Stage):
     name = "decode"
-    version = "1"
+    version = "2"
     scope = "action"
-    requires = ("cameras",)
+    requires = ("cameras", "colour")
     outputs = ("full_on", "pos", "neg", "clipped", "cameras.json", "transforms.json")
     per_view = True
 
@@ -86,6 +88,7 @@ class DecodeStage(Stage):
         clipped = None
         stats: dict[str, Any] = {}
         shape = None
+        matrix = colour_matrix(ctx.upstream["colour"], view)
         for illum in ILLUMINATIONS:
             path = ctx.raw_inputs[f"{illum}/{view}"]
             frame = decode_raw(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
@@ -94,6 +97,9 @@ class DecodeStage(Stage):
                 raise InputError(path, f"decoded size {frame.rgb.shape[:2]} differs from the other "
                                        f"illuminations' {shape[:2]}")
             shape = frame.rgb.shape
+            if matrix is not None:
+                apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
+                np.maximum(frame.rgb, 0.0, out=frame.rgb)
             write_exr(ctx.out_dir / illum / f"{view}.exr", frame.rgb)
             clipped = frame.clipped if clipped is None else (clipped | frame.clipped)
             stats[f"{illum}_mean"] = float(frame.rgb.mean())
@@ -121,8 +127,9 @@ class PlatesStage(Stage):
     """Clean plates (the empty stage under full_on), decoded once per session for foreground masks."""
 
     name = "plates"
-    version = "1"
+    version = "2"
     scope = "session"
+    requires = ("colour",)
     outputs = ("plates",)
     per_view = True
     config_section = "decode"
@@ -139,5 +146,9 @@ class PlatesStage(Stage):
         cam = next(c for c in ctx.rig["cameras"] if c["camera_id"] == view)
         frame = decode_raw(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
                            expected_size=(int(cam["height"]), int(cam["width"])))
+        matrix = colour_matrix(ctx.upstream["colour"], view)
+        if matrix is not None:
+            apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
+            np.maximum(frame.rgb, 0.0, out=frame.rgb)
         write_exr(ctx.out_dir / "plates" / f"{view}.exr", frame.rgb)
         return {"plate": True, "mean": float(frame.rgb.mean())}

@@ -15,6 +15,7 @@ from pipeline.codecs.image import preview_linear, preview_normals, read_png, wri
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
+from stages.lightcolour import corrected_normals, load_light_model
 from stages.numerics.photometric import PhotometricParams, photometric_maps
 
 
@@ -26,6 +27,8 @@ class PhotometricConfig(Documented):
     """Segment the foreground against the session's clean plate when one exists (else a threshold)."""
     previews: bool = True
     """Write PNG previews (normals, albedo, mask) and a contact sheet per action."""
+    light_iterations: int = 4
+    """Gauss-Newton iterations when inverting the session's fitted LED ratio model."""
 
 
 def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
@@ -41,9 +44,9 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
 
 class PhotometricStage(Stage):
     name = "photometric"
-    version = "1"
+    version = "2"
     scope = "action"
-    requires = ("decode", "plates")
+    requires = ("decode", "plates", "lights")
     outputs = ("normal_alpha", "albedo", "mask", "previews")
     per_view = True
 
@@ -61,6 +64,10 @@ class PhotometricStage(Stage):
         background = read_exr(plate_path) if self.config.use_clean_plate and plate_path.exists() else None
         maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam["white_reference"], np.float32),
                                 background=background, params=self.config.params)
+        model = load_light_model(ctx.upstream["lights"])
+        if model is not None:  # the session's LEDs were calibrated: invert their ratio model
+            defined = np.any(maps.normals != 0, axis=-1)
+            maps.normals[...] = corrected_normals(pos, neg, model, defined, self.config.light_iterations)
         out = ctx.out_dir
         write_exr(out / "normal_alpha" / f"{view}.exr", np.concatenate([maps.normals, maps.alpha[..., None]], -1))
         write_exr(out / "albedo" / f"{view}.exr", maps.albedo)

@@ -8,15 +8,21 @@ from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage
 from stages.cameras import CamerasConfig, CamerasStage
 from stages.decode import DecodeConfig, DecodeStage, PlatesStage
+from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
 from stages.photometric import PhotometricConfig, PhotometricStage
 
-STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, PlatesStage, DecodeStage, PhotometricStage)
+STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
+                                          PhotometricStage)
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
     cameras: CamerasConfig = field(default_factory=CamerasConfig)
     """Where the cameras come from (the rig spec until calibration lands)."""
+    colour: ColourConfig = field(default_factory=ColourConfig)
+    """Per-camera colour matrices from the session's chart frames."""
+    lights: LightsConfig = field(default_factory=LightsConfig)
+    """The LED ratio model from the session's diffuse-sphere frames."""
     decode: DecodeConfig = field(default_factory=DecodeConfig)
     """Raw decoding (also used for the session's clean plates)."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
