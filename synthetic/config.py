@@ -49,6 +49,13 @@ class SimConfig:
     """Electrons at the raw clip level; shot-noise variance of a normalised raw value s is s / full_well_e."""
     read_noise_dn: float = 2.5
     """Standard deviation of the Gaussian read noise in 14-bit digital numbers."""
+    spec_shift_mm: float = 3.0
+    """Standard deviation of the difference between each camera's true centre and the rig spec's
+    nominal one, per axis, millimetres (mounting tolerance; 0 = the rig spec is exact)."""
+    spec_angle_deg: float = 0.2
+    """Standard deviation of the angle between each camera's true and nominal orientation, degrees."""
+    spec_focal_pct: float = 0.5
+    """Standard deviation of the nominal focal length's error, percent."""
     exposure_target: float = 0.5
     """Normalised green raw value of an albedo-1 unoccluded Lambertian under full_on (per-camera
     exposures jitter by +-8% around it)."""
@@ -65,6 +72,7 @@ class SimConfig:
             (0 <= self.subdivisions <= 3, "subdivisions must be in 0..3"),
             (self.full_well_e > 0.0 and self.read_noise_dn >= 0.0, "noise parameters must be positive"),
             (0.0 < self.exposure_target < 0.9, "exposure_target must be in (0, 0.9)"),
+            (min(self.spec_shift_mm, self.spec_angle_deg, self.spec_focal_pct) >= 0.0, "rig spec errors must be >= 0"),
         ]
         for ok, message in checks:
             if not ok:

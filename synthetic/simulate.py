@@ -5,6 +5,8 @@ file is reproducible on its own: the same config gives byte-identical raw files.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import shutil
 import time
@@ -19,7 +21,7 @@ from . import calibration as calib_frames
 from . import files, sensor, shading
 from .calibration import CalibrationConfig
 from .config import SimConfig
-from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds
+from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds, perturb_pose
 from .subject import (MATERIALS, ActionSubject, BaseSubject, load_base_subject, make_action_subject,
                       resolve_mesh)
 from .threads import limit_blas_threads
@@ -30,7 +32,7 @@ TRUTH_FORMAT = "ultrastage-truth/1"
 CAPTURE_ENTRIES = ("capture.json", "sessions", "actions", "ground_truth", "previews")
 
 # purposes of the random streams: default_rng([seed, PURPOSE, ...])
-_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE = range(1, 7)
+_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE, _RIG_SPEC = range(1, 8)
 
 
 @dataclass(frozen=True)
@@ -45,13 +47,23 @@ class Session:
     gains: list[float]
     white_references: list[np.ndarray]
     backgrounds: list[np.ndarray]
+    spec_cameras: list[Camera]
+    """The rig spec's nominal cameras: the true ones off by the mounting tolerances of SimConfig."""
+
+    def cameras_json(self, cameras: list[Camera]) -> list[dict]:
+        return [cam.to_json(ref) for cam, ref in zip(cameras, self.white_references)]
+
+    def truth_cameras_json(self) -> dict:
+        """The true cameras (ground_truth/cameras/<sid>.json): what calibration should recover."""
+        return {"format": "ultrastage-truth-cameras/1", "session_id": self.session_id,
+                "camera_convention": "opencv", "cameras": self.cameras_json(self.cameras)}
 
     def rig_json(self) -> dict:
         return {"format": RIG_FORMAT, "session_id": self.session_id,
                 "stage_frame": "origin at LED-sphere centre, +y up, metres",
                 "camera_convention": "opencv",
                 "raw": {"black_level": sensor.BLACK_LEVEL, "white_level": sensor.WHITE_LEVEL, "cfa": sensor.CFA},
-                "cameras": [cam.to_json(ref) for cam, ref in zip(self.cameras, self.white_references)],
+                "cameras": self.cameras_json(self.spec_cameras),
                 "leds": {"count": self.leds.count, "radius_m": self.leds.radius_m,
                          "directions": np.round(self.leds.directions, 6).tolist()}}
 
@@ -71,7 +83,23 @@ def make_session(config: SimConfig, base: BaseSubject, index: int) -> Session:
         gains.append(gain)
         references.append(gain * sensor.decoded_scale() * white_radiance)
     backgrounds = [shading.background_image(camera, leds.radius_m) for camera in cameras]
-    return Session(f"S{index:03d}", index, cameras, leds, gains, references, backgrounds)
+    return Session(f"S{index:03d}", index, cameras, leds, gains, references, backgrounds,
+                   spec_cameras(cameras, config, np.random.default_rng([config.seed, _RIG_SPEC, index])))
+
+
+def spec_cameras(cameras: list[Camera], config: SimConfig, rng: np.random.Generator) -> list[Camera]:
+    """The rig spec's nominal cameras: each true camera moved by the mounting tolerances of ``config``."""
+    nominal = []
+    for cam in cameras:
+        pose = cam.cam_from_world
+        if config.spec_shift_mm > 0 or config.spec_angle_deg > 0:
+            pose = perturb_pose(pose, rng, angle_deg=config.spec_angle_deg, shift_m=config.spec_shift_mm / 1000.0)
+        K = cam.K.copy()
+        scale = 1.0 + rng.normal(0.0, config.spec_focal_pct / 100.0)
+        K[0, 0] *= scale
+        K[1, 1] *= scale
+        nominal.append(dataclasses.replace(cam, K=K, cam_from_world=pose, focal_mm=cam.focal_mm * scale))
+    return nominal
 
 
 def simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] | None = None,
@@ -113,6 +141,7 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
             calib_frames.write_session_calibration(out, config.seed, config.noise, config.full_well_e,
                                                    config.read_noise_dn, calibration, session, response, centre)
         files.write_json(out / "sessions" / session.session_id / "rig.json", rig)
+        files.write_json(out / "ground_truth" / "cameras" / f"{session.session_id}.json", session.truth_cameras_json())
         if config.background:
             write_clean_plates(out, config, session, response)
         sessions.append(session)
