@@ -256,7 +256,7 @@ def print_overall(summary: EvaluationSummary) -> None:
     print(f"  albedo                : PSNR {o.get('albedo_psnr_db', float('nan')):.2f} dB, SSIM "
           f"{o.get('albedo_ssim', float('nan')):.3f}; mask IoU {o.get('mask_iou', float('nan')):.3f}")
     if "cam_rotation_err_deg" in o:
+        reprojection = f", reprojection {o['reprojection_err_px']:.3f} px" if "reprojection_err_px" in o else ""
         print(f"  cameras               : rotation {o['cam_rotation_err_deg']:.4f} deg, centre {o['cam_center_err_mm']:.2f} mm, "
-              f"focal {o['cam_focal_err_pct']:.3f}%, reprojection {o.get('reprojection_err_px', float('nan')):.3f} px, "
-              f"{o['cameras_registered']:.0f} registered")
+              f"focal {o['cam_focal_err_pct']:.3f}%{reprojection}, {o['cameras_registered']:.0f} cameras")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

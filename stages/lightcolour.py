@@ -47,6 +47,8 @@ class LightsConfig(Documented):
     """Gauss-Newton iterations when inverting the model per pixel."""
     erode_px: int = 2
     """Pixels trimmed from the sphere's silhouette (demosaicing blur, grazing angles)."""
+    min_gain: float = 0.05
+    """Use the fitted model only if it lowers the held-out sphere error by at least this fraction."""
 
 
 def colour_matrix(colour_dir: Path, camera_id: str) -> np.ndarray | None:
@@ -60,6 +62,10 @@ def load_light_model(lights_dir: Path) -> LightModel | None:
     path = Path(lights_dir) / "light_model.json"
     record = json.loads(path.read_text())
     return None if record.get("ideal") else LightModel.from_json(record["model"])
+
+
+def _mean_angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1.0, 1.0))).mean())
 
 
 def corrected_normals(pos: np.ndarray, neg: np.ndarray, model: LightModel, mask: np.ndarray,
@@ -166,12 +172,24 @@ class LightsStage(Stage):
             good = mask & np.all(total > 1e-3, axis=-1)
             ratios.append(((pos - neg) / np.maximum(total, 1e-6))[good])
             truths.append(normals[good])
-        d, n = np.concatenate(ratios), np.concatenate(truths)
-        model = fit_light_model(d, n, degree=self.config.degree)
-        naive = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
-        fixed = correct_normals(d, model, iterations=self.config.iterations)
-        err = lambda a: float(np.degrees(np.arccos(np.clip(np.sum(a * n, -1), -1, 1))).mean())  # noqa: E731
-        stats = {"ideal": False, "sphere_pixels": int(len(d)), "sphere_err_deg_uncorrected": err(naive),
-                 "sphere_err_deg_corrected": err(fixed), "rms_residual": float(model.rms_residual)}
+        # Validate before trusting: fit on the even cameras, test on the odd ones (they see other sides
+        # of the sphere). A model that does not beat the plain ratio there is not used.
+        fit_d, fit_n = np.concatenate(ratios[0::2]), np.concatenate(truths[0::2])
+        test_d, test_n = np.concatenate(ratios[1::2]), np.concatenate(truths[1::2])
+        trial = fit_light_model(fit_d, fit_n, degree=self.config.degree)
+        naive_err = _mean_angle(test_d / np.maximum(np.linalg.norm(test_d, axis=-1, keepdims=True), 1e-9), test_n)
+        fixed_err = _mean_angle(correct_normals(test_d, trial, iterations=self.config.iterations), test_n)
+        accepted = fixed_err < (1.0 - self.config.min_gain) * naive_err
+        stats = {"ideal": not accepted, "sphere_pixels": int(sum(len(r) for r in ratios)),
+                 "heldout_err_deg_uncorrected": naive_err, "heldout_err_deg_corrected": fixed_err,
+                 "accepted": bool(accepted)}
+        if not accepted:
+            ctx.log.warning("session %s: LED model rejected (held-out sphere %.3f -> %.3f deg)", ctx.scope_id,
+                            naive_err, fixed_err)
+            out.write_text(json.dumps({"ideal": True, "model": ideal_light_model(self.config.degree).to_json(),
+                                       "fit": stats}, indent=1))
+            return stats
+        model = fit_light_model(np.concatenate(ratios), np.concatenate(truths), degree=self.config.degree)
+        stats["rms_residual"] = float(model.rms_residual)
         out.write_text(json.dumps({"ideal": False, "model": model.to_json(), "fit": stats}, indent=1))
         return stats
