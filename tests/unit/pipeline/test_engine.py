@@ -149,3 +149,16 @@ def test_relative_paths_work_like_make_dataset(toy_capture, tmp_path, monkeypatc
 
     assert verify_release(tmp_path / "runs" / "release").ok
     assert set(open_release(tmp_path / "runs" / "release").assets.path.str.startswith("actions/").dropna()) >= {True}
+
+
+def test_new_action_in_a_session_reuses_the_session_stages(tmp_path):
+    from tests.unit.pipeline.conftest import make_toy_capture
+
+    capture = make_toy_capture(tmp_path / "capture", actions=("A0000",))
+    _run(capture, tmp_path)
+    grown = make_toy_capture(tmp_path / "capture2", actions=("A0000", "A0001"))
+    (grown / "sessions" / "S000" / "rig.json").write_bytes((capture / "sessions" / "S000" / "rig.json").read_bytes())
+    result, lines = _run(grown, tmp_path)
+    st = _statuses(result)
+    assert st[("calib", "S000")] == "cached"  # calibrated once per session, not per action
+    assert st[("read", "A0001")] == "ran" and st[("read", "A0000")] == "cached"
