@@ -567,24 +567,7 @@ def calibrate_images(image_paths: list[Path], work_dir: Path, config: GeometricC
     timings["extract"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = config.num_threads
-    matching.use_gpu = False
-    matching.guided_matching = config.guided_matching
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = config.seed
-    matcher = config.matcher
-    if matcher == "auto":
-        matcher = "exhaustive" if len(image_paths) <= config.exhaustive_max_images else "sequential"
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(str(database_path), matching_options=matching,
-                                  verification_options=verification, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = config.sequential_overlap
-        pairing.loop_detection = False
-        pycolmap.match_sequential(str(database_path), matching_options=matching, pairing_options=pairing,
-                                  verification_options=verification, device=pycolmap.Device.cpu)
+    _match_database(database_path, config, len(image_paths))
     timings["match"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
