@@ -394,6 +394,3 @@ def execute(plan: Plan, capture: Capture, executor: Any,
                 log.debug("%s failed:\n%s", task.name, result["traceback"])
         if on_done:
             on_done(task, result, done, total)
-    for task in plan.tasks:
-        if task.status == "cached":
-            task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})

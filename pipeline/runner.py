@@ -154,10 +154,9 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
             execute(plan, capture, executor, on_done=progress, on_view=view_progress)
         finally:
             executor.close()
-    else:
-        for task in plan.tasks:
-            if task.status == "cached":
-                task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})
+    for task in plan.tasks:  # cached results carry the stats they were committed with
+        if task.status == "cached":
+            task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})
 
     action_status, action_errors, published = {}, {}, []
     asset_rows: list[dict[str, Any]] = []
