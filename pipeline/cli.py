@@ -300,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.fn(args) or 0)
     except (InputError, ConfigError, ValueError) as exc:
+        if args.verbose:  # a developer wants the traceback, a user the one-line reason
+            raise
         print(f"ultrastage {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
