@@ -16,6 +16,14 @@ byte). With it, every session gets
   0.15 m, albedo 0.8) at the point the cameras look at, per-pixel exact normals, unoccluded (distant
   LEDs), in front of the stage background. Its centre and radius go to rig.json
   ``"calibration_objects": {"sphere": {"centre": [...], "radius_m": ...}}``;
+- ``sessions/<sid>/calibration/cameras/<cam>.dng``: a geometric calibration target under full_on: an
+  upright Lambertian cylinder with flat caps (default radius 0.45 m, height 1.6 m) centred where the
+  subject is, so it fills most of every camera's view, with a high-contrast random speckle albedo
+  (0.1 / 0.8: thresholded two-octave value noise of the 3D surface point, blobs ~16-40 mm, i.e. ~4-10 px
+  at 320 px wide) that SIFT finds and matches across views. Ray-traced analytically per TRUE camera
+  (exact intersections, per-normal LED irradiance), in front of the stage background. It is what the
+  ``cameras`` stage calibrates from (source "colmap"); parameters in rig.json
+  ``"calibration_objects": {"target": ...}``;
 - ``ground_truth/calibration/<sid>.json``: the ``R_k`` and their inverses, chart and sphere parameters.
 """
 from __future__ import annotations
@@ -33,7 +41,7 @@ from .rig import Camera, LedSphere
 CHART_FORMAT = "ultrastage-chart/1"
 CALIBRATION_TRUTH_FORMAT = "ultrastage-calibration-truth/1"
 # purposes of the random streams (synthetic.simulate uses 1..6)
-_COLOUR_RESPONSE, _CALIB_NOISE = 7, 8
+_COLOUR_RESPONSE, _CALIB_NOISE, _TARGET_TEXTURE = 7, 8, 9
 CHART_COLUMNS, CHART_ROWS = 6, 4
 CARD_ALBEDO = 0.05
 
@@ -55,6 +63,18 @@ class CalibrationConfig:
     """Grey Lambertian albedo of the calibration sphere."""
     chart_width_fraction: float = 0.8
     """Width of the chart's patch grid as a fraction of the image width (centred)."""
+    target: bool = True
+    """Write the geometric calibration target frames (sessions/<sid>/calibration/cameras/<cam>.dng): a
+    speckled cylinder at the stage centre for structure-from-motion calibration of the cameras."""
+    target_radius_m: float = 0.45
+    """Radius of the target cylinder, metres (the default subject's bounding cylinder is ~0.52 m)."""
+    target_height_m: float = 1.6
+    """Height of the target cylinder, metres, centred on the point the cameras look at."""
+    speckle_size_m: float = 0.016
+    """Cell size of the finer of the two value-noise octaves of the speckle (the coarser is 2.5x):
+    ~4 px at 320 px wide, where a pixel covers ~4 mm of the target."""
+    speckle_albedo: tuple[float, float] = (0.1, 0.8)
+    """Dark and bright albedo of the speckle."""
 
     def __post_init__(self) -> None:
         if not (0.0 <= self.colour_error < 0.3):
@@ -63,6 +83,10 @@ class CalibrationConfig:
             raise ValueError("CalibrationConfig: sphere radius must be > 0 and albedo in (0, 1]")
         if not (0.2 <= self.chart_width_fraction <= 1.0):
             raise ValueError("CalibrationConfig: chart_width_fraction must be in [0.2, 1]")
+        if not (self.target_radius_m > 0 and self.target_height_m > 0 and self.speckle_size_m > 0):
+            raise ValueError("CalibrationConfig: target radius, height and speckle size must be > 0")
+        if not (0 <= self.speckle_albedo[0] < self.speckle_albedo[1] <= 1):
+            raise ValueError("CalibrationConfig: speckle_albedo must be (dark, bright) with 0 <= dark < bright <= 1")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -144,10 +168,124 @@ def sphere_centre(y_range: tuple[float, float]) -> np.ndarray:
     return np.array([0.0, 0.5 * (y_range[0] + y_range[1]), 0.0])
 
 
+class SpeckleTexture:
+    """High-contrast random speckle albedo of a 3D point: two octaves of value noise (random values on a
+    cubic lattice, trilinearly interpolated; cells `size` and 2.5 `size`), thresholded at 0.5 with a
+    soft edge, mapped to (dark, bright). Keyed by a seed; covers the box `lo`..`hi` (metres)."""
+
+    def __init__(self, seed: int, session_index: int, lo: np.ndarray, hi: np.ndarray, size: float,
+                 albedo: tuple[float, float]):
+        rng = np.random.default_rng([seed, _TARGET_TEXTURE, session_index])
+        self.lo = np.asarray(lo, np.float64) - 2 * size
+        self.octaves = []
+        for cell, weight in ((size, 0.6), (2.5 * size, 0.4)):
+            shape = tuple(int(n) for n in np.ceil((np.asarray(hi) - self.lo) / cell) + 3)
+            self.octaves.append((cell, weight, rng.random(shape, dtype=np.float32)))
+        self.albedo = albedo
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """Albedo (N,) float32 at world points (N, 3)."""
+        value = np.zeros(len(points), np.float32)
+        for cell, weight, table in self.octaves:
+            q = (points - self.lo) / cell
+            i = np.clip(np.floor(q).astype(np.int64), 0, np.array(table.shape) - 2)
+            f = np.clip(q - i, 0.0, 1.0).astype(np.float32)
+            f = f * f * (3 - 2 * f)                       # smooth interpolation (no lattice creases)
+            acc = np.zeros(len(points), np.float32)
+            for dx in (0, 1):
+                wx = f[:, 0] if dx else 1 - f[:, 0]
+                for dy in (0, 1):
+                    wy = f[:, 1] if dy else 1 - f[:, 1]
+                    for dz in (0, 1):
+                        wz = f[:, 2] if dz else 1 - f[:, 2]
+                        acc += wx * wy * wz * table[i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz]
+            value += weight * acc
+        # value noise sums cluster round 0.5: a steep soft threshold gives ~half dark, half bright blobs
+        t = np.clip((value - 0.5) / 0.06 + 0.5, 0.0, 1.0)
+        t = t * t * (3 - 2 * t)
+        dark, bright = self.albedo
+        return (dark + (bright - dark) * t).astype(np.float32)
+
+
+def cylinder_hits(origin: np.ndarray, dirs: np.ndarray, centre: np.ndarray, radius: float,
+                  height: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First intersection of rays origin + s dirs (dirs (N, 3)) with the closed upright cylinder (axis
+    +y through `centre`, caps at centre_y -+ height/2). Returns hit mask (N,), points (N, 3), outward
+    normals (N, 3) (zero where missed)."""
+    o = np.asarray(origin, np.float64) - centre
+    d = dirs.astype(np.float64)
+    half = 0.5 * height
+    n = len(d)
+    best = np.full(n, np.inf)
+    normals = np.zeros((n, 3))
+    # side: (ox + s dx)^2 + (oz + s dz)^2 = r^2, nearest root in front with |y| <= half
+    a = d[:, 0] ** 2 + d[:, 2] ** 2
+    b = 2 * (o[0] * d[:, 0] + o[2] * d[:, 2])
+    c = o[0] ** 2 + o[2] ** 2 - radius ** 2
+    disc = b * b - 4 * a * c
+    ok = (disc >= 0) & (a > 1e-12)
+    s = np.where(ok, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * np.maximum(a, 1e-12)), np.inf)
+    y = o[1] + s * d[:, 1]
+    side = ok & (s > 0) & (np.abs(y) <= half)
+    best[side] = s[side]
+    p = o + s[:, None] * d
+    normals[side] = np.column_stack([p[side, 0], np.zeros(side.sum()), p[side, 2]]) / radius
+    # caps: y = +-half inside the disc
+    for sign in (1.0, -1.0):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sc = (sign * half - o[1]) / d[:, 1]
+        pc = o + np.where(np.isfinite(sc), sc, 0)[:, None] * d
+        cap = np.isfinite(sc) & (sc > 0) & (pc[:, 0] ** 2 + pc[:, 2] ** 2 <= radius ** 2) & (sc < best)
+        best[cap] = sc[cap]
+        normals[cap] = (0.0, sign, 0.0)
+    hit = np.isfinite(best)
+    points = np.asarray(origin, np.float64) + np.where(hit, best, 0)[:, None] * d
+    return hit, points, normals
+
+
+def render_target(camera: Camera, leds: LedSphere, background: np.ndarray, centre: np.ndarray,
+                  calib: CalibrationConfig, texture: SpeckleTexture) -> tuple[np.ndarray, np.ndarray]:
+    """full_on radiance (H, W, 3) float32 of the speckled target cylinder in front of the stage background
+    (Lambertian, unoccluded: convex; irradiance from every LED facing the surface normal), and its mask."""
+    from .shading import pixel_rays
+
+    origin, dirs, _ = pixel_rays(camera)
+    hit, points, normals = cylinder_hits(origin, dirs.reshape(-1, 3), centre, calib.target_radius_m,
+                                         calib.target_height_m)
+    radiance = shading.render_background(camera, leds, background)[..., 0:3].reshape(-1, 3)
+    # Irradiance per normal: side normals (cos phi, 0, sin phi) tabulated over 4096 azimuths (< 0.1 deg
+    # apart; the irradiance is smooth in phi), plus the two cap normals.
+    n_phi = 4096
+    phi = 2 * np.pi * np.arange(n_phi) / n_phi
+    table_normals = np.concatenate([np.column_stack([np.cos(phi), np.zeros(n_phi), np.sin(phi)]),
+                                    [[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]])
+    cos = np.maximum(table_normals @ leds.directions.T.astype(np.float64), 0.0)
+    irradiance = (cos @ leds.irradiance[:, 0:3].astype(np.float64)).astype(np.float32)
+    pixels = np.nonzero(hit)[0]
+    nrm = normals[pixels]
+    index = np.rint(np.arctan2(nrm[:, 2], nrm[:, 0]) * (n_phi / (2 * np.pi))).astype(np.int64) % n_phi
+    index = np.where(nrm[:, 1] > 0.5, n_phi, np.where(nrm[:, 1] < -0.5, n_phi + 1, index))
+    radiance[pixels] = irradiance[index] * (texture(points[pixels]) / np.float32(np.pi))[:, None]
+    return radiance.reshape(camera.height, camera.width, 3).astype(np.float32), hit.reshape(camera.height, camera.width)
+
+
+def target_texture(seed: int, session_index: int, centre: np.ndarray, calib: CalibrationConfig) -> SpeckleTexture:
+    """The speckle of session `session_index`'s target (keyed by seed and session)."""
+    extent = np.array([calib.target_radius_m, 0.5 * calib.target_height_m, calib.target_radius_m])
+    return SpeckleTexture(seed, session_index, centre - extent, centre + extent, calib.speckle_size_m,
+                          calib.speckle_albedo)
+
+
 def calibration_objects(centre: np.ndarray, calib: CalibrationConfig) -> dict:
     """The rig.json entry of the calibration objects."""
-    return {"sphere": {"centre": [round(float(v), 6) for v in centre], "radius_m": calib.sphere_radius_m,
-                       "albedo": calib.sphere_albedo, "frames": "calibration/sphere/{full_on,pos,neg}/<cam>.dng"}}
+    objects = {"sphere": {"centre": [round(float(v), 6) for v in centre], "radius_m": calib.sphere_radius_m,
+                          "albedo": calib.sphere_albedo, "frames": "calibration/sphere/{full_on,pos,neg}/<cam>.dng"}}
+    if calib.target:
+        objects["target"] = {"kind": "speckled upright cylinder with caps", "centre": [round(float(v), 6) for v in centre],
+                             "radius_m": calib.target_radius_m, "height_m": calib.target_height_m,
+                             "speckle_size_m": calib.speckle_size_m, "albedo": list(calib.speckle_albedo),
+                             "frames": "calibration/cameras/<cam>.dng", "illumination": "full_on"}
+    return objects
 
 
 def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: float, read_noise_dn: float,
@@ -160,6 +298,7 @@ def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: fl
     folder = out / "sessions" / session.session_id / "calibration"
     names, reference = reference_chart_srgb()
     chart_cameras = {}
+    texture = target_texture(seed, session.index, centre, calib) if calib.target else None
     for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
         background = session.backgrounds[cam_index]
 
@@ -180,6 +319,9 @@ def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: fl
             for illum_index, illumination in enumerate(("full_on", "pos", "neg")):
                 write(radiance[..., 3 * illum_index:3 * illum_index + 3],
                       folder / "sphere" / illumination / f"{camera.camera_id}.dng", 1 + illum_index)
+        if calib.target:
+            radiance, _ = render_target(camera, session.leds, background, centre, calib, texture)
+            write(radiance, folder / "cameras" / f"{camera.camera_id}.dng", 4)
     if calib.chart:
         files.write_json(folder / "chart.json", {
             "format": CHART_FORMAT, "chart": REFERENCE_CHART, "illumination": "full_on",
