@@ -224,7 +224,8 @@ def cylinder_hits(origin: np.ndarray, dirs: np.ndarray, centre: np.ndarray, radi
     c = o[0] ** 2 + o[2] ** 2 - radius ** 2
     disc = b * b - 4 * a * c
     ok = (disc >= 0) & (a > 1e-12)
-    s = np.where(ok, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * np.maximum(a, 1e-12)), np.inf)
+    # misses get a negative distance (rejected below by s > 0) so no inf * 0 makes NaN on the way
+    s = np.where(ok, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * np.maximum(a, 1e-12)), -1.0)
     y = o[1] + s * d[:, 1]
     side = ok & (s > 0) & (np.abs(y) <= half)
     best[side] = s[side]
