@@ -177,7 +177,7 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
         published.append(action_id)
 
     _write_release_docs(release, config, capture)
-    _write_manifests(release, work, capture, plan, run_id, action_status, action_errors, asset_rows)
+    _write_manifests(release, capture, plan, digests, run_id, action_status, action_errors, asset_rows)
     (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
     (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
     return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
@@ -204,12 +204,11 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
     (release / "DATASHEET.md").write_text("\n".join(lines))
 
 
-def _write_manifests(release: Path, work: Path, capture: Capture, plan: Plan, run_id: str,
+def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,
                      action_status: dict[str, str],
                      action_errors: dict[str, str], asset_rows: list[dict[str, Any]]) -> None:
     from manifests import append_rows, asset_row, write_table
 
-    digests = DigestCache(work / "digests.json")
     action_rows, frame_rows, metric_rows = [], [], []
     for action_id, status in action_status.items():
         info = capture.action(action_id)
