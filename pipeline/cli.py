@@ -30,12 +30,20 @@ def _resolve_config(preset: str, config_file: str | None, scheduler: str | None)
     return config
 
 
-def _progress_printer() -> tuple[Any, Any]:
-    """Callbacks for stage completions (one line each) and camera completions (a live status line on a
-    terminal; in a log, one line per tenth of the cameras)."""
+def _progress_printer() -> tuple[Any, Any, Any]:
+    """Callbacks for stage completions (one line each), camera completions (a live status line on a
+    terminal; in a log, one line per tenth of the cameras) and what long tasks report (one line each)."""
     start = time.perf_counter()
     tty = sys.stdout.isatty()
     state = {"tenth": -1}
+
+    def on_progress(record: dict) -> None:
+        if tty:
+            print("\r" + " " * 100 + "\r", end="")
+        total = max(int(record.get("total", 0)), 1)
+        print(f"  {record.get('stage', '?'):<12} {record.get('scope_id', '?'):<8} {record.get('done', 0)}/{total} "
+              f"({100 * int(record.get('done', 0)) / total:.0f}%) {record.get('message', '')}, "
+              f"{time.perf_counter() - start:.0f}s", flush=True)
 
     def on_view(task: Any, result: dict, done: int, total: int) -> None:
         line = f"  cameras {done}/{total} ({100 * done / total:.0f}%), {time.perf_counter() - start:.0f}s"
@@ -53,7 +61,7 @@ def _progress_printer() -> tuple[Any, Any]:
         print(f"  [{done:>3}/{total}] {time.perf_counter() - start:6.1f}s  {task.stage.name:<12} "
               f"{task.scope_id:<8} {status} ({result.get('seconds', 0.0):.1f}s cpu){extra}", flush=True)
 
-    return on_done, on_view
+    return on_done, on_view, on_progress
 
 
 def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
@@ -68,7 +76,7 @@ def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
     for name in stage_names:
         table.add_column(name, justify="right")
     metric_cols = [("normal_mean_deg", "normal err °"), ("normal_under5_pct", "<5° %"),
-                   ("valid_fraction", "valid"), ("albedo_psnr_db", "albedo dB")]
+                   ("valid_fraction", "valid"), ("albedo_psnr_db", "albedo dB"), ("chamfer_mm", "chamfer mm")]
     if metrics:
         for _, title in metric_cols:
             table.add_column(title, justify="right")
@@ -155,10 +163,10 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         counts = {s: sum(t.status == s for t in plan.tasks) for s in ("run", "cached", "failed", "blocked")}
         print("plan: " + ", ".join(f"{v} {k}" for k, v in counts.items()))
         return 0
-    on_done, on_view = _progress_printer()
+    on_done, on_view, on_progress = _progress_printer()
     result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
                           only=args.only, from_stage=args.from_stage, actions=actions,
-                          progress=on_done, view_progress=on_view)
+                          progress=on_done, view_progress=on_view, stage_progress=on_progress)
     (release / "run.json").write_text(json.dumps({"run_id": result.run_id, "capture": str(Path(args.capture).resolve()),
                                                   "work": str(work.resolve()), "preset": args.preset}, indent=1))
     metrics = None

@@ -23,7 +23,7 @@ from pipeline.capture import Capture
 from pipeline.config import key_fields
 from pipeline.errors import InputError
 from pipeline.hashing import DigestCache, record_key
-from pipeline.stage import Stage, StageContext
+from pipeline.stage import PROGRESS_TOPIC, Stage, StageContext, set_local_progress
 from pipeline.store import ArtifactStore, short
 
 log = logging.getLogger("ultrastage.plan")
@@ -284,12 +284,15 @@ class SyncExecutor:
     def submit(self, fn: Callable[..., Any], *args: Any, key: str, resources: dict | None = None) -> Any:
         return fn(*args)
 
+    def subscribe_progress(self, callback: Callable[[dict[str, Any]], None] | None) -> None:
+        set_local_progress(callback)
+
     def as_completed(self, handles: list[Any]) -> Iterable[tuple[Any, Any]]:
         for handle in handles:
             yield handle, handle
 
     def close(self) -> None:
-        pass
+        set_local_progress(None)
 
 
 class DaskExecutor:
@@ -330,6 +333,10 @@ class DaskExecutor:
         usable = {k: v for k, v in (resources or {}).items() if k in self._resources} or None
         return self.client.submit(fn, *args, key=key, pure=False, resources=usable)
 
+    def subscribe_progress(self, callback: Callable[[dict[str, Any]], None] | None) -> None:
+        if callback is not None:
+            self.client.subscribe_topic(PROGRESS_TOPIC, lambda event: callback(event[1]))
+
     def as_completed(self, handles: list[Any]) -> Iterable[tuple[Any, Any]]:
         from distributed import as_completed
 
@@ -344,12 +351,16 @@ class DaskExecutor:
 
 def execute(plan: Plan, capture: Capture, executor: Any,
             on_done: Callable[[Task, dict[str, Any], int, int], None] | None = None,
-            on_view: Callable[[Task, dict[str, Any], int, int], None] | None = None) -> None:
+            on_view: Callable[[Task, dict[str, Any], int, int], None] | None = None,
+            on_progress: Callable[[dict[str, Any]], None] | None = None) -> None:
     """Run every task the plan marked "run"; fill in each task's status, seconds, stats and error.
 
     ``on_done(task, result, done, total)`` is called as each (stage, scope) completes and
-    ``on_view(task, result, done, total)`` as each camera of a per-view stage does (progress display).
+    ``on_view(task, result, done, total)`` as each camera of a per-view stage does (progress display);
+    ``on_progress(record)`` receives what long tasks report through ``StageContext.progress``.
     """
+    if on_progress is not None and hasattr(executor, "subscribe_progress"):
+        executor.subscribe_progress(on_progress)
     store = plan.store
     handles: dict[tuple[str, str], Any] = {}
     owner: dict[int, Task] = {}

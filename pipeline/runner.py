@@ -126,7 +126,8 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                  execution: ExecutionConfig, only: str | None = None, from_stage: str | None = None,
                  actions: Sequence[str] | None = None, echo: Callable[[str], None] = print,
                  progress: Callable[[Task, dict, int, int], None] | None = None,
-                 view_progress: Callable[[Task, dict, int, int], None] | None = None) -> RunResult:
+                 view_progress: Callable[[Task, dict, int, int], None] | None = None,
+                 stage_progress: Callable[[dict], None] | None = None) -> RunResult:
     """Run the DAG over a capture and publish the release. ``config`` is saved beside the run."""
     start = time.perf_counter()
     capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
@@ -151,7 +152,7 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
         executor_name = executor.name
         echo(f"executing {len(plan.to_run())} stage task(s) on {executor_name}")
         try:
-            execute(plan, capture, executor, on_done=progress, on_view=view_progress)
+            execute(plan, capture, executor, on_done=progress, on_view=view_progress, on_progress=stage_progress)
         finally:
             executor.close()
     for task in plan.tasks:  # cached results carry the stats they were committed with

@@ -13,7 +13,32 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
+
+PROGRESS_TOPIC = "ultrastage-progress"
+"""dask event topic that carries progress records of long stage tasks to the process that runs the DAG."""
+
+_local_progress: Callable[[dict[str, Any]], None] | None = None
+
+
+def set_local_progress(callback: Callable[[dict[str, Any]], None] | None) -> None:
+    """Where progress records of tasks run in this process go (the in-process executor sets it)."""
+    global _local_progress
+    _local_progress = callback
+
+
+def report_progress(record: dict[str, Any]) -> None:
+    """Send a progress record to whoever runs the DAG: a dask event from a worker, else the local callback."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        worker = None
+    if worker is not None:
+        worker.log_event(PROGRESS_TOPIC, record)
+    elif _local_progress is not None:
+        _local_progress(record)
 
 
 @dataclass
@@ -37,6 +62,11 @@ class StageContext:
     @property
     def log(self) -> logging.Logger:
         return logging.getLogger(f"ultrastage.{self.stage}")
+
+    def progress(self, done: int, total: int, message: str = "") -> None:
+        """Report progress of a long task (e.g. training iterations); shown by ``ultrastage run``."""
+        report_progress({"stage": self.stage, "scope_id": self.scope_id, "done": int(done), "total": int(total),
+                         "message": message})
 
 
 class Stage:

@@ -54,6 +54,7 @@ class SessionToy(Stage):
 
     def run(self, ctx: StageContext) -> dict[str, Any]:
         (ctx.out_dir / "calib.txt").write_text("calibrated")
+        ctx.progress(1, 1, "calibrated")
         return {"ok": 1}
 
 

@@ -121,8 +121,18 @@ def test_graph_helpers():
     assert downstream_of(stages, "read") == {"read", "summary"}
 
 
+def test_long_tasks_report_progress_in_process(toy_capture, tmp_path):
+    records: list[dict] = []
+    _run(toy_capture, tmp_path, stage_progress=records.append)
+    assert records == [{"stage": "calib", "scope_id": "S000", "done": 1, "total": 1, "message": "calibrated"}]
+
+
 def test_dask_local_cluster_gives_the_same_release(toy_capture, tmp_path):
-    result, _ = _run(toy_capture, tmp_path, execution=ExecutionConfig(scheduler="local", workers=2))
+    records: list[dict] = []
+    result, _ = _run(toy_capture, tmp_path, execution=ExecutionConfig(scheduler="local", workers=2),
+                     stage_progress=records.append)
+    # the record travels from the worker process as a dask event, before the task's result
+    assert [(r["stage"], r["message"]) for r in records] == [("calib", "calibrated")]
     assert result.executor.startswith("local dask cluster")
     assert result.action_status == {"A0000": "ok", "A0001": "ok"}
     text = (tmp_path / "release" / "actions" / "A0001" / "frames" / "00000.txt").read_text()
