@@ -1,0 +1,86 @@
+"""Rays of a pinhole camera and ray casting of a triangle mesh (open3d / Embree).
+
+Pure numerics: arrays in, arrays out. Cameras follow docs/CONTRACTS.md (OpenCV, ``x_cam = R x_world + t``,
+pixel index ``i`` at continuous coordinate ``u = i``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check_camera(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    K = np.asarray(K, dtype=np.float64)
+    P = np.asarray(cam_from_world, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be (3, 3), got {K.shape}")
+    if P.shape[-2:] != (3, 4) and P.shape != (4, 4):
+        raise ValueError(f"cam_from_world must be (3, 4) or (4, 4), got {P.shape}")
+    if height <= 0 or width <= 0:
+        raise ValueError(f"image size must be positive, got {height}x{width}")
+    return K, P[:3, :4]
+
+
+def camera_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
+                pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World-space rays through pixel centres.
+
+    Args:
+        K: (3, 3) intrinsics. cam_from_world: (3, 4) ``[R | t]``.
+        pixels: optional (N, 2) float pixel coordinates (u, v); default every pixel, row-major.
+
+    Returns:
+        origins (N, 3) float64 (the camera centre), directions (N, 3) float64 unit, and
+        z_per_t (N,) float64: camera depth per unit of ray length (depth_m = t * z_per_t).
+    """
+    K, P = _check_camera(K, cam_from_world, height, width)
+    if pixels is None:
+        v, u = np.mgrid[0:height, 0:width]
+        pixels = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)
+    pixels = np.asarray(pixels, dtype=np.float64)
+    R, t = P[:, :3], P[:, 3]
+    d_cam = np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
+                      np.ones(len(pixels))], axis=-1)
+    norm = np.linalg.norm(d_cam, axis=-1)
+    d_cam /= norm[:, None]
+    directions = d_cam @ R  # R^T d for each row
+    origins = np.broadcast_to(-R.T @ t, directions.shape).copy()
+    return origins, directions, d_cam[:, 2]
+
+
+def render_mesh(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+                height: int, width: int) -> dict[str, np.ndarray]:
+    """Depth, geometric normal and face id of a mesh seen by a pinhole camera.
+
+    Args:
+        vertices: (V, 3) world positions (metres). faces: (F, 3) vertex indices.
+        K, cam_from_world: the camera. height, width: image size in pixels.
+
+    Returns:
+        ``depth_m`` (H, W) float32 camera z (0 where no hit), ``normals_world`` (H, W, 3) float32 unit face
+        normals turned toward the camera (0 where no hit), ``face`` (H, W) int64 (-1 where no hit),
+        ``hit`` (H, W) bool.
+    """
+    import open3d as o3d
+
+    vertices = np.asarray(vertices, dtype=np.float32)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"expected vertices (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
+    if len(faces) == 0:
+        raise ValueError("render_mesh: the mesh has no faces")
+    origins, directions, z_per_t = camera_rays(K, cam_from_world, height, width)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces.astype(np.uint32)))
+    rays = np.concatenate([origins, directions], axis=-1).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    t_hit = ans["t_hit"].numpy()
+    face = ans["primitive_ids"].numpy().astype(np.int64)
+    hit = np.isfinite(t_hit)
+    face[~hit] = -1
+    normals = ans["primitive_normals"].numpy().astype(np.float32)
+    facing = np.sum(normals * directions.astype(np.float32), axis=-1) > 0
+    normals[facing] *= -1.0
+    normals[~hit] = 0.0
+    depth = np.where(hit, np.where(hit, t_hit, 0.0) * z_per_t, 0.0).astype(np.float32)
+    return {"depth_m": depth.reshape(height, width), "normals_world": normals.reshape(height, width, 3),
+            "face": face.reshape(height, width), "hit": hit.reshape(height, width)}

@@ -1,0 +1,61 @@
+"""Pinhole rays and mesh ray casting (stages.numerics.raycast)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.numerics.raycast import camera_rays, render_mesh
+
+
+def _sphere(radius: float = 0.5, n: int = 40):
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=radius, resolution=n)
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+
+
+def _camera(distance: float = 2.0):
+    K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+    # camera on +z looking at the origin: x_cam = R x + t with R flipping y and z
+    R = np.diag([1.0, -1.0, -1.0])
+    t = -R @ np.array([0.0, 0.0, distance])
+    return K, np.concatenate([R, t[:, None]], axis=1)
+
+
+def test_rays_through_principal_point_and_corner():
+    K, P = _camera()
+    origins, dirs, z_per_t = camera_rays(K, P, 48, 64, pixels=np.array([[31.5, 23.5], [131.5, 23.5]]))
+    np.testing.assert_allclose(origins, [[0, 0, 2.0]] * 2)
+    np.testing.assert_allclose(dirs[0], [0, 0, -1], atol=1e-12)  # straight at the origin
+    # 100 px right of the principal point at f = 100: 45 degrees, toward +x (image right = world +x here)
+    np.testing.assert_allclose(dirs[1], [np.sqrt(0.5), 0, -np.sqrt(0.5)], atol=1e-12)
+    np.testing.assert_allclose(z_per_t, [1.0, np.sqrt(0.5)], atol=1e-12)
+    assert camera_rays(K, P, 48, 64)[1].shape == (48 * 64, 3)
+
+
+def test_render_sphere_depth_and_normals():
+    vertices, faces = _sphere(0.5, 60)
+    K, P = _camera(2.0)
+    out = render_mesh(vertices, faces, K, P, 48, 64)
+    assert out["depth_m"].shape == (48, 64) and out["normals_world"].shape == (48, 64, 3)
+    # the centre pixel sees the sphere's nearest point, 1.5 m away, with normal toward the camera
+    centre_depth = out["depth_m"][23:25, 31:33].mean()
+    assert centre_depth == pytest.approx(1.5, abs=2e-3)
+    np.testing.assert_allclose(out["normals_world"][24, 32], [0, 0, 1], atol=0.05)
+    # silhouette: radius on the image = f * r / sqrt(d^2 - r^2)
+    radius_px = 100 * 0.5 / np.sqrt(2.0**2 - 0.5**2)
+    assert out["hit"].sum() == pytest.approx(np.pi * radius_px**2, rel=0.05)
+    assert np.all(out["depth_m"][~out["hit"]] == 0) and np.all(out["face"][~out["hit"]] == -1)
+    assert np.all(np.isfinite(out["depth_m"]))
+    # every hit normal faces the camera
+    _, dirs, _ = camera_rays(K, P, 48, 64)
+    facing = np.sum(out["normals_world"].reshape(-1, 3) * dirs, axis=-1)
+    assert np.all(facing[out["hit"].ravel()] < 0)
+
+
+def test_render_mesh_rejects_bad_input():
+    K, P = _camera()
+    with pytest.raises(ValueError, match="no faces"):
+        render_mesh(np.zeros((3, 3)), np.zeros((0, 3), int), K, P, 4, 4)
+    with pytest.raises(ValueError, match="K must be"):
+        camera_rays(np.eye(2), P, 4, 4)
