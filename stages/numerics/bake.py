@@ -1,0 +1,497 @@
+"""Texture baking: per-camera maps (albedo, world normals, ...) reprojected into a mesh's UV atlas.
+
+Pure functions, arrays in and arrays out. Conventions (docs/CONTRACTS.md): world frame, metres; cameras
+OpenCV (``x_cam = R x_world + t``, pixel ``i`` centred at coordinate ``i``); images ``(H, W, C)`` float32,
+row 0 at the top. UVs follow :mod:`stages.numerics.mesh` (OBJ: v up; texel ``(r, c)`` of a ``T x T``
+texture is centred at ``u = (c + 0.5) / T``, ``v = 1 - (r + 0.5) / T``).
+
+:func:`bake_textures` works per texel of the atlas:
+
+1. :func:`rasterize_atlas` gives each covered texel its 3D point and interpolated normal on the mesh.
+2. Per camera, a depth map of the mesh itself (open3d ``RaycastingScene``, Embree) is rendered. A texel is
+   a candidate in a view when it is in front of the camera, its normal faces the camera
+   (``cos > min_cos``) and, of the four pixels its bilinear lookup reads, those that are valid and whose
+   depth agrees with the texel's (within ``depth_tolerance_m`` plus the depth change a surface at that
+   slant has over one pixel) carry at least half the bilinear weight. Lookups are renormalised over
+   those pixels, so neither an occluder's nor an invalid pixel's value leaks in.
+3. Each candidate gets a score ``cos * support * (f / z)^2``: frontal, fully supported and near (more
+   pixels per square metre of surface) views rank first. The ``max_views`` best are blended with weights
+   ``score - s_next`` (``s_next`` = the best unused view's score, floored at 0.1% of the score), so the
+   blend changes continuously where the chosen set of views changes (no seams between view choices).
+4. Names in ``normalize`` are renormalised to unit vectors; ``confidence`` is how well the texel is seen,
+   ``1 - prod(1 - cos_i * support_i)`` over the views used, times the agreement between them,
+   ``exp(-0.5 * sum_names (rms_name / agreement_scale)^2)`` (rms = weighted spread of the views' values).
+5. Charts are dilated ``dilate_px`` texels into empty texels (mean of filled 8-neighbours, repeated), so
+   bilinear lookups at chart borders do not pull black.
+
+No output holds NaN or Inf.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normals
+
+__all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "sample_texture", "dilate_texture"]
+
+_MIN_TAP_SUPPORT = 0.5  # a view needs valid, depth-consistent pixels under half its bilinear weight
+_TRI_BATCH_TEXELS = 1 << 21  # candidate texels per rasterization batch (memory bound)
+
+
+@dataclass(frozen=True, eq=False)
+class BakeView:
+    """One camera's maps to bake.
+
+    Attributes:
+        images: name -> (H, W, C) float32 map (e.g. ``"albedo"`` linear sRGB, ``"normal"`` world normals);
+            all views carry the same names with the same channel counts.
+        valid: (H, W) bool, where the maps hold data (e.g. ``alpha > 0.5``).
+        K: (3, 3) intrinsics (OpenCV).
+        cam_from_world: (3, 4) ``[R | t]``, ``x_cam = R x_world + t``.
+    """
+
+    images: dict[str, np.ndarray]
+    valid: np.ndarray
+    K: np.ndarray
+    cam_from_world: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class BakeResult:
+    """Output of :func:`bake_textures`, all ``(T, T[, C])``.
+
+    Attributes:
+        textures: name -> (T, T, C) float32; 0 where no view saw the texel and dilation did not reach.
+        view_count: (T, T) uint8, views blended per texel (0 = unseen, including dilated texels).
+        confidence: (T, T) float32 in [0, 1] (0 where unseen).
+        covered: (T, T) bool, texels whose centre lies on a chart.
+        stats: ``coverage`` (covered texels seen by >= 1 view / covered texels), ``mean_view_count``
+            (over covered texels), ``mean_view_count_seen`` (over seen ones), ``covered_texels``,
+            ``dilated_texels``, ``seconds`` and the seconds of each step.
+    """
+
+    textures: dict[str, np.ndarray]
+    view_count: np.ndarray
+    confidence: np.ndarray
+    covered: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------- rasterization
+def _check_atlas(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas) -> None:
+    if atlas.faces.ndim != 2 or atlas.faces.shape != faces.shape:
+        raise ValueError(f"atlas has {atlas.faces.shape} faces, the mesh {faces.shape}: atlas of another mesh?")
+    if atlas.uvs.shape != (len(atlas.vmapping), 2):
+        raise ValueError(f"atlas uvs {atlas.uvs.shape} do not match vmapping ({len(atlas.vmapping)},)")
+    if len(atlas.vmapping) and (atlas.vmapping.min() < 0 or atlas.vmapping.max() >= len(vertices)):
+        raise ValueError("atlas.vmapping indexes vertices the mesh does not have")
+
+
+def rasterize_atlas(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas,
+                    texture_size: int) -> dict[str, np.ndarray]:
+    """Which mesh point each texel centre of a ``T x T`` texture lies on.
+
+    Args:
+        vertices: (V, 3) metres; faces: (F, 3) int, the mesh ``atlas`` was made from.
+        atlas: its :class:`~stages.numerics.mesh.Atlas`.
+        texture_size: ``T``.
+
+    Returns:
+        ``position`` (T, T, 3) float32 world point, ``normal`` (T, T, 3) float32 unit interpolated vertex
+        normal, ``face`` (T, T) int32 face index (-1 empty), ``barycentric`` (T, T, 3) float32,
+        ``covered`` (T, T) bool; 0 where empty. Where charts touch, the last face drawn wins.
+    """
+    v, f = _check_mesh(vertices, faces)
+    _check_atlas(v, f, atlas)
+    size = int(texture_size)
+    if size < 2:
+        raise ValueError(f"texture_size must be >= 2, got {texture_size}")
+    uv = atlas.uvs.astype(np.float64)
+    xy = np.stack([uv[:, 0] * size, (1.0 - uv[:, 1]) * size], axis=1)  # continuous texel coords
+    tri = xy[atlas.faces.astype(np.int64)]  # (F, 3, 2)
+    lo = np.clip(np.ceil(tri.min(axis=1) - 0.5), 0, size - 1).astype(np.int64)  # first texel centre inside
+    hi = np.clip(np.floor(tri.max(axis=1) - 0.5), 0, size - 1).astype(np.int64)
+    ext = hi - lo + 1
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    ok = (ext > 0).all(axis=1) & (np.abs(area2) > 1e-12)
+
+    face_map = np.full(size * size, -1, np.int32)
+    bary_map = np.zeros((size * size, 3), np.float32)
+    span = np.maximum(ext.max(axis=1), 1)
+    bucket = np.where(ok, np.ceil(np.log2(span)).astype(int), -1)
+    eps = 1e-7
+    for level in np.unique(bucket[bucket >= 0]):
+        side = 1 << int(level)
+        ids = np.flatnonzero(bucket == level)
+        offs = np.arange(side)
+        per_batch = max(1, _TRI_BATCH_TEXELS // (side * side))
+        for start in range(0, len(ids), per_batch):
+            t = ids[start:start + per_batch]
+            cols = lo[t, 0][:, None, None] + offs[None, None, :]  # (n, 1, s)
+            rows = lo[t, 1][:, None, None] + offs[None, :, None]  # (n, s, 1)
+            px = cols + 0.5
+            py = rows + 0.5
+            ax, ay = a[t, 0][:, None, None], a[t, 1][:, None, None]
+            bx, by = b[t, 0][:, None, None], b[t, 1][:, None, None]
+            cx, cy = c[t, 0][:, None, None], c[t, 1][:, None, None]
+            inv = 1.0 / area2[t][:, None, None]
+            l0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) * inv
+            l1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) * inv
+            l2 = 1.0 - l0 - l1
+            inside = (l0 >= -eps) & (l1 >= -eps) & (l2 >= -eps)
+            inside &= (cols <= hi[t, 0][:, None, None]) & (rows <= hi[t, 1][:, None, None])
+            n_idx, r_idx, c_idx = np.nonzero(inside)
+            flat = rows[n_idx, r_idx, 0] * size + cols[n_idx, 0, c_idx]
+            face_map[flat] = t[n_idx]
+            bary_map[flat] = np.stack([l0[inside], l1[inside], l2[inside]], axis=1)
+
+    covered = face_map >= 0
+    idx = np.flatnonzero(covered)
+    fid = face_map[idx].astype(np.int64)
+    bary = np.clip(bary_map[idx].astype(np.float64), 0.0, 1.0)
+    bary /= bary.sum(axis=1, keepdims=True)
+    tri_vertices = atlas.vmapping[atlas.faces[fid].astype(np.int64)]  # (n, 3) input vertex ids
+    position = np.einsum("nk,nkd->nd", bary, v[tri_vertices].astype(np.float64))
+    vn = vertex_normals(v, f)
+    normal = np.einsum("nk,nkd->nd", bary, vn[tri_vertices].astype(np.float64))
+    norm = np.linalg.norm(normal, axis=1, keepdims=True)
+    fallback = face_normals(v, f)[0][fid]  # where vertex normals cancel (folds), the face's own
+    normal = np.where(norm > 1e-8, normal / np.maximum(norm, 1e-12), fallback)
+
+    out_position = np.zeros((size * size, 3), np.float32)
+    out_normal = np.zeros((size * size, 3), np.float32)
+    out_position[idx] = position
+    out_normal[idx] = normal
+    bary_out = np.zeros((size * size, 3), np.float32)
+    bary_out[idx] = bary
+    return {"position": out_position.reshape(size, size, 3), "normal": out_normal.reshape(size, size, 3),
+            "face": face_map.reshape(size, size), "barycentric": bary_out.reshape(size, size, 3),
+            "covered": covered.reshape(size, size)}
+
+
+# ---------------------------------------------------------------------------------------- sampling
+def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a texture at OBJ-convention UVs (v up), clamping at the edges.
+
+    Args:
+        texture: (H, W) or (H, W, C).
+        uv: (..., 2) in [0, 1] (outside is clamped to the edge texels).
+
+    Returns:
+        (...,) or (..., C) float32.
+    """
+    tex = np.asarray(texture)
+    uv = np.asarray(uv, np.float64)
+    if tex.ndim not in (2, 3):
+        raise ValueError(f"texture must be (H, W) or (H, W, C), got shape {tex.shape}")
+    if uv.shape[-1:] != (2,):
+        raise ValueError(f"uv must be (..., 2), got shape {uv.shape}")
+    h, w = tex.shape[:2]
+    x = np.clip(uv[..., 0] * w - 0.5, 0.0, w - 1.0)
+    y = np.clip((1.0 - uv[..., 1]) * h - 0.5, 0.0, h - 1.0)
+    return _bilinear(tex, x, y)
+
+
+def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear image lookup at pixel coordinates already clamped to [0, W-1] x [0, H-1]."""
+    h, w = image.shape[:2]
+    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros(x.shape, np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros(y.shape, np.int64)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    if image.ndim == 3:
+        fx, fy = fx[..., None], fy[..., None]
+    img = image.astype(np.float32, copy=False)
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------- dilation
+def dilate_texture(textures: dict[str, np.ndarray], filled: np.ndarray,
+                   iterations: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Grow filled regions into empty texels: each pass sets every empty texel that has filled
+    8-neighbours to their mean, ``iterations`` times.
+
+    Args:
+        textures: name -> (T, T[, C]) arrays (values of empty texels are ignored).
+        filled: (T, T) bool.
+
+    Returns:
+        the dilated textures (float32, 0 where still empty) and the new filled mask.
+    """
+    filled = np.asarray(filled, bool).copy()
+    out = {}
+    for name, tex in textures.items():
+        t = np.asarray(tex, np.float32)
+        out[name] = np.where(filled[..., None] if t.ndim == 3 else filled, t, 0.0).astype(np.float32)
+    for _ in range(int(iterations)):
+        pad = np.pad(filled, 1)
+        count = np.zeros(filled.shape, np.float32)
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                if dy != 1 or dx != 1:
+                    count += pad[dy:dy + filled.shape[0], dx:dx + filled.shape[1]]
+        grow = ~filled & (count > 0)
+        if not grow.any():
+            break
+        for name, t in out.items():
+            t3 = t if t.ndim == 3 else t[..., None]
+            pad_t = np.pad(t3, ((1, 1), (1, 1), (0, 0)))  # empty texels hold 0, so sums count filled only
+            acc = np.zeros_like(t3)
+            for dy in (0, 1, 2):
+                for dx in (0, 1, 2):
+                    if dy != 1 or dx != 1:
+                        acc += pad_t[dy:dy + filled.shape[0], dx:dx + filled.shape[1]]
+            t3[grow] = acc[grow] / count[grow][:, None]
+        filled |= grow
+    return out, filled
+
+
+# -------------------------------------------------------------------------------------------- baking
+def _check_views(views: list[BakeView]) -> dict[str, int]:
+    if not views:
+        raise ValueError("bake_textures needs at least one view")
+    names = None
+    for i, view in enumerate(views):
+        if not isinstance(view, BakeView):
+            raise ValueError(f"views[{i}] is a {type(view).__name__}, expected BakeView")
+        valid = np.asarray(view.valid)
+        if valid.ndim != 2:
+            raise ValueError(f"views[{i}].valid must be (H, W), got shape {valid.shape}")
+        if np.shape(view.K) != (3, 3) or np.shape(view.cam_from_world) != (3, 4):
+            raise ValueError(f"views[{i}]: K must be (3, 3) and cam_from_world (3, 4), got "
+                             f"{np.shape(view.K)} and {np.shape(view.cam_from_world)}")
+        if not view.images:
+            raise ValueError(f"views[{i}] has no images")
+        channels = {}
+        for name, image in view.images.items():
+            if image.ndim != 3 or image.shape[:2] != valid.shape:
+                raise ValueError(f"views[{i}].images[{name!r}] must be (H, W, C) with (H, W) = "
+                                 f"{valid.shape}, got {image.shape}")
+            channels[name] = image.shape[2]
+        if names is None:
+            names = channels
+        elif channels != names:
+            raise ValueError(f"views[{i}] images {channels} differ from views[0]'s {names}")
+    return names
+
+
+def _depth_map(scene, view: BakeView) -> np.ndarray:
+    """(H, W) camera-z depth of the first mesh hit through each pixel centre (inf where none)."""
+    import open3d as o3d
+
+    h, w = view.valid.shape
+    k = np.asarray(view.K, np.float64)
+    rot = np.asarray(view.cam_from_world, np.float64)[:, :3]
+    centre = -rot.T @ np.asarray(view.cam_from_world, np.float64)[:, 3]
+    cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pix = np.stack([cols, rows, np.ones_like(cols)], axis=-1).reshape(-1, 3)
+    # K^-1 [u, v, 1] has camera z = 1, so the hit parameter along it is the camera-z depth.
+    dirs = (pix @ np.linalg.inv(k).T) @ rot
+    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    return hit["t_hit"].numpy().reshape(h, w).astype(np.float32)
+
+
+def _view_lookup(view: BakeView, depth: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                 min_cos: float, depth_tolerance_m: float):
+    """Project texel points into one view; return (candidate index, score, cos*support, taps, weights).
+
+    taps: (n, 4) flat pixel indices; weights: (n, 4) bilinear weights over the valid, depth-consistent
+    taps, renormalised to sum 1.
+    """
+    h, w = depth.shape
+    cam = np.asarray(view.cam_from_world, np.float64)
+    rot, trans = cam[:, :3], cam[:, 3]
+    k = np.asarray(view.K, np.float64)
+    centre = -rot.T @ trans
+    x_cam = points @ rot.T + trans
+    z = x_cam[:, 2]
+    to_cam = centre - points
+    dist = np.linalg.norm(to_cam, axis=1)
+    cos = np.einsum("nd,nd->n", normals, to_cam) / np.maximum(dist, 1e-12)
+    front = (z > 1e-6) & (cos > min_cos)
+    cand = np.flatnonzero(front)
+    x_cam, z, cos = x_cam[cand], z[cand], cos[cand]
+    pix = x_cam @ k.T
+    u = pix[:, 0] / z
+    v = pix[:, 1] / z
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    cand, z, cos, u, v = cand[inside], z[inside], cos[inside], u[inside], v[inside]
+    x0 = np.minimum(np.floor(u).astype(np.int64), max(w - 2, 0))
+    y0 = np.minimum(np.floor(v).astype(np.int64), max(h - 2, 0))
+    fx, fy = u - x0, v - y0
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    taps = np.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], axis=1)
+    weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    focal = float(np.sqrt(abs(k[0, 0] * k[1, 1])))
+    tan = np.sqrt(np.maximum(1.0 - cos ** 2, 0.0)) / cos
+    tolerance = depth_tolerance_m + (z / focal) * tan  # a slanted surface's depth change over a pixel
+    tap_depth = depth.reshape(-1)[taps]
+    ok = np.abs(tap_depth - z[:, None]) <= tolerance[:, None]  # inf (no hit) fails
+    ok &= np.asarray(view.valid, bool).reshape(-1)[taps]
+    weights = weights * ok
+    support = weights.sum(axis=1)
+    keep = support >= _MIN_TAP_SUPPORT
+    taps, weights = taps[keep], weights[keep] / support[keep, None]
+    cand, z, cos, support = cand[keep], z[keep], cos[keep], support[keep]
+    score = cos * support * (focal / z) ** 2
+    return cand, score, cos * support, taps, weights
+
+
+def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: list[BakeView],
+                  texture_size: int, max_views: int = 3, depth_tolerance_m: float = 0.01,
+                  min_cos: float = 0.2, normalize: tuple[str, ...] = ("normal",), dilate_px: int = 4,
+                  agreement_scale: float = 0.1) -> BakeResult:
+    """Bake per-camera maps into ``T x T`` textures of the atlas (see the module docstring for the method).
+
+    Args:
+        vertices: (V, 3) metres; faces: (F, 3) int; atlas: the mesh's :class:`~stages.numerics.mesh.Atlas`.
+        views: cameras with their maps (:class:`BakeView`), all with the same image names.
+        texture_size: ``T``.
+        max_views: views blended per texel (the best by score).
+        depth_tolerance_m: a texel is visible where the mesh's depth map agrees with its depth within
+            this (plus the slant allowance).
+        min_cos: least cosine between the texel's normal and the direction to the camera.
+        normalize: image names renormalised to unit vectors after blending and dilation (normals).
+        dilate_px: texels the charts grow into empty space.
+        agreement_scale: spread between views (in the maps' units) at which confidence falls to
+            ``exp(-0.5)`` of the seen-term.
+
+    Returns:
+        :class:`BakeResult`.
+    """
+    import open3d as o3d
+
+    t_start = time.perf_counter()
+    v, f = _check_mesh(vertices, faces)
+    channels = _check_views(views)
+    if int(max_views) < 1:
+        raise ValueError(f"max_views must be >= 1, got {max_views}")
+    if not -1.0 <= min_cos < 1.0:
+        raise ValueError(f"min_cos must be in [-1, 1), got {min_cos}")
+    if depth_tolerance_m <= 0 or agreement_scale <= 0:
+        raise ValueError("depth_tolerance_m and agreement_scale must be > 0")
+    unknown = [n for n in normalize if n not in channels]
+    if unknown:
+        raise ValueError(f"normalize names {unknown} are not among the images {sorted(channels)}")
+    min_cos = max(float(min_cos), 1e-3)  # the slant allowance needs cos > 0
+    timings = {}
+
+    t0 = time.perf_counter()
+    raster = rasterize_atlas(v, f, atlas, texture_size)
+    size = int(texture_size)
+    covered_flat = raster["covered"].reshape(-1)
+    texel = np.flatnonzero(covered_flat)
+    points = raster["position"].reshape(-1, 3)[texel].astype(np.float64)
+    normals = raster["normal"].reshape(-1, 3)[texel].astype(np.float64)
+    n_texels = len(texel)
+    timings["rasterize_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(v, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(f, np.uint32)))
+    depths = [_depth_map(scene, view) for view in views]
+    timings["depth_maps_s"] = time.perf_counter() - t0
+
+    # Pass 1: every view's score per texel (0 = not a candidate).
+    t0 = time.perf_counter()
+    scores = np.zeros((len(views), n_texels), np.float32)
+    for i, view in enumerate(views):
+        cand, score, _, _, _ = _view_lookup(view, depths[i], points, normals, min_cos, depth_tolerance_m)
+        scores[i, cand] = score
+    k = min(int(max_views), len(views))
+    order = np.argsort(-scores, axis=0, kind="stable")  # best first; ties keep view order
+    chosen = np.zeros(scores.shape, bool)
+    np.put_along_axis(chosen, order[:k], True, axis=0)
+    chosen &= scores > 0
+    next_best = (np.take_along_axis(scores, order[k:k + 1], axis=0)[0] if len(views) > k
+                 else np.zeros(n_texels, np.float32))
+    del order
+    timings["select_s"] = time.perf_counter() - t0
+
+    # Pass 2: blend the chosen views.
+    t0 = time.perf_counter()
+    names = list(channels)
+    total_c = sum(channels.values())
+    acc = np.zeros((n_texels, total_c), np.float64)
+    acc2 = np.zeros((n_texels, total_c), np.float64)
+    wsum = np.zeros(n_texels, np.float64)
+    log_unseen = np.zeros(n_texels, np.float64)
+    count = np.zeros(n_texels, np.int32)
+    for i, view in enumerate(views):
+        sel = np.flatnonzero(chosen[i])
+        if not len(sel):
+            continue
+        cand, score, seen, taps, weights = _view_lookup(view, depths[i], points[sel], normals[sel],
+                                                        min_cos, depth_tolerance_m)
+        idx = sel[cand]
+        blend_w = np.maximum(score - next_best[idx], 1e-3 * score)
+        values = []
+        for name in names:
+            image = np.asarray(view.images[name], np.float32).reshape(-1, channels[name])
+            sample = np.einsum("nk,nkc->nc", weights, image[taps].astype(np.float64))
+            if name in normalize:
+                norm = np.linalg.norm(sample, axis=1, keepdims=True)
+                sample = np.divide(sample, norm, out=np.zeros_like(sample), where=norm > 1e-8)
+            values.append(sample)
+        values = np.concatenate(values, axis=1)
+        finite = np.all(np.isfinite(values), axis=1)  # a non-finite map value counts as invalid
+        idx, blend_w, values, seen = idx[finite], blend_w[finite], values[finite], seen[finite]
+        acc[idx] += blend_w[:, None] * values
+        acc2[idx] += blend_w[:, None] * values ** 2
+        wsum[idx] += blend_w
+        log_unseen[idx] += np.log(np.clip(1.0 - seen, 1e-12, 1.0))
+        count[idx] += 1
+    seen_mask = (count > 0) & (wsum > 0)
+    mean = np.divide(acc, wsum[:, None], out=np.zeros_like(acc), where=seen_mask[:, None])
+    var = np.clip(np.divide(acc2, wsum[:, None], out=np.zeros_like(acc2), where=seen_mask[:, None]) - mean ** 2,
+                  0.0, None)
+    spread = 0.0
+    start = 0
+    for name in names:
+        c = channels[name]
+        spread = spread + var[:, start:start + c].mean(axis=1) / agreement_scale ** 2
+        start += c
+    confidence = np.where(seen_mask, (1.0 - np.exp(log_unseen)) * np.exp(-0.5 * spread), 0.0)
+    timings["blend_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    textures = {}
+    start = 0
+    for name in names:
+        c = channels[name]
+        tex = np.zeros((size * size, c), np.float32)
+        tex[texel[seen_mask]] = mean[seen_mask, start:start + c]
+        textures[name] = tex.reshape(size, size, c)
+        start += c
+    filled = np.zeros(size * size, bool)
+    filled[texel[seen_mask]] = True
+    textures, grown = dilate_texture(textures, filled.reshape(size, size), dilate_px)
+    for name in normalize:
+        tex = textures[name]
+        norm = np.linalg.norm(tex, axis=2, keepdims=True)
+        textures[name] = np.divide(tex, norm, out=np.zeros_like(tex), where=norm > 1e-6).astype(np.float32)
+    for name in names:  # belt and braces: nothing non-finite leaves
+        textures[name] = np.nan_to_num(textures[name], nan=0.0, posinf=0.0, neginf=0.0)
+    timings["dilate_s"] = time.perf_counter() - t0
+
+    view_count = np.zeros(size * size, np.uint8)
+    view_count[texel] = np.where(seen_mask, np.minimum(count, 255), 0).astype(np.uint8)
+    conf = np.zeros(size * size, np.float32)
+    conf[texel] = np.clip(np.nan_to_num(confidence), 0.0, 1.0)
+    n_seen = int(seen_mask.sum())
+    stats = {"covered_texels": int(n_texels), "seen_texels": n_seen,
+             "coverage": n_seen / n_texels if n_texels else 0.0,
+             "mean_view_count": float(count[seen_mask].sum() / n_texels) if n_texels else 0.0,
+             "mean_view_count_seen": float(count[seen_mask].mean()) if n_seen else 0.0,
+             "dilated_texels": int(grown.sum() - filled.sum()), "views": len(views), **timings,
+             "seconds": time.perf_counter() - t_start}
+    return BakeResult(textures=textures, view_count=view_count.reshape(size, size),
+                      confidence=conf.reshape(size, size), covered=raster["covered"], stats=stats)
