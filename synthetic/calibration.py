@@ -41,7 +41,7 @@ from .rig import Camera, LedSphere
 CHART_FORMAT = "ultrastage-chart/1"
 CALIBRATION_TRUTH_FORMAT = "ultrastage-calibration-truth/1"
 # purposes of the random streams (synthetic.simulate uses 1..6)
-_COLOUR_RESPONSE, _CALIB_NOISE, _TARGET_TEXTURE = 7, 8, 9
+_COLOUR_RESPONSE, _CALIB_NOISE, _TARGET_TEXTURE, _MARKER_LAYOUT, _MARKER_SURVEY = 7, 8, 9, 10, 11
 CHART_COLUMNS, CHART_ROWS = 6, 4
 CARD_ALBEDO = 0.05
 
@@ -75,6 +75,31 @@ class CalibrationConfig:
     ~4 px at 320 px wide, where a pixel covers ~4 mm of the target."""
     speckle_albedo: tuple[float, float] = (0.1, 0.8)
     """Dark and bright albedo of the speckle."""
+    markers: bool = True
+    """Write the marker-frame calibration frames (sessions/<sid>/calibration/markers/<cam>.dng): white balls
+    of known (surveyed) positions on a rigid frame filling the capture volume (the frame's rods are thin
+    and dark and not rendered). The ``cameras`` stage calibrates from them (source "markers")."""
+    marker_count: int = 300
+    """Number of balls on the marker frame."""
+    marker_radius_m: float = 0.012
+    """Radius of each ball, metres (~1.7-6 px at 320 px wide, from 4.6 m to 0.76 m away)."""
+    marker_volume_radius_m: float = 1.3
+    """The balls fill a ball of this radius around the point the cameras look at: they span the depth of
+    every view (0.76 m to 4.6 m away), which pins each camera's distance and focal length apart, and stay
+    > 0.7 m from every camera (the nearest cameras are ~2 m from that point)."""
+    marker_min_separation_m: float = 0.1
+    """Smallest distance between two balls' centres."""
+    marker_albedo: float = 0.9
+    """Grey Lambertian albedo of the balls."""
+    marker_survey_error_mm: float = 0.1
+    """Per-axis standard deviation of the error of the surveyed ball positions published in rig.json
+    (the balls are rendered at the true positions, ground_truth/calibration/<sid>.json)."""
+    marker_seed: int = 0
+    """Which frame: the layout is a property of the physical frame (the same in every session and for
+    every simulator seed), not of a session."""
+    marker_supersample: int = 4
+    """Sub-samples per pixel side when rendering the balls (anti-aliased edges: the blob centroids the
+    calibration measures are unbiased to ~0.01 px)."""
 
     def __post_init__(self) -> None:
         if not (0.0 <= self.colour_error < 0.3):
@@ -87,6 +112,11 @@ class CalibrationConfig:
             raise ValueError("CalibrationConfig: target radius, height and speckle size must be > 0")
         if not (0 <= self.speckle_albedo[0] < self.speckle_albedo[1] <= 1):
             raise ValueError("CalibrationConfig: speckle_albedo must be (dark, bright) with 0 <= dark < bright <= 1")
+        if not (self.marker_count >= 4 and self.marker_radius_m > 0 and self.marker_volume_radius_m > 0
+                and self.marker_min_separation_m > 2 * self.marker_radius_m and 0 < self.marker_albedo <= 1
+                and self.marker_survey_error_mm >= 0 and self.marker_supersample >= 1):
+            raise ValueError("CalibrationConfig: marker_count >= 4, radii > 0, marker_min_separation_m > 2 x "
+                             "marker_radius_m, marker_albedo in (0, 1], survey error >= 0, supersample >= 1")
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -277,6 +307,113 @@ def target_texture(seed: int, session_index: int, centre: np.ndarray, calib: Cal
                           calib.speckle_albedo)
 
 
+def marker_layout(calib: CalibrationConfig, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ball centres of the marker frame: (true (M, 3), surveyed (M, 3)) metres, stage frame.
+
+    True positions: uniform in the ball of radius ``marker_volume_radius_m`` round `centre`, at least
+    ``marker_min_separation_m`` apart (rejection sampling keyed by ``marker_seed``: a property of the
+    physical frame). Surveyed = true + N(0, ``marker_survey_error_mm``) per axis (what rig.json publishes).
+    """
+    rng = np.random.default_rng([calib.marker_seed, _MARKER_LAYOUT])
+    radius, gap = calib.marker_volume_radius_m, calib.marker_min_separation_m
+    accepted = np.zeros((0, 3))
+    for _ in range(200):
+        candidates = rng.uniform(-radius, radius, size=(4 * calib.marker_count, 3))
+        candidates = candidates[np.einsum("ij,ij->i", candidates, candidates) <= radius * radius]
+        for point in candidates:
+            if len(accepted) == calib.marker_count:
+                break
+            if len(accepted) == 0 or np.min(np.linalg.norm(accepted - point, axis=1)) >= gap:
+                accepted = np.vstack([accepted, point])
+        if len(accepted) == calib.marker_count:
+            break
+    else:
+        raise ValueError(f"CalibrationConfig: {calib.marker_count} balls {gap} m apart do not fit in a ball of "
+                         f"radius {radius} m")
+    true = accepted + np.asarray(centre, np.float64)
+    survey = np.random.default_rng([calib.marker_seed, _MARKER_SURVEY]).normal(
+        0.0, calib.marker_survey_error_mm / 1000.0, size=true.shape)
+    return true, true + survey
+
+
+def irradiance_quadratic(leds: LedSphere, n_normals: int = 2048) -> np.ndarray:
+    """Full_on irradiance of an unoccluded surface as a quadratic form in its normal: (3, 10) coefficients
+    of [1, x, y, z, xy, yz, xz, x^2, y^2, z^2] per RGB channel, least-squares fitted on `n_normals` normals
+    (degree-2 spherical harmonics, which hold ~99% of a cosine-lobe irradiance)."""
+    from .geometry import fibonacci_sphere
+
+    normals = fibonacci_sphere(n_normals)
+    exact = np.maximum(normals @ leds.directions.T.astype(np.float64), 0.0) @ leds.irradiance[:, 0:3].astype(np.float64)
+    coefficients, *_ = np.linalg.lstsq(_quadratic_basis(normals), exact, rcond=None)
+    return coefficients.T
+
+
+def _quadratic_basis(n: np.ndarray) -> np.ndarray:
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    return np.column_stack([np.ones_like(x), x, y, z, x * y, y * z, x * z, x * x, y * y, z * z])
+
+
+def render_markers(camera: Camera, leds: LedSphere, background: np.ndarray, positions: np.ndarray, radius: float,
+                   albedo: float, supersample: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """full_on radiance (H, W, 3) float32 of the marker balls (Lambertian, centres `positions` (M, 3)) in front
+    of the stage background, and each pixel's ball coverage (H, W) float32 in [0, 1].
+
+    Ray-traced exactly on a `supersample` x `supersample` grid of sub-pixel rays (pixel centres at integer
+    coordinates) in a window round each ball, nearest hit wins (z-buffer at sub-pixel resolution); shading
+    from :func:`irradiance_quadratic`; no shadows between balls (they are small and far apart)."""
+    H, W, S = camera.height, camera.width, int(supersample)
+    K, R, t = camera.K, camera.cam_from_world[:, :3], camera.cam_from_world[:, 3]
+    origin = camera.centre_world
+    local = positions @ R.T + t
+    z = local[:, 2]
+    keep = z > radius + 0.05
+    u0 = K[0, 0] * local[:, 0] / np.where(keep, z, 1.0) + K[0, 2]
+    v0 = K[1, 1] * local[:, 1] / np.where(keep, z, 1.0) + K[1, 2]
+    # window half-size: apparent radius (off-axis balls image as slightly elongated ellipses) + 2 px
+    apparent = max(K[0, 0], K[1, 1]) * radius / np.sqrt(np.maximum(z * z - radius * radius, 1e-12))
+    half = np.ceil(1.4 * apparent + 2.0).astype(np.int64)
+    keep &= (u0 + half >= 0) & (u0 - half <= W - 1) & (v0 + half >= 0) & (v0 - half <= H - 1)
+    sub_index, sub_depth, sub_marker = [], [], []
+    for h in np.unique(half[keep]):
+        ids = np.nonzero(keep & (half == h))[0]
+        side = (2 * h + 1) * S
+        grid = (np.arange(side) + 0.5) / S - 0.5 - h                # sub-pixel offsets from the window centre
+        ui = np.rint(u0[ids])[:, None, None] + grid[None, None, :]   # (m, 1, side)
+        vi = np.rint(v0[ids])[:, None, None] + grid[None, :, None]   # (m, side, 1)
+        ui, vi = np.broadcast_arrays(ui, vi)
+        dirs = np.stack([(ui - K[0, 2]) / K[0, 0], (vi - K[1, 2]) / K[1, 1], np.ones_like(ui)], axis=-1) @ R
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        oc = (origin - positions[ids])[:, None, None, :]
+        b = np.einsum("mijk,mijk->mij", dirs, np.broadcast_to(oc, dirs.shape))
+        disc = b * b - (np.einsum("mijk,mijk->mij", oc, oc) - radius * radius)
+        depth = -b - np.sqrt(np.maximum(disc, 0.0))
+        su = np.floor((ui + 0.5) * S).astype(np.int64)              # sub-pixel column index
+        sv = np.floor((vi + 0.5) * S).astype(np.int64)
+        hit = (disc > 0) & (depth > 0) & (su >= 0) & (su < W * S) & (sv >= 0) & (sv < H * S)
+        sub_index.append(sv[hit] * (W * S) + su[hit])
+        sub_depth.append(depth[hit])
+        sub_marker.append(np.broadcast_to(ids[:, None, None], hit.shape)[hit])
+    radiance = shading.render_background(camera, leds, background)[..., 0:3].reshape(-1, 3).astype(np.float64)
+    coverage = np.zeros(H * W)
+    if sub_index:
+        index, depth, marker = (np.concatenate(a) for a in (sub_index, sub_depth, sub_marker))
+        order = np.lexsort((depth, index))                          # nearest hit first per sub-pixel
+        index, depth, marker = index[order], depth[order], marker[order]
+        first = np.r_[True, index[1:] != index[:-1]]
+        index, depth, marker = index[first], depth[first], marker[first]
+        su, sv = index % (W * S), index // (W * S)
+        d_cam = np.stack([((su + 0.5) / S - 0.5 - K[0, 2]) / K[0, 0], ((sv + 0.5) / S - 0.5 - K[1, 2]) / K[1, 1],
+                          np.ones(len(su))], axis=-1) @ R
+        d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+        normals = (origin + depth[:, None] * d_cam - positions[marker]) / radius
+        shade = _quadratic_basis(normals) @ irradiance_quadratic(leds).T * (albedo / np.pi)   # (n, 3)
+        pixel = (sv // S) * W + su // S
+        coverage = np.bincount(pixel, minlength=H * W) / float(S * S)
+        colour = np.stack([np.bincount(pixel, weights=shade[:, c], minlength=H * W) for c in range(3)], 1) / (S * S)
+        radiance = radiance * (1.0 - coverage)[:, None] + colour
+    return (radiance.reshape(H, W, 3).astype(np.float32), coverage.reshape(H, W).astype(np.float32))
+
+
 def calibration_objects(centre: np.ndarray, calib: CalibrationConfig) -> dict:
     """The rig.json entry of the calibration objects."""
     objects = {"sphere": {"centre": [round(float(v), 6) for v in centre], "radius_m": calib.sphere_radius_m,
@@ -286,6 +423,13 @@ def calibration_objects(centre: np.ndarray, calib: CalibrationConfig) -> dict:
                              "radius_m": calib.target_radius_m, "height_m": calib.target_height_m,
                              "speckle_size_m": calib.speckle_size_m, "albedo": list(calib.speckle_albedo),
                              "frames": "calibration/cameras/<cam>.dng", "illumination": "full_on"}
+    if calib.markers:
+        _, surveyed = marker_layout(calib, centre)
+        objects["markers"] = {"kind": "white Lambertian balls on a rigid frame (thin dark rods)",
+                              "radius_m": calib.marker_radius_m, "albedo": calib.marker_albedo,
+                              "survey_error_mm": calib.marker_survey_error_mm,
+                              "frames": "calibration/markers/<cam>.dng", "illumination": "full_on",
+                              "positions": np.round(surveyed, 7).tolist()}
     return objects
 
 
@@ -300,6 +444,7 @@ def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: fl
     names, reference = reference_chart_srgb()
     chart_cameras = {}
     texture = target_texture(seed, session.index, centre, calib) if calib.target else None
+    markers_true = marker_layout(calib, centre)[0] if calib.markers else None
     for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
         background = session.backgrounds[cam_index]
 
@@ -323,6 +468,10 @@ def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: fl
         if calib.target:
             radiance, _ = render_target(camera, session.leds, background, centre, calib, texture)
             write(radiance, folder / "cameras" / f"{camera.camera_id}.dng", 4)
+        if calib.markers:
+            radiance, _ = render_markers(camera, session.leds, background, markers_true, calib.marker_radius_m,
+                                         calib.marker_albedo, calib.marker_supersample)
+            write(radiance, folder / "markers" / f"{camera.camera_id}.dng", 5)
     if calib.chart:
         files.write_json(folder / "chart.json", {
             "format": CHART_FORMAT, "chart": REFERENCE_CHART, "illumination": "full_on",
@@ -341,4 +490,6 @@ def write_session_calibration(out: Path, seed: int, noise: bool, full_well_e: fl
                          for cam, r in zip(session.cameras, responses)},
              "sphere": {"centre": centre.tolist(), "radius_m": calib.sphere_radius_m, "albedo": calib.sphere_albedo},
              "chart": {"card_albedo": CARD_ALBEDO}}
+    if calib.markers:
+        truth["markers"] = {"radius_m": calib.marker_radius_m, "true_positions": markers_true.tolist()}
     files.write_json(out / "ground_truth" / "calibration" / f"{session.session_id}.json", truth)

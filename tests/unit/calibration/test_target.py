@@ -20,7 +20,7 @@ N_CAMERAS = 24
 def capture(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("target") / "capture"
     simulate(out, SimConfig(actions=1, width=256, n_cameras=N_CAMERAS, background=False),
-             calibration=CalibrationConfig(chart=False, sphere=False))
+             calibration=CalibrationConfig(chart=False, sphere=False, markers=False))
     return out
 
 
