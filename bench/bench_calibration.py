@@ -27,6 +27,19 @@ priors, PINHOLE, focal refined, aligned to the NOMINAL rig centres as the ``came
 ``calibrate_rig`` (from the nominal cameras), each against the TRUE cameras: rotation (deg), centre (mm)
 and focal (%) in the stage frame as published, and rotation / centre after an optimal similarity to the
 truth (``*_sim``), registered cameras, reprojection error (px) and time.
+
+    python bench/bench_calibration.py --markers --widths 160,320,640 [--capture DIR]
+
+``--markers`` calibrates from the simulator's marker frame (white balls at surveyed positions filling the
+capture volume, ``sessions/S000/calibration/markers/<cam>.dng``, :mod:`calibration.markers`) as the
+``cameras`` stage does (decode, grey in white units, 1 thread), against the TRUE cameras in the stage
+frame: the rig spec; ``markers`` (the default: surveyed balls define the frame, focal free);
+``markers_rig_frame`` (frame placement unknown: cameras moved rigidly onto the nominal centres);
+``markers_fixed_focal`` (focal kept at the rig spec's); and ``floor_nominal_gauge``: the TRUE cameras
+mapped onto the nominal centres by the best similarity, i.e. what any calibration aligned to the rig
+spec's centres cannot beat. Reprojection errors are over the balls the calibration identified (for the
+rig spec: the same observations projected with the nominal cameras). ``--capture`` uses an existing
+capture (e.g. ``ultrastage simulate --out DIR``) for width 320 instead of rendering one.
 """
 from __future__ import annotations
 
@@ -201,6 +214,91 @@ def target_bench(out: Path, widths: list[int], threads: int) -> None:
     print(f"wrote {out / 'bench_calibration_target.json'}")
 
 
+def markers_capture(cache: Path, width: int) -> Path:
+    """Simulated capture with only the marker-frame calibration frames (one action), rendered once."""
+    from synthetic import SimConfig, simulate
+    from synthetic.calibration import CalibrationConfig
+
+    out = cache / f"markers_w{width}"
+    if not (out / "capture.json").is_file():
+        t0 = time.perf_counter()
+        simulate(out, SimConfig(actions=1, width=width, background=False),
+                 calibration=CalibrationConfig(chart=False, sphere=False, target=False))
+        print(f"simulated {out} in {time.perf_counter() - t0:.1f} s", flush=True)
+    return out
+
+
+def markers_bench(out: Path, widths: list[int], capture_dir: Path | None = None) -> list[dict]:
+    """Rig spec vs marker-frame calibration (three variants) vs the nominal-gauge floor, per width."""
+    from calibration.geometric import transform_cam_from_world, umeyama
+    from calibration.markers import MarkerCalibrationConfig, calibrate_markers, project_points
+    from pipeline.codecs.raw import decode_raw
+    from synthetic.threads import limit_blas_threads
+
+    rows = []
+    for width in widths:
+        cap = capture_dir if (capture_dir is not None and width == 320) else markers_capture(out / "cache", width)
+        rig = json.loads((cap / "sessions" / "S000" / "rig.json").read_text())
+        nominal = {c["camera_id"]: c for c in rig["cameras"]}
+        true = {c["camera_id"]: c for c in json.loads((cap / "ground_truth" / "cameras" / "S000.json").read_text())["cameras"]}
+        spec = rig["calibration_objects"]["markers"]
+        NK = {c: np.asarray(v["K"], float) for c, v in nominal.items()}
+        NP = {c: np.asarray(v["cam_from_world"], float) for c, v in nominal.items()}
+        TK = {c: np.asarray(v["K"], float) for c, v in true.items()}
+        TP = {c: np.asarray(v["cam_from_world"], float) for c, v in true.items()}
+
+        def measure(method: str, P: dict, K: dict, seconds: float, reprojection: float | None, **extra) -> None:
+            stage, sim = pose_errors(P, TP, align=False), pose_errors(P, TP, align=True)
+            focal = [100.0 * abs(K[n][0, 0] / TK[n][0, 0] - 1) for n in P]
+            row = {"method": method, "width": width, "cameras": len(TP), "registered": len(P), "seconds": seconds,
+                   "rotation_deg_mean": stage["rotation_deg_mean"], "rotation_deg_max": stage["rotation_deg_max"],
+                   "centre_mm_mean": stage["centre_error_mm_mean"], "centre_mm_max": stage["centre_error_mm_max"],
+                   "rotation_deg_mean_sim": sim["rotation_deg_mean"], "centre_mm_mean_sim": sim["centre_error_mm_mean"],
+                   "focal_pct_mean": float(np.mean(focal)), "focal_pct_max": float(np.max(focal)),
+                   "reprojection_px": reprojection} | extra
+            rows.append(row)
+            print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}), flush=True)
+
+        with limit_blas_threads(1):
+            t0 = time.perf_counter()
+            images = {}
+            for cam in sorted(nominal):
+                rgb = decode_raw(cap / "sessions" / "S000" / "calibration" / "markers" / f"{cam}.dng").rgb
+                images[cam] = rgb.mean(axis=-1) / float(np.mean(nominal[cam]["white_reference"]))
+            decode_s = time.perf_counter() - t0
+            results = {}
+            for method, config in (("markers", MarkerCalibrationConfig()),
+                                   ("markers_rig_frame", MarkerCalibrationConfig(frame="rig")),
+                                   ("markers_fixed_focal", MarkerCalibrationConfig(refine_focal_length=False))):
+                t0 = time.perf_counter()
+                results[method] = (calibrate_markers(images, NK, NP, np.asarray(spec["positions"], float),
+                                                     float(spec["radius_m"]), config), time.perf_counter() - t0)
+        # the rig spec's reprojection error on the observations the default calibration identified
+        rec = results["markers"][0].reconstruction
+        markers_world = np.asarray(spec["positions"], float)
+        errors = []
+        for image_id in rec.reg_image_ids():
+            image = rec.image(image_id)
+            observed = np.array([p.xy for p in image.points2D]) - 0.5
+            ids = [int(np.argmin(np.linalg.norm(markers_world - rec.point3D(p.point3D_id).xyz, axis=1)))
+                   for p in image.points2D]
+            errors.append(np.linalg.norm(project_points(NK[image.name], NP[image.name], markers_world[ids]) - observed,
+                                         axis=1))
+        measure("rig_spec", NP, NK, 0.0, float(np.mean(np.concatenate(errors))))
+        for method, (res, seconds) in results.items():
+            measure(method, {n: c.cam_from_world for n, c in res.cameras.items()}, {n: c.K for n, c in res.cameras.items()},
+                    decode_s + seconds, res.reprojection_error_px, decode_s=decode_s, balls_seen=res.n_points3d,
+                    notes=res.notes)
+        names = sorted(TP)
+        s, R, t = umeyama(np.array([camera_centre(TP[n]) for n in names]), np.array([camera_centre(NP[n]) for n in names]))
+        measure("floor_nominal_gauge", {n: transform_cam_from_world(TP[n], s, R, t) for n in names}, TK, 0.0, None)
+    report = {"bench": "calibration_markers", "goal": "rotation < 0.05 deg and centre < 1 mm at width 320, all registered",
+              "rows": rows}
+    (out / "bench_calibration_markers.json").write_text(json.dumps(report, indent=1, default=float))
+    print(f"wrote {out / 'bench_calibration_markers.json'}")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "out")
@@ -213,9 +311,16 @@ def main() -> None:
     ap.add_argument("--rig-prior", action="store_true", help="benchmark calibrate_rig (nominal vs refined)")
     ap.add_argument("--target", action="store_true",
                     help="calibrate on the simulated calibration target (nominal vs calibrate_images vs calibrate_rig)")
-    ap.add_argument("--widths", default="320,640", help="simulated widths for --rig-prior and --target")
+    ap.add_argument("--markers", action="store_true",
+                    help="calibrate on the simulated marker frame (rig spec vs calibrate_markers variants)")
+    ap.add_argument("--capture", type=Path, default=None, help="--markers: an existing capture to use at width 320")
+    ap.add_argument("--widths", default="320,640", help="simulated widths for --rig-prior, --target and --markers")
     args = ap.parse_args()
     out = args.out
+    if args.markers:
+        out.mkdir(parents=True, exist_ok=True)
+        markers_bench(out, [int(w) for w in args.widths.split(",")], args.capture)
+        return
     if args.target:
         out.mkdir(parents=True, exist_ok=True)
         target_bench(out, [int(w) for w in args.widths.split(",")], args.threads)

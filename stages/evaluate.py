@@ -215,7 +215,8 @@ def _camera_overall(rel: Any, truth_dir: Path, ok_ids: list[str]) -> dict[str, f
         calib = rel.path(f"actions/{action_id}/calibration.json")
         if calib.exists():
             summary = json.loads(calib.read_text())
-            metrics["reprojection_err_px"] = float(summary["reprojection_error_px"])
+            if "reprojection_error_px" in summary:  # absent when "auto" fell back to the rig spec
+                metrics["reprojection_err_px"] = float(summary["reprojection_error_px"])
         per_session[session_id] = metrics
     if not per_session:
         return {}

@@ -24,8 +24,9 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-def _run(capture: Path, out: Path, config=PRESETS["default"]):
-    return run_pipeline(capture, out / "release", out / "work", build_stages(config), config, SYNC,
+def _run(capture: Path, out: Path, config=PRESETS["default"], through: str = "photometric"):
+    # the calibration stages and what consumes them; the neural stages are tested elsewhere
+    return run_pipeline(capture, out / "release", out / "work", build_stages(config, through=through), config, SYNC,
                         echo=lambda line: None)
 
 
@@ -50,6 +51,11 @@ def test_colour_and_light_calibration_run_once_per_session(capture, tmp_path):
     status = {(t.stage.name, t.scope_id): t.status for t in again.plan.tasks}
     assert status[("colour", "S000")] == "ran" and status[("decode", "A0000")] == "ran"
     assert status[("cameras", "S000")] == "cached"
+    # the default cameras source is "auto": this capture has marker frames, but 96 px images of 12 mm balls
+    # (~0.5 px) cannot be calibrated, so the session keeps the rig spec and says why
+    cameras = _stats(result, "cameras")
+    assert cameras["source"] == "rig" and "registered only" in cameras["fallback_from_markers"]
+    assert json.loads((tmp_path / "release" / "actions" / "A0000" / "calibration.json").read_text())["source"] == "rig"
 
 
 def test_thin_geometric_calibration_fails_the_session_clearly(capture, tmp_path):
@@ -65,3 +71,27 @@ def test_thin_geometric_calibration_fails_the_session_clearly(capture, tmp_path)
         error = result.action_errors["A0000"]
         assert "rig.json" in error and "calibration of session S000" in error
         assert not (tmp_path / "release" / "actions" / "A0000").exists()
+
+
+def test_marker_calibration_is_the_default_and_beats_the_rig_spec(tmp_path):
+    from stages.evaluate import camera_errors, true_cameras
+
+    root = tmp_path / "capture"
+    simulate(root, SimConfig(actions=1, width=160, n_cameras=8, n_leds=128, background=False),
+             calibration=CalibrationConfig(chart=False, sphere=False, target=False))
+    result = _run(root, tmp_path, through="decode")
+    assert result.action_status == {"A0000": "ok"}
+    stats = _stats(result, "cameras")
+    assert stats["source"] == "markers" and stats["missing_views"] == {} and stats["reprojection_error_px"] < 0.2
+    action = tmp_path / "release" / "actions" / "A0000"
+    assert (action / "colmap" / "points3D.txt").read_text().count("\n") > 100      # the balls, with their tracks
+    truth = true_cameras(root / "ground_truth", "S000")
+    calibrated = camera_errors(json.loads((action / "transforms.json").read_text()), truth)
+    rig = json.loads((root / "sessions" / "S000" / "rig.json").read_text())
+    spec = camera_errors({"frames": [{"camera_id": c["camera_id"], "w": c["width"], "fl_x": c["K"][0][0],
+                                      "transform_matrix": np.linalg.inv(np.vstack([c["cam_from_world"], [0, 0, 0, 1]])).tolist()}
+                                     for c in rig["cameras"]]}, truth)
+    assert calibrated["cameras_registered"] == 8
+    for key in ("cam_rotation_err_deg", "cam_center_err_mm", "cam_focal_err_pct"):
+        assert calibrated[key] < 0.5 * spec[key], (key, calibrated[key], spec[key])
+    assert calibrated["cam_rotation_err_deg"] < 0.05 and calibrated["cam_center_err_mm"] < 2.0
