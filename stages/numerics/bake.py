@@ -38,6 +38,17 @@ from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normal
 __all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "sample_texture", "dilate_texture"]
 
 _MIN_TAP_SUPPORT = 0.5  # a view needs valid, depth-consistent pixels under half its bilinear weight
+
+
+def _transform(points: np.ndarray, matrix: np.ndarray, offset=None) -> np.ndarray:
+    """``points @ matrix.T (+ offset)`` for (N, 3) points and a small matrix, as elementwise column sums:
+    a BLAS matmul with an inner size of 3 gains nothing and, with a multi-threaded BLAS on a busy
+    machine, ran 4x slower overall (oversubscription)."""
+    out = np.empty((len(points), matrix.shape[0]), np.float64)
+    for r in range(matrix.shape[0]):
+        col = points[:, 0] * matrix[r, 0] + points[:, 1] * matrix[r, 1] + points[:, 2] * matrix[r, 2]
+        out[:, r] = col if offset is None else col + offset[r]
+    return out
 _TRI_BATCH_TEXELS = 1 << 21  # candidate texels per rasterization batch (memory bound)
 
 
@@ -292,54 +303,51 @@ def _depth_map(scene, view: BakeView) -> np.ndarray:
     cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pix = np.stack([cols, rows, np.ones_like(cols)], axis=-1).reshape(-1, 3)
     # K^-1 [u, v, 1] has camera z = 1, so the hit parameter along it is the camera-z depth.
-    dirs = (pix @ np.linalg.inv(k).T) @ rot
+    dirs = _transform(_transform(pix, np.linalg.inv(k)), rot.T)
     rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=1).astype(np.float32)
     hit = scene.cast_rays(o3d.core.Tensor(rays))
     return hit["t_hit"].numpy().reshape(h, w).astype(np.float32)
 
 
-def _view_lookup(view: BakeView, depth: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                 min_cos: float, depth_tolerance_m: float):
+def _view_lookup(view: BakeView, depth_valid: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                 n_dot_p: np.ndarray, p_sq: np.ndarray, min_cos: float, depth_tolerance_m: float):
     """Project texel points into one view; return (candidate index, score, cos*support, taps, weights).
 
-    taps: (n, 4) flat pixel indices; weights: (n, 4) bilinear weights over the valid, depth-consistent
-    taps, renormalised to sum 1.
+    ``depth_valid`` is the view's mesh depth map with ``inf`` where its maps are invalid; ``n_dot_p``
+    and ``p_sq`` are the texels' ``normal . point`` and ``|point|^2``, so the culling tests cost two
+    matrix-vector products per view. taps: (n, 4) flat pixel indices; weights: (n, 4) bilinear weights
+    over the valid, depth-consistent taps, renormalised to sum 1.
     """
-    h, w = depth.shape
+    h, w = depth_valid.shape
     cam = np.asarray(view.cam_from_world, np.float64)
     rot, trans = cam[:, :3], cam[:, 3]
     k = np.asarray(view.K, np.float64)
     centre = -rot.T @ trans
-    x_cam = points @ rot.T + trans
-    z = x_cam[:, 2]
-    to_cam = centre - points
-    dist = np.linalg.norm(to_cam, axis=1)
-    cos = np.einsum("nd,nd->n", normals, to_cam) / np.maximum(dist, 1e-12)
-    front = (z > 1e-6) & (cos > min_cos)
-    cand = np.flatnonzero(front)
-    x_cam, z, cos = x_cam[cand], z[cand], cos[cand]
-    pix = x_cam @ k.T
-    u = pix[:, 0] / z
-    v = pix[:, 1] / z
+    z = _transform(points, rot[2:3], trans[2:3])[:, 0]
+    dist = np.sqrt(np.maximum(p_sq - 2.0 * _transform(points, centre[None])[:, 0] + centre @ centre, 1e-24))
+    cos = (_transform(normals, centre[None])[:, 0] - n_dot_p) / dist
+    cand = np.flatnonzero((z > 1e-6) & (cos > min_cos))
+    p, z, cos = points[cand], z[cand], cos[cand]
+    pix = _transform(_transform(p, rot, trans), k)
+    u = pix[:, 0] / pix[:, 2]
+    v = pix[:, 1] / pix[:, 2]
     inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
     cand, z, cos, u, v = cand[inside], z[inside], cos[inside], u[inside], v[inside]
-    x0 = np.minimum(np.floor(u).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(v).astype(np.int64), max(h - 2, 0))
-    fx, fy = u - x0, v - y0
+    x0 = np.minimum(u.astype(np.int64), max(w - 2, 0))  # u >= 0: truncation is floor
+    y0 = np.minimum(v.astype(np.int64), max(h - 2, 0))
+    fx, fy = (u - x0).astype(np.float32), (v - y0).astype(np.float32)
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     taps = np.stack([y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1], axis=1)
     weights = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
     focal = float(np.sqrt(abs(k[0, 0] * k[1, 1])))
     tan = np.sqrt(np.maximum(1.0 - cos ** 2, 0.0)) / cos
-    tolerance = depth_tolerance_m + (z / focal) * tan  # a slanted surface's depth change over a pixel
-    tap_depth = depth.reshape(-1)[taps]
-    ok = np.abs(tap_depth - z[:, None]) <= tolerance[:, None]  # inf (no hit) fails
-    ok &= np.asarray(view.valid, bool).reshape(-1)[taps]
-    weights = weights * ok
+    tolerance = (depth_tolerance_m + (z / focal) * tan).astype(np.float32)  # + a slant's depth change over a pixel
+    ok = np.abs(depth_valid.reshape(-1)[taps] - z.astype(np.float32)[:, None]) <= tolerance[:, None]  # inf fails
+    weights *= ok
     support = weights.sum(axis=1)
     keep = support >= _MIN_TAP_SUPPORT
     taps, weights = taps[keep], weights[keep] / support[keep, None]
-    cand, z, cos, support = cand[keep], z[keep], cos[keep], support[keep]
+    cand, z, cos, support = cand[keep], z[keep], cos[keep], support[keep].astype(np.float64)
     score = cos * support * (focal / z) ** 2
     return cand, score, cos * support, taps, weights
 
@@ -358,7 +366,8 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
         depth_tolerance_m: a texel is visible where the mesh's depth map agrees with its depth within
             this (plus the slant allowance).
         min_cos: least cosine between the texel's normal and the direction to the camera.
-        normalize: image names renormalised to unit vectors after blending and dilation (normals).
+        normalize: image names renormalised to unit vectors after blending and dilation (normals);
+            names the views do not carry are ignored.
         dilate_px: texels the charts grow into empty space.
         agreement_scale: spread between views (in the maps' units) at which confidence falls to
             ``exp(-0.5)`` of the seen-term.
@@ -377,9 +386,7 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
         raise ValueError(f"min_cos must be in [-1, 1), got {min_cos}")
     if depth_tolerance_m <= 0 or agreement_scale <= 0:
         raise ValueError("depth_tolerance_m and agreement_scale must be > 0")
-    unknown = [n for n in normalize if n not in channels]
-    if unknown:
-        raise ValueError(f"normalize names {unknown} are not among the images {sorted(channels)}")
+    normalize = tuple(n for n in normalize if n in channels)  # e.g. the default "normal" in an albedo-only bake
     min_cos = max(float(min_cos), 1e-3)  # the slant allowance needs cos > 0
     timings = {}
 
@@ -397,14 +404,19 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(v, np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(f, np.uint32)))
-    depths = [_depth_map(scene, view) for view in views]
+    # Depth maps with inf where the view's maps are invalid: one lookup tests both.
+    depths = [np.where(np.asarray(view.valid, bool), _depth_map(scene, view), np.float32(np.inf))
+              for view in views]
+    n_dot_p = np.einsum("nd,nd->n", normals, points)
+    p_sq = np.einsum("nd,nd->n", points, points)
     timings["depth_maps_s"] = time.perf_counter() - t0
 
     # Pass 1: every view's score per texel (0 = not a candidate).
     t0 = time.perf_counter()
     scores = np.zeros((len(views), n_texels), np.float32)
     for i, view in enumerate(views):
-        cand, score, _, _, _ = _view_lookup(view, depths[i], points, normals, min_cos, depth_tolerance_m)
+        cand, score, _, _, _ = _view_lookup(view, depths[i], points, normals, n_dot_p, p_sq, min_cos,
+                                            depth_tolerance_m)
         scores[i, cand] = score
     k = min(int(max_views), len(views))
     order = np.argsort(-scores, axis=0, kind="stable")  # best first; ties keep view order
@@ -430,13 +442,13 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
         if not len(sel):
             continue
         cand, score, seen, taps, weights = _view_lookup(view, depths[i], points[sel], normals[sel],
-                                                        min_cos, depth_tolerance_m)
+                                                        n_dot_p[sel], p_sq[sel], min_cos, depth_tolerance_m)
         idx = sel[cand]
         blend_w = np.maximum(score - next_best[idx], 1e-3 * score)
         values = []
         for name in names:
             image = np.asarray(view.images[name], np.float32).reshape(-1, channels[name])
-            sample = np.einsum("nk,nkc->nc", weights, image[taps].astype(np.float64))
+            sample = np.einsum("nk,nkc->nc", weights, image[taps]).astype(np.float64)
             if name in normalize:
                 norm = np.linalg.norm(sample, axis=1, keepdims=True)
                 sample = np.divide(sample, norm, out=np.zeros_like(sample), where=norm > 1e-8)

@@ -285,7 +285,8 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     cross = np.cross(v[f[:, 1]].astype(np.float64) - v[f[:, 0]], v[f[:, 2]].astype(np.float64) - v[f[:, 0]])
     acc = np.zeros((len(v), 3), np.float64)
     for k in range(3):  # |cross| = 2 area: summing raw cross products weights by area
-        np.add.at(acc, f[:, k], cross)
+        for d in range(3):
+            acc[:, d] += np.bincount(f[:, k], weights=cross[:, d], minlength=len(v))
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
     return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0).astype(np.float32)
 

@@ -257,9 +257,11 @@ def test_bake_no_views_see_it_and_bad_inputs(sphere_atlas):
     assert all((t == 0).all() for t in res.textures.values()) and (res.confidence == 0).all()
     with pytest.raises(ValueError, match="at least one view"):
         bake_textures(v, f, atlas, [], texture_size=64)
-    with pytest.raises(ValueError, match="normalize"):
-        bake_textures(v, f, atlas, [view], texture_size=64, normalize=("nope",))
-    odd = BakeView(images={"albedo": view.images["albedo"]}, valid=view.valid, K=view.K,
-                   cam_from_world=view.cam_from_world)
+    albedo_only = BakeView(images={"albedo": view.images["albedo"]}, valid=view.valid, K=view.K,
+                           cam_from_world=view.cam_from_world)
+    res = bake_textures(v, f, atlas, [albedo_only], texture_size=64)  # default normalize=("normal",)
+    assert set(res.textures) == {"albedo"} and res.stats["coverage"] > 0.3
+    with pytest.raises(ValueError, match="max_views"):
+        bake_textures(v, f, atlas, [view], texture_size=64, max_views=0)
     with pytest.raises(ValueError, match="differ"):
-        bake_textures(v, f, atlas, [view, odd], texture_size=64)
+        bake_textures(v, f, atlas, [view, albedo_only], texture_size=64)
