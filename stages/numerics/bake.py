@@ -405,7 +405,10 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(v, np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(f, np.uint32)))
     # Depth maps with inf where the view's maps are invalid: one lookup tests both.
-    depths = [np.where(np.asarray(view.valid, bool), _depth_map(scene, view), np.float32(np.inf))
+    # A pixel with a non-finite value in any map counts as invalid.
+    depths = [np.where(np.asarray(view.valid, bool)
+                       & np.all([np.isfinite(im).all(axis=2) for im in view.images.values()], axis=0),
+                       _depth_map(scene, view), np.float32(np.inf))
               for view in views]
     n_dot_p = np.einsum("nd,nd->n", normals, points)
     p_sq = np.einsum("nd,nd->n", points, points)
@@ -448,7 +451,9 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
         values = []
         for name in names:
             image = np.asarray(view.images[name], np.float32).reshape(-1, channels[name])
-            sample = np.einsum("nk,nkc->nc", weights, image[taps]).astype(np.float64)
+            gathered = image[taps]
+            gathered = np.where(np.isfinite(gathered), gathered, 0.0)  # 0-weight taps must not spread NaN
+            sample = np.einsum("nk,nkc->nc", weights, gathered).astype(np.float64)
             if name in normalize:
                 norm = np.linalg.norm(sample, axis=1, keepdims=True)
                 sample = np.divide(sample, norm, out=np.zeros_like(sample), where=norm > 1e-8)

@@ -265,3 +265,34 @@ def test_bake_no_views_see_it_and_bad_inputs(sphere_atlas):
         bake_textures(v, f, atlas, [view], texture_size=64, max_views=0)
     with pytest.raises(ValueError, match="differ"):
         bake_textures(v, f, atlas, [view, albedo_only], texture_size=64)
+
+
+def test_bake_ignores_non_finite_pixels(sphere_atlas, sphere_bake):
+    v, f, atlas = sphere_atlas
+    clean = [render_view(v, f, cam) for cam in ring_cameras()]
+
+    def with_albedo(view, albedo):
+        return BakeView(images={"albedo": albedo, "normal": view.images["normal"]}, valid=view.valid,
+                        K=view.K, cam_from_world=view.cam_from_world)
+
+    # NaN outside the valid mask changes nothing (zero-weight taps must not spread it)
+    nan_outside = []
+    for view in clean:
+        albedo = view.images["albedo"].copy()
+        albedo[~view.valid] = np.nan
+        nan_outside.append(with_albedo(view, albedo))
+    res = bake_textures(v, f, atlas, nan_outside, texture_size=256)
+    assert np.array_equal(res.view_count, sphere_bake.view_count)
+    assert np.allclose(res.textures["albedo"], sphere_bake.textures["albedo"], atol=1e-6)
+    # Inf inside it: those pixels count as invalid, the rest still bakes the known function
+    rng = np.random.default_rng(0)
+    inf_inside = []
+    for view in clean:
+        albedo = view.images["albedo"].copy()
+        albedo[(rng.random(view.valid.shape) < 0.02) & view.valid] = np.inf
+        inf_inside.append(with_albedo(view, albedo))
+    res = bake_textures(v, f, atlas, inf_inside, texture_size=256)
+    assert all(np.isfinite(t).all() for t in res.textures.values()) and np.isfinite(res.confidence).all()
+    assert res.stats["coverage"] > 0.98
+    err = np.abs(sample_texture(res.textures["albedo"], atlas.uvs) - albedo_of(v[atlas.vmapping]))
+    assert np.percentile(err, 99) < 0.05
