@@ -15,8 +15,8 @@ Per camera (cameras are independent: the 3D points are known):
 1. predict the image of every ball with the nominal camera (exact ellipse centre of a sphere's
    silhouette, :func:`sphere_image_centres`) and detect bright blobs (:func:`detect_blobs`:
    intensity-weighted centroids over a morphological background);
-2. vote for the common image shift between predictions and blobs (the nominal orientation error moves
-   all balls alike), then identify balls (:func:`identify_markers`): mutual nearest blob within a search
+2. vote for the common image zoom and shift between predictions and blobs (the nominal orientation error
+   moves all balls alike, a focal length error scales them about the principal point), then identify balls (:func:`identify_markers`): mutual nearest blob within a search
    radius, only balls whose images are clear of every other ball's image;
 3. fit pose and focal length to the 2D-3D correspondences with pycolmap (LO-RANSAC absolute pose, then
    non-linear refinement with the focal length free; the pixel aspect ratio and principal point stay at
@@ -49,10 +49,13 @@ class MarkerCalibrationConfig:
     """Side of the grey opening that estimates the background under the balls (> the largest ball image)."""
     shift_search_px: float = 20.0
     """Largest common image shift between nominal predictions and blobs that the first pass looks for
-    (nominal orientation error 0.2 deg per axis, ~3 sigma, at the longest focal length)."""
+    (nominal orientation error 0.2 deg sigma: ~20 px is 0.5 deg at 320 px with the longest lens)."""
+    zoom_search: float = 0.05
+    """Largest image zoom about the principal point (nominal focal length or distance error) the first
+    pass looks for, in steps of 1%."""
     first_search_px: float = 4.0
-    """Search radius of the first identification, after the common shift is removed (focal length and
-    roll errors of the nominal camera)."""
+    """Search radius of the first identification, after the common zoom and shift are removed (what is
+    left of the nominal camera's errors: roll, parallax, the zoom's 0.5% step)."""
     search_px: float = 1.5
     """Search radius of the later identifications, from the refined camera."""
     clearance_px: float = 3.0
@@ -162,26 +165,42 @@ def detect_blobs(image: np.ndarray, threshold: float, background_window_px: int 
     return centroids, pixels[keep], np.asarray(peak)[keep]
 
 
-def common_shift(predicted: np.ndarray, blobs: np.ndarray, max_shift_px: float, bin_px: float = 1.0) -> np.ndarray:
-    """The image shift (2,) that brings most predicted points (N, 2) onto a blob (M, 2): a vote over every
-    prediction-to-blob difference shorter than ``max_shift_px`` (histogram with ``bin_px`` bins, 3x3
-    box-smoothed), refined by the median of the differences within ``2 bin_px`` of the winner."""
+def common_shift(predicted: np.ndarray, blobs: np.ndarray, max_shift_px: float, bin_px: float = 1.0
+                 ) -> tuple[np.ndarray, float]:
+    """The image shift (2,) that brings most predicted points (N, 2) onto a blob (M, 2), and its vote
+    (smoothed count): a vote over every prediction-to-blob difference shorter than ``max_shift_px``
+    (histogram with ``bin_px`` bins, 3x3 box-smoothed), refined by the median of the differences within
+    ``2 bin_px`` of the winner."""
+    from scipy import ndimage
+
     if len(predicted) == 0 or len(blobs) == 0:
-        return np.zeros(2)
+        return np.zeros(2), 0.0
     diff = blobs[None, :, :] - predicted[:, None, :]
     diff = diff[np.einsum("ijk,ijk->ij", diff, diff) < max_shift_px ** 2]
     if len(diff) == 0:
-        return np.zeros(2)
+        return np.zeros(2), 0.0
     n = int(np.ceil(max_shift_px / bin_px))
     edges = np.arange(-n, n + 1) * bin_px
     hist, _, _ = np.histogram2d(diff[:, 0], diff[:, 1], bins=(edges, edges))
-    from scipy import ndimage
-
     hist = ndimage.uniform_filter(hist, size=3, mode="constant")
     i, j = np.unravel_index(np.argmax(hist), hist.shape)
     guess = np.array([edges[i] + 0.5 * bin_px, edges[j] + 0.5 * bin_px])
     near = diff[np.linalg.norm(diff - guess, axis=1) < 2 * bin_px]
-    return np.median(near, axis=0) if len(near) else guess
+    return (np.median(near, axis=0) if len(near) else guess), float(hist[i, j])
+
+
+def common_zoom_and_shift(predicted: np.ndarray, blobs: np.ndarray, centre: np.ndarray, max_shift_px: float,
+                          max_zoom: float, zoom_step: float = 0.01) -> tuple[float, np.ndarray]:
+    """(zoom, shift (2,)) with ``centre + zoom (predicted - centre) + shift`` closest to the blobs: the
+    :func:`common_shift` vote repeated over zooms ``1 +- k zoom_step`` up to ``max_zoom`` (a nominal focal
+    length or distance error scales the image about the principal point), the best-voted kept."""
+    best = (-1.0, 1.0, np.zeros(2))
+    count = int(np.floor(max_zoom / zoom_step + 1e-9))
+    for zoom in 1.0 + zoom_step * np.arange(-count, count + 1):
+        shift, votes = common_shift(centre + zoom * (predicted - centre), blobs, max_shift_px)
+        if votes > best[0] + 1e-9 or (abs(votes - best[0]) <= 1e-9 and abs(zoom - 1) < abs(best[1] - 1)):
+            best = (votes, float(zoom), shift)
+    return best[1], best[2]
 
 
 def identify_markers(predicted: np.ndarray, apparent_px: np.ndarray, usable: np.ndarray, blobs: np.ndarray,
@@ -295,9 +314,10 @@ def calibrate_camera_markers(image: np.ndarray, K: np.ndarray, cam_from_world: n
         usable &= (centre_uv[:, 0] >= margin) & (centre_uv[:, 0] <= W - 1 - margin)
         usable &= (centre_uv[:, 1] >= margin) & (centre_uv[:, 1] <= H - 1 - margin)
         if round_ == 0:
-            shift = common_shift(centre_uv[usable], blobs, config.shift_search_px)
-            match = identify_markers(centre_uv + shift, apparent, usable, blobs, config.first_search_px,
-                                     config.first_clearance_px)
+            zoom, shift = common_zoom_and_shift(centre_uv[usable], blobs, K_cur[:2, 2], config.shift_search_px,
+                                                config.zoom_search)
+            match = identify_markers(K_cur[:2, 2] + zoom * (centre_uv - K_cur[:2, 2]) + shift, apparent, usable,
+                                     blobs, config.first_search_px, config.first_clearance_px)
         else:
             match = identify_markers(centre_uv, apparent, usable, blobs, config.search_px, config.clearance_px)
         ids = np.nonzero(match >= 0)[0]
@@ -413,8 +433,14 @@ def calibrate_markers(images: dict[str, np.ndarray], nominal_K: dict[str, np.nda
     timings["total"] = time.perf_counter() - t_start
     if good:
         counts = [len(f["marker_ids"]) for f in good.values()]
+        # what limits the result: the centre precision each camera's observations allow (Cramer-Rao, at
+        # that camera's residual rms per image coordinate)
+        stds = [centre_std_mm(f["K"], f["cam_from_world"], markers_world[f["marker_ids"]],
+                              float(np.sqrt(np.sum(f["residuals_px"] ** 2) / max(2 * len(f["residuals_px"]) - 7, 1))),
+                              config.refine_focal_length) for f in good.values()]
         notes.append(f"balls used per camera: {min(counts)}-{max(counts)} (median {int(np.median(counts))}); "
-                     f"reprojection rms {float(np.sqrt(np.mean(residuals ** 2))):.3f} px")
+                     f"reprojection rms {float(np.sqrt(np.mean(residuals ** 2))):.3f} px; predicted centre std "
+                     f"{float(np.median(stds)):.2f} mm median, {float(np.max(stds)):.2f} mm worst")
     return CalibrationResult(
         cameras=dict(sorted(cameras.items())), unregistered=sorted(n for n in images if n not in cameras),
         reprojection_error_px=float(residuals.mean()) if len(residuals) else 0.0,

@@ -9,6 +9,7 @@ import pytest
 
 from calibration.geometric import camera_centre, pose_errors
 from calibration.markers import (MarkerCalibrationConfig, calibrate_markers, centre_std_mm, common_shift,
+                                 common_zoom_and_shift,
                                  detect_blobs, identify_markers, project_points, sphere_image_centres)
 from synthetic.calibration import CalibrationConfig, marker_layout, render_markers
 from synthetic.rig import look_at, make_cameras, make_leds, perturb_pose
@@ -82,8 +83,15 @@ def test_common_shift_and_identification():
     rng = np.random.default_rng(0)
     predicted = rng.uniform(0, 300, size=(40, 2))
     blobs = np.vstack([predicted + [6.3, -4.1] + rng.normal(0, 0.1, (40, 2)), rng.uniform(0, 300, (5, 2))])
-    shift = common_shift(predicted, blobs, max_shift_px=20.0)
+    shift, votes = common_shift(predicted, blobs, max_shift_px=20.0)
     np.testing.assert_allclose(shift, [6.3, -4.1], atol=0.1)
+    assert votes > 20
+    # a 3% zoom about the principal point on top of the shift (a nominal focal length 3% off)
+    centre = np.array([150.0, 150.0])
+    zoomed = centre + 1.03 * (predicted - centre) + [6.3, -4.1]
+    zoom, shift2 = common_zoom_and_shift(predicted, zoomed, centre, 20.0, 0.05)
+    assert zoom == pytest.approx(1.03)
+    np.testing.assert_allclose(shift2, [6.3, -4.1], atol=0.3)
     radius = np.full(40, 2.0)
     match = identify_markers(predicted + shift, radius, np.ones(40, bool), blobs, 1.0, 3.0)
     clear = np.array([all(np.linalg.norm(predicted[i] - predicted[j]) > 7.0 for j in range(40) if j != i)
