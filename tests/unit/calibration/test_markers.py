@@ -85,7 +85,7 @@ def test_common_shift_and_identification():
     blobs = np.vstack([predicted + [6.3, -4.1] + rng.normal(0, 0.1, (40, 2)), rng.uniform(0, 300, (5, 2))])
     shift, votes = common_shift(predicted, blobs, max_shift_px=20.0)
     np.testing.assert_allclose(shift, [6.3, -4.1], atol=0.1)
-    assert votes > 20
+    assert votes > 3.0                     # 40 agreeing differences, 3x3-smoothed; the 5 clutter blobs: < 1
     # a 3% zoom about the principal point on top of the shift (a nominal focal length 3% off)
     centre = np.array([150.0, 150.0])
     zoomed = centre + 1.03 * (predicted - centre) + [6.3, -4.1]
