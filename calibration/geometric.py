@@ -17,6 +17,15 @@ Main entry points:
 - :func:`calibrate_rig` (:class:`RigRefineConfig`): refine a fixed rig's nominal cameras (pose-guided
   matching, triangulation at the nominal poses, bundle adjustment with pose priors, gauge from the nominal
   centres) instead of incremental mapping. Experimental: see its docstring for the measured status.
+
+On a fixed light stage with a rig spec, :mod:`calibration.markers` (a surveyed frame of balls filling the
+capture volume) is what reaches sub-millimetre cameras; structure from motion here cannot, for two
+measured reasons (simulated stage, 320 px): (1) a target at the stage centre (+-0.45 m deep, ~3 m away,
+28-50 mm lenses) leaves each camera's distance and focal length nearly interchangeable: with ~1000
+features at 0.2 px the Cramer-Rao bound on a camera centre is ~2.3 mm even with PERFECT 3D points;
+(2) aligning a reconstruction to the nominal camera centres (3 mm per axis off) puts even the TRUE
+cameras 1.46 mm (mean) from where they are (``bench/bench_calibration.py --markers``,
+``floor_nominal_gauge``).
 """
 from __future__ import annotations
 
