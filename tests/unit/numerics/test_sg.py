@@ -334,3 +334,133 @@ def test_fit_shared_map_gives_accurate_irradiance():
     assert all(math.isfinite(v) for v in errors.values())
     assert errors["irradiance_rel_l2"] < 0.08, errors
     assert errors["irradiance_rel_l2_shading"] < 0.08, errors
+
+
+# ------------------------------------------------------------------------------------------ shading
+
+
+def _ggx_quadrature(normals, views, roughness, env, f0=0.02, shadowing="smith"):
+    """Diffuse irradiance / pi and GGX specular radiance by quadrature over an equirectangular map."""
+    h, w = env.shape[:2]
+    dirs = sg.equirect_directions(h, w).reshape(-1, 3).astype(np.float64)
+    radiance = env.reshape(-1, 3).astype(np.float64) * sg.equirect_solid_angles(h, w).reshape(-1, 1)
+    diffuse = np.maximum(normals @ dirs.T, 0.0) @ radiance / math.pi
+    spec = np.zeros((len(normals), 3))
+    for i, (n, v, r) in enumerate(zip(normals, views, roughness)):
+        a2 = (r * r) ** 2
+        nl = dirs @ n
+        keep = nl > 0
+        l, nl = dirs[keep], nl[keep]
+        nv = max(float(n @ v), 1e-3)
+        half = unit(l + v)
+        d = a2 / (math.pi * ((half @ n) ** 2 * (a2 - 1) + 1) ** 2)
+        fresnel = f0 + (1 - f0) * (1 - np.clip(half @ v, 0, 1)) ** 5
+        if shadowing == "physg":
+            k = (r + 1) ** 2 / 8
+            vis = 1.0 / (4 * (nl * (1 - k) + k) * (nv * (1 - k) + k))
+        else:
+            vis = 0.5 / (nl * math.sqrt(nv * nv * (1 - a2) + a2) + nv * np.sqrt(nl * nl * (1 - a2) + a2))
+        spec[i] = (d * fresnel * vis * nl) @ radiance[keep]
+    return diffuse, spec
+
+
+def _points(n=12, max_view_deg=60.0, seed=0):
+    rng = np.random.default_rng(seed)
+    normals = unit(rng.normal(size=(n, 3)))
+    views = []
+    for nrm in normals:
+        while True:
+            v = unit(rng.normal(size=3))
+            if v @ nrm > math.cos(math.radians(max_view_deg)):
+                views.append(v)
+                break
+    return normals, np.array(views)
+
+
+def test_shade_sg_shapes_and_kinds():
+    lobes, _ = _three_lobe_map(8)
+    normals, views = _points(5)
+    albedo = np.full((5, 3), 0.5, np.float32)
+    rough = np.full(5, 0.45, np.float32)
+    out = sg.shade_sg(normals, views, albedo, rough, lobes)
+    assert set(out) == {"diffuse", "specular", "rgb"}
+    for value in out.values():
+        assert isinstance(value, np.ndarray) and value.shape == (5, 3) and value.dtype == np.float32
+        assert np.isfinite(value).all() and value.min() >= 0
+    np.testing.assert_allclose(out["rgb"], out["diffuse"] + out["specular"], rtol=1e-6)
+    assert out["specular"].max() > 0
+    off = sg.shade_sg(normals, views, albedo, rough, lobes, specular=False)
+    np.testing.assert_array_equal(off["specular"], 0)
+    np.testing.assert_allclose(off["diffuse"], out["diffuse"], rtol=1e-6)
+    as_torch = sg.shade_sg(torch.as_tensor(normals), views, albedo, rough, lobes)
+    assert torch.is_tensor(as_torch["rgb"])
+    np.testing.assert_allclose(as_torch["rgb"].numpy(), out["rgb"], rtol=1e-5)
+    with pytest.raises(ValueError, match="roughness"):
+        sg.shade_sg(normals, views, albedo, rough[:3], lobes)
+    with pytest.raises(ValueError, match="shadowing"):
+        sg.shade_sg(normals, views, albedo, rough, lobes, shadowing="beckmann")
+
+
+def test_shade_sg_constant_environment_diffuse_is_albedo_times_radiance():
+    radiance = np.array([[2.0, 1.0, 0.5]], np.float32)
+    const = sg.SGLobes(np.array([[0, 1.0, 0]], np.float32), np.array([1e-5], np.float32), radiance)
+    normals, views = _points(20)
+    albedo = np.random.default_rng(2).uniform(0.05, 0.9, (20, 3)).astype(np.float32)
+    out = sg.shade_sg(normals, views, albedo, np.full(20, 0.5, np.float32), const)
+    # diffuse = albedo * L, up to the SG-cosine approximation's measured -0.42%
+    np.testing.assert_allclose(out["diffuse"], albedo * radiance * (1 - 0.0042), rtol=1e-3)
+    # specular under a constant environment: the GGX directional albedo (about F0 = 0.02 at these views)
+    _, ref = _ggx_quadrature(normals, views, np.full(20, 0.5), np.full((64, 128, 3), radiance, np.float32),
+                             shadowing="physg")
+    np.testing.assert_allclose(out["specular"], ref, rtol=0.25)
+
+
+@pytest.mark.parametrize("shadowing", ["physg", "smith"])
+def test_shade_sg_against_quadrature(shadowing):
+    """SG shading against quadrature of the same BRDF over the lobes' own map, views within 60 degrees of
+    the normal. Measured (24 points, 3-lobe NDF): specular median per-point error 2-5% (r = 0.3), 8-10%
+    (r = 0.45, 0.7); the sum over points within 5%. Grazing views (up to 80 degrees) are much worse
+    (median 10-60%, overestimated): the isotropic warp cannot follow the stretched reflected lobe."""
+    lobes, env = _three_lobe_map(128)
+    normals, views = _points(24, max_view_deg=60.0)
+    albedo = np.ones((24, 3), np.float32)
+    energy = float(sg.sg_integral(lobes).sum(axis=0).max())
+    for r, tol_median in ((0.3, 0.07), (0.45, 0.13), (0.7, 0.13)):
+        rough = np.full(24, r)
+        got = sg.shade_sg(normals, views, albedo, rough.astype(np.float32), lobes, shadowing=shadowing)
+        ref_d, ref_s = _ggx_quadrature(normals, views, rough, env, shadowing=shadowing)
+        assert np.max(np.abs(got["diffuse"] - ref_d)) < 0.005 * energy
+        rel = np.abs(got["specular"] - ref_s).sum(axis=1) / np.maximum(ref_s.sum(axis=1), 1e-9)
+        assert np.median(rel) < tol_median, (r, rel)
+        assert abs(got["specular"].sum() / ref_s.sum() - 1) < 0.06, r
+        # the 3-lobe NDF beats PhySG's single lobe where the GGX tails matter (low roughness)
+        if r == 0.3:
+            single = sg.shade_sg(normals, views, albedo, rough.astype(np.float32), lobes, shadowing=shadowing,
+                                 ndf_lobes=1)["specular"]
+            rel_single = np.abs(single - ref_s).sum(axis=1) / np.maximum(ref_s.sum(axis=1), 1e-9)
+            assert np.median(rel_single) > 1.5 * np.median(rel)
+
+
+def test_shade_sg_roughness_gradient_bounds_and_horizon():
+    lobes, _ = _three_lobe_map(8)
+    normals, views = _points(6)
+    albedo = torch.full((6, 3), 0.5)
+    rough = torch.full((6,), 0.45, requires_grad=True)
+    out = sg.shade_sg(torch.as_tensor(normals, dtype=torch.float32), torch.as_tensor(views, dtype=torch.float32),
+                      albedo, rough, lobes)
+    out["rgb"].sum().backward()
+    grad = rough.grad.numpy()
+    assert np.isfinite(grad).all() and np.abs(grad).max() > 0
+    # against central differences
+    step = 1e-2
+    plus = sg.shade_sg(normals, views, albedo.numpy(), np.full(6, 0.45 + step, np.float32), lobes)["rgb"].sum(axis=1)
+    minus = sg.shade_sg(normals, views, albedo.numpy(), np.full(6, 0.45 - step, np.float32), lobes)["rgb"].sum(axis=1)
+    np.testing.assert_allclose(grad, (plus - minus) / (2 * step), rtol=0.05, atol=1e-4)
+    # roughness is clamped to [ROUGHNESS_MIN, 1]; a camera below the horizon sees no specular
+    args = (normals, views, albedo.numpy())
+    low = sg.shade_sg(*args, np.zeros(6, np.float32), lobes)["specular"]
+    np.testing.assert_allclose(low, sg.shade_sg(*args, np.full(6, sg.ROUGHNESS_MIN, np.float32), lobes)["specular"])
+    high = sg.shade_sg(*args, np.full(6, 3.0, np.float32), lobes)["specular"]
+    np.testing.assert_allclose(high, sg.shade_sg(*args, np.ones(6, np.float32), lobes)["specular"])
+    below = sg.shade_sg(normals, -views, albedo.numpy(), np.full(6, 0.45, np.float32), lobes)
+    assert np.all(below["specular"] == 0) and np.isfinite(below["rgb"]).all()
