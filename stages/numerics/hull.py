@@ -1,0 +1,248 @@
+"""Visual hull from foreground masks: a voxel occupancy grid, its signed distance, point look-ups.
+
+Pure numerics, arrays in and arrays out (docs/CONTRACTS.md conventions: stage frame = world frame,
+metres; OpenCV cameras with ``x_cam = R @ x_world + t``; pixel ``(row i, column j)`` has its centre at
+``(u, v) = (j, i)``).
+
+A voxel is kept when its centre projects inside the mask of every camera that sees it, allowing
+``max_misses`` cameras to disagree (a mask with a hole or a clipped limb must not carve the body). To stay
+a *superset* of the subject the test is conservative: a voxel passes a view when its centre lies within
+``dilate_px`` plus the voxel's own projected half-diagonal of a mask pixel (one Euclidean distance
+transform per view, instead of projecting eight corners).
+
+The hull bounds where the SDF of :mod:`stages.numerics.sdf` takes ray samples (an occupancy grid) and
+initialises it (:meth:`HullGrid.signed_distance`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["HullGrid", "visual_hull", "check_camera"]
+
+
+def check_camera(K: np.ndarray, cam_from_world: np.ndarray, where: str = "camera") -> tuple[np.ndarray, np.ndarray]:
+    """Validate one camera; returns ``(K (3,3) float64, cam_from_world (3,4) float64)``.
+
+    Raises:
+        ValueError: wrong shapes, non-finite values, a non-positive focal length or a non-rotation.
+    """
+    K = np.asarray(K, np.float64)
+    T = np.asarray(cam_from_world, np.float64)
+    if T.shape == (4, 4):
+        T = T[:3]
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"{where}: K must be a finite (3, 3) matrix with positive focal lengths, got {K!r}")
+    if T.shape != (3, 4) or not np.isfinite(T).all():
+        raise ValueError(f"{where}: cam_from_world must be a finite (3, 4) [R | t], got shape {T.shape}")
+    R = T[:, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+        raise ValueError(f"{where}: cam_from_world[:, :3] is not a rotation matrix")
+    return K, T
+
+
+def _check_bounds(bounds: np.ndarray) -> np.ndarray:
+    b = np.asarray(bounds, np.float64)
+    if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
+        raise ValueError(f"bounds must be finite (2, 3) [min corner, max corner] with max > min, got {bounds!r}")
+    return b
+
+
+@dataclass
+class HullGrid:
+    """A voxel occupancy grid over an axis-aligned box.
+
+    Attributes:
+        occupancy: bool (Rx, Ry, Rz), index order x, y, z; voxel ``(i, j, k)`` spans
+            ``bounds[0] + ((i, j, k) + [0, 1]) * voxel_size``.
+        bounds: float64 (2, 3) min and max corner of the grid in metres.
+    """
+
+    occupancy: np.ndarray
+    bounds: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.occupancy = np.asarray(self.occupancy, bool)
+        if self.occupancy.ndim != 3 or min(self.occupancy.shape) < 1:
+            raise ValueError(f"occupancy must be a non-empty (Rx, Ry, Rz) bool grid, got {self.occupancy.shape}")
+        self.bounds = _check_bounds(self.bounds)
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return tuple(int(r) for r in self.occupancy.shape)  # type: ignore[return-value]
+
+    @property
+    def voxel_size(self) -> np.ndarray:
+        """(3,) voxel edge lengths in metres (x, y, z)."""
+        return (self.bounds[1] - self.bounds[0]) / np.asarray(self.occupancy.shape, np.float64)
+
+    @property
+    def occupied_fraction(self) -> float:
+        return float(self.occupancy.mean())
+
+    def centers(self) -> np.ndarray:
+        """(Rx, Ry, Rz, 3) float64 voxel centres in metres."""
+        axes = [self.bounds[0, a] + (np.arange(r) + 0.5) * self.voxel_size[a] for a, r in enumerate(self.occupancy.shape)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+    def tight_bounds(self, margin_m: float = 0.0) -> np.ndarray:
+        """(2, 3) box around the occupied voxels (their full extent), grown by ``margin_m`` on each side.
+
+        Raises:
+            ValueError: the grid holds no occupied voxel.
+        """
+        if not self.occupancy.any():
+            raise ValueError("the hull is empty: no voxel is inside the masks of the views that see it")
+        idx = np.argwhere(self.occupancy)
+        lo = self.bounds[0] + idx.min(0) * self.voxel_size - margin_m
+        hi = self.bounds[0] + (idx.max(0) + 1) * self.voxel_size + margin_m
+        return np.stack([lo, hi])
+
+    def signed_distance(self) -> np.ndarray:
+        """(Rx, Ry, Rz) float32 signed distance to the hull's surface in metres, negative inside.
+
+        Exact Euclidean distance between voxel centres (scipy.ndimage.distance_transform_edt with the voxel
+        size as sampling), minus half a voxel so that the zero level lies between an occupied and an empty
+        voxel rather than on either centre. Outside the grid box everything counts as empty.
+        """
+        occ = self.occupancy
+        vs = self.voxel_size
+        if not occ.any():
+            return np.full(occ.shape, float(np.linalg.norm(self.bounds[1] - self.bounds[0])), np.float32)
+        # Pad with empty voxels so that a body touching the box border still gets a boundary there.
+        padded = np.pad(occ, 1, constant_values=False)
+        outside = ndimage.distance_transform_edt(~padded, sampling=vs)[1:-1, 1:-1, 1:-1]
+        inside = ndimage.distance_transform_edt(padded, sampling=vs)[1:-1, 1:-1, 1:-1]
+        half = 0.5 * float(vs.min())
+        sd = np.where(occ, -(inside - half), outside - half)
+        return sd.astype(np.float32)
+
+    def voxel_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Voxel index of each point: ``(ijk (N, 3) int64, inside (N,) bool)``; ijk is clipped into the grid."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        finite = np.isfinite(p).all(1)
+        rel = (np.where(finite[:, None], p, 0.0) - self.bounds[0]) / self.voxel_size
+        ijk = np.floor(np.clip(rel, -1, np.asarray(self.occupancy.shape))).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < np.asarray(self.occupancy.shape)), axis=1) & finite
+        ijk = np.clip(ijk, 0, np.asarray(self.occupancy.shape) - 1)
+        return ijk, inside
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: the point lies in an occupied voxel (False outside the grid box)."""
+        ijk, inside = self.voxel_index(points)
+        return inside & self.occupancy[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
+    def sample(self, values: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Trilinear interpolation of a per-voxel field (e.g. :meth:`signed_distance`) at points.
+
+        Args:
+            values: (Rx, Ry, Rz) values at voxel centres.
+            points: (N, 3) metres. Points outside the box take the value of the nearest border voxel.
+
+        Returns:
+            (N,) float32.
+        """
+        values = np.asarray(values)
+        if values.shape != self.occupancy.shape:
+            raise ValueError(f"values must be {self.occupancy.shape} like the grid, got {values.shape}")
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        coords = ((p - self.bounds[0]) / self.voxel_size - 0.5).T
+        return ndimage.map_coordinates(values.astype(np.float32), coords, order=1, mode="nearest").astype(np.float32)
+
+    def dilated(self, voxels: int = 1) -> "HullGrid":
+        """A copy grown by ``voxels`` voxels (26-connected), e.g. to keep samples just outside the hull."""
+        if voxels <= 0:
+            return HullGrid(self.occupancy.copy(), self.bounds.copy())
+        occ = ndimage.binary_dilation(self.occupancy, structure=np.ones((3, 3, 3), bool), iterations=int(voxels))
+        return HullGrid(occ, self.bounds.copy())
+
+
+def visual_hull(
+    masks: Sequence[np.ndarray],
+    Ks: Sequence[np.ndarray],
+    cam_from_worlds: Sequence[np.ndarray],
+    bounds: np.ndarray,
+    resolution: int | Sequence[int],
+    max_misses: int = 1,
+    dilate_px: float = 2,
+    min_views: int = 3,
+) -> HullGrid:
+    """Voxel visual hull of the masks (silhouette carving).
+
+    Args:
+        masks: per view (H, W) bool foreground (any dtype; non-zero is foreground).
+        Ks: per view (3, 3) intrinsics.
+        cam_from_worlds: per view (3, 4) (or 4x4) ``[R | t]``.
+        bounds: (2, 3) min and max corner of the grid, metres.
+        resolution: voxels per axis (int: the same count on every axis, as (R, R, R)), or (Rx, Ry, Rz).
+        max_misses: a voxel survives being outside the (dilated) mask of at most this many of the views that
+            see it (robust to a bad mask).
+        dilate_px: extra tolerance in pixels beyond the voxel's own projected half-diagonal.
+        min_views: a voxel must also project inside the masks of at least this many views (all of them when
+            there are fewer), so that space at the edge of the cameras' frusta, seen by one or two views
+            only, is not kept for lack of evidence.
+
+    Returns:
+        :class:`HullGrid`.
+
+    Raises:
+        ValueError: mismatched list lengths, bad shapes, non-finite cameras or bounds, resolution < 1.
+    """
+    if not (len(masks) == len(Ks) == len(cam_from_worlds)) or len(masks) == 0:
+        raise ValueError(f"masks, Ks and cam_from_worlds must be non-empty lists of the same length, got "
+                         f"{len(masks)}, {len(Ks)}, {len(cam_from_worlds)}")
+    b = _check_bounds(bounds)
+    res = np.broadcast_to(np.asarray(resolution, np.int64), (3,))
+    if (res < 1).any() or res.max() > 1024:
+        raise ValueError(f"resolution must be in 1..1024 per axis, got {resolution!r}")
+    if max_misses < 0 or dilate_px < 0 or min_views < 1:
+        raise ValueError(f"max_misses and dilate_px must be >= 0 and min_views >= 1, got {max_misses}, {dilate_px}, "
+                         f"{min_views}")
+    grid = HullGrid(np.zeros(tuple(res), bool), b)
+    half_diag = 0.5 * float(np.linalg.norm(grid.voxel_size))
+    # Voxels still in the running: carving is incremental, so later views only test what survived.
+    alive = np.arange(int(np.prod(res)))
+    hits = np.zeros(len(alive), np.int16)
+    misses = np.zeros(len(alive), np.int16)
+    axes = [(b[0, a] + (np.arange(r) + 0.5) * grid.voxel_size[a]).astype(np.float32) for a, r in enumerate(res)]
+    for v, (mask, K, T) in enumerate(zip(masks, Ks, cam_from_worlds)):
+        K, T = check_camera(K, T, f"view {v}")
+        mask = np.asarray(mask)
+        if mask.ndim != 2 or min(mask.shape) < 1:
+            raise ValueError(f"view {v}: mask must be (H, W), got shape {mask.shape}")
+        mask = mask != 0
+        H, W = mask.shape
+        # Distance (px) from every pixel to the nearest foreground pixel; 0 on the mask.
+        if mask.any():
+            dist_px = ndimage.distance_transform_edt(~mask).astype(np.float32)
+        else:
+            dist_px = np.full(mask.shape, np.inf, np.float32)
+        ix, rest = np.divmod(alive, res[1] * res[2])
+        iy, iz = np.divmod(rest, res[2])
+        R32 = T[:, :3].astype(np.float32)
+        x_cam = (axes[0][ix, None] * R32[:, 0] + axes[1][iy, None] * R32[:, 1] + axes[2][iz, None] * R32[:, 2]
+                 + T[:, 3].astype(np.float32))
+        z = x_cam[:, 2]
+        front = z > 1e-6
+        inv_z = 1.0 / np.where(front, z, 1.0)
+        u = (K[0, 0] * x_cam[:, 0] + K[0, 1] * x_cam[:, 1]) * inv_z + K[0, 2]
+        w = K[1, 1] * x_cam[:, 1] * inv_z + K[1, 2]
+        col = np.floor(u + 0.5)
+        row = np.floor(w + 0.5)
+        seen = front & (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1)
+        ci = np.clip(col, 0, W - 1).astype(np.int64)
+        ri = np.clip(row, 0, H - 1).astype(np.int64)
+        # + half a pixel diagonal: the centre was rounded to a pixel centre.
+        tolerance = dilate_px + 0.5 * np.sqrt(2.0) + K[0, 0] * half_diag * inv_z
+        inside = dist_px[ri, ci] <= tolerance
+        hits += seen & inside
+        misses += seen & ~inside
+        keep = misses <= max_misses
+        alive, hits, misses = alive[keep], hits[keep], misses[keep]
+    occupancy = np.zeros(int(np.prod(res)), bool)
+    occupancy[alive[hits >= min(min_views, len(masks))]] = True
+    grid.occupancy = occupancy.reshape(tuple(res))
+    return grid

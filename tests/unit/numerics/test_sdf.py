@@ -1,0 +1,317 @@
+"""Neural SDF numerics: hash encoding, analytic gradients, hull pre-fit, NeuS compositing, a tiny training run on
+analytic sphere views (normals known), reproducibility, serialisation, rendering and input checks."""
+from __future__ import annotations
+
+import dataclasses
+import io
+
+import numpy as np
+import pytest
+import torch
+
+from stages.numerics.hull import HullGrid
+from stages.numerics.sdf import (
+    SDF_PRESETS,
+    HashEncoding,
+    HashGridConfig,
+    SDFConfig,
+    SDFField,
+    SDFView,
+    _neus_composite,
+    fit_to_signed_distance,
+    render_view,
+    train_sdf,
+)
+
+RADIUS = 0.3
+BOUNDS = np.array([[-0.45, -0.45, -0.45], [0.45, 0.45, 0.45]])
+SMALL = HashGridConfig(levels=4, features_per_level=2, log2_table_size=10, base_resolution=4, finest_resolution=32)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def look_at(centre):
+    z = -centre / np.linalg.norm(centre)
+    x = np.cross(z, [0.0, -1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return np.concatenate([R, (-R @ centre)[:, None]], axis=1)
+
+
+def sphere_views(n=8, size=40, dist=2.0, radius=RADIUS):
+    """Analytic views of a sphere at the origin: mask, world normals (all valid), cameras around it."""
+    f = 0.85 * size / 2 / np.tan(np.arcsin(radius * 1.4 / dist))
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1.0]])
+    views = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        el = 0.5 * np.sin(2 * a + 0.3)
+        T = look_at(dist * np.array([np.cos(a) * np.cos(el), np.sin(el), np.sin(a) * np.cos(el)]))
+        R, t = T[:, :3], T[:, 3]
+        o = -R.T @ t
+        rows, cols = np.mgrid[0:size, 0:size]
+        pix = np.stack([cols.ravel(), rows.ravel(), np.ones(size * size)], 1)
+        d = np.linalg.solve(K, pix.T).T @ R
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        b = d @ o
+        disc = b * b - (o @ o - radius ** 2)
+        hit = disc > 0
+        p = o + (-b - np.sqrt(np.maximum(disc, 0)))[:, None] * d
+        normals = np.where(hit[:, None], p / radius, 0.0).reshape(size, size, 3).astype(np.float32)
+        mask = hit.reshape(size, size)
+        views.append(SDFView(normals_world=normals, normal_valid=mask.copy(), mask=mask, K=K, cam_from_world=T))
+    return views
+
+
+def surface_radius(field, n=400):
+    """Mean and spread of the first zero crossing along rays from the centre outwards."""
+    d = np.random.default_rng(0).normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radii = np.linspace(0.05, 0.44, 157)
+    sdf = np.stack([field.sdf_numpy(d * r) for r in radii], axis=1)
+    first = np.argmax(sdf > 0, axis=1)
+    return float(radii[first].mean()), float(radii[first].std())
+
+
+TINY = dataclasses.replace(SDF_PRESETS["test"], encoding=SMALL, iterations=12, hull_init_steps=10,
+                           rays_per_batch=64, samples_per_ray=6, eikonal_points=16, hull_resolution=16,
+                           device="cpu")
+
+
+@pytest.fixture(scope="module")
+def trained():
+    """The test preset on 8 analytic 40x40 sphere views (a few seconds on one thread)."""
+    torch.set_num_threads(1)
+    config = dataclasses.replace(SDF_PRESETS["test"], device="cpu")
+    return train_sdf(sphere_views(), config, bounds=BOUNDS)
+
+
+# ------------------------------------------------------------------------------------------------ encoding
+
+
+def test_hash_encoding_shapes_dense_and_hashed_levels():
+    enc = HashEncoding(SMALL)
+    assert enc.resolutions == (4, 8, 16, 32)
+    assert enc.n_dense == 2  # (8+1)^3 = 729 <= 1024 < (16+1)^3
+    # Dense tables (5^3 + 9^3 = 854 entries) padded to a multiple of T, then two hashed tables of T.
+    assert enc.table.shape == (1024 + 2 * 1024, 2)
+    x = torch.rand(37, 3)
+    feats, jac = enc(x, jacobian=True)
+    assert feats.shape == (37, 8) and jac.shape == (3, 37, 8)
+    feats_only, none = enc(x)
+    assert none is None and torch.equal(feats_only, feats)
+
+
+def test_hash_encoding_interpolates_a_linear_table_exactly():
+    # Dense level: table value = x index of the vertex -> interpolated feature = x01 * res, d/dx = res.
+    enc = HashEncoding(HashGridConfig(levels=1, features_per_level=2, log2_table_size=12, base_resolution=8,
+                                      finest_resolution=8))
+    idx = torch.arange(9 ** 3)
+    with torch.no_grad():
+        enc.table[:, 0] = (idx % 9).float()
+        enc.table[:, 1] = (idx // 81).float()  # z index
+    x = torch.tensor([[0.3, 0.7, 0.55], [0.0, 1.0, 0.999]])
+    with torch.no_grad():
+        feats, jac = enc(x, jacobian=True)
+    np.testing.assert_allclose(feats[:, 0], x[:, 0] * 8, atol=1e-5)
+    np.testing.assert_allclose(feats[:, 1], x[:, 2] * 8, atol=1e-4)
+    np.testing.assert_allclose(jac[0, :, 0], [8.0, 8.0], atol=1e-4)
+    np.testing.assert_allclose(jac[1, :, 0], [0.0, 0.0], atol=1e-4)
+    np.testing.assert_allclose(jac[2, :, 1], [8.0, 8.0], atol=1e-4)
+
+
+def test_gradient_flows_to_table_and_mlp():
+    field = SDFField(BOUNDS, SMALL, 16, 1)
+    # The geometric init gives the encoding's inputs zero weight (the field starts as a smooth sphere).
+    assert torch.all(field.layers[0].weight[:, 3:] == 0)
+    with torch.no_grad():
+        field.layers[0].weight[:, 3:].normal_(0, 0.1)
+    sdf, grad = field.sdf_and_gradient(torch.rand(50, 3) * 0.6 - 0.3)
+    (sdf.square().mean() + (grad.norm(dim=1) - 1).square().mean()).backward()
+    assert field.encoding.table.grad is not None and field.encoding.table.grad.abs().sum() > 0
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in field.parameters())
+
+
+def test_analytic_gradient_matches_autograd_and_finite_differences():
+    torch.manual_seed(0)
+    field = SDFField(BOUNDS, SMALL, 16, 2)
+    with torch.no_grad():
+        field.encoding.table.normal_(0, 0.05)
+        for layer in field.layers:
+            layer.weight.add_(torch.randn_like(layer.weight) * 0.1)
+    field.set_active_levels(3.5)  # a partly faded-in level too
+    x = torch.rand(64, 3) * 0.8 - 0.4
+    s_a, g_a = field.sdf_and_gradient(x, "analytic")
+    s_b, g_b = field.sdf_and_gradient(x, "autograd")
+    s_c, g_c = field.sdf_and_gradient(x.double().float(), "finite_difference", fd_step_m=1e-3)
+    torch.testing.assert_close(s_a, s_b)
+    torch.testing.assert_close(g_a, g_b, atol=1e-4, rtol=1e-4)
+    assert (g_c - g_b).abs().median() < 2e-2 * g_b.abs().mean()
+    # The parameter gradients of a loss on the normals agree too (no double backward on the analytic path).
+    g_a.square().sum().backward()
+    table_a = field.encoding.table.grad.clone()
+    field.zero_grad()
+    g_b.square().sum().backward()
+    torch.testing.assert_close(table_a, field.encoding.table.grad, atol=1e-3, rtol=1e-3)
+
+
+def test_field_sdf_in_metres_and_numpy_helpers():
+    field = SDFField(BOUNDS, SMALL, 16, 1, init_radius_m=0.2)  # geometric init: a sphere of radius 0.2 m
+    pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.0, 0.4]])
+    sdf = field.sdf_numpy(pts)
+    assert sdf.dtype == np.float32 and sdf.shape == (3,)
+    assert sdf[0] < -0.1 and abs(sdf[1]) < 0.05 and sdf[2] > 0.1
+    n = field.normals_numpy(np.array([[0.2, 0.0, 0.0], [0.0, -0.2, 0.0]]))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    assert n[0, 0] > 0.9 and n[1, 1] < -0.9
+
+
+# ------------------------------------------------------------------------------------------------ pre-fit
+
+
+def test_prefit_to_a_sphere_signed_distance():
+    grid = HullGrid(np.zeros((32, 32, 32), bool), BOUNDS)
+    centres = grid.centers()
+    sd = (np.linalg.norm(centres, axis=-1) - 0.25).astype(np.float32)
+    field = SDFField(BOUNDS, SMALL, 32, 1)
+    losses = fit_to_signed_distance(field, grid, sd, steps=150, points=1024, generator=torch.Generator().manual_seed(0))
+    assert losses[-1] < 0.2 * losses[0] and losses[-1] < 0.01
+    mean, spread = surface_radius(field)
+    assert abs(mean - 0.25) < 0.01 and spread < 0.01
+    with pytest.raises(ValueError, match="signed_distance must be"):
+        fit_to_signed_distance(field, grid, sd[1:], steps=1)
+
+
+# ------------------------------------------------------------------------------------------------ rendering
+
+
+def test_neus_composite_of_a_plane():
+    # Plane z = 0.5 (SDF 0.5 - z, normal -z) seen along +z: the weights peak at the crossing, sum to ~1 and
+    # the composited normal is the plane's.
+    t = torch.linspace(0.3, 0.7, 41).unsqueeze(0)
+    sdf = 0.5 - t
+    grad = torch.tensor([0.0, 0.0, -1.0]).expand(1, 41, 3)
+    dirs = torch.tensor([[0.0, 0.0, 1.0]])
+    weights, alpha = _neus_composite(sdf, grad, dirs, torch.tensor([0.01]), inv_s=200.0, cos_anneal=1.0)
+    assert weights.shape == (1, 41) and float(weights.sum()) == pytest.approx(1.0, abs=1e-3)
+    assert abs(float(t[0, int(weights.argmax())]) - 0.5) <= 0.01
+    normal = (weights.unsqueeze(-1) * grad).sum(1)
+    torch.testing.assert_close(normal, torch.tensor([[0.0, 0.0, -1.0]]), atol=1e-3, rtol=0)
+    # A ray that passes 5 cm in front of the plane (SDF >= 0.05) stays transparent.
+    miss, _ = _neus_composite(sdf + 0.25, grad, dirs, torch.tensor([0.01]), inv_s=200.0, cos_anneal=1.0)
+    assert float(miss.sum()) < 1e-3
+
+
+def test_render_view_of_a_sphere_field():
+    grid = HullGrid(np.zeros((32, 32, 32), bool), BOUNDS)
+    sd = (np.linalg.norm(grid.centers(), axis=-1) - 0.25).astype(np.float32)
+    field = SDFField(BOUNDS, SMALL, 32, 1)
+    fit_to_signed_distance(field, grid, sd, steps=150, points=1024)
+    K = np.array([[60.0, 0, 15.5], [0, 60.0, 15.5], [0, 0, 1]])
+    T = look_at(np.array([0.0, 0.0, 2.0]))
+    out = render_view(field, K, T, 32, 32)
+    assert out["depth_m"].shape == (32, 32) and out["normals_world"].shape == (32, 32, 3)
+    centre_depth = out["depth_m"][15:17, 15:17].mean()
+    assert centre_depth == pytest.approx(2.0 - 0.25, abs=0.01)
+    assert out["normals_world"][15:17, 15:17, 2].mean() > 0.95  # facing the camera at +z
+    assert out["opacity"][0, 0] == 0 and out["depth_m"][0, 0] == 0  # the corner misses the sphere
+    # Silhouette radius in pixels ~ f * r / sqrt(d^2 - r^2).
+    expected = np.pi * (60.0 * 0.25 / np.sqrt(4 - 0.0625)) ** 2
+    assert abs(out["opacity"].sum() - expected) < 0.15 * expected
+
+
+# ------------------------------------------------------------------------------------------------ training
+
+
+def test_training_on_analytic_sphere_lowers_normal_loss_and_finds_the_radius(trained):
+    history = trained.history
+    assert len(history["normal"]) >= 3
+    assert history["normal"][-1] < 0.5 * history["normal"][0]
+    assert all(np.isfinite(v) for k in history for v in history[k])
+    # The hull it starts from is ~6 cm too large (8 cones, 40x40 pixels of ~1.6 cm on the sphere).
+    hull_sd = trained.hull.signed_distance()
+    hull_mean, _ = surface_radius(type("Hull", (), {"sdf_numpy": lambda self, p: trained.hull.sample(hull_sd, p)})())
+    assert hull_mean > RADIUS + 0.04
+    mean, spread = surface_radius(trained.field)
+    assert abs(mean - RADIUS) < 0.015 and spread < 0.01
+    stats = trained.stats
+    assert stats["device"] == "cpu" and stats["iterations"] == SDF_PRESETS["test"].iterations
+    assert 0.5 < stats["samples_skipped_fraction"] < 1.0
+    assert (trained.bounds[0] >= BOUNDS[0]).all() and (trained.bounds[1] <= BOUNDS[1]).all()
+    assert trained.hull.contains(np.zeros((1, 3))).all()
+    assert next(trained.field.parameters()).device.type == "cpu"
+
+
+def test_same_seed_same_weights_other_seed_differs():
+    views = sphere_views(n=4, size=24)
+    a = train_sdf(views, TINY, bounds=BOUNDS)
+    b = train_sdf(views, TINY, bounds=BOUNDS)
+    c = train_sdf(views, dataclasses.replace(TINY, seed=1), bounds=BOUNDS)
+    sa, sb, sc = (r.field.state_dict() for r in (a, b, c))
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert not all(torch.equal(sa[k], sc[k]) for k in sa)
+    assert a.history["loss"] == b.history["loss"]
+
+
+def test_mask_only_ablation_runs_without_normal_loss():
+    result = train_sdf(sphere_views(n=4, size=24), dataclasses.replace(TINY, normal_supervision=False),
+                       bounds=BOUNDS)
+    assert result.history["normal"] and all(v == 0.0 for v in result.history["normal"])
+    assert result.stats["normal_supervision"] is False
+
+
+def test_state_round_trip(trained):
+    buffer = io.BytesIO()
+    torch.save(trained.field.to_state(), buffer)
+    buffer.seek(0)
+    state = torch.load(buffer, weights_only=False)
+    assert state["format"] == "ultrastage-sdf/1" and isinstance(state["config"]["bounds"], list)
+    field = SDFField.from_state(state)
+    pts = np.random.default_rng(2).uniform(-0.4, 0.4, (100, 3))
+    np.testing.assert_array_equal(field.sdf_numpy(pts), trained.field.sdf_numpy(pts))
+    with pytest.raises(ValueError, match="not an SDF state"):
+        SDFField.from_state({"format": "something else"})
+
+
+# ------------------------------------------------------------------------------------------------ checks
+
+
+def test_input_checks():
+    views = sphere_views(n=3, size=16)
+    with pytest.raises(ValueError, match="non-empty list"):
+        train_sdf([], TINY)
+    bad = dataclasses.replace(views[0], normals_world=views[0].normals_world[:, :-1])
+    with pytest.raises(ValueError, match=r"normals_world must be \(H, W, 3\)"):
+        train_sdf([bad] + views[1:], TINY)
+    empty = [dataclasses.replace(v, mask=np.zeros_like(v.mask)) for v in views]
+    with pytest.raises(ValueError, match="every mask is empty"):
+        train_sdf(empty, TINY)
+    nan = views[0].normals_world.copy()
+    nan[views[0].normal_valid] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        train_sdf([dataclasses.replace(views[0], normals_world=nan)] + views[1:], TINY)
+    with pytest.raises(ValueError, match="iterations"):
+        train_sdf(views, dataclasses.replace(TINY, iterations=0))
+    with pytest.raises(ValueError, match="outlier_fraction"):
+        train_sdf(views, dataclasses.replace(TINY, outlier_fraction=1.5))
+    with pytest.raises(ValueError, match="bounds"):
+        train_sdf(views, TINY, bounds=BOUNDS[::-1])
+    with pytest.raises(ValueError, match="rotation"):
+        train_sdf([dataclasses.replace(views[0], cam_from_world=views[0].cam_from_world * 3)] + views[1:], TINY)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA"):
+            train_sdf(views, dataclasses.replace(TINY, device="cuda"))
+
+
+def test_presets_are_valid_configs():
+    assert set(SDF_PRESETS) >= {"cpu", "production", "test"}
+    for config in SDF_PRESETS.values():
+        assert isinstance(config, SDFConfig)
+    assert SDF_PRESETS["production"].encoding.finest_resolution > SDF_PRESETS["cpu"].encoding.finest_resolution
