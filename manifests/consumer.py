@@ -279,6 +279,23 @@ class ActionView:
         """The action's transforms.json (per-frame K and transform_matrix)."""
         return self._load("transforms", None)
 
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The action's surface (``mesh/mesh.ply``): vertices (V, 3) float32 metres, world frame, and
+        faces (F, 3) int32."""
+        from pipeline.codecs.mesh import read_ply
+
+        path = self.path("mesh")
+        if not path.is_file():
+            raise FileNotFoundError(f"action {self.action_id}, mesh: file {path} is listed in the assets "
+                                    "table but missing on disk")
+        return read_ply(path)
+
+    def texture(self, name: str) -> np.ndarray:
+        """A baked texture of the UV atlas of ``mesh/textured.obj``: 'albedo' (T, T, 3), 'normal' (T, T, 3),
+        'view_count' or 'confidence' (T, T), float32; texel row 0 is v = 1 (OBJ convention)."""
+        data = self._load(f"texture_{name}", None)
+        return data[..., 0] if name in ("view_count", "confidence") and data.ndim == 3 else data
+
 
 def open_release(path: str | Path) -> Release:
     """Open a release folder (one with ``manifests/*.parquet``).

@@ -191,7 +191,8 @@ METRICS = TableSpec(
         Column("metric", _STR, "Metric name with its unit, e.g. 'normal_angular_error_mean_deg', "
                "'albedo_psnr_db', 'valid_fraction'."),
         Column("region", _STR, "Pixels the metric is taken over: 'valid' (alpha > 0.5), 'all' (subject "
-               "mask), 'occluded', 'unoccluded', ... ; '' when not applicable."),
+               "mask), 'occluded', 'unoccluded', 'mesh' (the action's mesh against the true surface), ... ; '' when "
+               "not applicable."),
         Column("value", _F64, "The value (finite)."),
         Column("source", _STR, "What produced the number, e.g. 'evaluate' (against ground truth), "
                "'photometric' (a stage's own statistics)."),

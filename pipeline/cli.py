@@ -240,7 +240,7 @@ def _add_run_args(p: argparse.ArgumentParser, capture_required: bool = True) -> 
     p.add_argument("--capture", required=capture_required, help="capture folder (capture.json inside)")
     p.add_argument("--release", required=True, help="release folder to write")
     p.add_argument("--work", help="artifact store and run logs (default: <release>.work beside the release)")
-    p.add_argument("--preset", default="default", help="config preset: default, production, fast")
+    p.add_argument("--preset", default="default", help="config preset: default, production (GPU, full-resolution captures), fast (quick looks), test (tiny captures)")
     p.add_argument("--config", help="YAML overrides, e.g. {decode: {demosaic: DCB}}; unknown keys are errors")
     p.add_argument("--scheduler", help="'local', 'sync' or a dask scheduler address")
     group = p.add_mutually_exclusive_group()

@@ -192,6 +192,7 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
         "mask_iou": float(np.mean(ious)) if ious else float("nan"),
         "actions_ok": float(len(ok_ids)), "actions_failed": float(len(actions) - len(ok_ids))}
     overall |= _camera_overall(rel, truth_dir, ok_ids)
+    overall |= _mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     for metric, value in overall.items():
         rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
@@ -199,6 +200,37 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     if rows:
         append_rows(release, "metrics", rows, ["action_id", "camera_id", "metric", "region", "source"])
     return EvaluationSummary(overall, per_action, rows)
+
+
+MESH_METRICS = ("chamfer_mm", "chamfer_pred_to_gt_mm", "chamfer_gt_to_pred_mm", "normal_consistency",
+                "fscore_1mm", "fscore_5mm", "mesh_faces")
+
+
+def _mesh_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
+                  rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
+    """Mesh accuracy of every published action that has a mesh, against the simulator's mesh; the
+    per-action values go to ``per_action`` and ``rows``, the means over actions are returned."""
+    from pipeline.codecs.mesh import read_ply
+    from stages.numerics.meshmetrics import mesh_metrics
+
+    values: dict[str, list[float]] = {k: [] for k in MESH_METRICS}
+    for action_id in ok_ids:
+        view = rel.action(action_id)
+        truth_mesh = truth_dir / action_id / "mesh.ply"
+        if "mesh" not in view.kinds or not truth_mesh.exists():
+            continue
+        pred_v, pred_f = read_ply(view.path("mesh"))
+        gt_v, gt_f = read_ply(truth_mesh)
+        metrics = mesh_metrics(pred_v, pred_f, gt_v, gt_f)
+        for key in MESH_METRICS:
+            value = float(metrics[key])
+            if not np.isfinite(value):
+                continue
+            values[key].append(value)
+            per_action.setdefault(action_id, {})[key] = value
+            rows.append({"action_id": action_id, "camera_id": None, "metric": key, "region": "mesh",
+                         "value": value, "source": "evaluate", "run_id": run_id})
+    return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
 def _camera_overall(rel: Any, truth_dir: Path, ok_ids: list[str]) -> dict[str, float]:
@@ -260,4 +292,9 @@ def print_overall(summary: EvaluationSummary) -> None:
         reprojection = f", reprojection {o['reprojection_err_px']:.3f} px" if "reprojection_err_px" in o else ""
         print(f"  cameras               : rotation {o['cam_rotation_err_deg']:.4f} deg, centre {o['cam_center_err_mm']:.2f} mm, "
               f"focal {o['cam_focal_err_pct']:.3f}%{reprojection}, {o['cameras_registered']:.0f} cameras")
+    if "chamfer_mm" in o:
+        print(f"  mesh                  : Chamfer {o['chamfer_mm']:.2f} mm (pred->gt {o.get('chamfer_pred_to_gt_mm', float('nan')):.2f}, "
+              f"gt->pred {o.get('chamfer_gt_to_pred_mm', float('nan')):.2f}), normal consistency "
+              f"{o.get('normal_consistency', float('nan')):.3f}, F-score {100 * o.get('fscore_1mm', float('nan')):.1f}% @1mm "
+              f"{100 * o.get('fscore_5mm', float('nan')):.1f}% @5mm, {o.get('mesh_faces', 0):.0f} faces")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

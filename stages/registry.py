@@ -8,11 +8,13 @@ from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage
 from stages.cameras import CamerasConfig, CamerasStage
 from stages.decode import DecodeConfig, DecodeStage, PlatesStage
+from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, TexturesStage
 from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
+from stages.numerics.sdf import SDF_PRESETS
 from stages.photometric import PhotometricConfig, PhotometricStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
-                                          PhotometricStage)
+                                          PhotometricStage, GeometryStage, TexturesStage)
 
 
 @dataclass(frozen=True)
@@ -27,6 +29,10 @@ class PipelineConfig:
     """Raw decoding (also used for the session's clean plates)."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """Normals, alpha, albedo and masks."""
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    """The normal-supervised neural SDF and its mesh."""
+    textures: TexturesConfig = field(default_factory=TexturesConfig)
+    """UV atlas and baked albedo/normal textures."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     """Where and how tasks run; never part of a cache key."""
 
@@ -34,18 +40,41 @@ class PipelineConfig:
 PRESETS: dict[str, PipelineConfig] = {
     # The embedded default capture is small (320 px wide), so full-size decoding is cheap.
     "default": PipelineConfig(),
-    # Full-resolution 24 MP captures: maps at half the sensor resolution are what the SDF uses.
-    "production": PipelineConfig(decode=DecodeConfig(demosaic="AHD", half_size=True)),
-    # Quick looks and tests: cheapest demosaic, in-process execution.
+    # Full-resolution 24 MP captures on a GPU: maps at half the sensor resolution are what the SDF uses.
+    "production": PipelineConfig(decode=DecodeConfig(demosaic="AHD", half_size=True),
+                                 geometry=GeometryConfig(sdf=SDF_PRESETS["production"], mesh_resolution=1024,
+                                                         face_budget=500_000),
+                                 textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4)),
+    # Quick looks: cheapest demosaic, in-process execution, a short SDF schedule.
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
+                           geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000),
+                           textures=TexturesConfig(atlas_faces=10_000, texture_size=512),
+                           execution=ExecutionConfig(scheduler="sync")),
+    # The test suite's tiny captures (a few cameras, ~100 px): every stage runs, in seconds.
+    "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
+                                                   face_budget=20_000, previews=True),
+                           textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
                            execution=ExecutionConfig(scheduler="sync")),
 }
 
 
-def build_stages(config: PipelineConfig) -> list[Stage]:
-    """One instance per stage class, each given its config section."""
+def build_stages(config: PipelineConfig, through: str | None = None) -> list[Stage]:
+    """One instance per stage class, each given its config section; with ``through``, only that stage
+    and what it needs upstream (e.g. ``through="photometric"`` leaves out the neural stages)."""
+    classes = STAGE_CLASSES
+    if through is not None:
+        by_name = {cls.name: cls for cls in STAGE_CLASSES}
+        if through not in by_name:
+            raise ValueError(f"through={through!r}: no such stage; stages are {sorted(by_name)}")
+        needed, todo = set(), [through]
+        while todo:
+            name = todo.pop()
+            if name not in needed:
+                needed.add(name)
+                todo += list(by_name[name].requires)
+        classes = tuple(cls for cls in STAGE_CLASSES if cls.name in needed)
     stages = []
-    for cls in STAGE_CLASSES:
+    for cls in classes:
         section = cls.config_section or cls.name
         stages.append(cls(getattr(config, section)))
     return stages

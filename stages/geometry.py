@@ -1,0 +1,269 @@
+"""Action stages ``geometry`` (normal-supervised neural SDF -> mesh) and ``textures`` (UV atlas + baking).
+
+Wiring only: the numerics are :mod:`stages.numerics.sdf` (NeuS with a hash encoding, trained from the
+photometric normal maps), :mod:`stages.numerics.mesh` (narrow-band marching cubes, components,
+decimation, xatlas) and :mod:`stages.numerics.bake` (texel reprojection into the cameras that see it).
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, read_png, write_png
+from pipeline.config import Documented
+from pipeline.errors import InputError
+from pipeline.stage import Stage, StageContext
+from stages.cameras import load_cameras
+from stages.numerics.sdf import SDF_PRESETS, SDFConfig
+
+
+def _numeric_threads() -> int:
+    """Threads for torch in this task: the share the executor gave this worker process."""
+    env = os.environ.get("ULTRASTAGE_NUMERIC_THREADS")
+    return max(1, int(env)) if env else max(1, min(os.cpu_count() or 1, 8))
+
+
+@dataclass(frozen=True)
+class GeometryConfig(Documented):
+    sdf: SDFConfig = field(default_factory=lambda: SDF_PRESETS["cpu"])
+    """The neural SDF: encoding, network, sampling, losses and schedule (presets in stages.numerics.sdf)."""
+    min_alpha: float = 0.5
+    """Photometric normals with a validity alpha below this are not used as supervision."""
+    min_views: int = 8
+    """Fail the action when fewer cameras have maps: the hull and the SDF are not constrained enough."""
+    mesh_resolution: int = 512
+    """Marching-cubes cells along the longest side of the SDF's bounding box (narrow band only)."""
+    face_budget: int = 200_000
+    """Quadric decimation target of the published mesh (mesh/mesh.ply)."""
+    previews: bool = True
+    """Write a loss-curve plot and rendered normals of the mesh beside the photometric ones."""
+
+
+@dataclass(frozen=True)
+class TexturesConfig(Documented):
+    atlas_faces: int = 40_000
+    """Faces of the textured mesh (xatlas time grows faster than linearly with faces)."""
+    texture_size: int = 1024
+    """Width and height of the texture atlas in texels."""
+    atlas_padding: int = 2
+    """Texels between charts in the atlas."""
+    max_views: int = 3
+    """A texel blends at most this many of the cameras that see it (the most frontal)."""
+    depth_tolerance_m: float = 0.01
+    """A texel is visible in a camera when its depth is within this of the mesh's depth there."""
+    min_cos: float = 0.2
+    """Cameras seeing a texel at more grazing angles than this cosine are not used."""
+    min_alpha: float = 0.5
+    """Map pixels with a lower validity alpha are not baked."""
+    previews: bool = True
+    """Write PNG previews of the textures."""
+
+
+def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:
+    """The calibrated cameras that have maps, as :class:`SDFView` records (sorted by camera id)."""
+    from stages.numerics.sdf import SDFView
+
+    cameras = load_cameras(decode_dir / "cameras.json")
+    ids, views = [], []
+    for cam_id in sorted(cameras):
+        path = photometric_dir / "normal_alpha" / f"{cam_id}.exr"
+        if not path.exists():  # missing camera (no calibration, or its frames failed)
+            continue
+        cam = cameras[cam_id]
+        normal_alpha = read_exr(path)
+        mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
+        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+        views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]),
+                             normal_valid=(normal_alpha[..., 3] > min_alpha) & mask, mask=mask,
+                             K=np.asarray(cam["K"], np.float64),
+                             cam_from_world=np.asarray(cam["cam_from_world"], np.float64)))
+        ids.append(cam_id)
+    return ids, views
+
+
+def _loss_plot(path: Path, history: dict[str, list[float]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    its = history.get("iteration", [])
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=100)
+    for name, values in history.items():
+        if name in ("iteration", "seconds") or len(values) != len(its) or not values:
+            continue
+        ax.plot(its, values, label=name)
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_title("SDF training losses")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _normals_comparison(vertices: np.ndarray, faces: np.ndarray, views: list[Any], ids: list[str],
+                        count: int = 4) -> np.ndarray:
+    """Rows of [photometric normals | mesh normals] for ``count`` cameras spread around the stage."""
+    from stages.numerics.raycast import render_mesh
+
+    picks = np.linspace(0, len(views) - 1, count).round().astype(int)
+    rows = []
+    for i in picks:
+        view = views[i]
+        h, w = view.mask.shape
+        rendered = render_mesh(vertices, faces, view.K, view.cam_from_world, h, w)
+        rows.append(np.concatenate([preview_normals(view.normals_world, view.normal_valid.astype(np.float32)),
+                                    preview_normals(rendered["normals_world"], rendered["hit"].astype(np.float32))],
+                                   axis=1))
+    return np.concatenate(rows, axis=1) if rows else np.zeros((1, 1, 3), np.uint8)
+
+
+class GeometryStage(Stage):
+    """Trains the SDF of one action from its normal maps and masks, then meshes it."""
+
+    name = "geometry"
+    version = "1"
+    scope = "action"
+    requires = ("decode", "photometric")
+    outputs = ("mesh", "sdf", "previews")
+    resources = {"GPU": 1}
+
+    def run(self, ctx: StageContext) -> dict[str, Any]:
+        import torch
+
+        from pipeline.codecs.mesh import write_ply
+        from stages.numerics.mesh import decimate, extract_mesh, largest_component, vertex_normals
+        from stages.numerics.sdf import train_sdf
+
+        torch.set_num_threads(_numeric_threads())
+        cfg: GeometryConfig = self.config
+        ids, views = load_sdf_views(ctx.upstream["decode"], ctx.upstream["photometric"], cfg.min_alpha)
+        if len(views) < cfg.min_views:
+            raise InputError(ctx.upstream["photometric"] / "normal_alpha",
+                             f"{len(views)} camera(s) have normal maps; the SDF needs at least {cfg.min_views}")
+        start = time.perf_counter()
+        total = cfg.sdf.iterations
+        step = max(1, total // 10)
+
+        def progress(iteration: int, record: dict[str, float]) -> None:
+            if iteration % step == 0 or iteration == total:
+                ctx.progress(iteration, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
+
+        result = train_sdf(views, cfg.sdf, progress=progress)
+        train_s = time.perf_counter() - start
+        out = ctx.out_dir
+        (out / "sdf").mkdir(parents=True, exist_ok=True)
+        torch.save(result.field.to_state(), out / "sdf" / "sdf.pt")
+        (out / "sdf" / "training.json").write_text(json.dumps(
+            {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
+             "history": result.history}, indent=1, default=float))
+
+        start = time.perf_counter()
+        vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds),
+                                                   cfg.mesh_resolution)
+        extracted_faces = len(faces)
+        vertices, faces = largest_component(vertices, faces)
+        vertices, faces = decimate(vertices, faces, cfg.face_budget)
+        if len(faces) == 0 or not np.all(np.isfinite(vertices)):
+            raise RuntimeError(f"the SDF of {ctx.scope_id} gave no usable surface (faces {len(faces)})")
+        write_ply(out / "mesh" / "mesh.ply", vertices, faces, normals=vertex_normals(vertices, faces))
+        mesh_s = time.perf_counter() - start
+        if cfg.previews:
+            _loss_plot(out / "previews" / "sdf_losses.png", result.history)
+            write_png(out / "previews" / "mesh_normals.png", _normals_comparison(vertices, faces, views, ids))
+        return {"cameras": len(views), "train_seconds": train_s, "mesh_seconds": mesh_s,
+                "faces_extracted": int(extracted_faces), "mesh_faces": int(len(faces)),
+                "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
+                "sdf": {k: v for k, v in result.stats.items() if isinstance(v, (int, float, str))},
+                "mesh": {k: v for k, v in mesh_stats.items() if isinstance(v, (int, float, str))}}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        files = [(artifact / "mesh" / "mesh.ply", "mesh/mesh.ply", "mesh", None)]
+        for name, kind in (("sdf_losses.png", "preview_sdf_losses"), ("mesh_normals.png", "preview_mesh_normals")):
+            if (artifact / "previews" / name).exists():
+                files.append((artifact / "previews" / name, f"previews/{name}", kind, None))
+        return files
+
+
+class TexturesStage(Stage):
+    """UV atlas of the decimated mesh and albedo/normal textures baked from the photometric maps."""
+
+    name = "textures"
+    version = "1"
+    scope = "action"
+    requires = ("geometry", "photometric", "decode")
+    outputs = ("mesh", "textures", "previews")
+
+    def run(self, ctx: StageContext) -> dict[str, Any]:
+        from pipeline.codecs.mesh import read_ply, write_obj
+        from stages.numerics.bake import BakeView, bake_textures
+        from stages.numerics.mesh import decimate, uv_atlas, vertex_normals
+
+        cfg: TexturesConfig = self.config
+        start = time.perf_counter()
+        vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")
+        vertices, faces = decimate(vertices, faces, cfg.atlas_faces)
+        atlas = uv_atlas(vertices, faces, resolution=cfg.texture_size, padding=cfg.atlas_padding)
+        atlas_s = time.perf_counter() - start
+
+        photometric, decoded = ctx.upstream["photometric"], ctx.upstream["decode"]
+        cameras = load_cameras(decoded / "cameras.json")
+        views = []
+        for cam_id in sorted(cameras):
+            path = photometric / "normal_alpha" / f"{cam_id}.exr"
+            if not path.exists():
+                continue
+            normal_alpha = read_exr(path)
+            mask = read_png(photometric / "mask" / f"{cam_id}.png")
+            mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+            views.append(BakeView(images={"albedo": read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3],
+                                          "normal": np.ascontiguousarray(normal_alpha[..., :3])},
+                                  valid=(normal_alpha[..., 3] > cfg.min_alpha) & mask,
+                                  K=np.asarray(cameras[cam_id]["K"], np.float64),
+                                  cam_from_world=np.asarray(cameras[cam_id]["cam_from_world"], np.float64)))
+        start = time.perf_counter()
+        baked = bake_textures(vertices, faces, atlas, views, cfg.texture_size, max_views=cfg.max_views,
+                              depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
+        bake_s = time.perf_counter() - start
+
+        out = ctx.out_dir
+        tex = out / "textures"
+        write_exr(tex / "albedo.exr", baked.textures["albedo"])
+        write_exr(tex / "normal.exr", baked.textures["normal"])
+        write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32))
+        write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32))
+        # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
+        write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
+        atlas_vertices = np.asarray(vertices)[atlas.vmapping]
+        write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
+                  normals=vertex_normals(atlas_vertices, atlas.faces),
+                  material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
+        if cfg.previews:
+            covered = baked.covered.astype(np.float32)
+            write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
+            write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
+        return {"atlas_faces": int(len(faces)), "atlas_seconds": atlas_s, "bake_seconds": bake_s,
+                "cameras": len(views),
+                "bake": {k: v for k, v in baked.stats.items() if isinstance(v, (int, float, str))}}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        files = []
+        for p in sorted((artifact / "mesh").iterdir()):
+            kind = {".obj": "mesh_textured", ".mtl": "mesh_material"}.get(p.suffix)
+            if kind:
+                files.append((p, f"mesh/{p.name}", kind, None))
+        for p in sorted((artifact / "textures").iterdir()):
+            kind = f"texture_{p.stem}" if p.suffix == ".exr" else f"texture_{p.stem}_preview"
+            files.append((p, f"textures/{p.name}", kind, None))
+        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
+            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
+        return files
