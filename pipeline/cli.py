@@ -88,7 +88,7 @@ def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
             if task is None:
                 cells.append("")
             elif task.status == "ran":
-                cells.append(f"ran {task.seconds:.1f}s")
+                cells.append(f"ran {task.seconds:.1f}s" if task.seconds < 100 else f"ran {task.seconds:.0f}s")
             elif task.status == "cached":
                 cells.append("cached")
             else:
@@ -97,7 +97,7 @@ def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
             m = metrics.get(scope, {})
             cells += [f"{m[k]:.2f}" if k in m else "" for k, _ in metric_cols]
         table.add_row(scope, *cells)
-    console = Console(width=max(120, Console().width))
+    console = Console(width=max(170, Console().width))
     console.print(table)
     for action, error in result.action_errors.items():
         console.print(f"[red]action {action} failed[/red]: {error}", markup=True, highlight=False)
