@@ -1,0 +1,312 @@
+"""G-buffers (world normal + albedo maps) for a new camera by depth-guided reprojection of captured views.
+
+Pure numerics, arrays in and arrays out; conventions of docs/CONTRACTS.md (world = stage frame, metres;
+OpenCV cameras, ``x_cam = R x_world + t``, pixel index ``i`` at continuous coordinate ``u = i``; images
+``(H, W[, C])`` float32, row 0 at the top).
+
+For each target pixel with a surface depth (rendered from the mesh or the SDF by the caller, e.g.
+:func:`stages.numerics.raycast.render_mesh`) the surface point is lifted to the world, projected into the
+``k`` captured views nearest to the target camera and looked up there bilinearly. A source contributes
+only where the point is *visible* in it: each of the four bilinear taps is used only when the source's own
+mesh depth at that tap agrees with the point's depth in the source camera (within ``depth_tolerance_m``)
+and the source map is valid there; the bilinear weights are renormalised over the taps used, so the colour
+or normal of an occluder in front of the point never leaks in. The sum of the used taps' bilinear weights
+(in [0, 1]) is the source's soft visibility of the point.
+
+The contributions are blended with per-source weights (``weighting``):
+
+- ``"uniform"``: visibility only;
+- ``"angle"``: visibility times ``exp(-theta^2 / (2 sigma^2))``, ``theta`` the angle at the point between
+  the rays to the target and to the source camera centres (a view seeing the point from the same
+  direction sees the same thing: same foreshortening, same view-dependent residue in the maps);
+- ``"angle_distance"``: also times ``(f_s / d_s)^2 / (f_t / d_t)^2``, the source's sampling density of
+  the surface (focal length in pixels over distance to the point) relative to the target's, so a farther
+  or wider camera, which blurs the surface more, counts less;
+- ``"angle_distance_grazing"``: also times ``max(n_s . v_s, 0)``, the cosine between the source's own
+  (sampled) normal and its ray to the camera: photometric normals and albedo degrade toward the
+  silhouette (foreshortened, mixed pixels), so grazing observations count less.
+
+Normals are blended as vectors and renormalised; albedo is blended linearly (same scale as the sources).
+No output holds NaN or Inf.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+__all__ = ["SourceView", "WEIGHTINGS", "camera_centre", "nearest_views", "reproject_gbuffer"]
+
+WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
+
+
+@dataclass(frozen=True)
+class SourceView:
+    """One captured view used as a source of reprojection.
+
+    Attributes:
+        normal: (H, W, 3) float32 unit world normals (0 where undefined).
+        albedo: (H, W, 3) float32 linear sRGB albedo.
+        valid: (H, W) bool where the maps hold data (e.g. photometric alpha > 0.5 and the subject mask).
+        K: (3, 3) intrinsics. cam_from_world: (3, 4) ``[R | t]``.
+        depth_m: (H, W) float32 camera z of the mesh seen by this camera (0 where no surface): the
+            visibility test compares against it.
+    """
+
+    normal: np.ndarray
+    albedo: np.ndarray
+    valid: np.ndarray
+    K: np.ndarray
+    cam_from_world: np.ndarray
+    depth_m: np.ndarray
+
+
+def _pose(cam_from_world: np.ndarray, name: str = "cam_from_world") -> np.ndarray:
+    P = np.asarray(cam_from_world, dtype=np.float64)
+    if P.shape == (4, 4):
+        P = P[:3]
+    if P.shape != (3, 4):
+        raise ValueError(f"{name} must be (3, 4) or (4, 4), got {P.shape}")
+    if not np.all(np.isfinite(P)):
+        raise ValueError(f"{name} holds non-finite values")
+    return P
+
+
+def _intrinsics(K: np.ndarray, name: str = "K") -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"{name} must be (3, 3), got {K.shape}")
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"{name} must be finite with positive focal lengths, got {K.tolist()}")
+    return K
+
+
+def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
+    """World position of a camera centre: ``-R^T t``.
+
+    Args:
+        cam_from_world: (3, 4) or (4, 4), or a stack (N, 3, 4).
+
+    Returns:
+        (3,) (or (N, 3)) float64.
+    """
+    P = np.asarray(cam_from_world, dtype=np.float64)
+    if P.ndim == 2:
+        P = _pose(P)
+        return -P[:, :3].T @ P[:, 3]
+    if P.ndim != 3 or P.shape[-2:] not in ((3, 4), (4, 4)):
+        raise ValueError(f"cam_from_world must be (3, 4), (4, 4) or (N, 3, 4), got {P.shape}")
+    return -np.einsum("nji,nj->ni", P[:, :3, :3], P[:, :3, 3])
+
+
+def nearest_views(target_cam_from_world: np.ndarray, source_cam_from_worlds: Sequence[np.ndarray] | np.ndarray,
+                  k: int = 6, subject_centre: np.ndarray | Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Indices of the ``k`` sources whose direction from the subject is closest to the target's.
+
+    The angle compared is the one at ``subject_centre`` between the directions to the camera centres
+    (not between the optical axes): two cameras that look at the subject from the same side see the same
+    surface with the same foreshortening even when their axes are tilted differently, and on a light
+    stage every camera looks at the stage centre (the world origin, the default), so this is the
+    angle the per-pixel blend weights use, evaluated at the centre of the subject.
+
+    Args:
+        target_cam_from_world: (3, 4) target camera.
+        source_cam_from_worlds: (N, 3, 4) (or a list of (3, 4)) source cameras.
+        k: how many; ``min(k, N)`` are returned.
+        subject_centre: (3,) world point the directions start from.
+
+    Returns:
+        (min(k, N),) int64 indices into the sources, nearest first (ties by index).
+    """
+    if int(k) != k or k < 1:
+        raise ValueError(f"k must be a positive integer, got {k}")
+    target = _pose(target_cam_from_world, "target_cam_from_world")
+    sources = [_pose(P, f"source_cam_from_worlds[{i}]") for i, P in enumerate(source_cam_from_worlds)]
+    if not sources:
+        raise ValueError("nearest_views: no source cameras")
+    centre = np.asarray(subject_centre, dtype=np.float64)
+    if centre.shape != (3,) or not np.all(np.isfinite(centre)):
+        raise ValueError(f"subject_centre must be a finite (3,) point, got {centre!r}")
+
+    def direction(P: np.ndarray) -> np.ndarray:
+        d = camera_centre(P) - centre
+        n = np.linalg.norm(d)
+        if n < 1e-9:
+            raise ValueError("a camera centre coincides with subject_centre: no viewing direction")
+        return d / n
+
+    t = direction(target)
+    angles = np.array([np.arctan2(np.linalg.norm(np.cross(t, direction(P))), float(t @ direction(P)))
+                       for P in sources])
+    return np.argsort(angles, kind="stable")[: min(int(k), len(sources))].astype(np.int64)
+
+
+def _check_source(i: int, s: SourceView) -> tuple[np.ndarray, ...]:
+    depth = np.asarray(s.depth_m, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"sources[{i}].depth_m must be (H, W), got {depth.shape}")
+    h, w = depth.shape
+    normal = np.asarray(s.normal, dtype=np.float32)
+    albedo = np.asarray(s.albedo, dtype=np.float32)
+    valid = np.asarray(s.valid).astype(bool, copy=False)
+    for name, arr, shape in (("normal", normal, (h, w, 3)), ("albedo", albedo, (h, w, 3)), ("valid", valid, (h, w))):
+        if arr.shape != shape:
+            raise ValueError(f"sources[{i}].{name} must be {shape} like its depth_m, got {arr.shape}")
+    # sanitise: undefined values never travel into the blend
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+    finite = np.all(np.isfinite(normal), axis=-1) & np.all(np.isfinite(albedo), axis=-1)
+    valid = valid & finite & (depth > 0)
+    normal = np.nan_to_num(normal, nan=0.0, posinf=0.0, neginf=0.0)
+    albedo = np.nan_to_num(albedo, nan=0.0, posinf=0.0, neginf=0.0)
+    return normal, albedo, valid, depth, _intrinsics(s.K, f"sources[{i}].K"), _pose(s.cam_from_world, f"sources[{i}].cam_from_world")
+
+
+def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, valid: np.ndarray,
+                       maps: tuple[np.ndarray, ...], tolerance: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Bilinear lookup of ``maps`` at the projections of ``point_cam`` (N, 3) using only taps whose
+    depth matches the point's z and where ``valid``; returns the used taps' bilinear weight sum (N,) and
+    the renormalised samples (N, C) per map (0 where nothing was used)."""
+    h, w = depth.shape
+    z = point_cam[:, 2]
+    in_front = z > 1e-6
+    zs = np.where(in_front, z, 1.0)
+    u = K[0, 0] * point_cam[:, 0] / zs + K[0, 1] * point_cam[:, 1] / zs + K[0, 2]
+    v = K[1, 1] * point_cam[:, 1] / zs + K[1, 2]
+    u = np.where(in_front & np.isfinite(u), u, -10.0)
+    v = np.where(in_front & np.isfinite(v), v, -10.0)
+    u0 = np.floor(u).astype(np.int64)
+    v0 = np.floor(v).astype(np.int64)
+    fu = (u - u0).astype(np.float32)
+    fv = (v - v0).astype(np.float32)
+    coverage = np.zeros(len(z), np.float32)
+    sums = [np.zeros((len(z), m.shape[-1]), np.float32) for m in maps]
+    for du, dv, bw in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
+        uu, vv = u0 + du, v0 + dv
+        inside = in_front & (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+        uc, vc = np.clip(uu, 0, w - 1), np.clip(vv, 0, h - 1)
+        tap_depth = depth[vc, uc]
+        use = inside & valid[vc, uc] & (tap_depth > 0) & (np.abs(tap_depth - z) <= tolerance)
+        bw = np.where(use, bw, 0.0).astype(np.float32)
+        coverage += bw
+        for acc, m in zip(sums, maps):
+            acc += bw[:, None] * m[vc, uc]
+    inv = np.divide(1.0, coverage, out=np.zeros_like(coverage), where=coverage > 1e-6)
+    return coverage * (coverage > 1e-6), [acc * inv[:, None] for acc in sums]
+
+
+def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+                      sources: Sequence[SourceView], k: int = 6, depth_tolerance_m: float = 0.01,
+                      weighting: str = "angle_distance", angle_sigma_deg: float = 20.0,
+                      subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
+                      source_indices: Sequence[int] | None = None) -> dict[str, np.ndarray]:
+    """Normal and albedo maps of a target camera blended from the ``k`` nearest visible source views.
+
+    Args:
+        target_depth_m: (H, W) camera z of the surface seen by the target (0 = no surface there).
+        K: (3, 3) target intrinsics. cam_from_world: (3, 4) target pose.
+        sources: the captured views (:class:`SourceView`; any size each).
+        k: number of nearest sources (by :func:`nearest_views`) looked up per pixel.
+        depth_tolerance_m: a source tap is visible when its mesh depth is within this of the point's
+            depth in that source.
+        weighting: one of :data:`WEIGHTINGS` (see the module docstring).
+        angle_sigma_deg: width of the angular weight.
+        subject_centre: (3,) centre used to pick the nearest views.
+        source_indices: use these sources instead of the ``k`` nearest.
+
+    Returns:
+        ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,
+        ``weight`` (H, W) float32 total blend weight (relative units: 1 = one fully visible source seen
+        head-on from the target's direction and distance), ``valid`` (H, W) bool (a surface and at
+        least one visible source), ``view_count`` (H, W) int32 sources that contributed, ``sources``
+        (k,) int64 indices of the sources used.
+    """
+    depth = np.asarray(target_depth_m)
+    if depth.ndim != 2 or depth.size == 0:
+        raise ValueError(f"target_depth_m must be a non-empty (H, W) map, got {depth.shape}")
+    if not np.all(np.isfinite(depth)):
+        raise ValueError("target_depth_m holds NaN or Inf (use 0 for 'no surface')")
+    if np.any(depth < 0):
+        raise ValueError("target_depth_m holds negative depths (use 0 for 'no surface')")
+    K = _intrinsics(K)
+    P = _pose(cam_from_world)
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    if not (depth_tolerance_m > 0) or not np.isfinite(depth_tolerance_m):
+        raise ValueError(f"depth_tolerance_m must be positive, got {depth_tolerance_m}")
+    if not (angle_sigma_deg > 0) or not np.isfinite(angle_sigma_deg):
+        raise ValueError(f"angle_sigma_deg must be positive, got {angle_sigma_deg}")
+    if len(sources) == 0:
+        raise ValueError("reproject_gbuffer: no source views")
+    if source_indices is None:
+        chosen = nearest_views(P, [s.cam_from_world for s in sources], k, subject_centre)
+    else:
+        chosen = np.asarray(source_indices, dtype=np.int64).reshape(-1)
+        if chosen.size == 0 or chosen.min() < 0 or chosen.max() >= len(sources):
+            raise ValueError(f"source_indices must index the {len(sources)} sources, got {chosen.tolist()}")
+
+    h, w = depth.shape
+    has = depth > 0
+    rows, cols = np.nonzero(has)
+    z = depth[rows, cols].astype(np.float64)
+    # lift: x_cam = z K^-1 [u, v, 1], x_world = R^T (x_cam - t)
+    y_cam = (rows - K[1, 2]) / K[1, 1]
+    x_cam = (cols - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
+    pts_cam = np.stack([x_cam * z, y_cam * z, z], axis=-1)
+    R, t = P[:, :3], P[:, 3]
+    pts = (pts_cam - t) @ R  # rows of R^T (x - t)
+    c_target = camera_centre(P)
+    to_target = c_target - pts
+    dist_target = np.linalg.norm(to_target, axis=-1)
+    to_target /= np.maximum(dist_target, 1e-12)[:, None]
+    density_target = (K[0, 0] / np.maximum(dist_target, 1e-12)) ** 2
+    sigma = np.radians(angle_sigma_deg)
+
+    n = len(rows)
+    normal_acc = np.zeros((n, 3), np.float64)
+    albedo_acc = np.zeros((n, 3), np.float64)
+    weight_acc = np.zeros(n, np.float64)
+    count = np.zeros(n, np.int32)
+    for i in chosen:
+        s_normal, s_albedo, s_valid, s_depth, s_K, s_P = _check_source(int(i), sources[int(i)])
+        pc = pts @ s_P[:, :3].T + s_P[:, 3]
+        visibility, (nrm, alb) = _sample_consistent(pc, s_K, s_depth, s_valid, (s_normal, s_albedo),
+                                                    float(depth_tolerance_m))
+        wgt = visibility.astype(np.float64)
+        if weighting != "uniform":
+            to_src = camera_centre(s_P) - pts
+            dist_src = np.linalg.norm(to_src, axis=-1)
+            to_src /= np.maximum(dist_src, 1e-12)[:, None]
+            cosang = np.clip(np.einsum("ij,ij->i", to_src, to_target), -1.0, 1.0)
+            sinang = np.linalg.norm(np.cross(to_src, to_target), axis=-1)
+            theta = np.arctan2(sinang, cosang)
+            wgt = wgt * np.exp(-0.5 * (theta / sigma) ** 2)
+            if weighting in ("angle_distance", "angle_distance_grazing"):
+                wgt = wgt * ((s_K[0, 0] / np.maximum(dist_src, 1e-12)) ** 2 / density_target)
+            if weighting == "angle_distance_grazing":
+                wgt = wgt * np.clip(np.einsum("ij,ij->i", nrm.astype(np.float64), to_src), 0.0, 1.0)
+        wgt = np.where(np.isfinite(wgt), wgt, 0.0)
+        normal_acc += wgt[:, None] * nrm
+        albedo_acc += wgt[:, None] * alb
+        weight_acc += wgt
+        count += (wgt > 0).astype(np.int32)
+
+    ok = weight_acc > 1e-12
+    inv = np.divide(1.0, weight_acc, out=np.zeros_like(weight_acc), where=ok)
+    albedo_px = albedo_acc * inv[:, None]
+    norm = np.linalg.norm(normal_acc, axis=-1)
+    ok &= norm > 1e-9  # opposite normals that cancel carry no direction
+    normal_px = np.divide(normal_acc, norm[:, None], out=np.zeros_like(normal_acc), where=ok[:, None])
+
+    out_normal = np.zeros((h, w, 3), np.float32)
+    out_albedo = np.zeros((h, w, 3), np.float32)
+    out_weight = np.zeros((h, w), np.float32)
+    out_count = np.zeros((h, w), np.int32)
+    out_valid = np.zeros((h, w), bool)
+    out_normal[rows, cols] = np.where(ok[:, None], normal_px, 0.0)
+    out_albedo[rows, cols] = np.where(ok[:, None], albedo_px, 0.0)
+    out_weight[rows, cols] = np.where(ok, weight_acc, 0.0)
+    out_count[rows, cols] = np.where(ok, count, 0)
+    out_valid[rows, cols] = ok
+    return {"normal": out_normal, "albedo": out_albedo, "weight": out_weight, "valid": out_valid,
+            "view_count": out_count, "sources": chosen}
