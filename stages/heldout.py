@@ -118,10 +118,14 @@ class _LazySource(SourceView):
 def compare_maps(normal: np.ndarray, albedo: np.ndarray, ref_normal: np.ndarray, ref_albedo: np.ndarray,
                  mask: np.ndarray) -> dict[str, Any]:
     """Errors of synthesised maps against reference ones over ``mask`` (H, W) bool: the pixel errors (for
-    pooling over views) and the view's SSIM."""
+    pooling over views) and the view's SSIM (mean of the SSIM map over the mask, both images zeroed
+    outside it)."""
     err = angular_error_deg(normal, ref_normal)[mask].astype(np.float64)
     sq = ((albedo.astype(np.float64) - ref_albedo) ** 2)[mask].ravel()
-    value = ssim(albedo, ref_albedo, mask) if mask.any() else float("nan")
+    # SSIM windows at the mask's edge see neighbours outside it: both images hold 0 there, so what lies
+    # beyond the compared pixels (background, unsynthesised pixels) neither helps nor hurts
+    keep = mask[..., None]
+    value = ssim(np.where(keep, albedo, 0.0), np.where(keep, ref_albedo, 0.0), mask) if mask.any() else float("nan")
     return {"angle_deg": err, "albedo_sq": sq, "ssim": float(value), "pixels": int(mask.sum())}
 
 

@@ -1,0 +1,243 @@
+"""Tests of stages.numerics.gbuffer (reprojected G-buffers) on analytic spheres seen by synthetic cameras."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.numerics.gbuffer import WEIGHTINGS, SourceView, camera_centre, nearest_views, reproject_gbuffer
+from stages.numerics.metrics import angular_error_deg
+from stages.numerics.raycast import camera_rays
+
+H = W = 64
+K = np.array([[150.0, 0.0, 31.5], [0.0, 150.0, 31.5], [0.0, 0.0, 1.0]])
+MAIN = (np.zeros(3), 0.5)  # centre, radius (metres)
+
+
+def look_at(eye, target=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """OpenCV cam_from_world (3, 4) of a camera at ``eye`` looking at ``target`` with world +y up."""
+    eye = np.asarray(eye, float)
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, -1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return np.concatenate([R, (-R @ eye)[:, None]], axis=1)
+
+
+def ring_camera(angle_deg: float, radius: float = 3.0, height: float = 0.0) -> np.ndarray:
+    a = np.radians(angle_deg)
+    return look_at([radius * np.sin(a), height, radius * np.cos(a)])
+
+
+def main_albedo(points: np.ndarray) -> np.ndarray:
+    """Smooth analytic albedo of the main sphere (so bilinear lookups are exact to first order)."""
+    return (0.5 + 0.4 * points).astype(np.float32)
+
+
+def render_spheres(P: np.ndarray, spheres, occluder_albedo: float = 5.0) -> dict[str, np.ndarray]:
+    """Analytic ray casting of spheres: depth (camera z), world normal, albedo (main sphere: main_albedo,
+    others: the constant ``occluder_albedo``), hit."""
+    origins, dirs, z_per_t = camera_rays(K, P, H, W)
+    best_t = np.full(len(dirs), np.inf)
+    normal = np.zeros((len(dirs), 3))
+    albedo = np.zeros((len(dirs), 3), np.float32)
+    for idx, (centre, radius) in enumerate(spheres):
+        oc = origins - centre
+        b = np.einsum("ij,ij->i", oc, dirs)
+        disc = b * b - (np.einsum("ij,ij->i", oc, oc) - radius * radius)
+        t = -b - np.sqrt(np.maximum(disc, 0.0))
+        closer = (disc > 0) & (t > 0) & (t < best_t)
+        best_t[closer] = t[closer]
+        pts = origins[closer] + t[closer, None] * dirs[closer]
+        normal[closer] = (pts - centre) / radius
+        albedo[closer] = main_albedo(pts) if idx == 0 else occluder_albedo
+    hit = np.isfinite(best_t)
+    depth = np.where(hit, np.where(hit, best_t, 0.0) * z_per_t, 0.0)
+    return {"depth_m": depth.reshape(H, W).astype(np.float32), "normal": normal.reshape(H, W, 3).astype(np.float32),
+            "albedo": albedo.reshape(H, W, 3), "hit": hit.reshape(H, W)}
+
+
+def source_from(P: np.ndarray, spheres) -> SourceView:
+    r = render_spheres(P, spheres)
+    return SourceView(normal=r["normal"], albedo=r["albedo"], valid=r["hit"], K=K, cam_from_world=P,
+                      depth_m=r["depth_m"])
+
+
+def interior(hit: np.ndarray, margin: int = 3) -> np.ndarray:
+    from scipy import ndimage
+
+    return ndimage.binary_erosion(hit, iterations=margin)
+
+
+# ------------------------------------------------------------------------------------------------ cameras
+
+
+def test_camera_centre_single_and_stack():
+    P = ring_camera(30.0)
+    c = camera_centre(P)
+    assert np.allclose(c, [3.0 * np.sin(np.radians(30)), 0.0, 3.0 * np.cos(np.radians(30))])
+    stack = camera_centre(np.stack([P, ring_camera(-90.0)]))
+    assert stack.shape == (2, 3) and np.allclose(stack[1], [-3.0, 0.0, 0.0], atol=1e-12)
+
+
+def test_nearest_views_orders_by_angle_from_subject():
+    sources = [ring_camera(a) for a in (0.0, 90.0, 40.0, -20.0, 180.0)]
+    target = ring_camera(25.0)
+    assert nearest_views(target, sources, k=3).tolist() == [2, 0, 3]
+    assert nearest_views(target, sources, k=10).tolist() == [2, 0, 3, 1, 4]
+    # the camera's distance and axis tilt do not matter, only its direction from the subject centre
+    far_tilted = look_at([6.0 * np.sin(np.radians(24.0)), 0.0, 6.0 * np.cos(np.radians(24.0))], target=(0.2, 0.1, 0))
+    assert nearest_views(target, sources + [far_tilted], k=1).tolist() == [5]
+
+
+def test_nearest_views_input_checks():
+    with pytest.raises(ValueError, match="k must"):
+        nearest_views(ring_camera(0.0), [ring_camera(10.0)], k=0)
+    with pytest.raises(ValueError, match="no source"):
+        nearest_views(ring_camera(0.0), [], k=2)
+    with pytest.raises(ValueError, match="must be"):
+        nearest_views(np.eye(3), [ring_camera(10.0)])
+
+
+# ------------------------------------------------------------------------------------------------ reprojection
+
+
+@pytest.fixture(scope="module")
+def sphere_scene():
+    sources = [source_from(ring_camera(a, height=h), [MAIN])
+               for a, h in ((-40.0, 0.0), (-15.0, 0.8), (10.0, -0.6), (35.0, 0.3), (60.0, 0.0), (180.0, 0.0))]
+    target_P = ring_camera(12.0, height=0.2)
+    target = render_spheres(target_P, [MAIN])
+    return sources, target_P, target
+
+
+@pytest.mark.parametrize("weighting", WEIGHTINGS)
+def test_reprojection_matches_analytic_sphere(sphere_scene, weighting):
+    sources, target_P, target = sphere_scene
+    out = reproject_gbuffer(target["depth_m"], K, target_P, sources, k=5, depth_tolerance_m=0.05,
+                            weighting=weighting)
+    assert out["normal"].shape == (H, W, 3) and out["albedo"].shape == (H, W, 3)
+    assert out["weight"].shape == (H, W) and out["valid"].shape == (H, W) and out["view_count"].shape == (H, W)
+    assert out["valid"].dtype == bool
+    # the camera behind the subject is never among the 5 nearest
+    assert 5 not in out["sources"].tolist()
+    inner = interior(target["hit"])
+    assert out["valid"][inner].mean() > 0.99
+    err = angular_error_deg(out["normal"], target["normal"])[inner & out["valid"]]
+    assert err.mean() < 0.5 and err.max() < 3.0
+    alb = np.abs(out["albedo"] - target["albedo"])[inner & out["valid"]]
+    assert alb.mean() < 0.003 and alb.max() < 0.03
+    n = np.linalg.norm(out["normal"][out["valid"]], axis=-1)
+    assert np.allclose(n, 1.0, atol=1e-5)
+    assert np.all(out["view_count"][inner] >= 2) and out["view_count"].max() <= 5
+    assert np.all(out["weight"][out["valid"]] > 0)
+
+
+def test_no_depth_pixels_are_invalid_and_zero(sphere_scene):
+    sources, target_P, target = sphere_scene
+    depth = target["depth_m"].copy()
+    depth[:, : W // 2] = 0.0  # the left half has no surface
+    out = reproject_gbuffer(depth, K, target_P, sources, k=4, depth_tolerance_m=0.05)
+    assert not out["valid"][:, : W // 2].any()
+    assert not out["valid"][~target["hit"]].any()  # background: no depth -> invalid
+    for key in ("normal", "albedo", "weight", "view_count"):
+        assert np.all(out[key][:, : W // 2] == 0)
+    assert out["valid"][:, W // 2:][interior(target["hit"])[:, W // 2:]].mean() > 0.99
+    empty = reproject_gbuffer(np.zeros((H, W), np.float32), K, target_P, sources)
+    assert not empty["valid"].any() and np.all(empty["normal"] == 0)
+
+
+def test_occluder_hides_source_and_gets_no_weight():
+    """A small sphere in front of the main one, seen only by source 0: where it hides the main sphere
+    there, source 0 must give no weight (the occluder's albedo 5.0 must not leak anywhere)."""
+    P0, P1 = ring_camera(-20.0), ring_camera(25.0)
+    eye0 = camera_centre(P0)
+    occluder = (0.5 * eye0 / np.linalg.norm(eye0) * 1.5, 0.15)  # on source 0's line of sight, 0.75 m out
+    scene = [MAIN, occluder]
+    src0, src1 = source_from(P0, scene), source_from(P1, scene)
+    target_P = ring_camera(5.0)
+    target = render_spheres(target_P, [MAIN])  # the target depth sees only the main sphere
+    hidden_in_0 = (src0.albedo[..., 0] == 5.0).sum()
+    assert hidden_in_0 > 30  # the occluder covers a patch of source 0
+    alone = reproject_gbuffer(target["depth_m"], K, target_P, [src0], source_indices=[0], depth_tolerance_m=0.05)
+    both = reproject_gbuffer(target["depth_m"], K, target_P, [src0, src1], k=2, depth_tolerance_m=0.05)
+    clear = reproject_gbuffer(target["depth_m"], K, target_P, [source_from(P0, [MAIN])], source_indices=[0],
+                              depth_tolerance_m=0.05)
+    inner = interior(target["hit"])
+    # pixels whose point source 0 would see but for the occluder: invalid with source 0 alone, one view
+    # (source 1) with both
+    shadowed = inner & clear["valid"] & ~alone["valid"]
+    assert shadowed.sum() > 20
+    only1 = reproject_gbuffer(target["depth_m"], K, target_P, [src1], source_indices=[0], depth_tolerance_m=0.05)
+    seen1 = shadowed & only1["valid"]
+    assert seen1.sum() > 20
+    assert np.all(both["view_count"][seen1] == 1) and both["valid"][seen1].all()
+    assert not both["valid"][shadowed & ~only1["valid"]].any()  # hidden from both: no data
+    for out in (alone, both):
+        ok = out["valid"]
+        assert out["albedo"][ok].max() < 1.0  # main albedo is 0.3..0.7: no occluder colour anywhere
+        err = angular_error_deg(out["normal"], target["normal"])[ok & inner]
+        assert err.mean() < 0.5
+    # with both sources the occluded pixels match the analytic values (from source 1 alone)
+    assert np.abs(both["albedo"] - target["albedo"])[seen1].max() < 0.03
+
+
+def test_nan_in_source_maps_never_reaches_outputs(sphere_scene):
+    sources, target_P, target = sphere_scene
+    s = sources[1]
+    normal = s.normal.copy()
+    normal[20:40, 20:40] = np.nan
+    albedo = s.albedo.copy()
+    albedo[10:20, 30:50] = np.inf
+    bad = SourceView(normal=normal, albedo=albedo, valid=s.valid, K=s.K, cam_from_world=s.cam_from_world,
+                     depth_m=s.depth_m)
+    out = reproject_gbuffer(target["depth_m"], K, target_P, [sources[0], bad, sources[2]], k=3,
+                            depth_tolerance_m=0.05)
+    for key in ("normal", "albedo", "weight"):
+        assert np.all(np.isfinite(out[key]))
+    assert out["valid"][interior(target["hit"])].mean() > 0.99
+
+
+def test_reproject_input_checks(sphere_scene):
+    sources, target_P, target = sphere_scene
+    d = target["depth_m"]
+    with pytest.raises(ValueError, match="target_depth_m"):
+        reproject_gbuffer(d[..., None], K, target_P, sources)
+    with pytest.raises(ValueError, match="NaN"):
+        reproject_gbuffer(np.where(target["hit"], np.nan, 0.0), K, target_P, sources)
+    with pytest.raises(ValueError, match="negative"):
+        reproject_gbuffer(-d, K, target_P, sources)
+    with pytest.raises(ValueError, match="K must"):
+        reproject_gbuffer(d, K[:2], target_P, sources)
+    with pytest.raises(ValueError, match="weighting"):
+        reproject_gbuffer(d, K, target_P, sources, weighting="median")
+    with pytest.raises(ValueError, match="no source"):
+        reproject_gbuffer(d, K, target_P, [])
+    with pytest.raises(ValueError, match="source_indices"):
+        reproject_gbuffer(d, K, target_P, sources, source_indices=[len(sources)])
+    with pytest.raises(ValueError, match="depth_tolerance_m"):
+        reproject_gbuffer(d, K, target_P, sources, depth_tolerance_m=0.0)
+    s = sources[0]
+    wrong = SourceView(normal=s.normal[:-1], albedo=s.albedo, valid=s.valid, K=s.K,
+                       cam_from_world=s.cam_from_world, depth_m=s.depth_m)
+    with pytest.raises(ValueError, match=r"sources\[0\]\.normal"):
+        reproject_gbuffer(d, K, target_P, [wrong], source_indices=[0])
+
+
+# ------------------------------------------------------------------------------------------------ held-out helpers
+
+
+def test_spread_heldout_and_summary():
+    from stages.heldout import spread_heldout, summarise
+
+    cams = {f"{i:05d}": {"cam_from_world": ring_camera(i * 30.0)} for i in range(12)}
+    assert spread_heldout(cams, 2) == ("00000", "00006")  # the opposite side of the ring
+    part = {"angle_deg": np.array([1.0, 4.0, 10.0, 30.0]), "albedo_sq": np.full(6, 0.01), "ssim": 0.9, "pixels": 4}
+    s = summarise([part], "_x")
+    assert s["heldout_normal_mean_deg_x"] == pytest.approx(11.25)
+    assert s["heldout_normal_under5_pct_x"] == pytest.approx(50.0)
+    assert s["heldout_normal_under25_pct_x"] == pytest.approx(75.0)
+    assert s["heldout_albedo_rmse_x"] == pytest.approx(0.1)
+    assert s["heldout_albedo_psnr_db_x"] == pytest.approx(20.0)
+    assert s["heldout_albedo_ssim_x"] == pytest.approx(0.9)
