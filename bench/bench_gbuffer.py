@@ -1,0 +1,229 @@
+"""G-buffers for held-out views (the paper's table 1): depth-guided reprojection against the photometric maps.
+
+For both actions of a release (``stages.heldout.heldout_metrics``: two held-out cameras, mesh depth,
+normal and albedo reprojected from the other 30 cameras) this reports
+
+1. the held-out metrics against the held-out **photometric** maps (the paper's protocol) and against the
+   simulator's **truth** (``_truth``), with the held-out photometric map's own score against the truth
+   beside them (what a perfect synthesis of the photometric map would score there);
+2. time per synthesised view (reprojection only, after the source depth renders, and with them);
+3. metrics against K (1, 2, 4, 6, 8) and against the weighting (uniform, angle, angle+distance,
+   angle+distance+grazing);
+4. a baseline in the spirit of the paper's Instant-NGP comparison: the **mesh's own normals** (smooth,
+   interpolated vertex normals of the release mesh) as the held-out normal map;
+5. a figure (bench_gbuffer.png): photometric vs synthesised vs truth normals and albedo of one held-out
+   view, with the angular error maps.
+
+``python bench/bench_gbuffer.py --out bench/out [--release DIR --capture DIR]``; defaults
+runs/default/release and runs/default/capture (``make dataset``); without them it prints why and exits 0.
+Writes bench_gbuffer.json and bench_gbuffer.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+KEYS = ("heldout_albedo_psnr_db", "heldout_albedo_ssim", "heldout_albedo_rmse", "heldout_normal_mean_deg",
+        "heldout_normal_under5_pct", "heldout_normal_under25_pct", "heldout_coverage")
+
+
+def _short(result: dict, suffixes=("", "_truth")) -> dict:
+    return {k + s: round(float(result[k + s]), 4) for s in suffixes for k in KEYS if k + s in result}
+
+
+def smooth_mesh_normals(vertices: np.ndarray, faces: np.ndarray, render: dict, K: np.ndarray,
+                        cam_from_world: np.ndarray) -> np.ndarray:
+    """(H, W, 3) world normals of the mesh seen by a camera, interpolated from area-weighted vertex
+    normals with the barycentric coordinates of each pixel's hit point (0 where no hit)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for j in range(3):
+        np.add.at(vn, f[:, j], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-12)
+    hit = render["hit"]
+    rows, cols = np.nonzero(hit)
+    z = render["depth_m"][rows, cols].astype(np.float64)
+    y = (rows - K[1, 2]) / K[1, 1]
+    x = (cols - K[0, 2]) / K[0, 0]
+    pts = (np.stack([x * z, y * z, z], -1) - cam_from_world[:, 3]) @ cam_from_world[:, :3]
+    tri = f[render["face"][rows, cols]]
+    a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    e0, e1, e2 = b - a, c - a, pts - a
+    d00, d01, d11 = (e0 * e0).sum(-1), (e0 * e1).sum(-1), (e1 * e1).sum(-1)
+    d20, d21 = (e2 * e0).sum(-1), (e2 * e1).sum(-1)
+    den = np.where(np.abs(d00 * d11 - d01 * d01) > 1e-20, d00 * d11 - d01 * d01, 1.0)
+    wb = np.clip((d11 * d20 - d01 * d21) / den, 0, 1)
+    wc = np.clip((d00 * d21 - d01 * d20) / den, 0, 1)
+    wa = np.clip(1 - wb - wc, 0, 1)
+    n = wa[:, None] * vn[tri[:, 0]] + wb[:, None] * vn[tri[:, 1]] + wc[:, None] * vn[tri[:, 2]]
+    # turn toward the camera like render_mesh's face normals
+    n *= np.sign(np.einsum("ij,ij->i", n, render["normals_world"][rows, cols]))[:, None]
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    out = np.zeros(hit.shape + (3,), np.float32)
+    out[rows, cols] = n
+    return out
+
+
+def mesh_normal_baseline(data, result: dict, truth_dir: Path | None) -> dict:
+    """Held-out scores of the mesh's own normals (same pixels as the reprojection's comparison)."""
+    from stages.heldout import compare_maps, summarise
+
+    parts, parts_truth = [], []
+    for cam, maps in result["maps"].items():
+        c = data.cameras[cam]
+        normals = smooth_mesh_normals(data.vertices, data.faces, data.render(cam), c["K"], c["cam_from_world"])
+        ref = maps["photometric"]
+        zero = np.zeros_like(ref["albedo"])
+        parts.append(compare_maps(normals, zero, ref["normal"], ref["albedo"], maps["compare"]))
+        if maps["truth"] is not None:
+            tm = maps["synth"]["valid"] & maps["truth"]["mask"]
+            parts_truth.append(compare_maps(normals, zero, maps["truth"]["normal"], maps["truth"]["albedo"], tm))
+    out = {k: v for k, v in summarise(parts).items() if "normal" in k}
+    if parts_truth:
+        out |= {k: v for k, v in summarise(parts_truth, "_truth").items() if "normal" in k}
+    return {k: round(float(v), 4) for k, v in out.items()}
+
+
+def photometric_vs_truth(result: dict) -> dict:
+    """The held-out photometric maps' own scores against the truth (over their valid pixels in the true mask)."""
+    from stages.heldout import compare_maps, summarise
+
+    parts = []
+    for maps in result["maps"].values():
+        if maps["truth"] is None:
+            continue
+        ref, t = maps["photometric"], maps["truth"]
+        m = (ref["alpha"] > 0.5) & ref["mask"] & t["mask"]
+        parts.append(compare_maps(ref["normal"], ref["albedo"], t["normal"], t["albedo"], m))
+    return {k: round(float(v), 4) for k, v in summarise(parts, "_truth").items()} if parts else {}
+
+
+def figure(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stages.numerics.metrics import angular_error_deg
+
+    cam = result["heldout_cameras"][0]
+    maps = result["maps"][cam]
+    s, p, t = maps["synth"], maps["photometric"], maps["truth"]
+    pm = (p["alpha"] > 0.5) & p["mask"]
+
+    def nrm(n, m):
+        return np.where(m[..., None], np.clip(n * 0.5 + 0.5, 0, 1), 1.0)
+
+    def alb(a, m):
+        return np.where(m[..., None], np.clip(a, 0, 1) ** (1 / 2.2), 1.0)
+
+    cols = [("photometric", p["normal"], p["albedo"], pm), ("synthesised", s["normal"], s["albedo"], s["valid"])]
+    if t is not None:
+        cols.append(("truth", t["normal"], t["albedo"], t["mask"]))
+    fig, axes = plt.subplots(2, len(cols) + 2, figsize=(3 * (len(cols) + 2), 8))
+    for j, (name, n, a, m) in enumerate(cols):
+        axes[0, j].imshow(nrm(n, m))
+        axes[0, j].set_title(f"{name} normal")
+        axes[1, j].imshow(alb(a, m))
+        axes[1, j].set_title(f"{name} albedo")
+    cmp = maps["compare"]
+    err = np.where(cmp, angular_error_deg(s["normal"], p["normal"]), np.nan)
+    im = axes[0, len(cols)].imshow(err, vmin=0, vmax=20, cmap="magma")
+    axes[0, len(cols)].set_title("angle synth vs photo (deg)")
+    fig.colorbar(im, ax=axes[0, len(cols)], fraction=0.05)
+    aerr = np.where(cmp, np.abs(s["albedo"] - p["albedo"]).mean(-1), np.nan)
+    im = axes[1, len(cols)].imshow(aerr, vmin=0, vmax=0.1, cmap="magma")
+    axes[1, len(cols)].set_title("|albedo synth - photo|")
+    fig.colorbar(im, ax=axes[1, len(cols)], fraction=0.05)
+    if t is not None:
+        tm = s["valid"] & t["mask"]
+        im = axes[0, len(cols) + 1].imshow(np.where(tm, angular_error_deg(s["normal"], t["normal"]), np.nan),
+                                           vmin=0, vmax=20, cmap="magma")
+        axes[0, len(cols) + 1].set_title("angle synth vs truth (deg)")
+        fig.colorbar(im, ax=axes[0, len(cols) + 1], fraction=0.05)
+        im = axes[1, len(cols) + 1].imshow(np.where(tm, np.abs(s["albedo"] - t["albedo"]).mean(-1), np.nan),
+                                           vmin=0, vmax=0.1, cmap="magma")
+        axes[1, len(cols) + 1].set_title("|albedo synth - truth|")
+        fig.colorbar(im, ax=axes[1, len(cols) + 1], fraction=0.05)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.suptitle(f"held-out camera {cam}: reprojected from {', '.join(map(str, s['source_ids']))}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
+    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
+    args = parser.parse_args()
+    out = Path(args.out)
+    release, capture = Path(args.release), Path(args.capture)
+    if not (release / "manifests").is_dir():
+        print(f"bench_gbuffer: no release at {release} (run `make dataset`); skipped")
+        return 0
+    truth_dir = capture / "ground_truth" if (capture / "ground_truth").is_dir() else None
+    if truth_dir is None:
+        print(f"bench_gbuffer: no ground truth under {capture}: truth metrics skipped")
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    out.mkdir(parents=True, exist_ok=True)
+
+    from manifests import open_release
+    from stages.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics
+
+    report: dict = {"paper_table1": PAPER_TABLE1, "actions": {}}
+    first_maps = None
+    for action in open_release(release).action_ids:
+        t0 = time.perf_counter()
+        data = ActionGBuffers(release, action)
+        load_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = heldout_metrics(release, action, truth_dir=truth_dir, data=data, return_maps=True)
+        first_s = time.perf_counter() - t0
+        entry = {"heldout_cameras": res["heldout_cameras"], "metrics": _short(res),
+                 "per_view": {c: _short(v) for c, v in res["per_view"].items()},
+                 "photometric_heldout_vs_truth": photometric_vs_truth(res),
+                 "mesh_normals_baseline": mesh_normal_baseline(data, res, truth_dir),
+                 "seconds": {"load_release_action": round(load_s, 3),
+                             "reprojection_per_view": round(res["heldout_seconds_per_view"], 4),
+                             "per_view_with_depth_renders": round(first_s / len(res["heldout_cameras"]), 4)}}
+        print(action, json.dumps(entry["metrics"]), flush=True)
+        if first_maps is None:
+            first_maps = res
+        entry["vs_k"] = {}
+        for k in (1, 2, 4, 6, 8):
+            r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, k=k)
+            entry["vs_k"][str(k)] = _short(r) | {"seconds_per_view": round(r["heldout_seconds_per_view"], 4)}
+        entry["vs_weighting"] = {}
+        for weighting in ("uniform", "angle", "angle_distance", "angle_distance_grazing"):
+            r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, weighting=weighting)
+            entry["vs_weighting"][weighting] = _short(r)
+        report["actions"][action] = entry
+    if first_maps is not None:
+        figure(first_maps, out / "bench_gbuffer.png")
+    means = {}
+    for key in next(iter(report["actions"].values()))["metrics"] if report["actions"] else []:
+        vals = [e["metrics"][key] for e in report["actions"].values() if key in e["metrics"]]
+        means[key] = round(float(np.mean(vals)), 4)
+    report["mean_over_actions"] = means
+    (out / "bench_gbuffer.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps(means, indent=1))
+    print(f"wrote {out / 'bench_gbuffer.json'} and {out / 'bench_gbuffer.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
