@@ -172,7 +172,9 @@ def test_cli_run_evaluate_verify(capture, tmp_path, capsys):
     metrics = json.loads((tmp_path / "m.json").read_text())
     for name in ("normal_mean_deg", "normal_median_deg", "normal_under5_pct", "normal_under25_pct",
                  "normal_mean_deg_all", "valid_fraction", "albedo_psnr_db", "albedo_ssim", "actions_ok",
-                 "actions_failed", "chamfer_mm", "normal_consistency", "fscore_1mm", "fscore_5mm", "mesh_faces"):
+                 "actions_failed", "chamfer_mm", "normal_consistency", "fscore_1mm", "fscore_5mm", "mesh_faces",
+                 "heldout_albedo_psnr_db", "heldout_albedo_ssim", "heldout_albedo_rmse", "heldout_normal_mean_deg",
+                 "heldout_normal_under5_pct", "heldout_normal_under25_pct"):
         assert name in metrics and np.isfinite(metrics[name]), name
     assert cli(["verify", str(release)]) == 0
     (release / "actions" / "A0000" / "albedo" / "00001.exr").write_bytes(b"tampered")
