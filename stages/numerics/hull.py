@@ -4,14 +4,15 @@ Pure numerics, arrays in and arrays out (docs/CONTRACTS.md conventions: stage fr
 metres; OpenCV cameras with ``x_cam = R @ x_world + t``; pixel ``(row i, column j)`` has its centre at
 ``(u, v) = (j, i)``).
 
-A voxel is kept when its centre projects inside the mask of every camera that sees it, allowing
-``max_misses`` cameras to disagree (a mask with a hole or a clipped limb must not carve the body). To stay
-a *superset* of the subject the test is conservative: a voxel passes a view when its centre lies within
-``dilate_px`` plus the voxel's own projected half-diagonal of a mask pixel (one Euclidean distance
-transform per view, instead of projecting eight corners).
+A voxel is kept when it projects inside the mask of every camera that sees it, allowing ``max_misses``
+cameras to disagree (a mask with a hole or a clipped limb must not carve the body), and inside at least
+``min_views`` masks. To stay a *superset* of the subject the default test is conservative: a voxel passes a
+view when its centre lies within ``dilate_px`` plus the voxel's own projected half-diagonal of a mask pixel
+(one Euclidean distance transform per view, instead of projecting eight corners). Carving is incremental:
+each view only tests the voxels that survived the previous ones.
 
-The hull bounds where the SDF of :mod:`stages.numerics.sdf` takes ray samples (an occupancy grid) and
-initialises it (:meth:`HullGrid.signed_distance`).
+The hull bounds the volume of :mod:`stages.numerics.sdf`, chooses the rays worth drawing and initialises
+the SDF (:meth:`HullGrid.signed_distance`).
 """
 from __future__ import annotations
 
@@ -169,6 +170,7 @@ def visual_hull(
     max_misses: int = 1,
     dilate_px: float = 2,
     min_views: int = 3,
+    conservative: bool = True,
 ) -> HullGrid:
     """Voxel visual hull of the masks (silhouette carving).
 
@@ -184,6 +186,10 @@ def visual_hull(
         min_views: a voxel must also project inside the masks of at least this many views (all of them when
             there are fewer), so that space at the edge of the cameras' frusta, seen by one or two views
             only, is not kept for lack of evidence.
+        conservative: test the voxel's footprint (its centre within ``dilate_px`` plus its projected
+            half-diagonal of the mask: a superset of the subject, for bounding samples). False: the classic
+            centre-in-mask test (closer to the subject's surface, may cut thin parts; for a hull used as a
+            shape estimate).
 
     Returns:
         :class:`HullGrid`.
@@ -236,7 +242,7 @@ def visual_hull(
         ci = np.clip(col, 0, W - 1).astype(np.int64)
         ri = np.clip(row, 0, H - 1).astype(np.int64)
         # + half a pixel diagonal: the centre was rounded to a pixel centre.
-        tolerance = dilate_px + 0.5 * np.sqrt(2.0) + K[0, 0] * half_diag * inv_z
+        tolerance = dilate_px + (0.5 * np.sqrt(2.0) + K[0, 0] * half_diag * inv_z if conservative else 0.0)
         inside = dist_px[ri, ci] <= tolerance
         hits += seen & inside
         misses += seen & ~inside

@@ -73,6 +73,18 @@ def test_sphere_hull_contains_sphere_and_is_close(sphere_hull):
     assert 0 < mean_excess < 2.0 * float(grid.voxel_size.max())
 
 
+def test_centre_test_hull_is_inside_the_conservative_one(sphere_hull):
+    grid, cams, masks = sphere_hull
+    plain = visual_hull(masks, [K for K, _ in cams], [T for _, T in cams], BOUNDS, 40, max_misses=0, dilate_px=0,
+                        conservative=False)
+    assert plain.occupancy.sum() < grid.occupancy.sum()
+    assert (grid.occupancy | ~plain.occupancy).all()
+    # The classic centre test carves to within about one voxel of the sphere (mean radius of its surface).
+    sd = plain.signed_distance()
+    boundary = plain.centers()[plain.occupancy & (sd > -float(plain.voxel_size.max()))]
+    assert abs(np.linalg.norm(boundary, axis=1).mean() - RADIUS) < float(plain.voxel_size.max())
+
+
 def test_tight_bounds_and_voxel_size(sphere_hull):
     grid, _, _ = sphere_hull
     np.testing.assert_allclose(grid.voxel_size, [0.025, 0.025, 0.025])
