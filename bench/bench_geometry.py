@@ -322,7 +322,7 @@ def main() -> int:
     bounds = np.asarray(result.bounds)
     print(f"  normal-supervised: {result.stats['time_s']:.1f} s", flush=True)
     report["curves"]["normal_supervised"] = curve(fields, bounds, gt_v, gt_f, args.eval_resolution, args.samples)
-    final = dict(report["curves"]["normal_supervised"][-1])
+    final = dict(report["curves"]["normal_supervised"][-1])  # the last checkpoint is the returned field
     final["time_s"] = float(result.stats["time_s"])
     report["final"]["normal-supervised SDF"] = final
     report["stats"] = {k: v for k, v in result.stats.items() if isinstance(v, (int, float, str, dict))}

@@ -95,7 +95,7 @@ class SDFConfig(Documented):
     """Width of the MLP's hidden layers."""
     hidden_layers: int = 2
     """Number of hidden layers of the MLP (softplus, beta 100)."""
-    iterations: int = 1500
+    iterations: int = 1800
     """Training steps with the rendering losses (after the hull pre-fit)."""
     rays_per_batch: int = 512
     """Rays drawn per step from the pixels worth drawing (on the mask or meeting the hull)."""
@@ -205,12 +205,13 @@ class SDFConfig(Documented):
 
 
 SDF_PRESETS: dict[str, SDFConfig] = {
-    # `make dataset` on a 2-core machine: one action (32 views, 320x480) in ~85 s on one thread while a second
-    # action trains on the other core (budget 150 s); about 3.3 mm Chamfer on the default capture.
+    # `make dataset` on a 2-core machine: one action (32 views, 320x480) in ~100 s on one thread while the
+    # other action trains on the other core (budget 150 s); ~3.2 mm Chamfer on the default capture
+    # (bench/bench_geometry.py).
     "cpu": SDFConfig(
         encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=16,
                                 base_resolution=16, finest_resolution=512),
-        hidden_width=64, hidden_layers=2, iterations=1500, rays_per_batch=512, samples_per_ray=8,
+        hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
         hull_resolution=96, hull_init_steps=200, hull_init_points=2048,
     ),
     # Full-resolution captures on a GPU.
@@ -627,8 +628,11 @@ class SDFResult:
         hull: the visual hull over ``bounds``.
         history: lists keyed by ``iteration``, ``seconds``, ``loss``, ``normal``, ``mask``, ``eikonal``,
             ``normal_deg`` (mean angle of the kept valid rays), ``inv_s``, ``lr``.
-        stats: ``time_s``, ``device``, ``iterations``, ``samples_skipped_fraction`` and the numbers behind it,
-            hull and pre-fit timings.
+        stats: ``time_s``, ``device``, ``iterations``; ``samples_skipped_fraction``: the share of a naive
+            uniform sampler's samples (every pixel's ray through the stage box, at the window's sample spacing)
+            that the hull (rays worth drawing: ``candidate_ray_fraction``) and the cached SDF grid (window
+            around the crossing) skipped, and ``samples_skipped_vs_neus_128`` against 128 samples on every
+            pixel's ray; hull and pre-fit timings, ``time_breakdown_s``.
     """
 
     field: SDFField
@@ -1019,8 +1023,9 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
         bounds: (2, 3) box known to hold the subject, metres. None: the visual hull over a generous box
             where the cameras look (:func:`default_stage_box`) at ``hull_resolution`` finds it.
         progress: called as ``progress(iteration, losses)`` every ``log_every`` steps.
-        checkpoint: called as ``checkpoint(iteration, field)`` every ``log_every`` steps with the live field
-            (on the training device; copy its ``state_dict`` to keep it), e.g. to measure error over time.
+        checkpoint: called as ``checkpoint(iteration, field)`` every ``log_every`` steps with the field as
+            training would return it at that step (the parameter average once it has started; on the training
+            device: copy its ``state_dict`` to keep it), e.g. to measure error over time.
 
     Returns:
         :class:`SDFResult`.
@@ -1243,7 +1248,15 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device)
             if progress is not None:
                 progress(it + 1, dict(entry))
             if checkpoint is not None:
-                checkpoint(it + 1, field_)
+                if ema is not None and it > ema_first:
+                    # Show the field training would return if it stopped here: the averaged parameters.
+                    with torch.no_grad():
+                        live = [p.detach().clone() for p in params]
+                        torch._foreach_copy_(params, ema)
+                        checkpoint(it + 1, field_)
+                        torch._foreach_copy_(params, live)
+                else:
+                    checkpoint(it + 1, field_)
             sums = {k: 0.0 for k in sums}
             count = 0
 
@@ -1261,6 +1274,9 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device)
         samples_evaluated=int(evaluated),
         naive_samples=float(naive),
         samples_skipped_fraction=float(1.0 - evaluated * (n_bank / bank.pixels_total) / max(naive, 1.0)),
+        # Against NeuS's default sampler: 64 coarse + 64 fine samples on every pixel's ray.
+        samples_skipped_vs_neus_128=float(1.0 - evaluated * (n_bank / bank.pixels_total)
+                                          / max(128.0 * rays_drawn, 1.0)),
         final_inv_s=_inv_s(config.iterations - 1, config),
         gradient=config.gradient,
         normal_supervision=config.normal_supervision,

@@ -260,6 +260,15 @@ def test_same_seed_same_weights_other_seed_differs():
     assert a.history["loss"] == b.history["loss"]
 
 
+def test_checkpoints_show_the_returned_field_at_the_end():
+    seen = []
+    config = dataclasses.replace(TINY, log_every=4)
+    result = train_sdf(sphere_views(n=4, size=24), config, bounds=BOUNDS,
+                       checkpoint=lambda it, field: seen.append((it, field.sdf_numpy(np.zeros((1, 3)))[0])))
+    assert [it for it, _ in seen] == [4, 8, 12]
+    assert seen[-1][1] == result.field.sdf_numpy(np.zeros((1, 3)))[0]  # the parameter average, not the last step
+
+
 def test_mask_only_ablation_runs_without_normal_loss():
     result = train_sdf(sphere_views(n=4, size=24), dataclasses.replace(TINY, normal_supervision=False),
                        bounds=BOUNDS)
