@@ -4,17 +4,24 @@ The field is Instant-NSR style: an Instant-NGP hash grid (``L`` levels of ``F`` 
 for the coarse levels that fit) feeding a small softplus MLP that outputs the signed distance in metres
 (negative inside). It is trained from the light stage's photometric normal maps instead of RGB:
 
-* **normal loss** on valid pixels: ``|n_r - n|_1 + (1 - cos(n_r, n))`` between the rendered normal ``n_r``
-  (NeuS weights compositing the normalised SDF gradients along the ray) and the photometric normal ``n``,
-  both in the stage frame. Grazing pixels (``|n . d| < grazing_cos_min``, or a normal facing away from the
-  camera) and the worst ``outlier_fraction`` of each batch's residuals are dropped;
+* **normal loss** on valid pixels: ``|n_r/|n_r| - n|_1 + (1 - cos(n_r, n))`` between the rendered normal
+  ``n_r`` (NeuS weights compositing the normalised SDF gradients along the ray) and the photometric normal
+  ``n``, both in the stage frame. The L1 compares directions: on ``n_r`` itself it would also push every valid
+  pixel's opacity to 1, which nothing balances on the mask's outer side, and the surface creeps outwards at
+  silhouettes (a sphere came out 1.6 cm too large). Grazing pixels (``|n . d| < grazing_cos_min``, or a
+  normal facing away from the camera) and the worst ``outlier_fraction`` of each batch's residuals are dropped;
 * **mask loss**: BCE of the accumulated opacity against the foreground mask;
-* **eikonal** regulariser ``(|grad f| - 1)^2`` on the ray samples and on random points of the box.
+* **eikonal** regulariser ``(|grad f| - 1)^2`` on the ray samples and on random points of the box, and a
+  **hull prior** ``relu(d_hull - f)`` (the subject lies inside its visual hull) against spurious surfaces in
+  space no drawn ray crosses.
+
+The returned field is an exponential moving average of the parameters over the second half of training
+(Adam's steps make the surface jitter by about a millimetre between steps).
 
 Empty space is skipped twice. The visual hull of the masks (:mod:`stages.numerics.hull`) bounds the volume
 (tight box), chooses the rays worth drawing (pixels whose ray meets the hull or lies on the mask; every
 other ray has opacity 0 against a 0 mask and costs nothing), and initialises the SDF (a few hundred cheap
-regression steps to the hull's signed distance). During training a cached coarse SDF grid, refreshed from
+regression steps to the signed distance of the classic, centre-test hull). During training a cached coarse SDF grid, refreshed from
 the network every ``proposal_update_every`` steps, plays the role of NeuS's coarse pass: marching it
 (trilinear look-ups, no network) finds each ray's first zero crossing, and the ``samples_per_ray`` network
 samples are placed in a narrow window around it. NeuS's section-wise alpha (from the SDF and its gradient at
@@ -34,7 +41,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
