@@ -66,23 +66,29 @@ class TexturesConfig(Documented):
     """Write PNG previews of the textures."""
 
 
-def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:
-    """The calibrated cameras that have maps, as :class:`SDFView` records (sorted by camera id)."""
-    from stages.numerics.sdf import SDFView
-
+def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
+    """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
+    calibrated cameras that have maps, sorted by id (a missing camera has no normal map and is skipped);
+    ``valid`` = alpha above ``min_alpha`` inside the mask."""
     cameras = load_cameras(decode_dir / "cameras.json")
-    ids, views = [], []
     for cam_id in sorted(cameras):
         path = photometric_dir / "normal_alpha" / f"{cam_id}.exr"
         if not path.exists():  # missing camera (no calibration, or its frames failed)
             continue
-        cam = cameras[cam_id]
         normal_alpha = read_exr(path)
         mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]),
-                             normal_valid=(normal_alpha[..., 3] > min_alpha) & mask, mask=mask,
-                             K=np.asarray(cam["K"], np.float64),
+        yield cam_id, cameras[cam_id], normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
+
+
+def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:
+    """The calibrated cameras that have maps, as :class:`SDFView` records (sorted by camera id)."""
+    from stages.numerics.sdf import SDFView
+
+    ids, views = [], []
+    for cam_id, cam, normal_alpha, mask, valid in camera_maps(decode_dir, photometric_dir, min_alpha):
+        views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]), normal_valid=valid,
+                             mask=mask, K=np.asarray(cam["K"], np.float64),
                              cam_from_world=np.asarray(cam["cam_from_world"], np.float64)))
         ids.append(cam_id)
     return ids, views
@@ -110,7 +116,7 @@ def _loss_plot(path: Path, history: dict[str, list[float]]) -> None:
     plt.close(fig)
 
 
-def _normals_comparison(vertices: np.ndarray, faces: np.ndarray, views: list[Any], ids: list[str],
+def _normals_comparison(vertices: np.ndarray, faces: np.ndarray, views: list[Any],
                         count: int = 4) -> np.ndarray:
     """Rows of [photometric normals | mesh normals] for ``count`` cameras spread around the stage."""
     from stages.numerics.raycast import render_mesh
@@ -179,7 +185,7 @@ class GeometryStage(Stage):
         mesh_s = time.perf_counter() - start
         if cfg.previews:
             _loss_plot(out / "previews" / "sdf_losses.png", result.history)
-            write_png(out / "previews" / "mesh_normals.png", _normals_comparison(vertices, faces, views, ids))
+            write_png(out / "previews" / "mesh_normals.png", _normals_comparison(vertices, faces, views))
         return {"cameras": len(views), "train_seconds": train_s, "mesh_seconds": mesh_s,
                 "faces_extracted": int(extracted_faces), "mesh_faces": int(len(faces)),
                 "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
@@ -215,21 +221,13 @@ class TexturesStage(Stage):
         atlas = uv_atlas(vertices, faces, resolution=cfg.texture_size, padding=cfg.atlas_padding)
         atlas_s = time.perf_counter() - start
 
-        photometric, decoded = ctx.upstream["photometric"], ctx.upstream["decode"]
-        cameras = load_cameras(decoded / "cameras.json")
-        views = []
-        for cam_id in sorted(cameras):
-            path = photometric / "normal_alpha" / f"{cam_id}.exr"
-            if not path.exists():
-                continue
-            normal_alpha = read_exr(path)
-            mask = read_png(photometric / "mask" / f"{cam_id}.png")
-            mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-            views.append(BakeView(images={"albedo": read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3],
-                                          "normal": np.ascontiguousarray(normal_alpha[..., :3])},
-                                  valid=(normal_alpha[..., 3] > cfg.min_alpha) & mask,
-                                  K=np.asarray(cameras[cam_id]["K"], np.float64),
-                                  cam_from_world=np.asarray(cameras[cam_id]["cam_from_world"], np.float64)))
+        photometric = ctx.upstream["photometric"]
+        views = [BakeView(images={"albedo": read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3],
+                                  "normal": np.ascontiguousarray(normal_alpha[..., :3])},
+                          valid=valid, K=np.asarray(cam["K"], np.float64),
+                          cam_from_world=np.asarray(cam["cam_from_world"], np.float64))
+                 for cam_id, cam, normal_alpha, _, valid in camera_maps(ctx.upstream["decode"], photometric,
+                                                                         cfg.min_alpha)]
         start = time.perf_counter()
         baked = bake_textures(vertices, faces, atlas, views, cfg.texture_size, max_views=cfg.max_views,
                               depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
