@@ -119,14 +119,15 @@ def _loss_plot(path: Path, history: dict[str, list[float]]) -> None:
 def _normals_comparison(vertices: np.ndarray, faces: np.ndarray, views: list[Any],
                         count: int = 4) -> np.ndarray:
     """Rows of [photometric normals | mesh normals] for ``count`` cameras spread around the stage."""
-    from stages.numerics.raycast import render_mesh
+    from stages.numerics.raycast import mesh_scene, render_mesh
 
+    scene = mesh_scene(vertices, faces)
     picks = np.linspace(0, len(views) - 1, count).round().astype(int)
     rows = []
     for i in picks:
         view = views[i]
         h, w = view.mask.shape
-        rendered = render_mesh(vertices, faces, view.K, view.cam_from_world, h, w)
+        rendered = render_mesh(None, None, view.K, view.cam_from_world, h, w, scene=scene)
         rows.append(np.concatenate([preview_normals(view.normals_world, view.normal_valid.astype(np.float32)),
                                     preview_normals(rendered["normals_world"], rendered["hit"].astype(np.float32))],
                                    axis=1))

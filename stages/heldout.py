@@ -69,17 +69,20 @@ class ActionGBuffers:
         self.action_id = action_id
         self.cameras = release_cameras(self.view.transforms())
         self.vertices, self.faces = self.view.mesh()
+        self._scene = None  # one ray-casting scene of the mesh for every camera, built on first use
         self._render: dict[str, dict[str, np.ndarray]] = {}
         self._sources: dict[str, SourceView] = {}
 
     def render(self, cam: str) -> dict[str, np.ndarray]:
         """The mesh seen by camera ``cam`` (render_mesh output, cached)."""
-        from stages.numerics.raycast import render_mesh
+        from stages.numerics.raycast import mesh_scene, render_mesh
 
         if cam not in self._render:
+            if self._scene is None:
+                self._scene = mesh_scene(self.vertices, self.faces)
             c = self.cameras[cam]
-            self._render[cam] = render_mesh(self.vertices, self.faces, c["K"], c["cam_from_world"],
-                                            c["height"], c["width"])
+            self._render[cam] = render_mesh(None, None, c["K"], c["cam_from_world"], c["height"], c["width"],
+                                            scene=self._scene)
         return self._render[cam]
 
     def photometric(self, cam: str) -> dict[str, np.ndarray]:

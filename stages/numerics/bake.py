@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normals
+from stages.numerics.raycast import mesh_scene, render_mesh
 
 __all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "sample_texture", "dilate_texture"]
 
@@ -292,23 +293,6 @@ def _check_views(views: list[BakeView]) -> dict[str, int]:
     return names
 
 
-def _depth_map(scene, view: BakeView) -> np.ndarray:
-    """(H, W) camera-z depth of the first mesh hit through each pixel centre (inf where none)."""
-    import open3d as o3d
-
-    h, w = view.valid.shape
-    k = np.asarray(view.K, np.float64)
-    rot = np.asarray(view.cam_from_world, np.float64)[:, :3]
-    centre = -rot.T @ np.asarray(view.cam_from_world, np.float64)[:, 3]
-    cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    pix = np.stack([cols, rows, np.ones_like(cols)], axis=-1).reshape(-1, 3)
-    # K^-1 [u, v, 1] has camera z = 1, so the hit parameter along it is the camera-z depth.
-    dirs = _transform(_transform(pix, np.linalg.inv(k)), rot.T)
-    rays = np.concatenate([np.broadcast_to(centre, dirs.shape), dirs], axis=1).astype(np.float32)
-    hit = scene.cast_rays(o3d.core.Tensor(rays))
-    return hit["t_hit"].numpy().reshape(h, w).astype(np.float32)
-
-
 def _view_lookup(view: BakeView, depth_valid: np.ndarray, points: np.ndarray, normals: np.ndarray,
                  n_dot_p: np.ndarray, p_sq: np.ndarray, min_cos: float, depth_tolerance_m: float):
     """Project texel points into one view; return (candidate index, score, cos*support, taps, weights).
@@ -375,8 +359,6 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     Returns:
         :class:`BakeResult`.
     """
-    import open3d as o3d
-
     t_start = time.perf_counter()
     v, f = _check_mesh(vertices, faces)
     channels = _check_views(views)
@@ -401,15 +383,15 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     timings["rasterize_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(v, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(f, np.uint32)))
-    # Depth maps with inf where the view's maps are invalid: one lookup tests both.
-    # A pixel with a non-finite value in any map counts as invalid.
-    depths = [np.where(np.asarray(view.valid, bool)
-                       & np.all([np.isfinite(im).all(axis=2) for im in view.images.values()], axis=0),
-                       _depth_map(scene, view), np.float32(np.inf))
-              for view in views]
+    scene = mesh_scene(v, f)
+    # Depth maps with inf where the view's maps are invalid (or the mesh is missed): one lookup tests
+    # both. A pixel with a non-finite value in any map counts as invalid.
+    depths = []
+    for view in views:
+        seen = render_mesh(None, None, view.K, view.cam_from_world, *view.valid.shape, scene=scene)
+        usable = (np.asarray(view.valid, bool) & seen["hit"]
+                  & np.all([np.isfinite(im).all(axis=2) for im in view.images.values()], axis=0))
+        depths.append(np.where(usable, seen["depth_m"], np.float32(np.inf)))
     n_dot_p = np.einsum("nd,nd->n", normals, points)
     p_sq = np.einsum("nd,nd->n", points, points)
     timings["depth_maps_s"] = time.perf_counter() - t0

@@ -47,18 +47,11 @@ def camera_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: i
     return origins, directions, d_cam[:, 2]
 
 
-def render_mesh(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
-                height: int, width: int) -> dict[str, np.ndarray]:
-    """Depth, geometric normal and face id of a mesh seen by a pinhole camera.
+def mesh_scene(vertices: np.ndarray, faces: np.ndarray):
+    """An open3d ``RaycastingScene`` of a triangle mesh, to render it from many cameras.
 
     Args:
         vertices: (V, 3) world positions (metres). faces: (F, 3) vertex indices.
-        K, cam_from_world: the camera. height, width: image size in pixels.
-
-    Returns:
-        ``depth_m`` (H, W) float32 camera z (0 where no hit), ``normals_world`` (H, W, 3) float32 unit face
-        normals turned toward the camera (0 where no hit), ``face`` (H, W) int64 (-1 where no hit),
-        ``hit`` (H, W) bool.
     """
     import open3d as o3d
 
@@ -68,9 +61,31 @@ def render_mesh(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, cam_from
         raise ValueError(f"expected vertices (V, 3) and faces (F, 3), got {vertices.shape} and {faces.shape}")
     if len(faces) == 0:
         raise ValueError("render_mesh: the mesh has no faces")
-    origins, directions, z_per_t = camera_rays(K, cam_from_world, height, width)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces.astype(np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices)),
+                        o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
+    return scene
+
+
+def render_mesh(vertices: np.ndarray | None, faces: np.ndarray | None, K: np.ndarray, cam_from_world: np.ndarray,
+                height: int, width: int, scene=None) -> dict[str, np.ndarray]:
+    """Depth, geometric normal and face id of a mesh seen by a pinhole camera.
+
+    Args:
+        vertices: (V, 3) world positions (metres). faces: (F, 3) vertex indices. Both may be None when
+            ``scene`` (from :func:`mesh_scene`) is given.
+        K, cam_from_world: the camera. height, width: image size in pixels.
+
+    Returns:
+        ``depth_m`` (H, W) float32 camera z (0 where no hit), ``normals_world`` (H, W, 3) float32 unit face
+        normals turned toward the camera (0 where no hit), ``face`` (H, W) int64 (-1 where no hit),
+        ``hit`` (H, W) bool.
+    """
+    import open3d as o3d
+
+    if scene is None:
+        scene = mesh_scene(vertices, faces)
+    origins, directions, z_per_t = camera_rays(K, cam_from_world, height, width)
     rays = np.concatenate([origins, directions], axis=-1).astype(np.float32)
     ans = scene.cast_rays(o3d.core.Tensor(rays))
     t_hit = ans["t_hit"].numpy()
