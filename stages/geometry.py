@@ -159,10 +159,13 @@ class GeometryStage(Stage):
                              f"{len(views)} camera(s) have normal maps; the SDF needs at least {cfg.min_views}")
         start = time.perf_counter()
         total = cfg.sdf.iterations
-        step = max(1, total // 10)
+        reported = {"tenth": 0}
 
         def progress(iteration: int, record: dict[str, float]) -> None:
-            if iteration % step == 0 or iteration == total:
+            # train_sdf calls every log_every steps; show about one line per tenth of the schedule
+            tenth = 10 * iteration // max(total, 1)
+            if tenth > reported["tenth"]:
+                reported["tenth"] = tenth
                 ctx.progress(iteration, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
 
         result = train_sdf(views, cfg.sdf, progress=progress)
