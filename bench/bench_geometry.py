@@ -284,6 +284,8 @@ def main() -> int:
     parser.add_argument("--action", default="A0000")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--iterations", type=int, help="override the preset's iterations (quick checks)")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="override an SDFConfig field of the preset, e.g. --set weight_mask=0.1 (repeatable)")
     parser.add_argument("--checkpoints", type=int, default=8)
     parser.add_argument("--eval-resolution", type=int, default=256)
     parser.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
@@ -310,6 +312,11 @@ def main() -> int:
     config = dataclasses.replace(SDF_PRESETS[args.preset], device="cpu")
     if args.iterations:
         config = dataclasses.replace(config, iterations=args.iterations)
+    for item in args.set:
+        name, _, value = item.partition("=")
+        if name not in {f.name for f in dataclasses.fields(config)} or not value:
+            parser.error(f"--set {item}: expected FIELD=VALUE with an SDFConfig field")
+        config = dataclasses.replace(config, **{name: type(getattr(config, name))(value)})
     views = load_release_views(release, args.action)
     gt_v, gt_f = read_mesh(gt_mesh)
     print(f"bench_geometry: {len(views)} views of {args.action}, preset {args.preset}", flush=True)
