@@ -316,7 +316,9 @@ def main() -> int:
         name, _, value = item.partition("=")
         if name not in {f.name for f in dataclasses.fields(config)} or not value:
             parser.error(f"--set {item}: expected FIELD=VALUE with an SDFConfig field")
-        config = dataclasses.replace(config, **{name: type(getattr(config, name))(value)})
+        current = getattr(config, name)
+        parsed = value.lower() in ("1", "true", "yes") if isinstance(current, bool) else type(current)(value)
+        config = dataclasses.replace(config, **{name: parsed})
     views = load_release_views(release, args.action)
     gt_v, gt_f = read_mesh(gt_mesh)
     print(f"bench_geometry: {len(views)} views of {args.action}, preset {args.preset}", flush=True)
