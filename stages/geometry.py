@@ -7,7 +7,6 @@ decimation, xatlas) and :mod:`stages.numerics.bake` (texel reprojection into the
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,13 +20,8 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
+from stages.numerics import numeric_threads
 from stages.numerics.sdf import SDF_PRESETS, SDFConfig
-
-
-def _numeric_threads() -> int:
-    """Threads for torch in this task: the share the executor gave this worker process."""
-    env = os.environ.get("ULTRASTAGE_NUMERIC_THREADS")
-    return max(1, int(env)) if env else max(1, min(os.cpu_count() or 1, 8))
 
 
 @dataclass(frozen=True)
@@ -151,7 +145,7 @@ class GeometryStage(Stage):
         from stages.numerics.mesh import decimate, extract_mesh, largest_component, vertex_normals
         from stages.numerics.sdf import train_sdf
 
-        torch.set_num_threads(_numeric_threads())
+        torch.set_num_threads(numeric_threads())
         cfg: GeometryConfig = self.config
         ids, views = load_sdf_views(ctx.upstream["decode"], ctx.upstream["photometric"], cfg.min_alpha)
         if len(views) < cfg.min_views:

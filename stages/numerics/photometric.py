@@ -20,7 +20,6 @@ threshold (numexpr) and morphology on the bool image (scipy.ndimage).
 """
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Sequence
@@ -28,6 +27,8 @@ from typing import Sequence
 import numexpr as ne
 import numpy as np
 from scipy import ndimage
+
+from stages.numerics import numeric_threads
 
 __all__ = [
     "PhotometricParams",
@@ -180,15 +181,7 @@ def _clip_masks(clipped, shape: tuple[int, int]) -> list[np.ndarray]:
 _BLOCK_PIXELS = 1 << 16
 
 
-def _default_threads() -> int:
-    env = os.environ.get("ULTRASTAGE_NUMERIC_THREADS")
-    if env:
-        return max(1, int(env))
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        n = os.cpu_count() or 1
-    return max(1, min(n, 8))
+_default_threads = numeric_threads
 
 
 @dataclass
