@@ -15,6 +15,7 @@ from stages.numerics.bake import (
     sample_texture,
 )
 from stages.numerics.mesh import Atlas, uv_atlas
+from synthetic.rig import look_at as rig_look_at
 
 RADIUS = 0.3
 CENTRE = np.array([0.02, -0.01, 0.03])
@@ -31,18 +32,9 @@ def albedo_of(points, centre=CENTRE, radius=RADIUS):
     return (0.5 + 0.5 * (points - centre) / radius).astype(np.float32)
 
 
-def look_at(centre, target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)):
-    """OpenCV cam_from_world of a camera at ``centre`` looking at ``target`` (x right, y down)."""
-    centre = np.asarray(centre, float)
-    z = np.asarray(target, float) - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-6:
-        x = np.cross(z, (0.0, 0.0, 1.0))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    rot = np.stack([x, y, z])
-    return np.concatenate([rot, (-rot @ centre)[:, None]], axis=1)
+def look_at(centre, target=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """OpenCV cam_from_world (3, 4) of a camera at ``centre`` looking at ``target``, world +y up."""
+    return rig_look_at(np.asarray(centre, float), np.asarray(target, float))
 
 
 def render_view(vertices, faces, cam_from_world, size=96, focal=150.0, spheres=((CENTRE, RADIUS),)):

@@ -7,6 +7,7 @@ import pytest
 from stages.numerics.gbuffer import WEIGHTINGS, SourceView, camera_centre, nearest_views, reproject_gbuffer
 from stages.numerics.metrics import angular_error_deg
 from stages.numerics.raycast import camera_rays
+from synthetic.rig import look_at as rig_look_at
 
 H = W = 64
 K = np.array([[150.0, 0.0, 31.5], [0.0, 150.0, 31.5], [0.0, 0.0, 1.0]])
@@ -14,15 +15,8 @@ MAIN = (np.zeros(3), 0.5)  # centre, radius (metres)
 
 
 def look_at(eye, target=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """OpenCV cam_from_world (3, 4) of a camera at ``eye`` looking at ``target`` with world +y up."""
-    eye = np.asarray(eye, float)
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, -1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return np.concatenate([R, (-R @ eye)[:, None]], axis=1)
+    """OpenCV cam_from_world (3, 4) of a camera at ``eye`` looking at ``target``, world +y up."""
+    return rig_look_at(np.asarray(eye, float), np.asarray(target, float))
 
 
 def ring_camera(angle_deg: float, radius: float = 3.0, height: float = 0.0) -> np.ndarray:
