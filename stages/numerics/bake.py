@@ -36,7 +36,8 @@ import numpy as np
 from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normals
 from stages.numerics.raycast import mesh_scene, render_mesh
 
-__all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "sample_texture", "dilate_texture"]
+__all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "gather_observations",
+           "sample_texture", "dilate_texture"]
 
 _MIN_TAP_SUPPORT = 0.5  # a view needs valid, depth-consistent pixels under half its bilinear weight
 
@@ -336,6 +337,94 @@ def _view_lookup(view: BakeView, depth_valid: np.ndarray, points: np.ndarray, no
     return cand, score, cos * support, taps, weights
 
 
+def _usable_depth_maps(views: list[BakeView], scene) -> list[np.ndarray]:
+    """Each view's depth map of the mesh, ``inf`` where its maps are invalid or the mesh is missed (one
+    lookup then tests both); a pixel with a non-finite value in any map counts as invalid."""
+    depths = []
+    for view in views:
+        seen = render_mesh(None, None, view.K, view.cam_from_world, *view.valid.shape, scene=scene)
+        usable = (np.asarray(view.valid, bool) & seen["hit"]
+                  & np.all([np.isfinite(im).all(axis=2) for im in view.images.values()], axis=0))
+        depths.append(np.where(usable, seen["depth_m"], np.float32(np.inf)))
+    return depths
+
+
+def _rank_views(views, depths, points, normals, n_dot_p, p_sq, min_cos, depth_tolerance_m):
+    """Pass 1: every view's score per point (0 = not a candidate), (V, N) float32, and the views' order
+    per point, best first (ties keep view order), (V, N)."""
+    scores = np.zeros((len(views), len(points)), np.float32)
+    for i, view in enumerate(views):
+        cand, score, _, _, _ = _view_lookup(view, depths[i], points, normals, n_dot_p, p_sq, min_cos,
+                                            depth_tolerance_m)
+        scores[i, cand] = score
+    return np.argsort(-scores, axis=0, kind="stable"), scores
+
+
+def gather_observations(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                        views: list[BakeView], max_views: int, depth_tolerance_m: float = 0.01,
+                        min_cos: float = 0.2) -> dict[str, np.ndarray]:
+    """Each surface point's values in the ``max_views`` views that see it best, unblended (what a per-point
+    fit across views, e.g. of roughness, needs); same visibility and ranking as :func:`bake_textures`.
+
+    Args:
+        vertices: (V, 3), faces: (F, 3): the mesh the points lie on (for the per-view depth tests).
+        points: (P, 3) surface points; normals: (P, 3) unit normals there.
+        views: cameras with their images (:class:`BakeView`), all with the same image names.
+        max_views: ``K``, views kept per point (the best by score; fewer where fewer see it).
+        depth_tolerance_m, min_cos: as :func:`bake_textures`.
+
+    Returns:
+        dict with ``values``: name -> (P, K, C) float32 (0 where invalid); ``valid``: (P, K) bool;
+        ``view_index``: (P, K) int32 into ``views`` (-1 where invalid); ``view_dirs``: (P, K, 3) unit
+        directions from the point towards the camera (0 where invalid); ``cos``: (P, K) float32.
+    """
+    v, f = _check_mesh(vertices, faces)
+    channels = _check_views(views)
+    pts = np.asarray(points, np.float64)
+    nrm = np.asarray(normals, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
+        raise ValueError(f"points and normals must both be (P, 3), got {pts.shape} and {nrm.shape}")
+    if int(max_views) < 1:
+        raise ValueError(f"max_views must be >= 1, got {max_views}")
+    min_cos = max(float(min_cos), 1e-3)
+    k = min(int(max_views), len(views))
+    n_points = len(pts)
+    depths = _usable_depth_maps(views, mesh_scene(v, f))
+    n_dot_p = np.einsum("nd,nd->n", nrm, pts)
+    p_sq = np.einsum("nd,nd->n", pts, pts)
+    order, scores = _rank_views(views, depths, pts, nrm, n_dot_p, p_sq, min_cos, depth_tolerance_m)
+    slot = np.full((len(views), n_points), -1, np.int64)  # which of the K slots a (view, point) fills
+    for rank in range(k):
+        good = np.take_along_axis(scores, order[rank:rank + 1], axis=0)[0] > 0
+        slot[order[rank, good], np.flatnonzero(good)] = rank
+    del order, scores
+    values = {name: np.zeros((n_points, k, c), np.float32) for name, c in channels.items()}
+    valid = np.zeros((n_points, k), bool)
+    view_index = np.full((n_points, k), -1, np.int32)
+    view_dirs = np.zeros((n_points, k, 3), np.float32)
+    cos_out = np.zeros((n_points, k), np.float32)
+    for i, view in enumerate(views):
+        sel = np.flatnonzero(slot[i] >= 0)
+        if not len(sel):
+            continue
+        cand, _, _, taps, weights = _view_lookup(view, depths[i], pts[sel], nrm[sel], n_dot_p[sel], p_sq[sel],
+                                                 min_cos, depth_tolerance_m)
+        idx = sel[cand]
+        ranks = slot[i, idx]
+        for name, c in channels.items():
+            image = np.asarray(view.images[name], np.float32).reshape(-1, c)
+            gathered = np.nan_to_num(image[taps], nan=0.0, posinf=0.0, neginf=0.0)
+            values[name][idx, ranks] = np.einsum("nk,nkc->nc", weights, gathered)
+        rot, trans = np.asarray(view.cam_from_world, np.float64)[:, :3], np.asarray(view.cam_from_world)[:, 3]
+        to_cam = (-rot.T @ trans)[None] - pts[idx]
+        to_cam /= np.maximum(np.linalg.norm(to_cam, axis=1, keepdims=True), 1e-12)
+        view_dirs[idx, ranks] = to_cam
+        cos_out[idx, ranks] = np.einsum("nd,nd->n", nrm[idx], to_cam)
+        valid[idx, ranks] = True
+        view_index[idx, ranks] = i
+    return {"values": values, "valid": valid, "view_index": view_index, "view_dirs": view_dirs, "cos": cos_out}
+
+
 def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: list[BakeView],
                   texture_size: int, max_views: int = 3, depth_tolerance_m: float = 0.01,
                   min_cos: float = 0.2, normalize: tuple[str, ...] = ("normal",), dilate_px: int = 4,
@@ -383,28 +472,14 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     timings["rasterize_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    scene = mesh_scene(v, f)
-    # Depth maps with inf where the view's maps are invalid (or the mesh is missed): one lookup tests
-    # both. A pixel with a non-finite value in any map counts as invalid.
-    depths = []
-    for view in views:
-        seen = render_mesh(None, None, view.K, view.cam_from_world, *view.valid.shape, scene=scene)
-        usable = (np.asarray(view.valid, bool) & seen["hit"]
-                  & np.all([np.isfinite(im).all(axis=2) for im in view.images.values()], axis=0))
-        depths.append(np.where(usable, seen["depth_m"], np.float32(np.inf)))
+    depths = _usable_depth_maps(views, mesh_scene(v, f))
     n_dot_p = np.einsum("nd,nd->n", normals, points)
     p_sq = np.einsum("nd,nd->n", points, points)
     timings["depth_maps_s"] = time.perf_counter() - t0
 
-    # Pass 1: every view's score per texel (0 = not a candidate).
     t0 = time.perf_counter()
-    scores = np.zeros((len(views), n_texels), np.float32)
-    for i, view in enumerate(views):
-        cand, score, _, _, _ = _view_lookup(view, depths[i], points, normals, n_dot_p, p_sq, min_cos,
-                                            depth_tolerance_m)
-        scores[i, cand] = score
     k = min(int(max_views), len(views))
-    order = np.argsort(-scores, axis=0, kind="stable")  # best first; ties keep view order
+    order, scores = _rank_views(views, depths, points, normals, n_dot_p, p_sq, min_cos, depth_tolerance_m)
     chosen = np.zeros(scores.shape, bool)
     np.put_along_axis(chosen, order[:k], True, axis=0)
     chosen &= scores > 0

@@ -272,7 +272,7 @@ def _broadcast_white(white_scale, shape: tuple[int, int]) -> torch.Tensor:
         raise ValueError(f"white_scale must be a scalar, (3,), (V, 3) or (P, V, 3), got {w.shape}")
     if not np.all(np.isfinite(w)) or np.any(w <= 0):
         raise ValueError("white_scale must be positive and finite")
-    return torch.as_tensor(np.ascontiguousarray(w))
+    return torch.from_numpy(np.array(w, dtype=np.float32))  # a copy: broadcast views are read-only
 
 
 def fit_roughness(observed, view_dirs, valid, normals, albedo, white_scale=1.0, r_min: float = 0.05,
