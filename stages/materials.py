@@ -1,0 +1,251 @@
+"""Action stage ``materials``: roughness by inverse rendering under the stage's own illuminations, and an
+albedo with the ambient occlusion divided out, both as textures over the action's UV atlas.
+
+Wiring only; the numerics are :func:`stages.numerics.bake.gather_observations` (each texel's values in the
+cameras that see it best, depth-tested against the mesh), :func:`stages.numerics.materials.fit_roughness`
+(GGX under full_on / pos / neg in closed form, F0 fixed) and :func:`stages.numerics.shadowing.ambient_occlusion`.
+
+Method (measured on the simulator, A0000, ``python bench/bench_materials.py``):
+
+* Each texel of a ``texture_size`` atlas gets the decoded full_on / pos / neg values of its ``max_views`` best
+  cameras (validity from the photometric alpha, so saturated and grazing pixels are out), the mesh normal and
+  the view directions. The albedo is solved with the roughness (``fit_albedo``): the white-light albedo
+  still holds the specular light, and fixing it pushes every fit towards rough (MAE 0.29 -> 0.14).
+* Per-texel fits are noisy (a few views, 8-bit-like noise on a small lobe); roughness varies slowly over a
+  surface, so the texture is the median over each texel's ``median_neighbours`` nearest texels *on the
+  surface* (3D, so atlas charts do not matter): MAE 0.12 -> 0.09.
+* Ambient occlusion: the stage's white light is uniform over the sphere, so the white-light albedo is the
+  true albedo times the cosine-weighted visible fraction of the sphere. ``albedo_deoccluded`` divides the
+  baked albedo by that fraction computed on the mesh (floored at ``min_occlusion``).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.image import preview_linear, preview_scalar, write_png
+from pipeline.config import Documented
+from pipeline.errors import InputError
+from pipeline.stage import Stage, StageContext
+from stages.geometry import camera_maps
+from stages.numerics import numeric_threads
+
+ILLUMINATION_DIRS = ("full_on", "pos", "neg")
+
+
+@dataclass(frozen=True)
+class MaterialsConfig(Documented):
+    texture_size: int = 256
+    """Width and height of the roughness texture (the atlas of the textures stage; roughness varies slowly)."""
+    max_views: int = 16
+    """Cameras used per texel (the best by angle, distance and support): more views, steadier fits."""
+    specular_model: str = "ggx_table"
+    """"ggx_table" (exact GGX lobe moments under the linear gradients) or "sg" (the spherical-Gaussian lobes
+    relighting uses). Measured on the simulator the table is the more accurate (see bench_materials)."""
+    f0: float = 0.02
+    """Fresnel reflectance at normal incidence (skin, as the paper)."""
+    fit_albedo: bool = True
+    """Solve the diffuse albedo with the roughness (the white-light albedo still holds specular light)."""
+    roughness_min: float = 0.05
+    """Lower bound of the fitted perceptual roughness."""
+    roughness_max: float = 1.0
+    """Upper bound of the fitted perceptual roughness."""
+    median_neighbours: int = 100
+    """Texels (nearest on the surface) whose median gives the published roughness; 1 = no smoothing."""
+    occlusion_rays: int = 64
+    """Cosine-weighted rays per texel for the ambient occlusion."""
+    occlusion_size: int = 512
+    """Texture size at which the occlusion is computed (then sampled at the albedo texture's size)."""
+    min_occlusion: float = 0.2
+    """Floor of the visible fraction the albedo is divided by (deep creases would blow up noise)."""
+    min_alpha: float = 0.5
+    """Map pixels with a lower photometric validity alpha are not used."""
+    depth_tolerance_m: float = 0.01
+    """A texel is visible in a camera when its depth agrees with the mesh's depth there within this."""
+    min_cos: float = 0.2
+    """Cameras at more grazing angles to a texel than this cosine are not used."""
+    previews: bool = True
+    """Write PNG previews of roughness, fit error, occlusion and the de-occluded albedo."""
+
+    def __post_init__(self) -> None:
+        if self.specular_model not in ("ggx_table", "sg"):
+            raise ValueError(f"materials.specular_model must be 'ggx_table' or 'sg', got {self.specular_model!r}")
+        if not 0 < self.roughness_min < self.roughness_max <= 1:
+            raise ValueError("materials: need 0 < roughness_min < roughness_max <= 1")
+        if not 0 < self.min_occlusion <= 1:
+            raise ValueError("materials.min_occlusion must be in (0, 1]")
+        for name in ("texture_size", "max_views", "median_neighbours", "occlusion_rays", "occlusion_size"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"materials.{name} must be >= 1")
+
+
+def load_atlas_mesh(obj_path: Path):
+    """The textured OBJ of the textures stage as ``(vertices (V, 3) welded, faces (F, 3) into them,
+    Atlas)``: the OBJ splits vertices along chart seams; welding identical positions gives back one
+    surface, so normals and depth maps are continuous across seams."""
+    from pipeline.codecs.mesh import read_obj
+    from stages.numerics.mesh import Atlas
+
+    obj = read_obj(obj_path)
+    if obj["uvs"] is None or obj["uv_faces"] is None or not np.array_equal(obj["uv_faces"], obj["faces"]):
+        raise InputError(obj_path, "the textured mesh has no per-vertex UVs (uv faces must equal faces)")
+    vertices, inverse = np.unique(np.asarray(obj["vertices"], np.float64), axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1).astype(np.int64)
+    faces = inverse[obj["faces"]]
+    atlas = Atlas(vmapping=inverse, faces=np.asarray(obj["faces"], np.int32), uvs=np.asarray(obj["uvs"], np.float32),
+                  width=1, height=1, stats={})
+    return vertices, faces, atlas
+
+
+def texel_uvs(covered: np.ndarray) -> np.ndarray:
+    """OBJ-convention UVs (N, 2) of the covered texels' centres, in row-major order."""
+    size = covered.shape[0]
+    rows, cols = np.nonzero(covered)
+    return np.stack([(cols + 0.5) / size, 1.0 - (rows + 0.5) / size], axis=1)
+
+
+def surface_median(points: np.ndarray, values: np.ndarray, usable: np.ndarray, neighbours: int) -> np.ndarray:
+    """Median of ``values`` over each point's ``neighbours`` nearest usable points in 3D, (N,) float32.
+
+    points: (N, 3); values: (N,); usable: (N,) bool (e.g. points that had observations). With no usable
+    point (or ``neighbours`` 1) the values come back unchanged."""
+    from scipy.spatial import cKDTree
+
+    values = np.asarray(values, np.float32)
+    if neighbours <= 1 or not usable.any():
+        return values.copy()
+    k = int(min(neighbours, usable.sum()))
+    _, nearest = cKDTree(points[usable]).query(points, k=k)
+    nearest = nearest.reshape(len(points), k)
+    return np.median(values[usable][nearest], axis=1).astype(np.float32)
+
+
+class MaterialsStage(Stage):
+    """Roughness texture (inverse rendering under full_on/pos/neg) and the occlusion-free albedo."""
+
+    name = "materials"
+    version = "1"
+    scope = "action"
+    requires = ("textures", "decode", "photometric")
+    outputs = ("textures", "previews")
+
+    def run(self, ctx: StageContext) -> dict[str, Any]:
+        import torch
+
+        from stages.numerics.bake import BakeView, gather_observations, rasterize_atlas, sample_texture
+        from stages.numerics.materials import NO_VIEWS_RESIDUAL, fit_roughness
+        from stages.numerics.raycast import mesh_scene
+        from stages.numerics.shadowing import ambient_occlusion
+
+        torch.set_num_threads(numeric_threads())
+        cfg: MaterialsConfig = self.config
+        decode, photometric, textures = ctx.upstream["decode"], ctx.upstream["photometric"], ctx.upstream["textures"]
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        vertices, faces, atlas = load_atlas_mesh(textures / "mesh" / "textured.obj")
+        albedo_texture = read_exr(textures / "textures" / "albedo.exr")[..., :3]
+        cameras = json.loads((decode / "cameras.json").read_text())["cameras"]
+        white = {c["camera_id"]: np.asarray(c["white_reference"], np.float32) for c in cameras}
+        views, ids = [], []
+        for cam_id, cam, _, _, valid in camera_maps(decode, photometric, cfg.min_alpha):
+            images = [read_exr(decode / ill / f"{cam_id}.exr")[..., :3] for ill in ILLUMINATION_DIRS]
+            views.append(BakeView(images={"obs": np.concatenate(images, axis=2)}, valid=valid,
+                                  K=np.asarray(cam["K"], np.float64),
+                                  cam_from_world=np.asarray(cam["cam_from_world"], np.float64)))
+            ids.append(cam_id)
+        if not views:
+            raise InputError(photometric / "normal_alpha", "no camera has photometric maps")
+        timings["load_s"] = time.perf_counter() - t0
+
+        # Roughness: observations per texel, a per-texel fit, then a median over surface neighbours.
+        t0 = time.perf_counter()
+        size = int(cfg.texture_size)
+        raster = rasterize_atlas(vertices, faces, atlas, size)
+        covered = raster["covered"]
+        points = raster["position"][covered].astype(np.float64)
+        normals = raster["normal"][covered].astype(np.float64)
+        albedo = sample_texture(albedo_texture, texel_uvs(covered))
+        obs = gather_observations(vertices, faces, points, normals, views, cfg.max_views,
+                                  depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
+        ctx.progress(1, 3, f"{len(points)} texels, {obs['valid'].sum(axis=1).mean():.1f} views each")
+        timings["observations_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        white_per_obs = np.stack([white[c] for c in ids])[np.maximum(obs["view_index"], 0)]
+        observed = obs["values"]["obs"].reshape(len(points), -1, 3, 3)
+        roughness, fit_rms = fit_roughness(observed, obs["view_dirs"], obs["valid"], normals, albedo,
+                                           white_scale=white_per_obs, r_min=cfg.roughness_min,
+                                           r_max=cfg.roughness_max, f0=cfg.f0, specular_model=cfg.specular_model,
+                                           fit_albedo=cfg.fit_albedo)
+        fitted = fit_rms != NO_VIEWS_RESIDUAL
+        smooth = surface_median(points, roughness, fitted, cfg.median_neighbours)
+        smooth = np.clip(np.nan_to_num(smooth, nan=0.5), cfg.roughness_min, cfg.roughness_max)
+        timings["fit_s"] = time.perf_counter() - t0
+        ctx.progress(2, 3, f"roughness fitted in {timings['fit_s']:.1f} s")
+
+        roughness_tex = np.zeros((size, size), np.float32)
+        roughness_tex[covered] = smooth
+        rms_tex = np.zeros((size, size), np.float32)
+        rms_tex[covered] = np.where(fitted, fit_rms, 0.0)
+        roughness_tex = _dilate(roughness_tex, covered)
+
+        # Ambient occlusion on the mesh, divided out of the baked albedo.
+        t0 = time.perf_counter()
+        occ_size = int(cfg.occlusion_size)
+        occ_raster = rasterize_atlas(vertices, faces, atlas, occ_size)
+        occ_covered = occ_raster["covered"]
+        visible = ambient_occlusion(occ_raster["position"][occ_covered].astype(np.float64),
+                                    occ_raster["normal"][occ_covered].astype(np.float64),
+                                    mesh_scene(vertices, faces), rays=cfg.occlusion_rays)
+        occlusion_tex = np.ones((occ_size, occ_size), np.float32)
+        occlusion_tex[occ_covered] = visible
+        occlusion_tex = _dilate(occlusion_tex, occ_covered, fill=1.0)
+        h, w = albedo_texture.shape[:2]
+        rows, cols = np.mgrid[0:h, 0:w]
+        uv_full = np.stack([(cols + 0.5) / w, 1.0 - (rows + 0.5) / h], axis=-1)
+        occlusion_full = sample_texture(occlusion_tex, uv_full)
+        deoccluded = albedo_texture / np.maximum(occlusion_full, cfg.min_occlusion)[..., None]
+        deoccluded = np.clip(np.nan_to_num(deoccluded, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+        timings["occlusion_s"] = time.perf_counter() - t0
+
+        out = ctx.out_dir
+        write_exr(out / "textures" / "roughness.exr", roughness_tex)
+        write_exr(out / "textures" / "roughness_fit_rms.exr", rms_tex)
+        write_exr(out / "textures" / "occlusion.exr", occlusion_tex)
+        write_exr(out / "textures" / "albedo_deoccluded.exr", deoccluded.astype(np.float32))
+        if cfg.previews:
+            write_png(out / "previews" / "texture_roughness.png", preview_scalar(roughness_tex))
+            write_png(out / "previews" / "texture_occlusion.png", preview_scalar(occlusion_tex))
+            write_png(out / "previews" / "texture_albedo_deoccluded.png", preview_linear(deoccluded, exposure=1.0))
+        used = smooth[fitted] if fitted.any() else smooth
+        return {"texels": int(len(points)), "texels_fitted": int(fitted.sum()), "cameras": len(views),
+                "mean_views": float(obs["valid"].sum(axis=1).mean()) if len(points) else 0.0,
+                "roughness_mean": float(used.mean()) if len(used) else 0.0,
+                "roughness_p10": float(np.percentile(used, 10)) if len(used) else 0.0,
+                "roughness_p90": float(np.percentile(used, 90)) if len(used) else 0.0,
+                "fit_rms_median": float(np.median(fit_rms[fitted])) if fitted.any() else 0.0,
+                "occlusion_mean": float(visible.mean()) if len(visible) else 1.0,
+                "specular_model": cfg.specular_model, **timings}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        files = [(p, f"textures/{p.name}", f"texture_{p.stem}", None)
+                 for p in sorted((artifact / "textures").glob("*.exr"))]
+        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
+            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
+        return files
+
+
+def _dilate(texture: np.ndarray, covered: np.ndarray, fill: float | None = None, px: int = 4) -> np.ndarray:
+    """Grow the covered texels ``px`` texels (bilinear lookups at chart borders must not pull the empty
+    value); texels still empty get ``fill`` (default: the covered texels' median)."""
+    from stages.numerics.bake import dilate_texture
+
+    grown, filled = dilate_texture({"t": texture[..., None]}, covered, px)
+    out = grown["t"][..., 0]
+    default = float(np.median(texture[covered])) if fill is None and covered.any() else (fill or 0.0)
+    return np.where(filled, out, default).astype(np.float32)
