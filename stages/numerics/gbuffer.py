@@ -312,3 +312,71 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
     out_valid[rows, cols] = ok
     return {"normal": out_normal, "albedo": out_albedo, "weight": out_weight, "valid": out_valid,
             "view_count": out_count, "sources": chosen}
+
+
+def interpolate_camera(K_a: np.ndarray, cam_from_world_a: np.ndarray, K_b: np.ndarray,
+                       cam_from_world_b: np.ndarray, t: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """A camera between two: centre on the arc between theirs around ``(0, 0, 0)`` (radius and direction
+    interpolated, so it stays on the rig's sphere rather than cutting inside it), orientation by
+    quaternion slerp, intrinsics interpolated linearly.
+
+    Args:
+        K_a, K_b: (3, 3) intrinsics; cam_from_world_a, cam_from_world_b: (3, 4) poses; t: 0 = a, 1 = b.
+
+    Returns:
+        K (3, 3) float64 and cam_from_world (3, 4) float64.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    if not 0.0 <= float(t) <= 1.0:
+        raise ValueError(f"t must be in [0, 1], got {t}")
+    Pa, Pb = _pose(cam_from_world_a, "cam_from_world_a"), _pose(cam_from_world_b, "cam_from_world_b")
+    Ka, Kb = _intrinsics(K_a, "K_a"), _intrinsics(K_b, "K_b")
+    ca, cb = camera_centre(Pa), camera_centre(Pb)
+    ra, rb = np.linalg.norm(ca), np.linalg.norm(cb)
+    if ra < 1e-9 or rb < 1e-9:
+        raise ValueError("a camera centre is at the origin: no arc to interpolate on")
+    da, db = ca / ra, cb / rb
+    omega = np.arccos(np.clip(da @ db, -1.0, 1.0))
+    if omega < 1e-9:
+        direction = da
+    elif np.pi - omega < 1e-6:
+        raise ValueError("the two cameras are opposite each other: the arc between them is undefined")
+    else:
+        direction = (np.sin((1 - t) * omega) * da + np.sin(t * omega) * db) / np.sin(omega)
+    centre = direction * ((1 - t) * ra + t * rb)
+    world_from_cam = Rotation.from_matrix(np.stack([Pa[:, :3].T, Pb[:, :3].T]))
+    R = Slerp([0.0, 1.0], world_from_cam)([float(t)]).as_matrix()[0].T  # cam_from_world rotation
+    return (1 - t) * Ka + t * Kb, np.concatenate([R, (-R @ centre)[:, None]], axis=1)
+
+
+def novel_camera_pairs(cam_from_worlds: Sequence[np.ndarray], count: int,
+                       subject_centre: Sequence[float] = (0.0, 0.0, 0.0)) -> list[tuple[int, int]]:
+    """``count`` pairs of neighbouring cameras spread around the subject, to place novel views between.
+
+    Cameras are ordered by azimuth (around +y) of their direction from the subject; ``count`` anchors are
+    taken evenly along that order and each is paired with its nearest other camera (smallest angle at
+    the subject), so a novel view between them is as far as possible from both.
+
+    Returns:
+        list of ``(a, b)`` index pairs (a != b), at most ``count``, no pair twice.
+    """
+    poses = [_pose(P, f"cam_from_worlds[{i}]") for i, P in enumerate(cam_from_worlds)]
+    if len(poses) < 2:
+        raise ValueError("need at least two cameras to place a novel view between")
+    if int(count) < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    centres = np.stack([camera_centre(P) for P in poses]) - np.asarray(subject_centre, np.float64)[None]
+    dirs = centres / np.linalg.norm(centres, axis=1, keepdims=True)
+    azimuth = np.arctan2(dirs[:, 0], dirs[:, 2])
+    order = np.argsort(azimuth, kind="stable")
+    anchors = order[np.linspace(0, len(order), int(count), endpoint=False).astype(int)]
+    pairs: list[tuple[int, int]] = []
+    for a in anchors:
+        cos = dirs @ dirs[a]
+        cos[a] = -np.inf
+        b = int(np.argmax(cos))
+        pair = (int(min(a, b)), int(max(a, b)))
+        if pair not in pairs:
+            pairs.append(pair)
+    return pairs

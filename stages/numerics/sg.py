@@ -799,3 +799,35 @@ def shade_sg(normals, view_dirs, albedo, roughness, lobes: SGLobes, f0: float = 
     if as_numpy:
         out = {k: val.detach().numpy().astype(np.float32) for k, val in out.items()}
     return out
+
+
+PROCEDURAL_ENVIRONMENTS = ("sky", "studio")
+
+
+def procedural_environment(kind: str, height: int = 64) -> np.ndarray:
+    """A built-in equirectangular environment (H, 2H, 3) float32, for captures without HDR files.
+
+    ``"sky"``: a blue-white sky over a darker ground with a small warm sun (radiance ~2000, 30 deg high,
+    towards -z+x); ``"studio"``: a dim grey room with a large soft key light (front-left, above) and a
+    smaller cool rim light behind. Both are deterministic.
+    """
+    if kind not in PROCEDURAL_ENVIRONMENTS:
+        raise ValueError(f"procedural environment must be one of {PROCEDURAL_ENVIRONMENTS}, got {kind!r}")
+    if height < 4:
+        raise ValueError(f"height must be >= 4, got {height}")
+    d = equirect_directions(height, 2 * height).astype(np.float64)
+    up = d[..., 1:2]
+
+    def lobe(axis, sharpness, colour):
+        axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+        return np.exp(sharpness * (d @ axis - 1.0))[..., None] * np.asarray(colour, np.float64)
+
+    if kind == "sky":
+        sky = np.where(up > 0, (1 - up) * np.array([0.9, 0.95, 1.0]) + up * np.array([0.25, 0.45, 0.9]),
+                       np.array([0.12, 0.1, 0.08]))
+        env = 1.5 * sky + lobe([0.5, np.tan(np.radians(30)) * np.sqrt(0.5), -np.sqrt(0.5)], 4000.0,
+                               [2000.0, 1800.0, 1500.0])
+    else:
+        env = (0.08 + 0.04 * up) * np.ones(3) + lobe([-0.6, 0.6, 0.55], 20.0, [6.0, 5.8, 5.4]) \
+            + lobe([0.3, 0.3, -0.9], 60.0, [2.0, 2.6, 3.2])
+    return np.maximum(env, 0.0).astype(np.float32)
