@@ -183,6 +183,9 @@ class Release:
         return bool(pc.any(pc.equal(self.table("assets").column("action_id"), action_id)).as_py())
 
 
+_RENDER_KINDS = ("render_", "relit_")  # assets of novel views, not of captured cameras
+
+
 class ActionView:
     """The assets of one action. Nothing is read until a method is called."""
 
@@ -213,8 +216,14 @@ class ActionView:
 
     @property
     def cameras(self) -> list[str]:
-        """Sorted camera ids this action has per-camera assets for."""
-        return sorted({cam for (_, cam) in self._index if cam is not None})
+        """Sorted ids of the captured cameras this action has per-camera assets for (novel views of
+        ``renders/`` are in :attr:`render_views`)."""
+        return sorted({cam for (kind, cam) in self._index if cam is not None and not kind.startswith(_RENDER_KINDS)})
+
+    @property
+    def render_views(self) -> list[str]:
+        """Sorted ids of the novel views in ``renders/`` (``N000``...)."""
+        return sorted({cam for (kind, cam) in self._index if cam is not None and kind.startswith(_RENDER_KINDS)})
 
     @property
     def kinds(self) -> list[str]:
@@ -294,7 +303,30 @@ class ActionView:
         """A baked texture of the UV atlas of ``mesh/textured.obj``: 'albedo' (T, T, 3), 'normal' (T, T, 3),
         'view_count' or 'confidence' (T, T), float32; texel row 0 is v = 1 (OBJ convention)."""
         data = self._load(f"texture_{name}", None)
-        return data[..., 0] if name in ("view_count", "confidence") and data.ndim == 3 else data
+        single = ("view_count", "confidence", "roughness", "roughness_fit_rms", "occlusion")
+        return data[..., 0] if name in single and data.ndim == 3 else data
+
+    def render_cameras(self) -> list[dict]:
+        """The novel cameras of ``renders/`` (camera_id ``N000``..., K, cam_from_world, width, height and the
+        captured pair each lies between); empty when the action has no renders."""
+        if "render_cameras" not in self.kinds:
+            return []
+        return self._load("render_cameras", None)["cameras"]
+
+    def relit(self, view: str, environment: str) -> np.ndarray:
+        """A relit novel view, (H, W, 4) float32: linear radiance in the environment map's units and the
+        mask as alpha. ``environment`` is the label in ``renders/environments.json`` (e.g.
+        ``studio_small_03_1k``)."""
+        return self._load(f"relit_{environment}", view)
+
+    def render_gbuffer(self, view: str) -> dict[str, np.ndarray]:
+        """The G-buffer of a novel view: ``normal`` (H, W, 3), ``albedo`` (H, W, 3), ``roughness`` (H, W),
+        ``mask`` (H, W) bool."""
+        rough = self._load("render_roughness", view)
+        mask = self._load("render_mask", view)
+        return {"normal": self._load("render_normal", view), "albedo": self._load("render_albedo", view),
+                "roughness": rough[..., 0] if rough.ndim == 3 else rough,
+                "mask": (mask[..., 0] if mask.ndim == 3 else mask) > 127}
 
 
 def open_release(path: str | Path) -> Release:

@@ -25,6 +25,8 @@ SCHEMA_VERSION = "1"
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 CAMERA_ID_PATTERN = re.compile(r"^[0-9]{5}$")
+#: Captured cameras ('00000') or, in the assets and metrics tables, the novel views of renders/ ('N000').
+VIEW_ID_PATTERN = re.compile(r"^([0-9]{5}|N[0-9]{3})$")
 SHA256_PATTERN = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -99,7 +101,10 @@ def _action_id(nullable: bool = False, extra: str = "") -> Column:
                   nullable=nullable)
 
 
-def _camera_id(nullable: bool = False, extra: str = "") -> Column:
+def _camera_id(nullable: bool = False, extra: str = "", novel: bool = False) -> Column:
+    if novel:
+        return Column("camera_id", _STR, "Camera id, a 5-digit string such as '00000', or a novel view of "
+                      "renders/ such as 'N000'." + extra, nullable=nullable, pattern=VIEW_ID_PATTERN)
     return Column("camera_id", _STR, "Camera id, a 5-digit string such as '00000'." + extra,
                   nullable=nullable, pattern=CAMERA_ID_PATTERN)
 
@@ -167,7 +172,7 @@ ASSETS = TableSpec(
     primary_key=("path",),
     columns=(
         _action_id(nullable=True, extra=" Null for release-level assets."),
-        _camera_id(nullable=True, extra=" Null for assets that are not per camera (transforms.json, "
+        _camera_id(nullable=True, novel=True, extra=" Null for assets that are not per camera (transforms.json, "
                    "previews of several cameras, release-level files)."),
         Column("kind", _STR, "What the file is: 'full_on', 'pos', 'neg' (decoded linear sRGB RGB "
                "half-float EXR), 'mask' (uint8 0/255 PNG), 'normal_alpha' (RGBA EXR: world normal xyz + "
@@ -187,7 +192,7 @@ METRICS = TableSpec(
     primary_key=("action_id", "camera_id", "metric", "region", "source"),
     columns=(
         _action_id(nullable=True, extra=" Null for release-level metrics."),
-        _camera_id(nullable=True, extra=" Null for metrics over all cameras of an action."),
+        _camera_id(nullable=True, novel=True, extra=" Null for metrics over all cameras of an action."),
         Column("metric", _STR, "Metric name with its unit, e.g. 'normal_angular_error_mean_deg', "
                "'albedo_psnr_db', 'valid_fraction'."),
         Column("region", _STR, "Pixels the metric is taken over: 'valid' (alpha > 0.5), 'all' (subject "

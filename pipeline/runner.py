@@ -248,6 +248,8 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                             "error": error if failed_here else (f"camera {cam['camera_id']}: {left_out}" if left_out else None)}
                 frame_rows.append(row)
         for task in tasks:
+            if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
+                continue
             for cam, stats in (task.stats.get("views", {}) or {}).items():
                 for metric, value in (stats or {}).items():
                     if isinstance(value, (int, float)) and not isinstance(value, bool):

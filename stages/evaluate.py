@@ -194,6 +194,8 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     overall |= _camera_overall(rel, truth_dir, ok_ids)
     overall |= _mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id)
+    overall |= _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
+    overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     for metric, value in overall.items():
         rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
@@ -260,6 +262,121 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                 rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
                              "value": float(value), "source": "evaluate", "run_id": run_id})
     return {k: float(np.mean(v)) for k, v in values.items() if v}
+
+
+MATERIAL_METRICS = ("roughness_mae", "roughness_bias", "albedo_texture_psnr_db", "albedo_deoccluded_psnr_db")
+
+
+def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.ndarray, cam_from_world: np.ndarray,
+                      height: int, width: int, scene_cache: dict | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Textures of the atlas seen by a camera through the textured mesh: name -> (H, W[, C]) and the hit
+    mask (H, W)."""
+    from stages.materials import load_atlas_mesh
+    from stages.numerics.bake import sample_texture
+    from stages.numerics.raycast import mesh_scene, render_uvs
+
+    cache = scene_cache if scene_cache is not None else {}
+    if "scene" not in cache:
+        vertices, faces, atlas = load_atlas_mesh(obj_path)
+        cache.update(scene=mesh_scene(vertices, faces), atlas=atlas)
+    atlas = cache["atlas"]
+    uv, hit = render_uvs(cache["scene"], atlas.faces, atlas.uvs, K, cam_from_world, height, width)
+    out = {name: sample_texture(tex, uv.reshape(-1, 2)).reshape((height, width) + tex.shape[2:])
+           for name, tex in textures.items()}
+    return out, hit
+
+
+def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
+                       rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
+    """Roughness and albedo textures against the simulator's maps, seen through the textured mesh from every
+    true camera (pixels where the truth has the subject and the mesh is hit): roughness mean absolute error
+    and bias, and the albedo PSNR of the baked (white-light) texture and of the de-occluded one."""
+    from pipeline.codecs.exr import read_exr
+    from pipeline.codecs.image import read_png
+
+    values: dict[str, list[float]] = {}
+    for action_id in ok_ids:
+        view = rel.action(action_id)
+        if "texture_roughness" not in view.kinds or not (truth_dir / action_id / "roughness").is_dir():
+            continue
+        cameras = true_cameras(truth_dir, view.info.get("session_id") or "S000")
+        textures = {"roughness": view.texture("roughness"), "albedo": view.texture("albedo")[..., :3]}
+        if "texture_albedo_deoccluded" in view.kinds:
+            textures["albedo_deoccluded"] = view.texture("albedo_deoccluded")[..., :3]
+        abs_err, signed, sq = [], [], {k: [0.0, 0] for k in textures if k.startswith("albedo")}
+        cache: dict = {}
+        for cam_id, cam in sorted(cameras.items()):
+            rough_path = truth_dir / action_id / "roughness" / f"{cam_id}.exr"
+            if not rough_path.exists():
+                continue
+            true_rough = read_exr(rough_path)
+            true_rough = true_rough[..., 0] if true_rough.ndim == 3 else true_rough
+            true_mask = read_png(truth_dir / action_id / "mask" / f"{cam_id}.png")
+            true_mask = (true_mask[..., 0] if true_mask.ndim == 3 else true_mask) > 127
+            true_albedo = read_exr(truth_dir / action_id / "albedo" / f"{cam_id}.exr")[..., :3]
+            seen, hit = texture_in_camera(view.path("mesh_textured"), textures, np.asarray(cam["K"]),
+                                          np.asarray(cam["cam_from_world"])[:3], true_rough.shape[0],
+                                          true_rough.shape[1], cache)
+            both = hit & true_mask
+            diff = seen["roughness"][both] - true_rough[both]
+            abs_err.append(np.abs(diff))
+            signed.append(diff)
+            for name in sq:
+                err = np.clip(seen[name][both], 0, 1) - true_albedo[both]
+                sq[name][0] += float(np.sum(err ** 2))
+                sq[name][1] += err.size
+        if not abs_err:
+            continue
+        metrics = {"roughness_mae": float(np.mean(np.concatenate(abs_err))),
+                   "roughness_bias": float(np.mean(np.concatenate(signed))),
+                   "albedo_texture_psnr_db": _psnr_from_mse(sq["albedo"][0] / max(sq["albedo"][1], 1))}
+        if "albedo_deoccluded" in sq:
+            metrics["albedo_deoccluded_psnr_db"] = _psnr_from_mse(sq["albedo_deoccluded"][0] /
+                                                                  max(sq["albedo_deoccluded"][1], 1))
+        for key, value in metrics.items():
+            values.setdefault(key, []).append(value)
+            per_action.setdefault(action_id, {})[key] = value
+            rows.append({"action_id": action_id, "camera_id": None, "metric": key, "region": "textures",
+                         "value": value, "source": "evaluate", "run_id": run_id})
+    return {k: float(np.mean(v)) for k, v in values.items() if v}
+
+
+def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
+                   rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
+    """Relit novel views against the simulator's subject rendered under the same environment from the same
+    camera (:class:`synthetic.relight.TruthRelighter`): PSNR after a common exposure
+    (:func:`stages.numerics.metrics.relit_psnr`), per view and environment, averaged."""
+    from stages.numerics.metrics import relit_psnr
+    from stages.relight import find_environment, load_environment
+
+    capture_root = Path(truth_dir).parent
+    if not (capture_root / "capture.json").exists():
+        return {}
+    from synthetic.relight import TruthRelighter
+
+    values: list[float] = []
+    for action_id in ok_ids:
+        view = rel.action(action_id)
+        if "render_environments" not in view.kinds:
+            continue
+        envs = view.release.load(view.asset("render_environments", None))["environments"]
+        truth = TruthRelighter(capture_root, action_id)
+        scores = []
+        for env_record in envs:
+            env, _ = load_environment(env_record["name"], find_environment(env_record["name"], capture_root))
+            for cam in view.render_cameras():
+                relit = view.relit(cam["camera_id"], env_record["label"])
+                true = truth.render(np.asarray(cam["K"]), np.asarray(cam["cam_from_world"]), cam["height"],
+                                    cam["width"], env)
+                score = relit_psnr(relit[..., :3], relit[..., 3] > 0.5, true["radiance"], true["mask"])
+                scores.append(score["psnr_db"])
+                rows.append({"action_id": action_id, "camera_id": cam["camera_id"], "metric": "relit_psnr_db",
+                             "region": env_record["label"], "value": score["psnr_db"], "source": "evaluate",
+                             "run_id": run_id})
+        if scores:
+            per_action.setdefault(action_id, {})["relit_psnr_db"] = float(np.mean(scores))
+            values.append(float(np.mean(scores)))
+    return {"relit_psnr_db": float(np.mean(values))} if values else {}
 
 
 def _camera_overall(rel: Any, truth_dir: Path, ok_ids: list[str]) -> dict[str, float]:
@@ -331,4 +448,10 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"RMSE {o.get('heldout_albedo_rmse', float('nan')):.3f}; normals {o['heldout_normal_mean_deg']:.2f} deg, "
               f"{o.get('heldout_normal_under5_pct', float('nan')):.1f}% < 5, {o.get('heldout_normal_under25_pct', float('nan')):.1f}% < 25 "
               "(vs the held-out photometric maps)")
+    if "roughness_mae" in o:
+        print(f"  materials             : roughness MAE {o['roughness_mae']:.3f} (bias {o.get('roughness_bias', float('nan')):+.3f}); "
+              f"albedo texture {o.get('albedo_texture_psnr_db', float('nan')):.2f} dB, de-occluded "
+              f"{o.get('albedo_deoccluded_psnr_db', float('nan')):.2f} dB (vs the simulator's albedo)")
+    if "relit_psnr_db" in o:
+        print(f"  relit novel views     : PSNR {o['relit_psnr_db']:.2f} dB against the true subject under the same environments")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

@@ -10,11 +10,14 @@ from stages.cameras import CamerasConfig, CamerasStage
 from stages.decode import DecodeConfig, DecodeStage, PlatesStage
 from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, TexturesStage
 from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
+from stages.materials import MaterialsConfig, MaterialsStage
 from stages.numerics.sdf import SDF_PRESETS
 from stages.photometric import PhotometricConfig, PhotometricStage
+from stages.relight import RelightConfig, RelightStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
-                                          PhotometricStage, GeometryStage, TexturesStage)
+                                          PhotometricStage, GeometryStage, TexturesStage,
+                                          MaterialsStage, RelightStage)
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,10 @@ class PipelineConfig:
     """The normal-supervised neural SDF and its mesh."""
     textures: TexturesConfig = field(default_factory=TexturesConfig)
     """UV atlas and baked albedo/normal textures."""
+    materials: MaterialsConfig = field(default_factory=MaterialsConfig)
+    """Roughness texture by inverse rendering, occlusion and the occlusion-free albedo."""
+    relight: RelightConfig = field(default_factory=RelightConfig)
+    """Novel views under HDR environments (renders/)."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     """Where and how tasks run; never part of a cache key."""
 
@@ -44,16 +51,24 @@ PRESETS: dict[str, PipelineConfig] = {
     "production": PipelineConfig(decode=DecodeConfig(demosaic="AHD", half_size=True),
                                  geometry=GeometryConfig(sdf=SDF_PRESETS["production"], mesh_resolution=1024,
                                                          face_budget=500_000),
-                                 textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4)),
+                                 textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4),
+                                 materials=MaterialsConfig(texture_size=1024, occlusion_size=2048),
+                                 relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128)),
     # Quick looks: cheapest demosaic, in-process execution, a short SDF schedule.
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
                            geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000),
                            textures=TexturesConfig(atlas_faces=10_000, texture_size=512),
+                           materials=MaterialsConfig(max_views=8, occlusion_rays=32),
+                           relight=RelightConfig(novel_views=2, sg_lobes=16, visibility_directions=128),
                            execution=ExecutionConfig(scheduler="sync")),
     # The test suite's tiny captures (a few cameras, ~100 px): every stage runs, in seconds.
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
                                                    face_budget=20_000, previews=True),
                            textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
+                           materials=MaterialsConfig(texture_size=64, max_views=4, median_neighbours=16,
+                                                     occlusion_rays=16, occlusion_size=64),
+                           relight=RelightConfig(environments=("procedural:sky", "procedural:studio"), novel_views=1,
+                                                 sg_lobes=8, fit_height=16, visibility_directions=64),
                            execution=ExecutionConfig(scheduler="sync")),
 }
 
