@@ -33,9 +33,10 @@ Measured against a fine quadrature (2e5 directions) of ``L V cos`` with analytic
 wall and a 40-degree disc) under 32-lobe fits of three HDRIs (mean |error| / mean unoccluded E, 300
 normals; a one-off measurement, test_shadowing.py checks a small case): at D = 256 this ratio
 gives 1.1-1.7% on the smooth maps and 1.2-2.8% on studio_small_03 (small bright softboxes); plain
-quadrature ``sum_d L V c 4pi/D`` gives 0.9-4.4% on the smooth maps but 70-150% on the studio map (sharp lobes between directions), and
-the closed form minus the quadrature of the occluded directions 1.8-4.1% and 2.3-3.9% (up to 51% at
-D = 128). Capping the lobes' sharpness (blurring the visibility) only made the ratio worse.
+quadrature ``sum_d L V c 4pi/D`` gives 0.9-4.4% on the smooth maps but 70-150% on the studio map
+(sharp lobes between directions), and the closed form minus the quadrature of the occluded directions
+1.8-4.1% and 2.3-3.9% (up to 51% at D = 128). Capping the lobes' sharpness (blurring the visibility)
+only made the ratio worse.
 
 **Specular with occlusion.** The unoccluded specular of shade_sg is scaled per point and colour channel
 by the visible fraction of ``f_s(w) max(0, n.w) L(w)`` over the directions, where ``f_s`` is the GGX SG
