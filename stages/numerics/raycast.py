@@ -101,35 +101,48 @@ def render_mesh(vertices: np.ndarray | None, faces: np.ndarray | None, K: np.nda
             "face": face.reshape(height, width), "hit": hit.reshape(height, width)}
 
 
-def render_uvs(scene, uv_faces: np.ndarray, uvs: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
-               height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Texture coordinates of a textured mesh seen by a pinhole camera.
+def render_attributes(scene, faces: np.ndarray, attributes: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+                      height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex attributes of a mesh seen by a pinhole camera, interpolated with the hits' barycentrics.
 
     Args:
-        scene: :func:`mesh_scene` of the mesh (face ``i`` of the scene is UV face ``i``).
-        uv_faces: (F, 3) int indices into ``uvs`` per face corner; uvs: (U, 2).
+        scene: :func:`mesh_scene` of the mesh (face ``i`` of the scene is row ``i`` of ``faces``).
+        faces: (F, 3) int indices into ``attributes`` per face corner (e.g. a UV atlas' faces, whose
+            corners index split vertices, while the scene was built from the welded ones).
+        attributes: (A, C) per-vertex values (UVs, smooth normals, ...).
         K, cam_from_world, height, width: the camera.
 
     Returns:
-        uv (H, W, 2) float64 interpolated with the hit's barycentrics (0 where the mesh is missed) and
-        hit (H, W) bool.
+        values (H, W, C) float64 (0 where the mesh is missed) and hit (H, W) bool.
     """
     import open3d as o3d
 
-    uv_faces = np.asarray(uv_faces, np.int64)
-    uvs = np.asarray(uvs, np.float64)
-    if uv_faces.ndim != 2 or uv_faces.shape[1] != 3 or uvs.ndim != 2 or uvs.shape[1] != 2:
-        raise ValueError(f"expected uv_faces (F, 3) and uvs (U, 2), got {uv_faces.shape} and {uvs.shape}")
+    faces = np.asarray(faces, np.int64)
+    attributes = np.asarray(attributes, np.float64)
+    if faces.ndim != 2 or faces.shape[1] != 3 or attributes.ndim != 2:
+        raise ValueError(f"expected faces (F, 3) and attributes (A, C), got {faces.shape} and {attributes.shape}")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(attributes)):
+        raise ValueError(f"faces index {faces.max() + 1} attributes, only {len(attributes)} given")
     origins, directions, _ = camera_rays(K, cam_from_world, height, width)
     rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
     ans = scene.cast_rays(o3d.core.Tensor(rays))
     hit = np.isfinite(ans["t_hit"].numpy())
     face = np.where(hit, ans["primitive_ids"].numpy().astype(np.int64), 0)
-    if hit.any() and face[hit].max() >= len(uv_faces):
-        raise ValueError(f"the scene has more faces than uv_faces ({len(uv_faces)}): another mesh?")
-    bary = ans["primitive_uvs"].numpy().astype(np.float64)
-    corners = uvs[uv_faces[face]]  # (N, 3, 2)
-    uv = (corners[:, 0] * (1.0 - bary[:, :1] - bary[:, 1:2]) + corners[:, 1] * bary[:, :1]
-          + corners[:, 2] * bary[:, 1:2])
-    uv = np.where(hit[:, None], uv, 0.0)
-    return uv.reshape(height, width, 2), hit.reshape(height, width)
+    if hit.any() and face[hit].max() >= len(faces):
+        raise ValueError(f"the scene has more faces than the {len(faces)} given: another mesh?")
+    bary = ans["primitive_uvs"].numpy().astype(np.float64)  # hit = (1 - u - v) p0 + u p1 + v p2
+    corners = attributes[faces[face]]  # (N, 3, C)
+    values = (corners[:, 0] * (1.0 - bary[:, :1] - bary[:, 1:2]) + corners[:, 1] * bary[:, :1]
+              + corners[:, 2] * bary[:, 1:2])
+    values = np.where(hit[:, None], values, 0.0)
+    return values.reshape(height, width, attributes.shape[1]), hit.reshape(height, width)
+
+
+def render_uvs(scene, uv_faces: np.ndarray, uvs: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+               height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Texture coordinates (H, W, 2) of a textured mesh seen by a camera, and the hit mask (H, W):
+    :func:`render_attributes` of the per-corner UVs."""
+    uvs = np.asarray(uvs, np.float64)
+    if uvs.ndim != 2 or uvs.shape[1] != 2:
+        raise ValueError(f"uvs must be (U, 2), got {uvs.shape}")
+    return render_attributes(scene, uv_faces, uvs, K, cam_from_world, height, width)
