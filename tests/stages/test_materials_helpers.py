@@ -1,0 +1,105 @@
+"""Materials stage helpers: surface_median, load_atlas_mesh (the textures stage's OBJ back), texel_uvs."""
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from pipeline.codecs.mesh import write_obj
+from pipeline.errors import InputError
+from stages.materials import load_atlas_mesh, surface_median, texel_uvs
+from stages.numerics.bake import sample_texture
+from stages.numerics.mesh import uv_atlas, vertex_normals
+
+
+# ----------------------------------------------------------------------------------- surface_median
+def line(n=10):
+    return np.stack([np.arange(n, dtype=float), np.zeros(n), np.zeros(n)], 1)
+
+
+def test_median_removes_an_outlier_on_a_line():
+    values = np.ones(10, np.float32)
+    values[5] = 100.0
+    out = surface_median(line(), values, np.ones(10, bool), neighbours=3)
+    assert out.shape == (10,) and out.dtype == np.float32
+    np.testing.assert_array_equal(out, np.ones(10))
+    # a linear ramp survives in the interior (median of x-1, x, x+1 is x); the ends see a one-sided window
+    ramp = surface_median(line(), np.arange(10.0), np.ones(10, bool), neighbours=3)
+    np.testing.assert_array_equal(ramp[1:-1], np.arange(1.0, 9.0))
+    assert ramp[0] == 1.0 and ramp[-1] == 8.0
+
+
+def test_median_uses_usable_points_only():
+    values = np.ones(10, np.float32)
+    values[[4, 5]] = 1000.0  # no observations there: neither used nor kept
+    usable = np.ones(10, bool)
+    usable[[4, 5]] = False
+    out = surface_median(line(), values, usable, neighbours=3)
+    np.testing.assert_array_equal(out, np.ones(10))  # unusable points take their usable neighbours' median
+    # more neighbours than usable points: all usable points
+    few = np.zeros(10, bool)
+    few[[0, 9]] = True
+    vals = np.arange(10.0, dtype=np.float32)
+    np.testing.assert_array_equal(surface_median(line(), vals, few, neighbours=5), np.full(10, 4.5))
+
+
+def test_median_identity_cases():
+    rng = np.random.default_rng(0)
+    pts, values = rng.normal(size=(20, 3)), rng.normal(size=20).astype(np.float32)
+    same = surface_median(pts, values, np.ones(20, bool), neighbours=1)
+    np.testing.assert_array_equal(same, values)
+    assert same is not values  # a copy
+    np.testing.assert_array_equal(surface_median(pts, values, np.zeros(20, bool), neighbours=5), values)
+
+
+# ---------------------------------------------------------------------------------- load_atlas_mesh
+@pytest.fixture(scope="module")
+def sphere_obj(tmp_path_factory):
+    """A small sphere, its atlas and the OBJ the textures stage writes from them (split vertices)."""
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=0.3, resolution=6)
+    v = np.asarray(mesh.vertices, np.float64) + [0.1, -0.2, 0.05]
+    f = np.asarray(mesh.triangles, np.int64)
+    atlas = uv_atlas(v, f, resolution=64)
+    split = v[atlas.vmapping]
+    path = tmp_path_factory.mktemp("atlas") / "textured.obj"
+    write_obj(path, split, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
+              normals=vertex_normals(split, atlas.faces), material={"name": "albedo", "map_Kd": "albedo.png"})
+    return v, f, atlas, path
+
+
+def test_load_atlas_mesh_welds_the_seams(sphere_obj):
+    v, f, atlas, path = sphere_obj
+    assert len(atlas.vmapping) > len(v)  # the atlas has seams: split vertices
+    vertices, faces, loaded = load_atlas_mesh(path)
+    assert vertices.shape == v.shape and faces.shape == f.shape
+    assert faces.min() >= 0 and faces.max() == len(vertices) - 1
+    # same triangles, corner by corner (welded order may differ from the input's)
+    np.testing.assert_allclose(vertices[faces], v[f], atol=1e-6)
+    # the atlas round-trips: faces, UVs, and every split vertex maps to its welded position
+    np.testing.assert_array_equal(loaded.faces, atlas.faces)
+    np.testing.assert_allclose(loaded.uvs, atlas.uvs, atol=1e-6)
+    np.testing.assert_allclose(vertices[loaded.vmapping], v[atlas.vmapping], atol=1e-6)
+    np.testing.assert_array_equal(loaded.vmapping[loaded.faces], faces)
+    # a seam's split copies weld back to one vertex
+    assert len(np.unique(loaded.vmapping)) == len(v)
+
+
+def test_load_atlas_mesh_needs_uvs(tmp_path):
+    mesh = o3d.geometry.TriangleMesh.create_tetrahedron()
+    path = write_obj(tmp_path / "plain.obj", np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    with pytest.raises(InputError, match="UVs"):
+        load_atlas_mesh(path)
+
+
+# ------------------------------------------------------------------------------------------ texel_uvs
+def test_texel_uvs_hand_case_and_round_trip():
+    covered = np.zeros((4, 4), bool)
+    covered[0, 1] = covered[2, 3] = covered[3, 0] = True
+    uv = texel_uvs(covered)
+    np.testing.assert_allclose(uv, [[1.5 / 4, 1 - 0.5 / 4], [3.5 / 4, 1 - 2.5 / 4], [0.5 / 4, 1 - 3.5 / 4]])
+    # the texel centres sample back exactly their own texels
+    rng = np.random.default_rng(2)
+    covered = rng.random((16, 16)) > 0.5
+    texture = rng.random((16, 16, 3)).astype(np.float32)
+    np.testing.assert_allclose(sample_texture(texture, texel_uvs(covered)), texture[covered], atol=1e-6)
+    assert texel_uvs(np.zeros((8, 8), bool)).shape == (0, 2)
