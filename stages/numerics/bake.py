@@ -337,6 +337,13 @@ def _view_lookup(view: BakeView, depth_valid: np.ndarray, points: np.ndarray, no
     return cand, score, cos * support, taps, weights
 
 
+def _check_lookup(min_cos: float, depth_tolerance_m: float) -> None:
+    if not -1.0 <= min_cos < 1.0:
+        raise ValueError(f"min_cos must be in [-1, 1), got {min_cos}")
+    if not depth_tolerance_m > 0:
+        raise ValueError(f"depth_tolerance_m must be > 0, got {depth_tolerance_m}")
+
+
 def _usable_depth_maps(views: list[BakeView], scene) -> list[np.ndarray]:
     """Each view's depth map of the mesh, ``inf`` where its maps are invalid or the mesh is missed (one
     lookup then tests both); a pixel with a non-finite value in any map counts as invalid."""
@@ -386,6 +393,7 @@ def gather_observations(vertices: np.ndarray, faces: np.ndarray, points: np.ndar
         raise ValueError(f"points and normals must both be (P, 3), got {pts.shape} and {nrm.shape}")
     if int(max_views) < 1:
         raise ValueError(f"max_views must be >= 1, got {max_views}")
+    _check_lookup(min_cos, depth_tolerance_m)
     min_cos = max(float(min_cos), 1e-3)
     k = min(int(max_views), len(views))
     n_points = len(pts)
@@ -453,10 +461,9 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     channels = _check_views(views)
     if int(max_views) < 1:
         raise ValueError(f"max_views must be >= 1, got {max_views}")
-    if not -1.0 <= min_cos < 1.0:
-        raise ValueError(f"min_cos must be in [-1, 1), got {min_cos}")
-    if depth_tolerance_m <= 0 or agreement_scale <= 0:
-        raise ValueError("depth_tolerance_m and agreement_scale must be > 0")
+    _check_lookup(min_cos, depth_tolerance_m)
+    if agreement_scale <= 0:
+        raise ValueError("agreement_scale must be > 0")
     normalize = tuple(n for n in normalize if n in channels)  # e.g. the default "normal" in an albedo-only bake
     min_cos = max(float(min_cos), 1e-3)  # the slant allowance needs cos > 0
     timings = {}

@@ -38,7 +38,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["SourceView", "WEIGHTINGS", "camera_centre", "nearest_views", "reproject_gbuffer"]
+__all__ = ["SourceView", "WEIGHTINGS", "camera_centre", "nearest_views", "reproject_gbuffer", "interpolate_camera",
+           "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 

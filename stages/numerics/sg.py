@@ -825,8 +825,9 @@ def procedural_environment(kind: str, height: int = 64) -> np.ndarray:
     if kind == "sky":
         sky = np.where(up > 0, (1 - up) * np.array([0.9, 0.95, 1.0]) + up * np.array([0.25, 0.45, 0.9]),
                        np.array([0.12, 0.1, 0.08]))
-        env = 1.5 * sky + lobe([0.5, np.tan(np.radians(30)) * np.sqrt(0.5), -np.sqrt(0.5)], 4000.0,
-                               [2000.0, 1800.0, 1500.0])
+        elevation = np.radians(30.0)
+        sun = [np.cos(elevation) * np.sqrt(0.5), np.sin(elevation), -np.cos(elevation) * np.sqrt(0.5)]
+        env = 1.5 * sky + lobe(sun, 4000.0, [2000.0, 1800.0, 1500.0])
     else:
         env = (0.08 + 0.04 * up) * np.ones(3) + lobe([-0.6, 0.6, 0.55], 20.0, [6.0, 5.8, 5.4]) \
             + lobe([0.3, 0.3, -0.9], 60.0, [2.0, 2.6, 3.2])

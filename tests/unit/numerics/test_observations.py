@@ -186,8 +186,6 @@ def test_bad_inputs_raise():
         gather_observations(v, f + 10, pts, nrm, views, 2)
 
 
-@pytest.mark.xfail(strict=True, reason="gather_observations does not validate depth_tolerance_m (bake_textures "
-                                       "raises for <= 0): a negative tolerance silently drops every observation")
 def test_non_positive_depth_tolerance_raises_like_bake_textures():
     v, f = plane_mesh()
     pts, nrm = grid_points(n=2)
@@ -196,8 +194,6 @@ def test_non_positive_depth_tolerance_raises_like_bake_textures():
         gather_observations(v, f, pts, nrm, views, 2, depth_tolerance_m=-1.0)
 
 
-@pytest.mark.xfail(strict=True, reason="gather_observations does not validate min_cos (bake_textures raises "
-                                       "outside [-1, 1)): min_cos >= 1 silently drops every observation")
 def test_min_cos_of_one_or_more_raises_like_bake_textures():
     v, f = plane_mesh()
     pts, nrm = grid_points(n=2)

@@ -44,9 +44,6 @@ def test_sky_sun_is_brightest_and_high_in_the_minus_z_plus_x_quarter():
     assert env[far].max() < 3.0
 
 
-@pytest.mark.xfail(strict=True, reason="sg.py procedural_environment: the sun's axis [0.5, tan30*sqrt(.5), "
-                                       "-sqrt(.5)] puts it 25.2 deg high (35 deg from -z), not the documented "
-                                       "30 deg; x = sqrt(.5) would give 30 deg at 45 deg azimuth")
 def test_sky_sun_is_30_degrees_high():
     d = brightest_direction(procedural_environment("sky", 180))  # 1 degree texels
     assert elevation_deg(d) == pytest.approx(30.0, abs=1.5)
