@@ -198,9 +198,14 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              f"{len(capture.sessions)} session(s), {len(next(iter(capture.sessions.values())).camera_ids)} cameras).",
              f"- Origin: {'synthetic, rendered by the UltraStage simulator' if sim else 'light-stage capture'}.",
              "- Contents: decoded linear images (full_on, pos, neg), world-space normals with validity alpha, "
-             "albedo from the white image, foreground masks, cameras (transforms.json).",
+             "albedo from the white image, foreground masks, cameras (transforms.json); per action, when the "
+             "neural stages ran, a mesh, a UV atlas with albedo/normal/roughness/occlusion textures and relit "
+             "novel views (renders/).",
              "- Known biases: photometric normals are biased where the lit hemisphere is occluded (armpits, "
-             "between limbs); the white-light albedo still contains ambient occlusion; see metrics.parquet.",
+             "between limbs) and by specular reflection; the white-light albedo still contains ambient "
+             "occlusion (textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh "
+             "smooths creases); roughness assumes Fresnel F0 = 0.02 everywhere; relit views have no "
+             "interreflections; see metrics.parquet.",
              "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
     (release / "DATASHEET.md").write_text("\n".join(lines))
 
