@@ -113,6 +113,17 @@ def find_environment(name: str, capture_root: Path | None = None) -> Path | None
     return None
 
 
+def raw_environment_inputs(names: tuple[str, ...], capture_root: Path | None) -> dict[str, Path]:
+    """The environment files a config names, as raw inputs (``environment/<label>`` -> path): their digests
+    enter the stage's key, so replacing a map reruns the stage. Procedural and missing names have none."""
+    found = {}
+    for name in names:
+        path = find_environment(name, capture_root)
+        if path is not None:
+            found[f"environment/{environment_label(name)}"] = path
+    return found
+
+
 def load_environment(name: str, path: Path | None, height: int = 256) -> tuple[np.ndarray, str]:
     """(environment (H, 2H, 3) float32, how it was obtained) for a config entry and its resolved file."""
     from pipeline.codecs.hdr import read_environment
@@ -157,13 +168,7 @@ class RelightStage(Stage):
     outputs = ("renders", "previews")
 
     def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
-        # The environment files are inputs: their digests enter the key, so editing one reruns this stage.
-        found = {}
-        for name in self.config.environments:
-            path = find_environment(name, getattr(capture, "root", None))
-            if path is not None:
-                found[f"environment/{environment_label(name)}"] = path
-        return found
+        return raw_environment_inputs(self.config.environments, getattr(capture, "root", None))
 
     def run(self, ctx: StageContext) -> dict[str, Any]:
         import torch

@@ -1,0 +1,106 @@
+"""Relight stage helpers: environment lookup (files, names, procedural, fallback, bad files), labels,
+novel cameras, and the stage's config checks."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.codecs.exr import write_exr
+from pipeline.errors import InputError
+from stages.relight import (RelightConfig, environment_label, find_environment, load_environment, novel_cameras,
+                            raw_environment_inputs)
+from synthetic.rig import look_at
+
+
+def test_labels_are_file_name_safe():
+    assert environment_label("procedural:sky") == "procedural_sky"
+    assert environment_label("/data/hdri/studio_small_03_1k.hdr") == "studio_small_03_1k"
+    assert environment_label("my env (2).exr") == "my_env__2_"
+
+
+def test_find_by_path_by_name_in_hdri_dirs_and_capture(tmp_path, monkeypatch):
+    env = np.full((8, 16, 3), 0.5, np.float32)
+    hdri = tmp_path / "hdri"
+    write_exr(hdri / "room.exr", env)
+    write_exr(tmp_path / "capture" / "environments" / "yard.exr", env)
+    monkeypatch.setenv("ULTRASTAGE_HDRI", str(hdri))
+    assert find_environment(str(hdri / "room.exr")) == hdri / "room.exr"
+    assert find_environment("room") == hdri / "room.exr"
+    assert find_environment("yard", tmp_path / "capture") == tmp_path / "capture" / "environments" / "yard.exr"
+    assert find_environment("yard") is None  # not without the capture
+    assert find_environment("procedural:sky") is None
+
+
+def test_load_procedural_file_and_fallback(tmp_path):
+    sky, how = load_environment("procedural:sky", None)
+    assert how == "procedural" and sky.shape[1] == 2 * sky.shape[0] and np.isfinite(sky).all()
+    studio, _ = load_environment("procedural:studio", None)
+    assert not np.array_equal(sky, studio)
+    fallback, how = load_environment("no_such_map", None)
+    assert how.startswith("FALLBACK") and "no_such_map" in how
+    np.testing.assert_array_equal(fallback, sky)
+    with pytest.raises(ValueError, match="procedural:sky"):
+        load_environment("procedural:volcano", None)
+    path = tmp_path / "grey.exr"
+    write_exr(path, np.full((8, 16, 3), 0.25, np.float32))
+    env, how = load_environment("grey", path)
+    assert how == "file grey.exr" and env.shape == (8, 16, 3) and np.allclose(env, 0.25, atol=1e-3)
+
+
+def test_bad_environment_files_name_the_file(tmp_path):
+    truncated = tmp_path / "broken.hdr"
+    truncated.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8 +X 16\n\x02\x02")
+    with pytest.raises(InputError, match="broken.hdr"):
+        load_environment("broken", truncated)
+    square = tmp_path / "square.exr"
+    write_exr(square, np.ones((8, 8, 3), np.float32))
+    with pytest.raises(InputError, match="square.exr"):
+        load_environment("square", square)  # not equirectangular (H, 2H)
+
+
+def test_environment_files_are_raw_inputs_so_their_digest_enters_the_key(tmp_path, monkeypatch):
+    hdri = tmp_path / "hdri"
+    write_exr(hdri / "room.exr", np.ones((8, 16, 3), np.float32))
+    monkeypatch.setenv("ULTRASTAGE_HDRI", str(hdri))
+    found = raw_environment_inputs(("room", "procedural:sky", "missing"), None)
+    assert found == {"environment/room": hdri / "room.exr"}
+
+
+def _ring(n=8, radius=3.0):
+    cams = {}
+    for i in range(n):
+        angle = 2 * np.pi * i / n
+        centre = np.array([radius * np.sin(angle), 0.2 * (i % 2), radius * np.cos(angle)])
+        cams[f"{i:05d}"] = {"K": [[500.0, 0, 160], [0, 500.0, 240], [0, 0, 1]],
+                            "cam_from_world": look_at(centre, np.zeros(3)), "width": 320, "height": 480}
+    return cams
+
+
+def test_novel_cameras_lie_between_neighbours():
+    cams = _ring()
+    views = novel_cameras(cams, 3)
+    assert [v["camera_id"] for v in views] == ["N000", "N001", "N002"]
+    for v in views:
+        a, b = v["between"]
+        pose = np.asarray(v["cam_from_world"])
+        centre = -pose[:, :3].T @ pose[:, 3]
+        ca, cb = (-np.asarray(cams[c]["cam_from_world"])[:, :3].T @ np.asarray(cams[c]["cam_from_world"])[:, 3]
+                  for c in (a, b))
+        # on the arc around the stage centre: mean radius, the same angle to both, and not at either
+        radius = np.linalg.norm(centre)
+        assert abs(radius - 0.5 * (np.linalg.norm(ca) + np.linalg.norm(cb))) < 1e-9
+
+        def angle(p, q):
+            return np.arccos(np.clip(p @ q / (np.linalg.norm(p) * np.linalg.norm(q)), -1, 1))
+
+        assert abs(angle(centre, ca) - angle(centre, cb)) < 1e-9 and angle(centre, ca) > 0.1
+        assert (v["width"], v["height"]) == (320, 480)
+
+
+def test_config_checks():
+    with pytest.raises(ValueError, match="environments"):
+        RelightConfig(environments=())
+    with pytest.raises(ValueError, match="normals"):
+        RelightConfig(normals="bent")
+    with pytest.raises(ValueError, match="sg_lobes"):
+        RelightConfig(sg_lobes=0)
