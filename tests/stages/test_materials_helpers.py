@@ -103,3 +103,16 @@ def test_texel_uvs_hand_case_and_round_trip():
     texture = rng.random((16, 16, 3)).astype(np.float32)
     np.testing.assert_allclose(sample_texture(texture, texel_uvs(covered)), texture[covered], atol=1e-6)
     assert texel_uvs(np.zeros((8, 8), bool)).shape == (0, 2)
+
+
+def test_materials_config_checks():
+    from stages.materials import MaterialsConfig
+
+    with pytest.raises(ValueError, match="specular_model"):
+        MaterialsConfig(specular_model="phong")
+    with pytest.raises(ValueError, match="roughness_min"):
+        MaterialsConfig(roughness_min=0.5, roughness_max=0.4)
+    with pytest.raises(ValueError, match="min_occlusion"):
+        MaterialsConfig(min_occlusion=0.0)
+    with pytest.raises(ValueError, match="median_neighbours"):
+        MaterialsConfig(median_neighbours=0)
