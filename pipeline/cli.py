@@ -76,7 +76,8 @@ def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
     for name in stage_names:
         table.add_column(name, justify="right")
     metric_cols = [("normal_mean_deg", "normal err °"), ("normal_under5_pct", "<5° %"),
-                   ("valid_fraction", "valid"), ("albedo_psnr_db", "albedo dB"), ("chamfer_mm", "chamfer mm")]
+                   ("valid_fraction", "valid"), ("albedo_psnr_db", "albedo dB"), ("chamfer_mm", "chamfer mm"),
+                   ("roughness_mae", "rough MAE"), ("relit_psnr_db", "relit dB")]
     if metrics:
         for _, title in metric_cols:
             table.add_column(title, justify="right")
@@ -97,7 +98,7 @@ def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
             m = metrics.get(scope, {})
             cells += [f"{m[k]:.2f}" if k in m else "" for k, _ in metric_cols]
         table.add_row(scope, *cells)
-    console = Console(width=max(170, Console().width))
+    console = Console(width=max(190, Console().width))
     console.print(table)
     for action, error in result.action_errors.items():
         console.print(f"[red]action {action} failed[/red]: {error}", markup=True, highlight=False)
