@@ -1,0 +1,464 @@
+"""Relight stage: relit novel views against the simulator's subject under the same environments, with times.
+
+For each action of a release (default A0000 and A0001), each novel camera of its ``renders/cameras.json``
+(3) and each environment (``studio_small_03_1k``, ``kiara_1_dawn_1k``, ``forest_slope_1k`` from
+../shared/data/hdri), the relight stage's per-view steps are rebuilt outside the stage from the release's
+files with the numerics the stage calls (mesh depth, ``reproject_gbuffer`` from the 6 nearest captured
+views, the materials textures through the atlas, ``fit_sg_environment``, ``direction_visibility``,
+``shade_sg`` / ``shade_sg_visible``), and every variant's image is scored like ``ultrastage evaluate``
+(``stages.evaluate._relit_overall``): ``relit_psnr`` against ``synthetic.relight.TruthRelighter``'s
+rendering of the true subject (common exposure from the truth's 99th percentile, union of the masks).
+
+1. **Variants**, one change at a time from the stage's defaults (32 lobes, shadows with 256 visibility
+   directions, reprojected normals, albedo de-occluded): ``sg_lobes`` 8/16/32/64 (with the SG fit time per
+   environment), ``visibility_directions`` 64/128/256, shadows off (with the de-occluded and with the
+   photometric albedo: the stage with ``shadows: false`` shades the photometric albedo unshadowed), shadows
+   with the photometric albedo (occlusion counted twice), ``normals: mesh``. Time per view: the G-buffer
+   (mesh depth, reprojection, atlas lookups; the first view also renders the sources' depth), the
+   visibility and the shading under the 3 environments; ``x_baseline`` is that time over the simplest
+   variant's (no shadows, photometric albedo) in the same process. The ``released`` row scores the
+   release's own relit images (equal to the default row when the release used the defaults).
+2. **Decomposition** on the pixels both the truth and our mask cover, at the true surface points with the
+   true mesh's visibility (256 directions), 32 lobes, F0 0.02 (the simulator's skin has 0.028, cloth 0.04):
+   the true G-buffers (normal, albedo, roughness) shaded with SG = the shading model's floor (also without
+   shadows); then our normal, our (de-occluded) albedo or our roughness swapped in one at a time, all three
+   together, and our default render itself (our geometry, silhouette and visibility too).
+
+``python bench/bench_relight.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
+writes DIR/bench_relight.json, DIR/bench_relight.md (tables) and DIR/bench_relight.png (PSNR against
+seconds per view; PSNR and SG fit seconds against lobe count). Defaults runs/default/release and
+runs/default/capture; without them, the ground truth or the maps it prints why and exits 0.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+ENVIRONMENTS = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
+LOBES = (8, 16, 32, 64)
+DIRECTIONS = (64, 128, 256)
+DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "reprojected", "albedo": "deoccluded"}
+VARIANTS = [("default", {}),
+            ("sg_lobes 8", {"lobes": 8}), ("sg_lobes 16", {"lobes": 16}), ("sg_lobes 64", {"lobes": 64}),
+            ("visibility_directions 64", {"directions": 64}), ("visibility_directions 128", {"directions": 128}),
+            ("shadows off, de-occluded albedo", {"shadows": False}),
+            ("shadows off, photometric albedo (baseline)", {"shadows": False, "albedo": "photometric"}),
+            ("shadows on, photometric albedo", {"albedo": "photometric"}),
+            ("normals mesh", {"normals": "mesh"})]
+BASELINE = "shadows off, photometric albedo (baseline)"
+DECOMPOSITION = ("truth G-buffers (SG floor)", "truth G-buffers, no shadows", "truth + our normal",
+                 "truth + our albedo", "truth + our roughness", "our normal+albedo+roughness",
+                 "our default render")
+F0 = 0.02
+SOURCES = 6
+DEPTH_TOLERANCE_M = 0.01
+FIT_HEIGHT = 64
+
+
+def fit_environments(names: list[str], capture: Path, progress) -> tuple[dict, list]:
+    """(name -> {"env", lobes -> SGLobes}, rows of fit time and errors per environment and lobe count)."""
+    from stages.numerics.sg import fit_sg_environment, sg_fit_errors
+    from stages.relight import find_environment, load_environment
+
+    fits, rows = {}, []
+    for name in names:
+        path = find_environment(name, capture)
+        if path is None:
+            progress(f"environment {name} not found; skipped")
+            continue
+        env, _ = load_environment(name, path)
+        fits[name] = {"env": env}
+        for count in LOBES:
+            t0 = time.perf_counter()
+            lobes = fit_sg_environment(env, count, fit_height=FIT_HEIGHT)
+            fit_s = time.perf_counter() - t0
+            errors = sg_fit_errors(env, lobes)
+            fits[name][count] = lobes
+            rows.append({"environment": name, "lobes": count, "fit_s": round(fit_s, 2),
+                         **{k: round(float(errors[k]), 4)
+                            for k in ("irradiance_rel_l2", "map_rel_l2_64", "energy_rel")}})
+            progress(f"  {name}: {count} lobes fitted in {fit_s:.1f} s, irradiance error "
+                     f"{errors['irradiance_rel_l2']:.4f}")
+    return fits, rows
+
+
+class ActionScene:
+    """What the relight stage reads for one action, from the release: the mesh (scene, smooth normals), the
+    captured views as reprojection sources (depth rendered lazily), the textured mesh's atlas and the
+    albedo, roughness and occlusion textures."""
+
+    def __init__(self, release: Path, action: str):
+        from stages.heldout import ActionGBuffers
+        from stages.materials import load_atlas_mesh
+        from stages.numerics.mesh import vertex_normals
+        from stages.numerics.raycast import mesh_scene
+
+        self.data = ActionGBuffers(release, action)
+        self.view = self.data.view
+        self.scene = mesh_scene(self.data.vertices, self.data.faces)
+        self.data._scene = self.scene  # the sources' depth renders share it
+        self.smooth_normals = vertex_normals(self.data.vertices, self.data.faces)
+        self.sources = [self.data.source(c) for c in sorted(self.data.cameras)]
+        vertices, faces, self.atlas = load_atlas_mesh(self.view.path("mesh_textured"))
+        self.atlas_scene = mesh_scene(vertices, faces)
+        self.albedo_tex = self.view.texture("albedo")[..., :3]
+        self.roughness_tex = self.view.texture("roughness")
+        self.occlusion_tex = self.view.texture("occlusion")
+
+    def gbuffer(self, cam: dict) -> dict:
+        """The stage's G-buffer of a novel camera (stages.relight.RelightStage.run, per view), with both
+        normal choices and the albedo before the occlusion is divided out."""
+        from stages.numerics.bake import sample_texture
+        from stages.numerics.gbuffer import reproject_gbuffer
+        from stages.numerics.raycast import render_attributes, render_mesh, render_uvs
+        from stages.relight import _pixel_points
+
+        K, pose = np.asarray(cam["K"], np.float64), np.asarray(cam["cam_from_world"], np.float64)
+        h, w = int(cam["height"]), int(cam["width"])
+        seen = render_mesh(None, None, K, pose, h, w, scene=self.scene)
+        depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
+        gb = reproject_gbuffer(depth, K, pose, self.sources, k=SOURCES, depth_tolerance_m=DEPTH_TOLERANCE_M)
+        uv, on_atlas = render_uvs(self.atlas_scene, self.atlas.faces, self.atlas.uvs, K, pose, h, w)
+        mask = seen["hit"] & (gb["valid"] | on_atlas)
+        uv = uv.reshape(-1, 2)
+        albedo = np.where(gb["valid"][..., None], gb["albedo"], sample_texture(self.albedo_tex, uv).reshape(h, w, 3))
+        mesh_normals, _ = render_attributes(self.scene, self.data.faces, self.smooth_normals, K, pose, h, w)
+        norm = np.linalg.norm(mesh_normals, axis=2, keepdims=True)
+        mesh_normals = np.where(norm > 1e-8, mesh_normals / np.maximum(norm, 1e-8), 0.0)
+        reprojected = np.where((mask & ~gb["valid"])[..., None], mesh_normals, gb["normal"])
+        pix = np.flatnonzero(mask.reshape(-1))
+        centre = -pose[:, :3].T @ pose[:, 3]
+        points = _pixel_points(K, pose, depth).reshape(-1, 3)[pix]
+        view_dirs = centre[None] - points
+        view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+        return {"mask": mask, "pix": pix, "points": points, "view_dirs": view_dirs, "shape": (h, w),
+                "normals": {"reprojected": reprojected.reshape(-1, 3)[pix].astype(np.float64),
+                            "mesh": mesh_normals.reshape(-1, 3)[pix].astype(np.float64)},
+                "albedo_photometric": albedo.reshape(-1, 3)[pix],
+                "occlusion": sample_texture(self.occlusion_tex, uv)[pix],
+                "roughness": np.clip(sample_texture(self.roughness_tex, uv)[pix], 0.05, 1.0),
+                "albedo_full": albedo, "normal_full": reprojected,
+                "roughness_full": sample_texture(self.roughness_tex, uv).reshape(h, w)}
+
+
+def _image(pix: np.ndarray, values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    out = np.zeros((shape[0] * shape[1], 3), np.float32)
+    out[pix] = np.clip(np.nan_to_num(np.asarray(values, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0, 6e4)
+    return out.reshape(shape[0], shape[1], 3)
+
+
+def shade(normals, view_dirs, albedo, roughness, lobes, visibility=None, directions=None) -> np.ndarray:
+    from stages.numerics.sg import shade_sg
+    from stages.numerics.shadowing import shade_sg_visible
+
+    if visibility is None:
+        return shade_sg(normals, view_dirs, albedo, roughness, lobes, f0=F0)["rgb"]
+    return shade_sg_visible(normals, view_dirs, albedo, roughness, lobes, visibility, directions, f0=F0)["rgb"]
+
+
+def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, threads: int, progress) -> dict:
+    """Every variant and the decomposition for one novel camera under every environment."""
+    from stages.numerics.metrics import relit_psnr
+    from stages.numerics.sg import fibonacci_sphere
+    from stages.numerics.shadowing import direction_visibility
+    from stages.relight import _pixel_points
+
+    t0 = time.perf_counter()
+    gb = scene.gbuffer(cam)
+    gbuffer_s = time.perf_counter() - t0
+    directions = {d: fibonacci_sphere(d) for d in DIRECTIONS}
+    visibility, vis_s = {}, {}
+    for normals_kind, counts in (("reprojected", DIRECTIONS), ("mesh", (DEFAULT["directions"],))):
+        for d in counts:
+            t0 = time.perf_counter()
+            visibility[(normals_kind, d)] = direction_visibility(gb["points"], gb["normals"][normals_kind],
+                                                                 scene.scene, directions[d], threads=threads)
+            vis_s[(normals_kind, d)] = time.perf_counter() - t0
+    K, pose = np.asarray(cam["K"], np.float64), np.asarray(cam["cam_from_world"], np.float64)
+    h, w = gb["shape"]
+    deoccluded = np.clip(gb["albedo_photometric"] / np.maximum(gb["occlusion"], 0.2)[:, None], 0, 1)
+    photometric = np.clip(gb["albedo_photometric"], 0, 1)
+
+    rows = {label: {"psnr_db": {}, "shade_s": {}} for label, _ in VARIANTS}
+    rows["released"] = {"psnr_db": {}}
+    decomposition = {label: {} for label in DECOMPOSITION}
+    default_images = {}
+    true_geometry = None
+    for env_name, fit in fits.items():
+        t0 = time.perf_counter()
+        true = truth.render(K, pose, h, w, fit["env"])
+        truth_s = time.perf_counter() - t0
+        for label, change in VARIANTS:
+            cfg = DEFAULT | change
+            vis = visibility[(cfg["normals"], cfg["directions"])] if cfg["shadows"] else None
+            t0 = time.perf_counter()
+            rgb = shade(gb["normals"][cfg["normals"]], gb["view_dirs"],
+                        deoccluded if cfg["albedo"] == "deoccluded" else photometric, gb["roughness"],
+                        fit[cfg["lobes"]], vis, directions[cfg["directions"]] if vis is not None else None)
+            rows[label]["shade_s"][env_name] = time.perf_counter() - t0
+            image = _image(gb["pix"], rgb, (h, w))
+            rows[label]["psnr_db"][env_name] = relit_psnr(image, gb["mask"], true["radiance"], true["mask"])["psnr_db"]
+            if not change:
+                default_images[env_name] = image
+        try:
+            released = scene.view.relit(cam["camera_id"], env_name)
+            rows["released"]["psnr_db"][env_name] = relit_psnr(released[..., :3], released[..., 3] > 0.5,
+                                                               true["radiance"], true["mask"])["psnr_db"]
+        except (KeyError, FileNotFoundError):
+            pass
+
+        # Decomposition: the true surface points and visibility, G-buffers swapped one at a time.
+        both = true["mask"] & gb["mask"]
+        bp = np.flatnonzero(both.reshape(-1))
+        if true_geometry is None:
+            centre = -pose[:, :3].T @ pose[:, 3]
+            points = _pixel_points(K, pose, true["depth_m"]).reshape(-1, 3)[bp]
+            view_dirs = centre[None] - points
+            view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+            true_normals = true["normals_world"].reshape(-1, 3)[bp].astype(np.float64)
+            true_vis = direction_visibility(points, true_normals, true_scene, directions[256], threads=threads)
+            ours = {"normal": gb["normal_full"].reshape(-1, 3)[bp].astype(np.float64),
+                    "albedo": np.clip(np.where(gb["mask"][..., None], gb["albedo_full"], 0).reshape(-1, 3)[bp]
+                                      / np.maximum(_full(gb, gb["occlusion"], 1.0)[bp], 0.2)[:, None], 0, 1),
+                    "roughness": np.clip(gb["roughness_full"].reshape(-1)[bp], 0.05, 1.0)}
+            true_geometry = (points, view_dirs, true_normals, true_vis, ours)
+        points, view_dirs, true_normals, true_vis, ours = true_geometry
+        t_buf = {"normal": true_normals, "albedo": true["albedo"].reshape(-1, 3)[bp],
+                 "roughness": np.clip(true["roughness"].reshape(-1)[bp], 0.05, 1.0)}
+        target = true["radiance"] * both[..., None]
+        lobes = fit[DEFAULT["lobes"]]
+
+        def score(buffers: dict, shadows: bool = True) -> float:
+            rgb = shade(buffers["normal"], view_dirs, buffers["albedo"], buffers["roughness"], lobes,
+                        true_vis if shadows else None, directions[256] if shadows else None)
+            return relit_psnr(_image(bp, rgb, (h, w)), both, target, both)["psnr_db"]
+
+        decomposition["truth G-buffers (SG floor)"][env_name] = score(t_buf)
+        decomposition["truth G-buffers, no shadows"][env_name] = score(t_buf, shadows=False)
+        for name in ("normal", "albedo", "roughness"):
+            decomposition[f"truth + our {name}"][env_name] = score(t_buf | {name: ours[name]})
+        decomposition["our normal+albedo+roughness"][env_name] = score(ours)
+        decomposition["our default render"][env_name] = relit_psnr(default_images[env_name] * both[..., None], both,
+                                                                   target, both)["psnr_db"]
+        rows["released"].setdefault("truth_render_s", {})[env_name] = truth_s
+    variants = {}
+    for label, change in VARIANTS:
+        cfg = DEFAULT | change
+        vis_time = vis_s[(cfg["normals"], cfg["directions"])] if cfg["shadows"] else 0.0
+        seconds = gbuffer_s + vis_time + sum(rows[label]["shade_s"].values())
+        variants[label] = {"psnr_db": rows[label]["psnr_db"], "seconds_per_view": seconds,
+                           "visibility_s": vis_time, "shade_s": rows[label]["shade_s"]}
+    variants["released"] = {"psnr_db": rows["released"]["psnr_db"]}
+    progress(f"  {cam['camera_id']}: {len(gb['pix'])} pixels, G-buffer {gbuffer_s:.1f} s, default "
+             + ", ".join(f"{e[:12]} {v:.2f}" for e, v in rows["default"]["psnr_db"].items()) + " dB; floor "
+             + ", ".join(f"{v:.2f}" for v in decomposition["truth G-buffers (SG floor)"].values()))
+    return {"camera_id": cam["camera_id"], "pixels": int(len(gb["pix"])), "gbuffer_s": gbuffer_s,
+            "visibility_s": {f"{k[0]}_{k[1]}": v for k, v in vis_s.items()}, "variants": variants,
+            "decomposition": decomposition}
+
+
+def _full(gb: dict, values: np.ndarray, fill: float) -> np.ndarray:
+    h, w = gb["shape"]
+    out = np.full(h * w, fill, np.float32)
+    out[gb["pix"]] = values
+    return out
+
+
+def summarise(report: dict) -> dict:
+    """Means over actions, views and environments (and per environment) of every variant and decomposition
+    row; seconds per view averaged over views (the first view of an action also renders the sources)."""
+    views = [v for a in report["actions"].values() for v in a["views"]]
+    envs = list(report["environments"])
+    out = {"variants": {}, "decomposition": {}}
+    base_s = np.mean([v["variants"][BASELINE]["seconds_per_view"] for v in views])
+    for label in [lab for lab, _ in VARIANTS] + ["released"]:
+        per_env = {e: float(np.mean([v["variants"][label]["psnr_db"][e] for v in views
+                                     if e in v["variants"][label]["psnr_db"]])) for e in envs
+                   if any(e in v["variants"][label]["psnr_db"] for v in views)}
+        if not per_env:
+            continue
+        row = {"psnr_db": round(float(np.mean(list(per_env.values()))), 3),
+               "per_environment": {e: round(x, 3) for e, x in per_env.items()},
+               "per_action": {a: round(float(np.mean([x for v in e["views"]
+                                                       for x in v["variants"][label]["psnr_db"].values()])), 3)
+                              for a, e in report["actions"].items()}}
+        if label != "released":
+            seconds = float(np.mean([v["variants"][label]["seconds_per_view"] for v in views]))
+            row |= {"seconds_per_view": round(seconds, 2), "x_baseline": round(seconds / base_s, 2),
+                    "shade_s_per_environment": round(float(np.mean([s for v in views for s in
+                                                                     v["variants"][label]["shade_s"].values()])), 3)}
+        out["variants"][label] = row
+    for label in DECOMPOSITION:
+        per_env = {e: float(np.mean([v["decomposition"][label][e] for v in views])) for e in envs}
+        out["decomposition"][label] = {"psnr_db": round(float(np.mean(list(per_env.values()))), 3),
+                                       "per_environment": {e: round(x, 3) for e, x in per_env.items()}}
+    lobes_psnr = {}
+    for count in LOBES:
+        label = "default" if count == DEFAULT["lobes"] else f"sg_lobes {count}"
+        lobes_psnr[str(count)] = out["variants"][label]["per_environment"]
+    out["psnr_by_lobes"] = lobes_psnr
+    return out
+
+
+def markdown(report: dict) -> str:
+    s = report["summary"]
+    envs = list(report["environments"])
+    short = [e.split("_1k")[0] for e in envs]
+    lines = ["# bench_relight", "",
+             f"{len(report['actions'])} action(s) x {report['views_per_action']} novel views x {len(envs)} "
+             f"environments; threads {report['threads']}. relit PSNR (dB) against the simulator (evaluate's "
+             "relit_psnr); seconds per view = G-buffer + visibility + shading under all environments (SG fits "
+             "excluded).", "",
+             "| variant | PSNR | " + " | ".join(short) + " | s / view | x baseline | shade s / env |",
+             "|---" * (5 + len(envs)) + "|"]
+    for label, row in s["variants"].items():
+        cells = " | ".join(f"{row['per_environment'].get(e, float('nan')):.2f}" for e in envs)
+        extra = (f"{row['seconds_per_view']:.2f} | {row['x_baseline']:.2f} | {row['shade_s_per_environment']:.2f}"
+                 if "seconds_per_view" in row else " | | ")
+        lines.append(f"| {label} | {row['psnr_db']:.2f} | {cells} | {extra} |")
+    shading = {a: e.get("released_shading") for a, e in report["actions"].items()}
+    lines += ["", f"`released` scores the release's own images, made with: {json.dumps(shading)}."]
+    lines += ["", "Per action: " + "; ".join(f"{a} default {s['variants']['default']['per_action'][a]:.2f} dB"
+                                           for a in report["actions"]), "",
+              "Decomposition (pixels in both masks, true surface points and true-mesh visibility, 32 lobes, F0 0.02):",
+              "", "| G-buffers | PSNR | " + " | ".join(short) + " |", "|---" * (2 + len(envs)) + "|"]
+    for label, row in s["decomposition"].items():
+        lines.append(f"| {label} | {row['psnr_db']:.2f} | "
+                     + " | ".join(f"{row['per_environment'][e]:.2f}" for e in envs) + " |")
+    lines += ["", "SG fits (fit_height 64, torch threads as above):", "",
+              "| environment | lobes | fit s | irradiance rel L2 | map rel L2 (64 rows) | relit PSNR |",
+              "|---" * 6 + "|"]
+    for r in report["sg_fits"]:
+        psnr = s["psnr_by_lobes"][str(r["lobes"])].get(r["environment"], float("nan"))
+        lines.append(f"| {r['environment']} | {r['lobes']} | {r['fit_s']:.1f} | {r['irradiance_rel_l2']:.4f} | "
+                     f"{r['map_rel_l2_64']:.3f} | {psnr:.2f} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def figure(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = report["summary"]
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), dpi=100)
+    for label, row in s["variants"].items():
+        if "seconds_per_view" not in row:
+            continue
+        axes[0].scatter(row["seconds_per_view"], row["psnr_db"])
+        axes[0].annotate(label, (row["seconds_per_view"], row["psnr_db"]), fontsize=7)
+    floor = s["decomposition"]["truth G-buffers (SG floor)"]["psnr_db"]
+    axes[0].set_xlabel("seconds per view (G-buffer + visibility + 3 environments)")
+    axes[0].set_ylabel("relit PSNR vs truth (dB), mean")
+    axes[0].set_title(f"relight variants (truth G-buffers + SG shading: {floor:.2f} dB)")
+    ax2 = axes[1].twinx()
+    for env in report["environments"]:
+        rows = [r for r in report["sg_fits"] if r["environment"] == env]
+        axes[1].plot([r["lobes"] for r in rows], [s["psnr_by_lobes"][str(r["lobes"])].get(env, np.nan) for r in rows],
+                     "o-", label=f"{env} PSNR")
+        ax2.plot([r["lobes"] for r in rows], [r["fit_s"] for r in rows], "x--", label=f"{env} fit s")
+    axes[1].set_xscale("log", base=2)
+    axes[1].set_xlabel("SG lobes")
+    axes[1].set_ylabel("relit PSNR (dB)")
+    ax2.set_ylabel("SG fit seconds")
+    axes[1].legend(fontsize=6, loc="lower left")
+    ax2.legend(fontsize=6, loc="lower right")
+    axes[1].set_title("lobe count: PSNR (o) and fit time (x)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
+    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
+    parser.add_argument("--actions", default="", help="comma-separated action ids (default: every action)")
+    parser.add_argument("--threads", type=int, default=2, help="torch and Embree threads")
+    args = parser.parse_args()
+    release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
+    if not (release / "manifests").is_dir():
+        print(f"bench_relight: no release at {release} (run `make dataset`); skipped")
+        return 0
+    if not (capture / "capture.json").exists() or not (capture / "ground_truth").is_dir():
+        print(f"bench_relight: no simulated capture with ground truth at {capture}; skipped")
+        return 0
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    # Sleeping, not spinning, OpenMP workers: on a machine shared with other busy processes, spinning torch
+    # threads made a 2-thread roughness fit 7-20x slower than 1 thread (30-80 s vs 4.3 s); passive: 3.6 s.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from manifests import open_release
+    from pipeline.codecs.mesh import read_ply
+    from stages.numerics.raycast import mesh_scene
+    from synthetic.relight import TruthRelighter
+
+    rel = open_release(release)
+    actions = [a for a in (args.actions.split(",") if args.actions else rel.action_ids)
+               if rel.action(a).render_cameras() and "texture_occlusion" in rel.action(a).kinds]
+    if not actions:
+        print(f"bench_relight: no action of {release} has renders/ and an occlusion texture; skipped")
+        return 0
+
+    def progress(message: str) -> None:
+        print(message, flush=True)
+
+    started = time.perf_counter()
+    fits, fit_rows = fit_environments(list(ENVIRONMENTS), capture, progress)
+    if not fits:
+        print("bench_relight: none of the environments was found (../shared/data/hdri); skipped")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"threads": args.threads, "defaults": DEFAULT, "f0": F0, "environments": list(fits),
+              "sg_fits": fit_rows, "actions": {}}
+    for action in actions:
+        t0 = time.perf_counter()
+        scene = ActionScene(release, action)
+        load_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        truth = TruthRelighter(capture, action)
+        true_scene = mesh_scene(*read_ply(capture / "ground_truth" / action / "mesh.ply"))
+        truth_s = time.perf_counter() - t0
+        progress(f"{action}: release loaded in {load_s:.1f} s, truth relighter built in {truth_s:.1f} s")
+        cams = scene.view.render_cameras()
+        report["views_per_action"] = len(cams)
+        try:
+            shading = scene.view.release.load(scene.view.asset("render_environments", None)).get("shading")
+        except (KeyError, FileNotFoundError):
+            shading = None
+        report["actions"][action] = {"load_s": round(load_s, 2), "truth_relighter_s": round(truth_s, 2),
+                                     "released_shading": shading,
+                                     "views": [bench_view(scene, truth, true_scene, cam, fits, args.threads, progress)
+                                               for cam in cams]}
+    report["summary"] = summarise(report)
+    report["total_s"] = round(time.perf_counter() - started, 1)
+    (out / "bench_relight.json").write_text(json.dumps(report, indent=1, default=_json_default))
+    (out / "bench_relight.md").write_text(markdown(report))
+    figure(report, out / "bench_relight.png")
+    print(markdown(report))
+    print(f"total {report['total_s']} s; wrote {out / 'bench_relight.json'}, .md and .png")
+    return 0
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value)}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
