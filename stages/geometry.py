@@ -202,7 +202,7 @@ class TexturesStage(Stage):
     """UV atlas of the decimated mesh and albedo/normal textures baked from the photometric maps."""
 
     name = "textures"
-    version = "1"
+    version = "2"
     scope = "action"
     requires = ("geometry", "photometric", "decode")
     outputs = ("mesh", "textures", "previews")

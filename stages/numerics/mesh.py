@@ -344,19 +344,43 @@ def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, pa
     if int(padding) < 0:
         raise ValueError(f"padding must be >= 0, got {padding}")
     t0 = time.perf_counter()
-    atlas = xatlas.Atlas()
     normals = vertex_normals(v, f) if seed_normals else None
-    atlas.add_mesh(np.ascontiguousarray(v, np.float32), np.ascontiguousarray(f, np.uint32), normals)
-    chart_options = xatlas.ChartOptions()
-    chart_options.max_iterations = int(max_iterations)
-    pack_options = xatlas.PackOptions()
-    pack_options.resolution = int(resolution)
-    pack_options.padding = int(padding)
-    pack_options.bilinear = True
-    pack_options.bruteForce = bool(brute_force)
-    atlas.generate(chart_options, pack_options)
+
+    def generate(texels_per_unit: float = 0.0):
+        atlas = xatlas.Atlas()
+        atlas.add_mesh(np.ascontiguousarray(v, np.float32), np.ascontiguousarray(f, np.uint32), normals)
+        chart_options = xatlas.ChartOptions()
+        chart_options.max_iterations = int(max_iterations)
+        pack_options = xatlas.PackOptions()
+        pack_options.resolution = int(resolution)
+        pack_options.padding = int(padding)
+        pack_options.bilinear = True
+        pack_options.bruteForce = bool(brute_force)
+        pack_options.texels_per_unit = float(texels_per_unit)
+        atlas.generate(chart_options, pack_options)
+        return atlas
+
+    atlas = generate()
     if atlas.atlas_count != 1:
         raise ValueError(f"xatlas packed {atlas.atlas_count} atlases, expected 1")
+    # With only a resolution, xatlas estimates the scale and may pack into a long rectangle (seen: 2507 x
+    # 789 for a 1024 target), which the unit square below would hold with two thirds left empty. Then pack
+    # again at the scale that fills a resolution x resolution page, backing off while it overflows.
+    def square_fill(a) -> float:  # share of the final unit square the charts (with padding) use
+        return float(a.utilization) * a.width * a.height / float(max(a.width, a.height)) ** 2
+
+    first_fill = square_fill(atlas)
+    repacks = 0
+    if atlas.width * atlas.height < 0.75 * max(atlas.width, atlas.height) ** 2:
+        scale = 0.97 * np.sqrt(float(resolution) ** 2 / (atlas.width * atlas.height))
+        for _ in range(4):
+            repacks += 1
+            candidate = generate(atlas.texels_per_unit * scale)
+            if candidate.atlas_count == 1:
+                if square_fill(candidate) > first_fill:
+                    atlas = candidate
+                break
+            scale *= 0.9
     vmapping, indices, uvs = atlas[0]
     packed_w, packed_h = int(atlas.width), int(atlas.height)
     # xatlas' uv is (x / width, y / height) in its packed texels, y growing with the rows. With a
@@ -371,5 +395,6 @@ def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, pa
                  uvs=np.clip(uv, 0.0, 1.0).astype(np.float32), width=side, height=side,
                  stats={"charts": int(atlas.chart_count), "utilization": float(atlas.utilization),
                         "packed_width": packed_w, "packed_height": packed_h,
-                        "texels_per_metre": float(atlas.texels_per_unit),
+                        "texels_per_metre": float(atlas.texels_per_unit), "repacks": repacks,
+                        "square_fill": square_fill(atlas), "first_square_fill": first_fill,
                         "seconds": time.perf_counter() - t0})
