@@ -17,10 +17,11 @@ learning-rate schedule):
 * **Rendering.** For a pixel, ``samples_per_ray`` samples are placed uniformly in ``+-window_m`` around the
   ray's surface crossing (a depth map given by the caller, e.g. the release mesh's, or else the first zero
   crossing of the SDF cached on a voxel grid, as the SDF training does); the SDF and its gradient there give
-  the NeuS weights ``w_k``; the ``samples_kept`` largest are kept (at ``inv_s = 800`` almost all of the weight
-  sits in two or three samples). The pixel's albedo is ``sum w_k a(x_k) / sum w_k`` and its normal
-  ``normalise(sum w_k n(x_k))``, over the kept samples; its opacity is the sum of all the weights and the
-  pixel is valid where it exceeds ``min_opacity``. Since the geometry is frozen, the samples and weights of
+  the NeuS weights ``w_k``; the ``samples_kept`` largest are kept (at ``inv_s = 800`` the logistic density is
+  about 5 mm wide: the 4 largest of 8 samples over +-6 mm hold about 80% of the weight on the default capture,
+  and keeping 2 or 4 gave the same held-out scores there). The pixel's albedo is ``sum w_k a(x_k) / sum w_k``
+  and its normal ``normalise(sum w_k n(x_k))``, over the kept samples; its opacity is the sum of all the
+  weights and the pixel is valid where it exceeds ``min_opacity``. Since the geometry is frozen, the samples and weights of
   every training pixel are computed once before training.
 * **Loss** on the valid pixels of the training views (photometric alpha > 0.5 and mask, as the reprojection
   uses them): ``weight_albedo * |a_r - a|_1`` (or squared) ``+ weight_normal * (1 - cos(n_r, n))``. Pixels
@@ -63,8 +64,10 @@ __all__ = [
     "APPEARANCE_PRESETS",
     "AppearanceView",
     "AppearanceResult",
+    "AppearanceSamples",
     "AppearanceField",
     "SDFCallable",
+    "sample_training_pixels",
     "train_appearance_field",
     "render_appearance",
 ]
@@ -82,10 +85,12 @@ class AppearanceFieldConfig(Documented):
 
     not_in_key = ("device", "threads", "log_every")
 
-    encoding: HashGridConfig = HashGridConfig(levels=14, features_per_level=2, log2_table_size=18,
-                                              base_resolution=16, finest_resolution=1024)
-    """The hash encoding over the cube around the SDF's bounds (its finest cell should be about the pixels'
-    footprint on the surface or finer)."""
+    encoding: HashGridConfig = HashGridConfig(levels=12, features_per_level=2, log2_table_size=17,
+                                              base_resolution=16, finest_resolution=512)
+    """The hash encoding over the cube around the SDF's bounds. Its finest cell should be about the pixels'
+    footprint on the surface: finer grids memorise each view's noise (on the default capture, 5 mm pixels and a
+    1.76 m cube, finest 1024 reached 3.6 deg on the training pixels but 10.9 deg on the held-out views after 1500
+    steps; finest 512: 8.9 deg)."""
     hidden_width: int = 64
     """Width of the MLP's hidden layers (ReLU, as Instant-NGP's colour network)."""
     hidden_layers: int = 2
@@ -218,7 +223,8 @@ class AppearanceField(torch.nn.Module):
             raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
         self.bounds = b
         self.encoding_config = encoding
-        self.hidden_width, self.hidden_layers, self.albedo_max = int(hidden_width), int(hidden_layers), float(albedo_max)
+        self.hidden_width, self.hidden_layers = int(hidden_width), int(hidden_layers)
+        self.albedo_max = float(albedo_max)
         self.register_buffer("centre", torch.tensor((b[0] + b[1]) / 2, dtype=torch.float32))
         self.register_buffer("half_extent", torch.tensor(float((b[1] - b[0]).max() / 2), dtype=torch.float32))
         self.encoding = HashEncoding(encoding)
@@ -339,6 +345,7 @@ class _RaySamples:
     points: torch.Tensor  # (R, M, 3) kept samples
     weights: torch.Tensor  # (R, M) their NeuS weights, normalised to sum 1 (0 on rays without a crossing)
     opacity: torch.Tensor  # (R,) sum of all the window's weights
+    kept_fraction: torch.Tensor  # (R,) share of the window's weight in the kept samples
     depth_m: torch.Tensor  # (R,) camera z of the weighted mean sample
 
 
@@ -373,6 +380,7 @@ def _ray_samples(surface: _Surface, K: np.ndarray, T: np.ndarray, rows: np.ndarr
     points = torch.zeros((n, M, 3), dtype=torch.float32, device=device)
     weights = torch.zeros((n, M), dtype=torch.float32, device=device)
     opacity = torch.zeros(n, dtype=torch.float32, device=device)
+    kept_fraction = torch.zeros(n, dtype=torch.float32, device=device)
     depth = torch.zeros(n, dtype=torch.float32, device=device)
     live = np.nonzero(np.isfinite(t_c))[0]
     w = config.window_m
@@ -396,12 +404,14 @@ def _ray_samples(surface: _Surface, K: np.ndarray, T: np.ndarray, rows: np.ndarr
         points[idx] = pts.gather(1, top_i.unsqueeze(-1).expand(-1, -1, 3))
         weights[idx] = norm_w
         opacity[idx] = total
+        kept_fraction[idx] = kept[:, 0] / total.clamp_min(1e-12)
         t_mean = (t.gather(1, top_i) * norm_w).sum(1)
         depth[idx] = t_mean * (d @ z_axis)
-    return _RaySamples(points=points, weights=weights, opacity=opacity, depth_m=depth)
+    return _RaySamples(points=points, weights=weights, opacity=opacity, kept_fraction=kept_fraction, depth_m=depth)
 
 
-def _composite(field_: AppearanceField, points: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _composite(field_: AppearanceField, points: torch.Tensor,
+               weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Albedo (R, 3) and unnormalised normal (R, 3) of rays from their kept samples (R, M, 3) and weights (R, M)."""
     R, M = weights.shape
     albedo, normal = field_(points.reshape(-1, 3))
@@ -439,11 +449,11 @@ class AppearanceResult:
 
     Attributes:
         field: the trained :class:`AppearanceField`, on the CPU, in eval mode.
-        history: lists keyed by ``iteration``, ``seconds`` (since the start, sampling included), ``loss``,
+        history: lists keyed by ``iteration``, ``seconds`` (training time, sampling not included), ``loss``,
             ``albedo_l1``, ``normal_deg`` (mean angle over the pixels drawn), ``lr``.
-        stats: ``device``, ``time_s``, ``sampling_time_s`` (samples and weights of the training pixels),
-            ``train_time_s``, ``training_pixels`` (valid, not grazing, opaque), ``valid_pixels``,
-            ``dropped_grazing``, ``dropped_transparent``, ``iterations``, ``parameters``.
+        stats: ``device``, ``time_s`` (sampling + training), ``sampling_time_s`` (samples and weights of the
+            training pixels), ``train_time_s``, ``training_pixels`` (valid, not grazing, opaque),
+            ``valid_pixels``, ``dropped_grazing``, ``dropped_transparent``, ``iterations``, ``parameters``.
     """
 
     field: AppearanceField
@@ -487,31 +497,50 @@ def _check_views(views: Sequence[AppearanceView]) -> list[tuple[np.ndarray, np.n
 # ------------------------------------------------------------------------------------------------ training
 
 
-def train_appearance_field(views: Sequence[AppearanceView], geometry: Union[SDFField, SDFCallable],
-                           config: AppearanceFieldConfig = APPEARANCE_PRESETS["cpu"], bounds: np.ndarray | None = None,
-                           progress: Callable[[int, dict], None] | None = None,
-                           checkpoint: Callable[[int, AppearanceField], None] | None = None) -> AppearanceResult:
-    """Train the albedo/normal field on the valid pixels of ``views``, volume rendered with ``geometry``'s weights.
+@dataclass
+class AppearanceSamples:
+    """The training pixels with their kept samples, weights and targets (what training draws from).
+
+    The geometry is frozen, so these are computed once (:func:`sample_training_pixels`) and can be reused by
+    several trainings with the same sampling fields (e.g. of different lengths).
+
+    Attributes:
+        points: float32 (N, M, 3) kept sample positions of the N training pixels, metres.
+        weights: float32 (N, M) their NeuS weights normalised to sum 1 per pixel.
+        albedo: float32 (N, 3) target albedo. normals_world: float32 (N, 3) target unit normals.
+        bounds: (2, 3) the field's box.
+        stats: ``sampling_time_s``, ``valid_pixels``, ``training_pixels``, ``dropped_grazing``,
+            ``dropped_transparent``, ``kept_weight_fraction`` (mean share of a pixel's weight in its kept samples).
+        sampling: the config fields the samples depend on (checked against the training config).
+    """
+
+    points: np.ndarray
+    weights: np.ndarray
+    albedo: np.ndarray
+    normals_world: np.ndarray
+    bounds: np.ndarray
+    stats: dict[str, Any]
+    sampling: dict[str, Any]
+
+
+_SAMPLING_FIELDS = ("samples_per_ray", "samples_kept", "window_m", "inv_s", "min_opacity", "proposal_voxel_m",
+                    "grazing_cos_min")
+
+
+def sample_training_pixels(views: Sequence[AppearanceView], geometry: Union[SDFField, SDFCallable],
+                           config: AppearanceFieldConfig = APPEARANCE_PRESETS["cpu"],
+                           bounds: np.ndarray | None = None) -> AppearanceSamples:
+    """Samples, NeuS weights and targets of every training pixel (valid, not grazing, opaque).
 
     Args:
-        views: calibrated training views (:class:`AppearanceView`), stage frame.
-        geometry: the subject's SDF: an :class:`~stages.numerics.sdf.SDFField` (e.g. the geometry stage's
-            ``sdf.pt`` through ``SDFField.from_state``) or a function ``points (N, 3) float32 -> (sdf (N,)
-            metres, gradient (N, 3))``.
-        config: :class:`AppearanceFieldConfig` (presets in ``APPEARANCE_PRESETS``); ``inv_s`` should be the
-            SDF's final sharpness.
-        bounds: (2, 3) box of the field (and of the SDF's crossings); defaults to the SDFField's bounds,
-            required with a function.
-        progress: called as ``progress(iteration, losses)`` every ``log_every`` steps.
-        checkpoint: called as ``checkpoint(iteration, field)`` every ``log_every`` steps (on the training
-            device, in train mode; do not modify it), e.g. to measure error against training time.
+        views, geometry, config, bounds: as in :func:`train_appearance_field` (only the sampling fields of the
+            config, ``device`` and ``threads`` matter here).
 
     Returns:
-        :class:`AppearanceResult`.
+        :class:`AppearanceSamples`.
 
     Raises:
-        ValueError: bad views (shapes, cameras, non-finite maps, no valid pixel), bad geometry or bounds, a bad
-            config, or no valid pixel with an opaque surface.
+        ValueError: bad views, geometry, bounds or config, or no valid pixel with an opaque surface.
     """
     _check_config(config)
     cams = _check_views(views)
@@ -521,20 +550,18 @@ def train_appearance_field(views: Sequence[AppearanceView], geometry: Union[SDFF
     if config.threads:
         torch.set_num_threads(config.threads)
     try:
-        return _train(views, cams, surface, config, progress, checkpoint, device)
+        return _sample_views(views, cams, surface, config, device)
     finally:
         if config.threads:
             torch.set_num_threads(previous)
 
 
-def _train(views, cams, surface: _Surface, config: AppearanceFieldConfig, progress, checkpoint,
-           device: torch.device) -> AppearanceResult:
+def _sample_views(views, cams, surface: _Surface, config: AppearanceFieldConfig,
+                  device: torch.device) -> AppearanceSamples:
     t_start = time.perf_counter()
-    generator = torch.Generator().manual_seed(config.seed)
-
-    # 1. Samples, weights and targets of every training pixel (the geometry is frozen: computed once).
     pts_all, w_all, alb_all, nrm_all = [], [], [], []
     valid_total = dropped_grazing = dropped_transparent = 0
+    kept_sum = 0.0
     for v, (K, T) in zip(views, cams):
         valid = np.asarray(v.valid, bool)
         rows, cols = np.nonzero(valid)
@@ -553,20 +580,91 @@ def _train(views, cams, surface: _Surface, config: AppearanceFieldConfig, progre
         opaque = (samples.opacity > config.min_opacity).cpu().numpy()
         dropped_transparent += int((~opaque).sum())
         sel = torch.from_numpy(np.nonzero(opaque)[0]).to(device)
-        pts_all.append(samples.points[sel])
-        w_all.append(samples.weights[sel])
-        alb_all.append(torch.from_numpy(np.asarray(v.albedo, np.float32)[rows[opaque], cols[opaque]]).to(device))
-        nrm_all.append(torch.from_numpy(normals[opaque]).to(device))
-    n_pix = sum(int(p.shape[0]) for p in pts_all)
+        kept_sum += float(samples.kept_fraction[sel].sum())
+        pts_all.append(samples.points[sel].cpu().numpy())
+        w_all.append(samples.weights[sel].cpu().numpy())
+        alb_all.append(np.asarray(v.albedo, np.float32)[rows[opaque], cols[opaque]])
+        nrm_all.append(normals[opaque])
+    n_pix = sum(len(p) for p in pts_all)
     if n_pix == 0:
         raise ValueError("no valid training pixel has an opaque surface (check the geometry, cameras and inv_s)")
-    bank_pts, bank_w = torch.cat(pts_all), torch.cat(w_all)
-    bank_alb, bank_nrm = torch.cat(alb_all), F.normalize(torch.cat(nrm_all), dim=-1, eps=1e-8)
-    del pts_all, w_all, alb_all, nrm_all
-    sampling_s = time.perf_counter() - t_start
+    normals = np.concatenate(nrm_all)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-8)
+    stats = {"sampling_time_s": time.perf_counter() - t_start, "valid_pixels": valid_total,
+             "training_pixels": n_pix, "dropped_grazing": dropped_grazing, "dropped_transparent": dropped_transparent,
+             "kept_weight_fraction": kept_sum / n_pix}
+    return AppearanceSamples(points=np.concatenate(pts_all), weights=np.concatenate(w_all),
+                             albedo=np.concatenate(alb_all), normals_world=normals.astype(np.float32),
+                             bounds=surface.bounds.copy(), stats=stats,
+                             sampling={k: getattr(config, k) for k in _SAMPLING_FIELDS})
 
-    # 2. The field and the optimiser (Instant-NGP's Adam; sdf.py's warm-up + cosine schedule).
-    field_ = AppearanceField(surface.bounds, config.encoding, config.hidden_width, config.hidden_layers,
+
+def train_appearance_field(views: Sequence[AppearanceView] | AppearanceSamples,
+                           geometry: Union[SDFField, SDFCallable, None],
+                           config: AppearanceFieldConfig = APPEARANCE_PRESETS["cpu"], bounds: np.ndarray | None = None,
+                           progress: Callable[[int, dict], None] | None = None,
+                           checkpoint: Callable[[int, AppearanceField], None] | None = None) -> AppearanceResult:
+    """Train the albedo/normal field on the valid pixels of ``views``, volume rendered with ``geometry``'s weights.
+
+    Args:
+        views: calibrated training views (:class:`AppearanceView`), stage frame; or the
+            :class:`AppearanceSamples` of :func:`sample_training_pixels` (then ``geometry`` and ``bounds`` are
+            not used, and the config's sampling fields must be those the samples were made with).
+        geometry: the subject's SDF: an :class:`~stages.numerics.sdf.SDFField` (e.g. the geometry stage's
+            ``sdf.pt`` through ``SDFField.from_state``) or a function ``points (N, 3) float32 -> (sdf (N,)
+            metres, gradient (N, 3))``.
+        config: :class:`AppearanceFieldConfig` (presets in ``APPEARANCE_PRESETS``); ``inv_s`` should be the
+            SDF's final sharpness.
+        bounds: (2, 3) box of the field (and of the SDF's crossings); defaults to the SDFField's bounds,
+            required with a function.
+        progress: called as ``progress(iteration, losses)`` every ``log_every`` steps.
+        checkpoint: called as ``checkpoint(iteration, field)`` every ``log_every`` steps (on the training
+            device, in eval mode; do not modify it), e.g. to measure error against training time.
+
+    Returns:
+        :class:`AppearanceResult`.
+
+    Raises:
+        ValueError: bad views (shapes, cameras, non-finite maps, no valid pixel), bad geometry or bounds, a bad
+            config, samples made with other sampling fields, or no valid pixel with an opaque surface.
+    """
+    _check_config(config)
+    if isinstance(views, AppearanceSamples):
+        samples = views
+        wanted = {k: getattr(config, k) for k in _SAMPLING_FIELDS}
+        if samples.sampling != wanted:
+            raise ValueError(f"the samples were made with {samples.sampling}, the config asks for {wanted}")
+        n = len(samples.points)
+        m = config.samples_kept
+        if (n == 0 or samples.points.shape != (n, m, 3) or samples.weights.shape != (n, m)
+                or samples.albedo.shape != (n, 3) or samples.normals_world.shape != (n, 3)):
+            raise ValueError("AppearanceSamples arrays are inconsistent (points (N, M, 3), weights (N, M), albedo "
+                             "and normals_world (N, 3), N > 0)")
+    else:
+        samples = sample_training_pixels(views, geometry, config, bounds)
+    device = resolve_device(config.device)
+    previous = torch.get_num_threads()
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    try:
+        return _train(samples, config, progress, checkpoint, device)
+    finally:
+        if config.threads:
+            torch.set_num_threads(previous)
+
+
+def _train(samples: AppearanceSamples, config: AppearanceFieldConfig, progress, checkpoint,
+           device: torch.device) -> AppearanceResult:
+    t_start = time.perf_counter()
+    generator = torch.Generator().manual_seed(config.seed)
+    bank_pts = torch.from_numpy(np.ascontiguousarray(samples.points, np.float32)).to(device)
+    bank_w = torch.from_numpy(np.ascontiguousarray(samples.weights, np.float32)).to(device)
+    bank_alb = torch.from_numpy(np.ascontiguousarray(samples.albedo, np.float32)).to(device)
+    bank_nrm = torch.from_numpy(np.ascontiguousarray(samples.normals_world, np.float32)).to(device)
+    n_pix = int(bank_pts.shape[0])
+
+    # The field and the optimiser (Instant-NGP's Adam; sdf.py's warm-up + cosine schedule).
+    field_ = AppearanceField(samples.bounds, config.encoding, config.hidden_width, config.hidden_layers,
                              config.albedo_max, seed=config.seed).to(device)
     mlp = [p for name, p in field_.named_parameters() if not name.startswith("encoding.")]
     optimiser = _adam([{"params": [field_.encoding.table]}, {"params": mlp}], config.learning_rate)
@@ -574,7 +672,7 @@ def _train(views, cams, surface: _Surface, config: AppearanceFieldConfig, progre
     history: dict[str, list] = {k: [] for k in ("iteration", "seconds") + keys}
     sums = {"loss": 0.0, "albedo_l1": 0.0, "normal_deg": 0.0}
     count = 0
-    t_train = time.perf_counter()
+    outside = 0.0  # seconds spent in the callbacks, not training
     for it in range(config.iterations):
         lr = config.learning_rate * _lr_factor(it, config)
         optimiser.param_groups[0]["lr"] = lr
@@ -594,23 +692,25 @@ def _train(views, cams, surface: _Surface, config: AppearanceFieldConfig, progre
         count += 1
         if (it + 1) % config.log_every == 0 or it + 1 == config.iterations:
             history["iteration"].append(it + 1)
-            history["seconds"].append(time.perf_counter() - t_start)
+            history["seconds"].append(time.perf_counter() - t_start - outside)
             for k in sums:
                 history[k].append(sums[k] / count)
             history["lr"].append(lr)
+            tick = time.perf_counter()
             if progress is not None:
                 progress(it + 1, {k: history[k][-1] for k in keys})
             if checkpoint is not None:
                 field_.eval()
                 checkpoint(it + 1, field_)
                 field_.train()
+            outside += time.perf_counter() - tick
             sums = {k: 0.0 for k in sums}
             count = 0
     field_ = field_.cpu().eval()
-    stats = {"device": str(device), "time_s": time.perf_counter() - t_start, "sampling_time_s": sampling_s,
-             "train_time_s": time.perf_counter() - t_train, "training_pixels": n_pix, "valid_pixels": valid_total,
-             "dropped_grazing": dropped_grazing, "dropped_transparent": dropped_transparent,
-             "iterations": config.iterations, "parameters": int(sum(p.numel() for p in field_.parameters()))}
+    train_s = time.perf_counter() - t_start - outside
+    stats = dict(samples.stats)
+    stats.update(device=str(device), train_time_s=train_s, time_s=train_s + samples.stats["sampling_time_s"],
+                 iterations=config.iterations, parameters=int(sum(p.numel() for p in field_.parameters())))
     return AppearanceResult(field=field_, history=history, stats=stats)
 
 

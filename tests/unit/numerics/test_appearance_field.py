@@ -14,6 +14,7 @@ from stages.numerics.appearance_field import (
     AppearanceFieldConfig,
     AppearanceView,
     render_appearance,
+    sample_training_pixels,
     train_appearance_field,
 )
 from stages.numerics.metrics import angular_error_deg
@@ -187,6 +188,23 @@ def test_same_seed_same_field_other_seed_differs():
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     assert not all(torch.equal(sa[k], sc[k]) for k in sa)
     assert a.history["loss"] == b.history["loss"]
+
+
+def test_precomputed_samples_train_the_same_field():
+    config = dataclasses.replace(CONFIG, iterations=10, log_every=5)
+    views = training_views(with_depth=True)[:2]
+    samples = sample_training_pixels(views, sphere_sdf, config, bounds=BOUNDS)
+    n = samples.stats["training_pixels"]
+    assert samples.points.shape == (n, config.samples_kept, 3) and samples.weights.shape == (n, config.samples_kept)
+    assert samples.albedo.shape == samples.normals_world.shape == (n, 3)
+    np.testing.assert_allclose(samples.weights.sum(1), 1.0, atol=1e-5)
+    # Kept samples lie near the sphere (within the window).
+    assert np.abs(np.linalg.norm(samples.points, axis=-1) - RADIUS).max() <= config.window_m + 1e-6
+    a = train_appearance_field(samples, None, config)
+    b = train_appearance_field(views, sphere_sdf, config, bounds=BOUNDS)
+    assert all(torch.equal(x, y) for x, y in zip(a.field.state_dict().values(), b.field.state_dict().values()))
+    with pytest.raises(ValueError, match="samples were made with"):
+        train_appearance_field(samples, None, dataclasses.replace(config, samples_kept=2))
 
 
 def test_state_round_trip(trained):
