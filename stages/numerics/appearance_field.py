@@ -21,8 +21,8 @@ learning-rate schedule):
   about 5 mm wide: the 4 largest of 8 samples over +-6 mm hold about 80% of the weight on the default capture,
   and keeping 2 or 4 gave the same held-out scores there). The pixel's albedo is ``sum w_k a(x_k) / sum w_k``
   and its normal ``normalise(sum w_k n(x_k))``, over the kept samples; its opacity is the sum of all the
-  weights and the pixel is valid where it exceeds ``min_opacity``. Since the geometry is frozen, the samples and weights of
-  every training pixel are computed once before training.
+  weights and the pixel is valid where it exceeds ``min_opacity``. Since the geometry is frozen, the samples
+  and weights of every training pixel are computed once before training.
 * **Loss** on the valid pixels of the training views (photometric alpha > 0.5 and mask, as the reprojection
   uses them): ``weight_albedo * |a_r - a|_1`` (or squared) ``+ weight_normal * (1 - cos(n_r, n))``. Pixels
   whose photometric normal is within ``grazing_cos_min`` of perpendicular to the view ray (or faces away) are
