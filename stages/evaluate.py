@@ -264,7 +264,8 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
-MATERIAL_METRICS = ("roughness_mae", "roughness_bias", "albedo_texture_psnr_db", "albedo_deoccluded_psnr_db")
+MATERIAL_METRICS = ("roughness_mae", "roughness_bias", "albedo_texture_psnr_db", "albedo_deoccluded_psnr_db",
+                    "albedo_intrinsic_psnr_db")
 
 
 def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.ndarray, cam_from_world: np.ndarray,
@@ -301,8 +302,9 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
             continue
         cameras = true_cameras(truth_dir, view.info.get("session_id") or "S000")
         textures = {"roughness": view.texture("roughness"), "albedo": view.texture("albedo")[..., :3]}
-        if "texture_albedo_deoccluded" in view.kinds:
-            textures["albedo_deoccluded"] = view.texture("albedo_deoccluded")[..., :3]
+        for name in ("albedo_deoccluded", "albedo_intrinsic"):
+            if f"texture_{name}" in view.kinds:
+                textures[name] = view.texture(name)[..., :3]
         abs_err, signed, sq = [], [], {k: [0.0, 0] for k in textures if k.startswith("albedo")}
         cache: dict = {}
         for cam_id, cam in sorted(cameras.items()):
@@ -330,9 +332,9 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
         metrics = {"roughness_mae": float(np.mean(np.concatenate(abs_err))),
                    "roughness_bias": float(np.mean(np.concatenate(signed))),
                    "albedo_texture_psnr_db": _psnr_from_mse(sq["albedo"][0] / max(sq["albedo"][1], 1))}
-        if "albedo_deoccluded" in sq:
-            metrics["albedo_deoccluded_psnr_db"] = _psnr_from_mse(sq["albedo_deoccluded"][0] /
-                                                                  max(sq["albedo_deoccluded"][1], 1))
+        for name in ("albedo_deoccluded", "albedo_intrinsic"):
+            if name in sq:
+                metrics[f"{name}_psnr_db"] = _psnr_from_mse(sq[name][0] / max(sq[name][1], 1))
         for key, value in metrics.items():
             values.setdefault(key, []).append(value)
             per_action.setdefault(action_id, {})[key] = value
@@ -460,7 +462,8 @@ def print_overall(summary: EvaluationSummary) -> None:
     if "roughness_mae" in o:
         print(f"  materials             : roughness MAE {o['roughness_mae']:.3f} (bias {o.get('roughness_bias', float('nan')):+.3f}); "
               f"albedo texture {o.get('albedo_texture_psnr_db', float('nan')):.2f} dB, de-occluded "
-              f"{o.get('albedo_deoccluded_psnr_db', float('nan')):.2f} dB (vs the simulator's albedo)")
+              f"{o.get('albedo_deoccluded_psnr_db', float('nan')):.2f} dB, intrinsic (specular and occlusion out) "
+              f"{o.get('albedo_intrinsic_psnr_db', float('nan')):.2f} dB (vs the simulator's albedo)")
     if "relit_psnr_db" in o:
         print(f"  relit novel views     : PSNR {o['relit_psnr_db']:.2f} dB against the true subject under the same environments")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

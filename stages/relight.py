@@ -10,9 +10,9 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
 3. shading: Lambertian diffuse + GGX specular under the lobes (F0 0.02), with the mesh's self-occlusion
-   (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shadows``; the reprojected white-light
-   albedo holds the stage's ambient occlusion, so with shadows it is divided by the occlusion first
-   (otherwise occlusion would count twice).
+   (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shadows``. The reprojected white-light albedo
+   holds specular light and the stage's ambient occlusion: it is multiplied by the materials stage's
+   diffuse ratio and, with shadows, divided by the occlusion (else occlusion would count twice).
 
 Outputs per action (release ``renders/``): ``cameras.json`` (the novel cameras, OpenCV, and the captured
 pair each lies between), ``<view>/normal.exr``, ``albedo.exr``, ``roughness.exr``, ``mask.png`` and
@@ -162,7 +162,7 @@ class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
     name = "relight"
-    version = "1"
+    version = "2"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric")
     outputs = ("renders", "previews")
@@ -231,6 +231,7 @@ class RelightStage(Stage):
         albedo_tex = read_exr(ctx.upstream["textures"] / "textures" / "albedo.exr")[..., :3]
         roughness_tex = read_exr(ctx.upstream["materials"] / "textures" / "roughness.exr")
         occlusion_tex = read_exr(ctx.upstream["materials"] / "textures" / "occlusion.exr")
+        diffuse_ratio_tex = read_exr(ctx.upstream["materials"] / "textures" / "diffuse_ratio.exr")[..., :3]
         roughness_tex = roughness_tex[..., 0] if roughness_tex.ndim == 3 else roughness_tex
         occlusion_tex = occlusion_tex[..., 0] if occlusion_tex.ndim == 3 else occlusion_tex
         directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
@@ -258,9 +259,11 @@ class RelightStage(Stage):
                                        np.where(mask[..., None], gbuffer["normal"], 0.0)).astype(np.float32)
             roughness = np.where(mask, sample_texture(roughness_tex, uv.reshape(-1, 2)).reshape(h, w), 0.0)
             occlusion = np.where(mask, sample_texture(occlusion_tex, uv.reshape(-1, 2)).reshape(h, w), 1.0)
+            diffuse_ratio = sample_texture(diffuse_ratio_tex, uv.reshape(-1, 2)).reshape(h, w, 3)
             pix = np.flatnonzero(mask.reshape(-1))
             normals = shading_normals.reshape(-1, 3)[pix]
-            albedo = gbuffer["albedo"].reshape(-1, 3)[pix]
+            # The white-light albedo holds specular light (the shading adds it back): keep the diffuse share.
+            albedo = (gbuffer["albedo"] * diffuse_ratio).reshape(-1, 3)[pix]
             centre = -pose[:, :3].T @ pose[:, 3]
             points = _pixel_points(K, pose, depth).reshape(-1, 3)[pix]
             view_dirs = centre[None] - points

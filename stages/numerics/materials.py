@@ -279,7 +279,8 @@ def fit_roughness(observed, view_dirs, valid, normals, albedo, white_scale=1.0, 
                   r_max: float = 1.0, f0: float = 0.02, grid: int = 20, gauss_newton_steps: int = 4,
                   shadowing: str = "smith", ndf_lobes: int = 3, specular_model: str = "ggx_table",
                   fit_albedo: bool = False,
-                  fallback_roughness: float | None = None, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+                  fallback_roughness: float | None = None, chunk: int = 8192, return_albedo: bool = False
+                  ) -> tuple[np.ndarray, ...]:
     """Per-point GGX roughness from observations under full_on, pos and neg from several views.
 
     The model is ``white_scale * shade_stage_illuminations(n, v, albedo, r, f0)`` per (point, view); the fit
@@ -309,11 +310,14 @@ def fit_roughness(observed, view_dirs, valid, normals, albedo, white_scale=1.0, 
         fallback_roughness: roughness given to points with no valid view; default the median of the fitted
             points (0.5 when none is fitted).
         chunk: points per block.
+        return_albedo: also return the diffuse albedo (P, 3) the fit used: the solved one with
+            ``fit_albedo`` (the white-light albedo with the specular light taken out), else ``albedo``.
 
     Returns:
         roughness (P,) float32 in [r_min, r_max]; residual (P,) float32, the RMS error of the fit over the
         point's valid views, illuminations and channels in white units, or :data:`NO_VIEWS_RESIDUAL` (-1)
-        for points with no valid view (flagged: their roughness is the fallback).
+        for points with no valid view (flagged: their roughness is the fallback); with ``return_albedo``
+        also the albedo (P, 3) float32 (the input albedo where no view is valid).
     """
     obs = np.asarray(observed, dtype=np.float32)
     if obs.ndim != 4 or obs.shape[2:] != (3, 3):
@@ -339,19 +343,23 @@ def fit_roughness(observed, view_dirs, valid, normals, albedo, white_scale=1.0, 
 
     roughness = np.zeros(p_count, np.float32)
     residual = np.full(p_count, NO_VIEWS_RESIDUAL, np.float32)
+    albedo_out = alb_all.numpy().astype(np.float32).copy()
     grid_values = torch.linspace(r_min, r_max, grid)
     fitted_index = np.nonzero(has_views)[0]
     with torch.no_grad():
         for start in range(0, len(fitted_index), chunk):
             idx = torch.as_tensor(fitted_index[start:start + chunk])
-            r_fit, rms = _fit_block(target_all[idx], views[idx], valid_all[idx], n_all[idx], alb_all[idx], grid_values,
-                                    r_min, r_max, f0, gauss_newton_steps, shadowing, ndf_lobes, specular_model,
-                                    fit_albedo)
+            r_fit, rms, alb_fit = _fit_block(target_all[idx], views[idx], valid_all[idx], n_all[idx], alb_all[idx],
+                                             grid_values, r_min, r_max, f0, gauss_newton_steps, shadowing, ndf_lobes,
+                                             specular_model, fit_albedo)
             roughness[idx.numpy()] = r_fit
             residual[idx.numpy()] = rms
+            albedo_out[idx.numpy()] = alb_fit
     if fallback_roughness is None:
         fallback_roughness = float(np.median(roughness[has_views])) if has_views.any() else 0.5
     roughness[~has_views] = np.clip(fallback_roughness, r_min, r_max)
+    if return_albedo:
+        return roughness, residual, albedo_out
     return roughness, residual
 
 
@@ -365,8 +373,8 @@ def _fit_block(target, views, valid, normals, albedo, grid_values, r_min, r_max,
     diffuse_unit = stage_diffuse(n_rep, torch.ones_like(n_rep)).reshape(m, v_count, 3, 3)  # per unit albedo
     count = weight.sum(dim=(1, 2, 3)) * 9.0  # residual entries per point
 
-    def residuals(r: torch.Tensor) -> torch.Tensor:
-        """(m, V, 3, 3) weighted residuals for roughness r (m,)."""
+    def residuals(r: torch.Tensor, with_albedo: bool = False):
+        """(m, V, 3, 3) weighted residuals for roughness r (m,) (and the albedo (m, 3) they used)."""
         spec = _specular(n_rep, v_flat, r[:, None].expand(m, v_count).reshape(-1), f0, shadowing, ndf_lobes,
                          specular_model).reshape(m, v_count, 3, 3)
         if fit_albedo:  # least-squares albedo per point and channel for this r (diffuse is linear in it)
@@ -376,7 +384,8 @@ def _fit_block(target, views, valid, normals, albedo, grid_values, r_min, r_max,
             alb = (num / den).clamp_min(0.0)
         else:
             alb = albedo
-        return (target - spec - diffuse_unit * alb[:, None, None, :]) * weight
+        res = (target - spec - diffuse_unit * alb[:, None, None, :]) * weight
+        return (res, alb) if with_albedo else res
 
     def loss(r: torch.Tensor) -> torch.Tensor:
         return (residuals(r) ** 2).sum(dim=(1, 2, 3))
@@ -402,5 +411,6 @@ def _fit_block(target, views, valid, normals, albedo, grid_values, r_min, r_max,
         current = torch.where(better, new_loss, current)
         damping = torch.where(better, damping * 0.1, damping * 10.0 + hess)
     rms = torch.sqrt(current / count.clamp_min(1.0))
-    return r.numpy().astype(np.float32), rms.numpy().astype(np.float32)
+    _, alb = residuals(r, with_albedo=True)
+    return r.numpy().astype(np.float32), rms.numpy().astype(np.float32), alb.numpy().astype(np.float32)
 

@@ -60,7 +60,8 @@ def test_release_layout_and_manifests(first_run):
                      "textures/albedo_deoccluded.exr", "renders/cameras.json", "renders/environments.json",
                      "renders/N000/normal.exr", "renders/N000/albedo.exr", "renders/N000/roughness.exr",
                      "renders/N000/mask.png", "renders/N000/procedural_sky.exr",
-                     "renders/N000/procedural_studio.exr", "previews/relit.png"):
+                     "renders/N000/procedural_studio.exr", "previews/relit.png", "textures/diffuse_ratio.exr",
+                     "textures/albedo_intrinsic.exr"):
             assert (release / "actions" / action / name).is_file(), (action, name)
     assert (release / "CONVENTIONS.md").exists() and (release / "config.yaml").exists()
     from manifests import open_release, verify_release

@@ -218,6 +218,15 @@ def test_fit_roughness_invalid_views_fallback_and_albedo_option():
     biased, _ = fit_roughness(observed, views, valid, normals, albedo * 1.2)
     solved, _ = fit_roughness(observed, views, valid, normals, albedo * 1.2, fit_albedo=True)
     assert np.abs(solved[5:] - rough[5:]).mean() < 0.01 < np.abs(biased[5:] - rough[5:]).mean()
+    # return_albedo: the solved diffuse albedo is the true one whatever albedo was passed in; the input
+    # albedo comes back where no view is valid, and everywhere when the albedo is fixed
+    _, _, albedo_solved = fit_roughness(observed, views, valid, normals, albedo * 1.2, fit_albedo=True,
+                                        return_albedo=True)
+    assert albedo_solved.shape == (40, 3) and albedo_solved.dtype == np.float32
+    np.testing.assert_allclose(albedo_solved[5:], albedo[5:], atol=2e-3)
+    np.testing.assert_allclose(albedo_solved[:5], albedo[:5] * 1.2, rtol=1e-6)
+    _, _, albedo_fixed = fit_roughness(observed, views, valid, normals, albedo, return_albedo=True)
+    np.testing.assert_allclose(albedo_fixed, albedo, rtol=1e-6)
 
 
 def test_fit_roughness_input_checks():
