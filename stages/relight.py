@@ -62,7 +62,7 @@ class RelightConfig(Documented):
     normals: str = "reprojected"
     """Shading normals: "reprojected" (the G-buffer's, blended from the photometric maps, as the paper) or
     "mesh" (the mesh's smooth normals). On the simulator the mesh's are closer to the truth (5-6 vs 6-8.5 deg
-    on the novel views) yet relight 0.15 dB worse with the reprojected albedo (22.02 vs 21.87 dB): the
+    on the novel views) yet relight no better with the reprojected albedo (22.25 vs 22.24 dB): the
     reprojected normals and albedo come from the same maps and their errors partly cancel."""
     shadows: bool = True
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
