@@ -45,6 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.config import Documented, to_dict
+from stages.numerics import torch_threads
 from stages.numerics.hull import check_camera
 from stages.numerics.sdf import (
     HashEncoding,
@@ -546,14 +547,8 @@ def sample_training_pixels(views: Sequence[AppearanceView], geometry: Union[SDFF
     cams = _check_views(views)
     surface = _Surface(geometry, bounds)
     device = resolve_device(config.device)
-    previous = torch.get_num_threads()
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         return _sample_views(views, cams, surface, config, device)
-    finally:
-        if config.threads:
-            torch.set_num_threads(previous)
 
 
 def _sample_views(views, cams, surface: _Surface, config: AppearanceFieldConfig,
@@ -643,14 +638,8 @@ def train_appearance_field(views: Sequence[AppearanceView] | AppearanceSamples,
     else:
         samples = sample_training_pixels(views, geometry, config, bounds)
     device = resolve_device(config.device)
-    previous = torch.get_num_threads()
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         return _train(samples, config, progress, checkpoint, device)
-    finally:
-        if config.threads:
-            torch.set_num_threads(previous)
 
 
 def _train(samples: AppearanceSamples, config: AppearanceFieldConfig, progress, checkpoint,
@@ -751,10 +740,7 @@ def render_appearance(field_: AppearanceField, geometry: Union[SDFField, SDFCall
     depth = _check_depth(depth_m, (H, W), "render_appearance")
     surface = _Surface(geometry, bounds)
     device = resolve_device(config.device)
-    previous = torch.get_num_threads()
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         rows, cols = np.mgrid[0:H, 0:W]
         rows, cols = rows.ravel(), cols.ravel()
         if depth is not None:  # only pixels with a surface
@@ -773,9 +759,6 @@ def render_appearance(field_: AppearanceField, geometry: Union[SDFField, SDFCall
                 albedo[sel] = a
                 normal[sel] = F.normalize(n, dim=-1, eps=1e-8)
         field_.cpu()
-    finally:
-        if config.threads:
-            torch.set_num_threads(previous)
     valid_np = valid.cpu().numpy()
     out = {"albedo": np.zeros((H, W, 3), np.float32), "normals_world": np.zeros((H, W, 3), np.float32),
            "opacity": np.zeros((H, W), np.float32), "valid": np.zeros((H, W), bool),

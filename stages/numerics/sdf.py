@@ -49,6 +49,7 @@ import torch
 import torch.nn.functional as F
 
 from pipeline.config import Documented, to_dict
+from stages.numerics import torch_threads
 from stages.numerics.hull import HullGrid, check_camera, visual_hull
 
 __all__ = [
@@ -1045,14 +1046,8 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
     _check_config(config)
     cams = _check_views(views, config.normal_supervision)
     device = resolve_device(config.device)
-    previous_threads = torch.get_num_threads()
-    if config.threads:
-        torch.set_num_threads(config.threads)
-    try:
+    with torch_threads(config.threads):
         return _train(views, cams, config, bounds, progress, checkpoint, device)
-    finally:
-        if config.threads:
-            torch.set_num_threads(previous_threads)
 
 
 def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device) -> SDFResult:
