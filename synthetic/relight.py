@@ -337,9 +337,7 @@ class TruthRelighter:
                 hits, self.subject, lighting, specular=self.config.specular if specular is None else bool(specular))
 
         def image(values: np.ndarray, channels: int) -> np.ndarray:
-            out = np.zeros((height * width, channels), np.float32)
-            out[hits.pixels] = values.reshape(len(hits.pixels), channels)
-            return out.reshape(height, width, channels) if channels > 1 else out.reshape(height, width)
+            return shading.hits_image(hits.pixels, values, channels, height, width)
 
         mask = np.zeros(height * width, bool)
         mask[hits.pixels] = True

@@ -331,14 +331,20 @@ def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, l
     radiance[hits.pixels] = radiance_hits
 
     def image(values: np.ndarray, channels: int) -> np.ndarray:
-        out = np.zeros((h * w, channels), np.float32)
-        out[hits.pixels] = values.reshape(len(hits.pixels), channels)
-        return out.reshape(h, w, channels) if channels > 1 else out.reshape(h, w)
+        return hits_image(hits.pixels, values, channels, h, w)
 
     mask = np.zeros(h * w, bool)
     mask[hits.pixels] = True
     return ViewRender(radiance.reshape(h, w, 9), mask.reshape(h, w), image(normals, 3), image(albedo, 3),
                       image(roughness, 1), image(hits.depth_m, 1), image(visibility, 1))
+
+
+def hits_image(pixels: np.ndarray, values: np.ndarray, channels: int, height: int, width: int) -> np.ndarray:
+    """Per-hit values (N, channels) scattered to an image at flat pixel indices (N,): (H, W, C) float32, or
+    (H, W) for one channel; 0 where nothing was hit."""
+    out = np.zeros((height * width, channels), np.float32)
+    out[pixels] = values.reshape(len(pixels), channels)
+    return out.reshape(height, width, channels) if channels > 1 else out.reshape(height, width)
 
 
 def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarray, f0: np.ndarray,
