@@ -210,7 +210,7 @@ class MaterialsStage(Stage):
         roughness_tex = _dilate(roughness_tex, covered)
         ratio_tex = np.ones((size, size, 3), np.float32)
         ratio_tex[covered] = diffuse_ratio
-        ratio_tex = np.stack([_dilate(ratio_tex[..., c], covered, fill=1.0) for c in range(3)], axis=-1)
+        ratio_tex = _dilate(ratio_tex, covered, fill=1.0)
 
         # Ambient occlusion on the mesh, divided out of the baked albedo.
         t0 = time.perf_counter()
@@ -223,9 +223,7 @@ class MaterialsStage(Stage):
         occlusion_tex = np.ones((occ_size, occ_size), np.float32)
         occlusion_tex[occ_covered] = visible
         occlusion_tex = _dilate(occlusion_tex, occ_covered, fill=1.0)
-        h, w = albedo_texture.shape[:2]
-        rows, cols = np.mgrid[0:h, 0:w]
-        uv_full = np.stack([(cols + 0.5) / w, 1.0 - (rows + 0.5) / h], axis=-1)
+        uv_full = texel_uvs(np.ones(albedo_texture.shape[:2], bool)).reshape(albedo_texture.shape[:2] + (2,))
         occlusion_full = np.maximum(sample_texture(occlusion_tex, uv_full), cfg.min_occlusion)[..., None]
         deoccluded = np.clip(np.nan_to_num(albedo_texture / occlusion_full, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
         intrinsic = albedo_texture * sample_texture(ratio_tex, uv_full) / occlusion_full
@@ -263,11 +261,14 @@ class MaterialsStage(Stage):
 
 
 def _dilate(texture: np.ndarray, covered: np.ndarray, fill: float | None = None, px: int = 4) -> np.ndarray:
-    """Grow the covered texels ``px`` texels (bilinear lookups at chart borders must not pull the empty
-    value); texels still empty get ``fill`` (default: the covered texels' median)."""
+    """Grow the covered texels of a (T, T) or (T, T, C) texture ``px`` texels (bilinear lookups at chart
+    borders must not pull the empty value); texels still empty get ``fill`` (default: the covered texels'
+    median)."""
     from stages.numerics.bake import dilate_texture
 
-    grown, filled = dilate_texture({"t": texture[..., None]}, covered, px)
-    out = grown["t"][..., 0]
-    default = float(np.median(texture[covered])) if fill is None and covered.any() else (fill or 0.0)
-    return np.where(filled, out, default).astype(np.float32)
+    channels = texture if texture.ndim == 3 else texture[..., None]
+    grown, filled = dilate_texture({"t": channels}, covered, px)
+    default = (np.median(channels[covered], axis=0) if fill is None and covered.any()
+               else np.full(channels.shape[2], fill or 0.0))
+    out = np.where(filled[..., None], grown["t"], default).astype(np.float32)
+    return out if texture.ndim == 3 else out[..., 0]
