@@ -264,10 +264,6 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
-MATERIAL_METRICS = ("roughness_mae", "roughness_bias", "albedo_texture_psnr_db", "albedo_deoccluded_psnr_db",
-                    "albedo_intrinsic_psnr_db")
-
-
 def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.ndarray, cam_from_world: np.ndarray,
                       height: int, width: int, scene_cache: dict | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Textures of the atlas seen by a camera through the textured mesh: name -> (H, W[, C]) and the hit
@@ -291,7 +287,8 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
                        rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
     """Roughness and albedo textures against the simulator's maps, seen through the textured mesh from every
     true camera (pixels where the truth has the subject and the mesh is hit): roughness mean absolute error
-    and bias, and the albedo PSNR of the baked (white-light) texture and of the de-occluded one."""
+    and bias, and the albedo PSNR of the baked (white-light) texture, the de-occluded one and the intrinsic
+    one (specular share and occlusion out)."""
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
 
@@ -300,7 +297,7 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
         view = rel.action(action_id)
         if "texture_roughness" not in view.kinds or not (truth_dir / action_id / "roughness").is_dir():
             continue
-        cameras = true_cameras(truth_dir, view.info.get("session_id") or "S000")
+        cameras = true_cameras(truth_dir, view.info["session_id"])
         textures = {"roughness": view.texture("roughness"), "albedo": view.texture("albedo")[..., :3]}
         for name in ("albedo_deoccluded", "albedo_intrinsic"):
             if f"texture_{name}" in view.kinds:
