@@ -46,14 +46,16 @@ sys.path.insert(0, str(ROOT))
 ENVIRONMENTS = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
 LOBES = (8, 16, 32, 64)
 DIRECTIONS = (64, 128, 256)
-DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "reprojected", "albedo": "deoccluded"}
+DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "reprojected", "albedo": "deoccluded",
+           "diffuse_ratio": True}
 VARIANTS = [("default", {}),
             ("sg_lobes 8", {"lobes": 8}), ("sg_lobes 16", {"lobes": 16}), ("sg_lobes 64", {"lobes": 64}),
             ("visibility_directions 64", {"directions": 64}), ("visibility_directions 128", {"directions": 128}),
             ("shadows off, de-occluded albedo", {"shadows": False}),
             ("shadows off, photometric albedo (baseline)", {"shadows": False, "albedo": "photometric"}),
             ("shadows on, photometric albedo", {"albedo": "photometric"}),
-            ("normals mesh", {"normals": "mesh"})]
+            ("normals mesh", {"normals": "mesh"}),
+            ("white-light albedo (no diffuse ratio)", {"diffuse_ratio": False})]
 BASELINE = "shadows off, photometric albedo (baseline)"
 DECOMPOSITION = ("truth G-buffers (SG floor)", "truth G-buffers, no shadows", "truth + our normal",
                  "truth + our albedo", "truth + our roughness", "our normal+albedo+roughness",
@@ -92,62 +94,46 @@ def fit_environments(names: list[str], capture: Path, progress) -> tuple[dict, l
 
 
 class ActionScene:
-    """What the relight stage reads for one action, from the release: the mesh (scene, smooth normals), the
-    captured views as reprojection sources (depth rendered lazily), the textured mesh's atlas and the
-    albedo, roughness and occlusion textures."""
+    """What the relight stage reads for one action, from the release (mesh, captured views as reprojection
+    sources with lazily rendered depth, the atlas and its textures), as the stage's ActionAsset."""
 
     def __init__(self, release: Path, action: str):
         from stages.heldout import ActionGBuffers
         from stages.materials import load_atlas_mesh
         from stages.numerics.mesh import vertex_normals
         from stages.numerics.raycast import mesh_scene
+        from stages.relight import ActionAsset
 
         self.data = ActionGBuffers(release, action)
         self.view = self.data.view
         self.scene = mesh_scene(self.data.vertices, self.data.faces)
         self.data._scene = self.scene  # the sources' depth renders share it
-        self.smooth_normals = vertex_normals(self.data.vertices, self.data.faces)
-        self.sources = [self.data.source(c) for c in sorted(self.data.cameras)]
-        vertices, faces, self.atlas = load_atlas_mesh(self.view.path("mesh_textured"))
-        self.atlas_scene = mesh_scene(vertices, faces)
-        self.albedo_tex = self.view.texture("albedo")[..., :3]
-        self.roughness_tex = self.view.texture("roughness")
-        self.occlusion_tex = self.view.texture("occlusion")
+        vertices, faces, atlas = load_atlas_mesh(self.view.path("mesh_textured"))
+        self.asset = ActionAsset(scene=self.scene, faces=self.data.faces,
+                                 smooth_normals=vertex_normals(self.data.vertices, self.data.faces),
+                                 sources=[self.data.source(c) for c in sorted(self.data.cameras)],
+                                 atlas_scene=mesh_scene(vertices, faces), atlas=atlas,
+                                 albedo_tex=self.view.texture("albedo")[..., :3],
+                                 roughness_tex=self.view.texture("roughness"),
+                                 occlusion_tex=self.view.texture("occlusion"),
+                                 diffuse_ratio_tex=self.view.texture("diffuse_ratio")[..., :3])
 
     def gbuffer(self, cam: dict) -> dict:
-        """The stage's G-buffer of a novel camera (stages.relight.RelightStage.run, per view), with both
-        normal choices and the albedo before the occlusion is divided out."""
-        from stages.numerics.bake import sample_texture
-        from stages.numerics.gbuffer import reproject_gbuffer
-        from stages.numerics.raycast import render_attributes, render_mesh, render_uvs
-        from stages.relight import _pixel_points
+        """The stage's G-buffer of a novel camera (stages.relight.novel_view_gbuffer), with both normal
+        choices, per mask pixel, and the full maps for the decomposition."""
+        from stages.relight import novel_view_gbuffer
 
-        K, pose = np.asarray(cam["K"], np.float64), np.asarray(cam["cam_from_world"], np.float64)
         h, w = int(cam["height"]), int(cam["width"])
-        seen = render_mesh(None, None, K, pose, h, w, scene=self.scene)
-        depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
-        gb = reproject_gbuffer(depth, K, pose, self.sources, k=SOURCES, depth_tolerance_m=DEPTH_TOLERANCE_M)
-        uv, on_atlas = render_uvs(self.atlas_scene, self.atlas.faces, self.atlas.uvs, K, pose, h, w)
-        mask = seen["hit"] & (gb["valid"] | on_atlas)
-        uv = uv.reshape(-1, 2)
-        albedo = np.where(gb["valid"][..., None], gb["albedo"], sample_texture(self.albedo_tex, uv).reshape(h, w, 3))
-        mesh_normals, _ = render_attributes(self.scene, self.data.faces, self.smooth_normals, K, pose, h, w)
-        norm = np.linalg.norm(mesh_normals, axis=2, keepdims=True)
-        mesh_normals = np.where(norm > 1e-8, mesh_normals / np.maximum(norm, 1e-8), 0.0)
-        reprojected = np.where((mask & ~gb["valid"])[..., None], mesh_normals, gb["normal"])
-        pix = np.flatnonzero(mask.reshape(-1))
-        centre = -pose[:, :3].T @ pose[:, 3]
-        points = _pixel_points(K, pose, depth).reshape(-1, 3)[pix]
-        view_dirs = centre[None] - points
-        view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
-        return {"mask": mask, "pix": pix, "points": points, "view_dirs": view_dirs, "shape": (h, w),
-                "normals": {"reprojected": reprojected.reshape(-1, 3)[pix].astype(np.float64),
-                            "mesh": mesh_normals.reshape(-1, 3)[pix].astype(np.float64)},
-                "albedo_photometric": albedo.reshape(-1, 3)[pix],
-                "occlusion": sample_texture(self.occlusion_tex, uv)[pix],
-                "roughness": np.clip(sample_texture(self.roughness_tex, uv)[pix], 0.05, 1.0),
-                "albedo_full": albedo, "normal_full": reprojected,
-                "roughness_full": sample_texture(self.roughness_tex, uv).reshape(h, w)}
+        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
+                                depth_tolerance_m=DEPTH_TOLERANCE_M)
+        pix = gb["pix"]
+        return {"mask": gb["mask"], "pix": pix, "points": gb["points"], "view_dirs": gb["view_dirs"], "shape": (h, w),
+                "normals": {k: gb[f"normal_{k}"].reshape(-1, 3)[pix].astype(np.float64) for k in ("reprojected", "mesh")},
+                "albedo_white": gb["albedo"].reshape(-1, 3)[pix], "diffuse_ratio": gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                "occlusion": gb["occlusion"].reshape(-1)[pix],
+                "roughness": np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0),
+                "albedo_full": gb["albedo"], "diffuse_ratio_full": gb["diffuse_ratio"], "normal_full": gb["normal_reprojected"],
+                "roughness_full": gb["roughness"], "occlusion_full": gb["occlusion"]}
 
 
 def _image(pix: np.ndarray, values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -170,7 +156,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
     from stages.numerics.metrics import relit_psnr
     from stages.numerics.sg import fibonacci_sphere
     from stages.numerics.shadowing import direction_visibility
-    from stages.relight import _pixel_points
+    from stages.relight import _pixel_points, shading_albedo
 
     t0 = time.perf_counter()
     gb = scene.gbuffer(cam)
@@ -185,8 +171,9 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
             vis_s[(normals_kind, d)] = time.perf_counter() - t0
     K, pose = np.asarray(cam["K"], np.float64), np.asarray(cam["cam_from_world"], np.float64)
     h, w = gb["shape"]
-    deoccluded = np.clip(gb["albedo_photometric"] / np.maximum(gb["occlusion"], 0.2)[:, None], 0, 1)
-    photometric = np.clip(gb["albedo_photometric"], 0, 1)
+    albedos = {(kind, ratio): shading_albedo(gb["albedo_white"], gb["diffuse_ratio"] if ratio else 1.0,
+                                             gb["occlusion"] if kind == "deoccluded" else None)
+               for kind in ("deoccluded", "photometric") for ratio in (True, False)}
 
     rows = {label: {"psnr_db": {}, "shade_s": {}} for label, _ in VARIANTS}
     rows["released"] = {"psnr_db": {}}
@@ -201,8 +188,8 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
             cfg = DEFAULT | change
             vis = visibility[(cfg["normals"], cfg["directions"])] if cfg["shadows"] else None
             t0 = time.perf_counter()
-            rgb = shade(gb["normals"][cfg["normals"]], gb["view_dirs"],
-                        deoccluded if cfg["albedo"] == "deoccluded" else photometric, gb["roughness"],
+            rgb = shade(gb["normals"][cfg["normals"]], gb["view_dirs"], albedos[(cfg["albedo"], cfg["diffuse_ratio"])],
+                        gb["roughness"],
                         fit[cfg["lobes"]], vis, directions[cfg["directions"]] if vis is not None else None)
             rows[label]["shade_s"][env_name] = time.perf_counter() - t0
             image = _image(gb["pix"], rgb, (h, w))
@@ -227,8 +214,9 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
             true_normals = true["normals_world"].reshape(-1, 3)[bp].astype(np.float64)
             true_vis = direction_visibility(points, true_normals, true_scene, directions[256], threads=threads)
             ours = {"normal": gb["normal_full"].reshape(-1, 3)[bp].astype(np.float64),
-                    "albedo": np.clip(np.where(gb["mask"][..., None], gb["albedo_full"], 0).reshape(-1, 3)[bp]
-                                      / np.maximum(_full(gb, gb["occlusion"], 1.0)[bp], 0.2)[:, None], 0, 1),
+                    "albedo": shading_albedo(gb["albedo_full"].reshape(-1, 3)[bp],
+                                             gb["diffuse_ratio_full"].reshape(-1, 3)[bp],
+                                             gb["occlusion_full"].reshape(-1)[bp]),
                     "roughness": np.clip(gb["roughness_full"].reshape(-1)[bp], 0.05, 1.0)}
             true_geometry = (points, view_dirs, true_normals, true_vis, ours)
         points, view_dirs, true_normals, true_vis, ours = true_geometry
@@ -264,13 +252,6 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
     return {"camera_id": cam["camera_id"], "pixels": int(len(gb["pix"])), "gbuffer_s": gbuffer_s,
             "visibility_s": {f"{k[0]}_{k[1]}": v for k, v in vis_s.items()}, "variants": variants,
             "decomposition": decomposition}
-
-
-def _full(gb: dict, values: np.ndarray, fill: float) -> np.ndarray:
-    h, w = gb["shape"]
-    out = np.full(h * w, fill, np.float32)
-    out[gb["pix"]] = values
-    return out
 
 
 def summarise(report: dict) -> dict:

@@ -158,6 +158,82 @@ def novel_cameras(cameras: dict[str, dict[str, Any]], count: int) -> list[dict[s
     return out
 
 
+@dataclass(eq=False)
+class ActionAsset:
+    """What a novel view of an action is made from: the mesh (ray-casting scene, faces, smooth vertex
+    normals), the captured views as reprojection sources, and the atlas (scene of the textured mesh, its UVs)
+    with the white-light albedo, roughness, occlusion and diffuse-ratio textures."""
+
+    scene: Any
+    faces: np.ndarray
+    smooth_normals: np.ndarray
+    sources: list[Any]
+    atlas_scene: Any
+    atlas: Any
+    albedo_tex: np.ndarray
+    roughness_tex: np.ndarray
+    occlusion_tex: np.ndarray
+    diffuse_ratio_tex: np.ndarray
+
+
+def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
+                       sources: int = 6, depth_tolerance_m: float = 0.01) -> dict[str, np.ndarray]:
+    """The G-buffer of one novel camera (step 1 of the module docstring).
+
+    Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
+    ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
+    ``normal_mesh``, ``albedo`` (white-light, reprojected, the baked texture where no source sees the
+    pixel), ``roughness``, ``occlusion``, ``diffuse_ratio``; and per mask pixel ``pix`` (flat indices),
+    ``points`` (P, 3) and ``view_dirs`` (P, 3, towards the camera). 0 outside the mask.
+    """
+    from stages.numerics.bake import sample_texture
+    from stages.numerics.gbuffer import reproject_gbuffer
+    from stages.numerics.raycast import render_attributes, render_mesh, render_uvs
+
+    K, pose = np.asarray(K, np.float64), np.asarray(cam_from_world, np.float64)
+    h, w = int(height), int(width)
+    seen = render_mesh(None, None, K, pose, h, w, scene=asset.scene)
+    depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
+    gbuffer = reproject_gbuffer(depth, K, pose, asset.sources, k=sources, depth_tolerance_m=depth_tolerance_m)
+    reprojected = gbuffer["valid"]
+    # Pixels the mesh covers but no source sees (about 1%) take the baked albedo and the mesh's normal.
+    uv, on_atlas = render_uvs(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, K, pose, h, w)
+    mask = seen["hit"] & (reprojected | on_atlas)
+    uv = uv.reshape(-1, 2)
+
+    def texture(tex: np.ndarray, fill: float) -> np.ndarray:
+        values = sample_texture(tex, uv).reshape((h, w) + tex.shape[2:])
+        return np.where(mask.reshape((h, w) + (1,) * (tex.ndim - 2)), values, fill).astype(np.float32)
+
+    mesh_normals, _ = render_attributes(asset.scene, asset.faces, asset.smooth_normals, K, pose, h, w)
+    norm = np.linalg.norm(mesh_normals, axis=2, keepdims=True)
+    mesh_normals = np.where(mask[..., None] & (norm > 1e-8), mesh_normals / np.maximum(norm, 1e-8), 0.0)
+    albedo = np.where(reprojected[..., None], gbuffer["albedo"], texture(asset.albedo_tex, 0.0))
+    pix = np.flatnonzero(mask.reshape(-1))
+    centre = -pose[:, :3].T @ pose[:, 3]
+    points = _pixel_points(K, pose, depth).reshape(-1, 3)[pix]
+    view_dirs = centre[None] - points
+    view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+    return {"mask": mask, "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
+            "normal_reprojected": np.where(reprojected[..., None], gbuffer["normal"], mesh_normals).astype(np.float32),
+            "normal_mesh": mesh_normals.astype(np.float32),
+            "albedo": np.where(mask[..., None], albedo, 0.0).astype(np.float32),
+            "roughness": texture(asset.roughness_tex, 0.0), "occlusion": texture(asset.occlusion_tex, 1.0),
+            "diffuse_ratio": texture(asset.diffuse_ratio_tex, 1.0), "coverage": float(mask.sum() / max(seen["hit"].sum(), 1))}
+
+
+def shading_albedo(white_light_albedo: np.ndarray, diffuse_ratio: np.ndarray, occlusion: np.ndarray | None,
+                   min_occlusion: float = 0.2) -> np.ndarray:
+    """The albedo to shade with, (N, 3) in [0, 1]: the white-light albedo holds specular light (the shading
+    adds it back) and, when the shading occludes, the stage's ambient occlusion (else it would count twice).
+
+    white_light_albedo, diffuse_ratio: (N, 3); occlusion: (N,) visible fraction, or None without shadows."""
+    albedo = white_light_albedo * diffuse_ratio
+    if occlusion is not None:
+        albedo = albedo / np.maximum(occlusion, min_occlusion)[:, None]
+    return np.clip(np.nan_to_num(albedo, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+
+
 class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
@@ -175,10 +251,9 @@ class RelightStage(Stage):
 
         from pipeline.codecs.mesh import read_ply
         from stages.materials import load_atlas_mesh
-        from stages.numerics.bake import sample_texture
-        from stages.numerics.gbuffer import SourceView, reproject_gbuffer
+        from stages.numerics.gbuffer import SourceView
         from stages.numerics.mesh import vertex_normals
-        from stages.numerics.raycast import mesh_scene, render_attributes, render_mesh, render_uvs
+        from stages.numerics.raycast import mesh_scene, render_mesh
         from stages.numerics.sg import fibonacci_sphere, fit_sg_environment, sg_fit_errors, shade_sg
         from stages.numerics.shadowing import direction_visibility, shade_sg_visible
 
@@ -210,7 +285,6 @@ class RelightStage(Stage):
         # Captured views as reprojection sources (mesh depth rendered per source).
         vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")
         scene = mesh_scene(vertices, faces)
-        smooth_normals = vertex_normals(vertices, faces)
         sources, cameras = [], {}
         for cam_id, cam, normal_alpha, _, valid in camera_maps(ctx.upstream["decode"], ctx.upstream["photometric"],
                                                                cfg.min_alpha):
@@ -226,58 +300,37 @@ class RelightStage(Stage):
                              f"{len(sources)} camera(s) have maps; novel views need at least 2")
 
         # Materials through the textured mesh's UVs.
+        materials = ctx.upstream["materials"] / "textures"
         atlas_vertices, atlas_faces, atlas = load_atlas_mesh(ctx.upstream["textures"] / "mesh" / "textured.obj")
-        atlas_scene = mesh_scene(atlas_vertices, atlas_faces)
-        albedo_tex = read_exr(ctx.upstream["textures"] / "textures" / "albedo.exr")[..., :3]
-        roughness_tex = read_exr(ctx.upstream["materials"] / "textures" / "roughness.exr")
-        occlusion_tex = read_exr(ctx.upstream["materials"] / "textures" / "occlusion.exr")
-        diffuse_ratio_tex = read_exr(ctx.upstream["materials"] / "textures" / "diffuse_ratio.exr")[..., :3]
-        roughness_tex = roughness_tex[..., 0] if roughness_tex.ndim == 3 else roughness_tex
-        occlusion_tex = occlusion_tex[..., 0] if occlusion_tex.ndim == 3 else occlusion_tex
+        asset = ActionAsset(scene=scene, faces=faces, smooth_normals=vertex_normals(vertices, faces), sources=sources,
+                            atlas_scene=mesh_scene(atlas_vertices, atlas_faces), atlas=atlas,
+                            albedo_tex=read_exr(ctx.upstream["textures"] / "textures" / "albedo.exr")[..., :3],
+                            roughness_tex=_single_channel(read_exr(materials / "roughness.exr")),
+                            occlusion_tex=_single_channel(read_exr(materials / "occlusion.exr")),
+                            diffuse_ratio_tex=read_exr(materials / "diffuse_ratio.exr")[..., :3])
         directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
 
         views = novel_cameras(cameras, cfg.novel_views)
         records, sheet_rows = [], []
         for index, view in enumerate(views):
             t0 = time.perf_counter()
-            K, pose = np.asarray(view["K"]), np.asarray(view["cam_from_world"])
             h, w = view["height"], view["width"]
-            seen = render_mesh(None, None, K, pose, h, w, scene=scene)
-            depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
-            gbuffer = reproject_gbuffer(depth, K, pose, sources, k=cfg.sources,
-                                        depth_tolerance_m=cfg.depth_tolerance_m)
-            # Pixels the mesh covers but no source sees (about 1%) take the baked albedo texture.
-            uv, on_atlas = render_uvs(atlas_scene, atlas.faces, atlas.uvs, K, pose, h, w)
-            mask = seen["hit"] & (gbuffer["valid"] | on_atlas)
-            texture_albedo = sample_texture(albedo_tex, uv.reshape(-1, 2)).reshape(h, w, 3)
-            gbuffer["albedo"] = np.where(gbuffer["valid"][..., None], gbuffer["albedo"], texture_albedo)
-            mesh_normals, _ = render_attributes(scene, faces, smooth_normals, K, pose, h, w)
-            norm = np.linalg.norm(mesh_normals, axis=2, keepdims=True)
-            mesh_normals = np.where(norm > 1e-8, mesh_normals / np.maximum(norm, 1e-8), 0.0)
-            use_mesh = np.ones((h, w), bool) if cfg.normals == "mesh" else ~gbuffer["valid"]
-            shading_normals = np.where((mask & use_mesh)[..., None], mesh_normals,
-                                       np.where(mask[..., None], gbuffer["normal"], 0.0)).astype(np.float32)
-            roughness = np.where(mask, sample_texture(roughness_tex, uv.reshape(-1, 2)).reshape(h, w), 0.0)
-            occlusion = np.where(mask, sample_texture(occlusion_tex, uv.reshape(-1, 2)).reshape(h, w), 1.0)
-            diffuse_ratio = sample_texture(diffuse_ratio_tex, uv.reshape(-1, 2)).reshape(h, w, 3)
-            pix = np.flatnonzero(mask.reshape(-1))
+            gb = novel_view_gbuffer(asset, view["K"], view["cam_from_world"], h, w, sources=cfg.sources,
+                                    depth_tolerance_m=cfg.depth_tolerance_m)
+            mask, pix = gb["mask"], gb["pix"]
+            shading_normals = gb[f"normal_{cfg.normals}"]
             normals = shading_normals.reshape(-1, 3)[pix]
-            # The white-light albedo holds specular light (the shading adds it back): keep the diffuse share.
-            albedo = (gbuffer["albedo"] * diffuse_ratio).reshape(-1, 3)[pix]
-            centre = -pose[:, :3].T @ pose[:, 3]
-            points = _pixel_points(K, pose, depth).reshape(-1, 3)[pix]
-            view_dirs = centre[None] - points
-            view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
-            rough = np.clip(roughness.reshape(-1)[pix], 0.05, 1.0)
+            rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
             visibility = None
             if cfg.shadows and len(pix):
-                visibility = direction_visibility(points, normals, scene, directions)
-                albedo = albedo / np.maximum(occlusion.reshape(-1)[pix], 0.2)[:, None]
-            albedo = np.clip(albedo, 0.0, 1.0)
+                visibility = direction_visibility(gb["points"], normals, scene, directions)
+            albedo = shading_albedo(gb["albedo"].reshape(-1, 3)[pix], gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                                    gb["occlusion"].reshape(-1)[pix] if visibility is not None else None)
+            view_dirs = gb["view_dirs"]
             folder = renders / view["camera_id"]
             write_exr(folder / "normal.exr", shading_normals)
             write_exr(folder / "albedo.exr", _image(pix, albedo, h, w))
-            write_exr(folder / "roughness.exr", roughness.astype(np.float32))
+            write_exr(folder / "roughness.exr", gb["roughness"])
             write_png(folder / "mask.png", (mask * 255).astype(np.uint8))
             row = [preview_normals(shading_normals, mask.astype(np.float32))]
             for env in environments:
@@ -292,7 +345,7 @@ class RelightStage(Stage):
                                                                          axis=2))
                 row.append(preview_linear(image, exposure=_auto_exposure(image, mask)))
             sheet_rows.append(np.concatenate(row, axis=1))
-            records.append({**view, "pixels": int(len(pix)), "coverage": float(mask.sum() / max(seen["hit"].sum(), 1)),
+            records.append({**view, "pixels": int(len(pix)), "coverage": gb["coverage"],
                             "seconds": time.perf_counter() - t0})
             ctx.progress(index + 1, len(views), f"view {view['camera_id']} relit under {len(environments)} "
                                                 f"environment(s)")
@@ -341,6 +394,10 @@ def _pixel_points(K: np.ndarray, cam_from_world: np.ndarray, depth_m: np.ndarray
     x_cam = np.stack([(u - K[0, 2]) / K[0, 0] * depth_m, (v - K[1, 2]) / K[1, 1] * depth_m, depth_m], axis=-1)
     R, t = cam_from_world[:, :3], cam_from_world[:, 3]
     return (x_cam - t) @ R
+
+
+def _single_channel(texture: np.ndarray) -> np.ndarray:
+    return texture[..., 0] if texture.ndim == 3 else texture
 
 
 def _auto_exposure(image: np.ndarray, mask: np.ndarray) -> float:
