@@ -9,7 +9,7 @@ through the textured mesh from every **true** camera (pixels where the truth has
 is hit) and compared with the simulator's roughness and albedo maps.
 
 1. **Roughness** (texture 256): mean absolute error and bias against the truth for ``specular_model``
-   ggx_table vs sg, ``fit_albedo`` on/off, ``max_views`` 16/8 (the 8 best views are the first 8 of the 16
+   ggx_table vs sg, ``fit_albedo`` on/off, ``max_views`` 8/16 (the 8 best views are the first 8 of the 16
    gathered: same ranking) and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's
    defaults, with the fit time (``fit_roughness``, ``--threads`` torch threads) and the smoothing time.
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
@@ -43,11 +43,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
-DEFAULTS = {"specular_model": "ggx_table", "fit_albedo": True, "max_views": 16, "median_neighbours": 100}
-VARIANTS = [("default (ggx_table, fit_albedo, 16 views)", {}),
+DEFAULTS = {"specular_model": "ggx_table", "fit_albedo": True, "max_views": 8, "median_neighbours": 100}
+VARIANTS = [("default (ggx_table, fit_albedo, 8 views)", {}),
             ("specular_model sg", {"specular_model": "sg"}),
             ("fit_albedo off", {"fit_albedo": False}),
-            ("max_views 8", {"max_views": 8})]
+            ("max_views 16", {"max_views": 16})]
 NEIGHBOURS = (1, 25, 100, 200)
 OCCLUSION_RAYS = (16, 64, 128)
 MIN_OCCLUSION = (0.1, 0.2, 0.4)
@@ -92,8 +92,9 @@ def load_action(release: Path, capture: Path, action: str) -> dict:
                               cam_from_world=cameras[cam_id]["cam_from_world"]))
         whites.append(white[cam_id])
     textures = {"albedo": view.texture("albedo")[..., :3], "roughness": view.texture("roughness")}
-    if "texture_albedo_deoccluded" in view.kinds:
-        textures["albedo_deoccluded"] = view.texture("albedo_deoccluded")[..., :3]
+    for name in ("albedo_deoccluded", "albedo_intrinsic"):
+        if f"texture_{name}" in view.kinds:
+            textures[name] = view.texture(name)[..., :3]
     return {"view": view, "vertices": vertices, "faces": faces, "atlas": atlas, "views": views,
             "white": np.stack(whites), "released": textures, "obj": view.path("mesh_textured"),
             "session": view.info.get("session_id") or "S000"}
@@ -261,6 +262,9 @@ def albedo_section(data: dict, probe: TruthProbe, threads: int, progress) -> dic
     if "albedo_deoccluded" in data["released"]:
         out["released_deoccluded_psnr_db"] = round(probe.albedo_psnr(data["released"]["albedo_deoccluded"]), 3)
         out["released_deoccluded_gain"] = round(probe.albedo_gain(data["released"]["albedo_deoccluded"]), 4)
+    if "albedo_intrinsic" in data["released"]:
+        out["released_intrinsic_psnr_db"] = round(probe.albedo_psnr(data["released"]["albedo_intrinsic"]), 3)
+        out["released_intrinsic_gain"] = round(probe.albedo_gain(data["released"]["albedo_intrinsic"]), 4)
     t0 = time.perf_counter()
     raster = rasterize_atlas(data["vertices"], data["faces"], data["atlas"], OCCLUSION_SIZE)
     covered = raster["covered"]
@@ -319,6 +323,8 @@ def markdown(report: dict) -> str:
                   f"ratio to the truth {a['baked_gain']:.3f})"
                   + (f", released de-occluded {a['released_deoccluded_psnr_db']:.2f} dB (ratio "
                      f"{a['released_deoccluded_gain']:.3f})" if "released_deoccluded_psnr_db" in a else "")
+                  + (f", released intrinsic {a['released_intrinsic_psnr_db']:.2f} dB (ratio "
+                     f"{a['released_intrinsic_gain']:.3f})" if "released_intrinsic_psnr_db" in a else "")
                   + "; baked / the simulator's per-pixel visibility, floors "
                   + ", ".join(f"{k}: {v:.2f}" for k, v in a["baked_over_truth_visibility_psnr_db"].items())
                   + " dB.", "",
