@@ -262,10 +262,30 @@ def write_table(release_dir: str | Path, name: str, rows: Iterable[Mapping]) -> 
     Raises:
         ValueError: see :func:`validate_rows`; nothing is written then.
     """
+    return write_table_keeping(release_dir, name, rows, keep_actions=())
+
+
+def write_table_keeping(release_dir: str | Path, name: str, rows: Iterable[Mapping],
+                        keep_actions: Iterable[str]) -> Path:
+    """:func:`write_table`, but the existing rows of the actions in ``keep_actions`` stay: a run over some
+    actions of a release replaces their rows (and the rows of no action) and leaves the other actions'.
+
+    Raises:
+        ValueError: see :func:`validate_rows`, or a kept row sharing the primary key with a new one.
+    """
+    ts = spec(name)
     table = validate_rows(name, rows)
+    keep = set(keep_actions)
     directory = Path(release_dir) / MANIFEST_DIR
     directory.mkdir(parents=True, exist_ok=True)
     with _locked(directory):
+        old = read_manifest(release_dir, name) if keep else None
+        if old is not None and old.num_rows:
+            kept = old.filter(pa.array([a in keep for a in old.column("action_id").to_pylist()], type=pa.bool_()))
+            if kept.num_rows:
+                kept = kept.select([c.name for c in ts.columns]).cast(table.schema)
+                table = _sorted(pa.concat_tables([kept, table]), ts)
+                _duplicates(name, ts.primary_key, {k: table.column(k).to_pylist() for k in ts.primary_key})
         return _write_atomic(directory, name, table)
 
 

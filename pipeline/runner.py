@@ -213,7 +213,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
 def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,
                      action_status: dict[str, str],
                      action_errors: dict[str, str], asset_rows: list[dict[str, Any]]) -> None:
-    from manifests import append_rows, asset_row, write_table
+    from manifests import append_rows, asset_row
+    from manifests.writer import write_table_keeping
 
     action_rows, frame_rows, metric_rows = [], [], []
     for action_id, status in action_status.items():
@@ -268,9 +269,12 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                   for t in plan.tasks]
     for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml"):
         asset_rows.append(asset_row(release, release / name, "document"))
-    write_table(release, "actions", action_rows)
-    write_table(release, "frames", frame_rows)
-    write_table(release, "assets", asset_rows)
+    # A run over some actions (--actions) leaves the other published actions' rows in place.
+    keep = [a.action_id for a in capture.actions
+            if a.action_id not in action_status and (release / "actions" / a.action_id).is_dir()]
+    write_table_keeping(release, "actions", action_rows, keep)
+    write_table_keeping(release, "frames", frame_rows, keep)
+    write_table_keeping(release, "assets", asset_rows, keep)
     append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
     if metric_rows:
         append_rows(release, "metrics", metric_rows, ["action_id", "camera_id", "metric", "region", "source"])

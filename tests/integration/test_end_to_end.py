@@ -188,6 +188,20 @@ def test_second_run_is_all_cached_and_config_change_reruns_photometric_and_downs
     assert any("config.params.ratio_min 0.3 -> 0.35" in line for line in lines)
 
 
+def test_run_over_some_actions_keeps_the_others_in_the_manifests(first_run, capture):
+    from manifests import open_release, verify_release
+
+    out, _ = first_run
+    subset, _ = _run(capture, out, actions=["A0000"])
+    assert subset.action_status == {"A0000": "ok"}
+    rel = open_release(out / "release")
+    assert sorted(rel.actions.action_id) == ["A0000", "A0001"] and set(rel.actions.status) == {"ok"}
+    assert set(rel.frames.action_id) == {"A0000", "A0001"}
+    assert rel.action("A0001").cameras == [f"{i:05d}" for i in range(6)]
+    assert rel.action("A0001").relit("N000", "procedural_sky").shape[2] == 4
+    assert verify_release(out / "release").ok
+
+
 def _copy(capture: Path, dest: Path) -> Path:
     shutil.copytree(capture, dest, ignore=shutil.ignore_patterns("ground_truth"))
     return dest

@@ -247,3 +247,18 @@ def test_asset_row_errors(tmp_path):
         asset_row(tmp_path / "release", outside, "albedo")
     with pytest.raises(FileNotFoundError, match="kind 'mask', action A0000, camera 00003"):
         asset_row(tmp_path, "actions/A0000/mask/00003.png", "mask", "A0000", "00003")
+
+
+def test_write_table_keeping_replaces_the_run_actions_rows_and_keeps_the_others(tmp_path):
+    from manifests.writer import read_manifest, write_table_keeping
+
+    write_table(tmp_path, "metrics", [metric(1.0), metric(2.0, action_id="A0001"), metric(3.0, action_id="A0002"),
+                                      metric(4.0, action_id=None, camera_id=None)])
+    # a run over A0000 only: its rows and the action-less ones are replaced, A0001's kept, A0002's dropped
+    write_table_keeping(tmp_path, "metrics", [metric(5.0)], keep_actions=["A0001"])
+    table = read_manifest(tmp_path, "metrics").to_pylist()
+    assert sorted((r["action_id"], r["value"]) for r in table) == [("A0000", 5.0), ("A0001", 2.0)]
+    with pytest.raises(ValueError, match="metrics"):  # a kept row may not collide with a new one
+        write_table_keeping(tmp_path, "metrics", [metric(6.0, action_id="A0001")], keep_actions=["A0001"])
+    write_table_keeping(tmp_path, "metrics", [metric(7.0)], keep_actions=[])  # = write_table
+    assert [r["value"] for r in read_manifest(tmp_path, "metrics").to_pylist()] == [7.0]
