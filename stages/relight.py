@@ -39,6 +39,8 @@ from stages.geometry import camera_maps
 from stages.numerics import numeric_threads
 
 PROCEDURAL_PREFIX = "procedural:"
+#: What an environment found nowhere is replaced by (a capture without ../shared still gets renders).
+FALLBACK_ENVIRONMENT = "procedural:sky"
 #: Where environment names are looked up, after $ULTRASTAGE_HDRI (os.pathsep-separated folders).
 DEFAULT_HDRI_DIRS = (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdri",)
 _HDR_SUFFIXES = (".hdr", ".exr")
@@ -50,7 +52,8 @@ class RelightConfig(Documented):
     environments: tuple[str, ...] = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
     """Environment maps: a file path, a file name (stem) looked up in $ULTRASTAGE_HDRI, the capture's
     ``environments/`` folder and ../shared/data/hdri, or ``procedural:sky`` / ``procedural:studio``. A name
-    found nowhere falls back to a procedural map, with a warning in the log and environments.json."""
+    found nowhere is replaced by the procedural sky (named and labelled so), with a warning in the log and
+    its request in environments.json."""
     novel_views: int = 3
     """Novel cameras per action, each halfway between two neighbouring captured cameras."""
     sources: int = 6
@@ -140,7 +143,7 @@ def load_environment(name: str, path: Path | None, height: int = 256) -> tuple[n
             raise ValueError(f"relight.environments: unknown {name!r}; built in: "
                              f"{[PROCEDURAL_PREFIX + k for k in PROCEDURAL_ENVIRONMENTS]}")
         return procedural_environment(kind, height), "procedural"
-    return procedural_environment("sky", height), f"FALLBACK: {name!r} not found, procedural sky used"
+    return procedural_environment("sky", height), f"FALLBACK: {name!r} not found, {FALLBACK_ENVIRONMENT} used"
 
 
 def novel_cameras(cameras: dict[str, dict[str, Any]], count: int) -> list[dict[str, Any]]:
@@ -238,7 +241,7 @@ class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
     name = "relight"
-    version = "2"
+    version = "3"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric")
     outputs = ("renders", "previews")
@@ -266,21 +269,24 @@ class RelightStage(Stage):
 
         # Environments -> SG lobes (once per action; cheap next to the shading).
         environments = []
-        for name in cfg.environments:
-            label = environment_label(name)
-            path = ctx.raw_inputs.get(f"environment/{label}")
-            env, how = load_environment(name, path)
+        for requested in cfg.environments:
+            name, label = requested, environment_label(requested)
+            env, how = load_environment(name, ctx.raw_inputs.get(f"environment/{label}"))
             if how.startswith("FALLBACK"):
+                # Named and labelled as what it is; several missing maps give one procedural sky.
                 ctx.log.warning("relight: %s", how)
+                name, label = FALLBACK_ENVIRONMENT, environment_label(FALLBACK_ENVIRONMENT)
+                if any(e["label"] == label for e in environments):
+                    continue
+            elif any(e["label"] == label for e in environments):
+                raise ValueError(f"relight.environments {cfg.environments} give the label {label!r} twice")
             t0 = time.perf_counter()
             lobes = fit_sg_environment(env, cfg.sg_lobes, fit_height=cfg.fit_height)
             errors = sg_fit_errors(env, lobes)
-            environments.append({"name": name, "label": label, "source": how, "lobes": lobes,
+            environments.append({"name": name, "requested": requested, "label": label, "source": how, "lobes": lobes,
                                  "fit_seconds": time.perf_counter() - t0,
                                  "fit_errors": {k: float(v) for k, v in errors.items()
                                                 if isinstance(v, (int, float, np.floating))}})
-        if len({e["label"] for e in environments}) != len(environments):
-            raise ValueError(f"relight.environments {cfg.environments} give the same label twice")
 
         # Captured views as reprojection sources (mesh depth rendered per source).
         vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")

@@ -259,3 +259,24 @@ def test_cli_run_evaluate_verify(capture, tmp_path, capsys):
     bad_cfg.write_text("decode: {demosiac: AHD}\n")
     assert cli(["run", "--capture", str(capture), "--release", str(release), "--config", str(bad_cfg)]) == 2
     assert "demosiac" in capsys.readouterr().err
+
+
+def test_missing_environments_fall_back_to_one_procedural_sky(first_run, capture):
+    """Maps found nowhere (e.g. a machine without ../shared) are replaced by the procedural sky, named and
+    labelled so, once however many are missing; a procedural map given by name stays."""
+    import dataclasses
+
+    out, _ = first_run
+    cfg = PRESETS["test"]
+    missing = dataclasses.replace(cfg, relight=dataclasses.replace(
+        cfg.relight, environments=("no_such_map_a", "no_such_map_b", "procedural:studio")))
+    result, _ = _run(capture, out, config=missing)
+    assert result.action_status == {"A0000": "ok", "A0001": "ok"}
+    renders = out / "release" / "actions" / "A0000" / "renders"
+    envs = json.loads((renders / "environments.json").read_text())["environments"]
+    assert [(e["label"], e["requested"]) for e in envs] == [("procedural_sky", "no_such_map_a"),
+                                                            ("procedural_studio", "procedural:studio")]
+    assert envs[0]["source"].startswith("FALLBACK") and "no_such_map_a" in envs[0]["source"]
+    assert sorted(p.name for p in (renders / "N000").glob("procedural_*.exr")) == ["procedural_sky.exr",
+                                                                                  "procedural_studio.exr"]
+    assert not list((renders / "N000").glob("no_such_map*"))
