@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -376,13 +375,9 @@ def main() -> int:
     if not (capture / "capture.json").exists() or not (capture / "ground_truth").is_dir():
         print(f"bench_relight: no simulated capture with ground truth at {capture}; skipped")
         return 0
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    # Sleeping, not spinning, OpenMP workers: on a machine shared with other busy processes, spinning torch
-    # threads made a 2-thread roughness fit 7-20x slower than 1 thread (30-80 s vs 4.3 s); passive: 3.6 s.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    import torch
+    from _threads import set_numeric_threads
 
-    torch.set_num_threads(args.threads)
+    set_numeric_threads(args.threads)
     from manifests import open_release
     from pipeline.codecs.mesh import read_ply
     from stages.numerics.raycast import mesh_scene
