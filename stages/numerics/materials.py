@@ -165,7 +165,7 @@ def _ggx_moment_table(shadowing: str, n_nv: int = 33, n_r: int = 39, n_xi: int =
 
 def _stage_specular_table(n: torch.Tensor, v: torch.Tensor, r: torch.Tensor, f0, shadowing: str) -> torch.Tensor:
     """Specular radiance (N, 3, 3) under the stage illuminations from the exact GGX moments (table)."""
-    table = _ggx_moment_table(shadowing)
+    table = _ggx_moment_table(shadowing).to(n.device)
     n_nv, n_r = table.shape[-2:]
     nv_raw = (n * v).sum(-1)
     x = (nv_raw - _GGX_NV[0]) / (_GGX_NV[1] - _GGX_NV[0]) * (n_nv - 1)
@@ -174,7 +174,7 @@ def _stage_specular_table(n: torch.Tensor, v: torch.Tensor, r: torch.Tensor, f0,
     moments = f0 * parts[0] + parts[1]  # (3, N): rho0, p, q
     moments = moments * (nv_raw > 0).to(moments.dtype)
     tangent = _unit(v - nv_raw[:, None] * n)
-    a, b = (torch.as_tensor(x) for x in STAGE_COEFFICIENTS)
+    a, b = (torch.as_tensor(x, device=n.device) for x in STAGE_COEFFICIENTS)
     b_n = torch.einsum("ick,nk->nic", b, n)
     b_t = torch.einsum("ick,nk->nic", b, tangent)
     return (moments[0][:, None, None] * a[None] + moments[1][:, None, None] * b_n
@@ -194,7 +194,7 @@ def stage_diffuse(normals, albedo):
     as_numpy = not (torch.is_tensor(normals) or torch.is_tensor(albedo))
     n = _unit(_as_tensor("normals", normals, (len(normals), 3)))
     alb = _as_tensor("albedo", albedo, (n.shape[0], 3))
-    a, b = (torch.as_tensor(x) for x in STAGE_COEFFICIENTS)
+    a, b = (torch.as_tensor(x, device=n.device) for x in STAGE_COEFFICIENTS)
     out = alb[:, None, :] * (a[None] + (2.0 / 3.0) * torch.einsum("ick,nk->nic", b, n))
     return out.numpy() if as_numpy else out
 

@@ -1,0 +1,194 @@
+"""Photometric normals with the specular reflection modelled out of the gradient ratio.
+
+Eq. 1 of the seed paper (``d = (g+ - g-) / (g+ + g-)``, ``n = d / |d|``) is exact for a Lambertian surface.
+Skin and cloth also reflect specularly, and under the gradients the specular lobe points the ratio towards
+the *reflection* of the view direction, not the normal: on the default simulated capture the specular
+reflection alone costs 5.8 deg of the unoccluded pixels' error before the sensor (7.5 deg with it, 1.7 deg
+without; ``bench/bench_normal_error_sources.py``) and up to 28 deg on shiny leather.
+
+This module fits, per pixel, the normal ``n`` and the diffuse albedo ``rho`` (RGB) that explain the
+pixel's g+ and g- values as Lambertian plus GGX reflection under the stage's linear illuminations
+(:func:`stages.numerics.materials.shade_stage_illuminations`, exact GGX moments, no occlusion), for a
+*given* roughness and Fresnel F0 (a prior: one pixel's six values cannot also pin the roughness down;
+see the bench for what a per-pixel choice does). For a fixed ``n`` the albedo is linear and solved in
+closed form per channel, so the optimisation is over the normal only (Adam on an unnormalised 3-vector,
+from the Lambertian normal; where that explains the pixel badly, also from the half-way vector between it
+and the view, which is where a mirror-like pixel's normal lies; the lower residual wins).
+
+Conventions of docs/CONTRACTS.md: stage frame, OpenCV cameras ``x_cam = R x_world + t``, images
+``(H, W, 3)`` float32; radiance in white units (decoded value / ``white_reference``). Pure numerics:
+arrays in, arrays out. No output holds NaN or Inf.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["SpecularFit", "view_directions", "fit_diffuse_normals"]
+
+
+@dataclass(frozen=True, eq=False)
+class SpecularFit:
+    """Result of :func:`fit_diffuse_normals`, all ``(H, W[, 3])`` float32, 0 outside ``pixels``.
+
+    Attributes:
+        normals: unit stage-frame normals of the fit.
+        albedo: the diffuse albedo of the fit (white units, >= 0).
+        specular_pos, specular_neg: the fitted specular reflection under g+ and g- in *decoded* units (so
+            ``pos - specular_pos`` is the Lambertian part of the frame).
+        specular_full: the fitted specular reflection under the white light, decoded units.
+        residual: the fit's squared residual relative to the squared signal ``(sum g+ + g-)^2``.
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    specular_pos: np.ndarray
+    specular_neg: np.ndarray
+    specular_full: np.ndarray
+    residual: np.ndarray
+
+
+def view_directions(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W, 3) float32 unit stage-frame directions from the surface seen at each pixel towards the camera
+    (the pixel's ray reversed; lens distortion is ignored, which moves them by far less than a degree).
+
+    K: (3, 3) intrinsics. cam_from_world: (3, 4) or (4, 4) ``[R | t]``."""
+    K = np.asarray(K, np.float64)
+    P = np.asarray(cam_from_world, np.float64)
+    if K.shape != (3, 3) or P.shape not in ((3, 4), (4, 4)):
+        raise ValueError(f"K must be (3, 3) and cam_from_world (3, 4) or (4, 4), got {K.shape} and {P.shape}")
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(P))) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError("K and cam_from_world must be finite, with positive focal lengths")
+    if height < 1 or width < 1:
+        raise ValueError(f"image size must be positive, got {height} x {width}")
+    R = P[:3, :3]
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    rays_world = rays_cam @ R  # R^T r per pixel
+    rays_world /= np.linalg.norm(rays_world, axis=-1, keepdims=True)
+    return (-rays_world).astype(np.float32)
+
+
+def _specular_only(n: torch.Tensor, views: torch.Tensor, roughness: torch.Tensor, f0: float) -> torch.Tensor:
+    """(N, 3 illum (full_on, pos, neg), 3 rgb) GGX reflection in white units (exact moments table)."""
+    from stages.numerics.materials import shade_stage_illuminations
+
+    return shade_stage_illuminations(n, views, torch.zeros_like(n), roughness, f0=f0, specular_model="ggx_table")
+
+
+def _fit_chunk(obs: torch.Tensor, views: torch.Tensor, init: torch.Tensor, roughness: torch.Tensor, f0: float,
+               steps: int, lr: float, retry_residual: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """obs (N, 2, 3) g+/g- in white units -> normals (N, 3), albedo (N, 3), relative residual (N,)."""
+    scale = obs.sum((1, 2)).square().clamp_min(1e-12)
+
+    def residual_of(x: torch.Tensor, sub):
+        n = torch.nn.functional.normalize(x, dim=-1)
+        spec = _specular_only(n, sub(views), sub(roughness), f0)[:, 1:]  # (N, 2 illum, 3 rgb)
+        a_pos, a_neg = 0.5 + n / 3.0, 0.5 - n / 3.0  # Lambertian g+/g- per unit albedo (unoccluded)
+        o = sub(obs)
+        y_pos, y_neg = o[:, 0] - spec[:, 0], o[:, 1] - spec[:, 1]
+        albedo = ((y_pos * a_pos + y_neg * a_neg) / (a_pos.square() + a_neg.square())).clamp_min(0.0)
+        res = ((albedo * a_pos - y_pos).square() + (albedo * a_neg - y_neg).square()).sum(-1) / sub(scale)
+        return n, albedo, res
+
+    def descend(start: torch.Tensor, rows: torch.Tensor | None):
+        x = start.clone().requires_grad_(True)
+        optimiser = torch.optim.Adam([x], lr=lr)
+        sub = (lambda t: t) if rows is None else (lambda t: t[rows])  # noqa: E731
+        for _ in range(steps):
+            _, _, res = residual_of(x, sub)
+            optimiser.zero_grad()
+            res.sum().backward()
+            optimiser.step()
+        with torch.no_grad():
+            n, albedo, res = residual_of(x, sub)
+        return n, albedo, torch.nan_to_num(res, nan=np.inf)
+
+    n, albedo, res = descend(init, None)
+    # the second start only where the first explains the pixel badly (mirror-like pixels, grazing views)
+    retry = torch.nonzero(res > retry_residual).flatten()
+    if len(retry):
+        half_way = torch.nn.functional.normalize(init[retry] + views[retry], dim=-1)
+        n2, albedo2, res2 = descend(half_way, retry)
+        take = res2 < res[retry]
+        n[retry] = torch.where(take[:, None], n2, n[retry])
+        albedo[retry] = torch.where(take[:, None], albedo2, albedo[retry])
+        res[retry] = torch.minimum(res2, res[retry])
+    return n, albedo, res
+
+
+def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_dirs: np.ndarray,
+                        normals_init: np.ndarray, pixels: np.ndarray, roughness: float | np.ndarray = 0.6,
+                        f0: float = 0.04, steps: int = 80, lr: float = 0.03, retry_residual: float = 1e-3,
+                        chunk: int = 262144, device: str | None = None) -> SpecularFit:
+    """Fit normals and diffuse albedo with the GGX reflection modelled (module docstring).
+
+    Args:
+        pos, neg: (H, W, 3) decoded linear g+ and g- frames.
+        white_reference: (3,) the camera's white reference (decoded value of a white Lambertian, full_on).
+        view_dirs: (H, W, 3) unit directions towards the camera (:func:`view_directions`).
+        normals_init: (H, W, 3) starting normals (eq. 1's, or the light model's).
+        pixels: (H, W) bool where to fit (e.g. the mask where the ratio is defined).
+        roughness: perceptual GGX roughness assumed, a scalar or (H, W).
+        f0: Schlick Fresnel reflectance at normal incidence assumed.
+        steps, lr: Adam iterations and step per start.
+        retry_residual: pixels whose relative residual from the first start exceeds this get the second
+            (half-way) start too; 0 = every pixel.
+        chunk: pixels per batch (bounds memory).
+        device: torch device; None = CUDA when available, else CPU.
+
+    Returns:
+        :class:`SpecularFit`.
+    """
+    from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN
+
+    pos = np.asarray(pos, np.float32)
+    shape = pos.shape[:2]
+    for name, arr in (("pos", pos), ("neg", neg), ("view_dirs", view_dirs), ("normals_init", normals_init)):
+        if np.shape(arr) != shape + (3,) or len(shape) != 2:
+            raise ValueError(f"{name} must be (H, W, 3) like pos {pos.shape}, got {np.shape(arr)}")
+    pixels = np.asarray(pixels, bool)
+    if pixels.shape != shape:
+        raise ValueError(f"pixels must be {shape}, got {pixels.shape}")
+    white = np.asarray(white_reference, np.float32).reshape(-1)
+    if white.shape != (3,) or not np.all(np.isfinite(white)) or np.any(white <= 0):
+        raise ValueError(f"white_reference must be 3 positive finite values, got {white_reference!r}")
+    rough_map = np.broadcast_to(np.asarray(roughness, np.float32), shape)
+    if not np.all(np.isfinite(rough_map)):
+        raise ValueError("roughness must be finite")
+    if not (0.0 <= f0 <= 1.0) or steps < 0 or lr <= 0 or chunk < 1:
+        raise ValueError(f"need 0 <= f0 <= 1, steps >= 0, lr > 0 and chunk >= 1 (got {f0}, {steps}, {lr}, {chunk})")
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+
+    normals = np.zeros(shape + (3,), np.float32)
+    albedo = np.zeros(shape + (3,), np.float32)
+    spec = np.zeros((3,) + shape + (3,), np.float32)
+    residual = np.zeros(shape, np.float32)
+    rows, cols = np.nonzero(pixels)
+    obs_all = np.nan_to_num(np.stack([pos[rows, cols], np.asarray(neg, np.float32)[rows, cols]], 1) / white,
+                            nan=0.0, posinf=0.0, neginf=0.0)
+    views_all = np.asarray(view_dirs, np.float32)[rows, cols]
+    init_all = np.asarray(normals_init, np.float32)[rows, cols]
+    # an undefined start (0 or non-finite) begins at the view direction
+    bad = ~np.all(np.isfinite(init_all), -1) | (np.linalg.norm(np.nan_to_num(init_all), axis=-1) < 0.5)
+    init_all[bad] = views_all[bad]
+    rough_all = np.clip(rough_map[rows, cols], ROUGHNESS_MIN, ROUGHNESS_MAX)
+    for start in range(0, len(rows), chunk):
+        sl = slice(start, start + chunk)
+        to = {"device": device, "dtype": torch.float32}
+        obs, views = torch.as_tensor(obs_all[sl]).to(**to), torch.as_tensor(views_all[sl]).to(**to)
+        n, rho, res = _fit_chunk(obs, views, torch.as_tensor(init_all[sl]).to(**to),
+                                 torch.as_tensor(rough_all[sl]).to(**to), f0, steps, lr, retry_residual)
+        with torch.no_grad():
+            s = _specular_only(n, views, torch.as_tensor(rough_all[sl]).to(**to), f0)
+        r_, c_ = rows[sl], cols[sl]
+        normals[r_, c_] = n.cpu().numpy()
+        albedo[r_, c_] = rho.cpu().numpy()
+        spec[:, r_, c_] = np.moveaxis(s.cpu().numpy(), 1, 0) * white
+        residual[r_, c_] = res.cpu().numpy()
+    clean = lambda a: np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)  # noqa: E731
+    return SpecularFit(normals=clean(normals), albedo=clean(albedo), specular_full=clean(spec[0]),
+                       specular_pos=clean(spec[1]), specular_neg=clean(spec[2]),
+                       residual=np.nan_to_num(residual, nan=1.0, posinf=1.0, neginf=1.0))
