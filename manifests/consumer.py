@@ -6,6 +6,7 @@
     >>> view = rel.action(rel.action_ids[0])
     >>> n = view.normals("00000")         # (H, W, 3) float32 world normals
     >>> a = view.normal_alpha("00000")    # (H, W) float32 validity alpha
+    >>> d = view.normals("00000", diffuse=True)  # the same with the specular reflection fitted out
     >>> report = manifests.verify_release("runs/demo/release")
 """
 from __future__ import annotations
@@ -255,9 +256,11 @@ class ActionView:
             return read_exr(path, channels=channels)
         return load_file(path)
 
-    def normals(self, cam: str) -> np.ndarray:
-        """(H, W, 3) float32 unit world normals (0 where undefined; see normal_alpha)."""
-        return self._load("normal_alpha", cam, ("R", "G", "B"))
+    def normals(self, cam: str, diffuse: bool = False) -> np.ndarray:
+        """(H, W, 3) float32 unit world normals (0 where undefined; see normal_alpha): eq. 1's gradient ratio,
+        or with ``diffuse=True`` the normals with the specular reflection fitted out (``normal_diffuse``,
+        closer to the true surface; KeyError when the release was made without them)."""
+        return self._load("normal_diffuse" if diffuse else "normal_alpha", cam, ("R", "G", "B"))
 
     def normal_alpha(self, cam: str) -> np.ndarray:
         """(H, W) float32 validity alpha of the normals in [0, 1]."""

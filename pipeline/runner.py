@@ -202,7 +202,10 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "neural stages ran, a mesh, a UV atlas with albedo/normal/roughness/occlusion textures and relit "
              "novel views (renders/).",
              "- Known biases: photometric normals are biased where the lit hemisphere is occluded (armpits, "
-             "between limbs) and by specular reflection; the white-light albedo still contains ambient "
+             "between limbs) and by specular reflection (normal_alpha, eq. 1; normal_diffuse has the "
+             "specular reflection fitted out under an assumed roughness and F0, and is closer to the surface, "
+             "but leaves small per-material biases that would inflate the mesh by millimetres, so the mesh is "
+             "fitted to normal_alpha); the white-light albedo still contains ambient "
              "occlusion (textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh "
              "smooths creases); roughness assumes Fresnel F0 = 0.02 everywhere; relit views have no "
              "interreflections; see metrics.parquet.",
