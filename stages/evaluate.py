@@ -135,6 +135,7 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     ok_ids = [a for a, s in zip(actions["action_id"], actions["status"]) if s == "ok"]
     pools = {k: _ErrorPool() for k in ("valid", "all", "valid_unoccluded", "valid_occluded",
                                        "all_unoccluded", "all_occluded")}
+    diffuse_pool = _ErrorPool()
     sq_sum, sq_count, ssims, ious, valid_fg, fg_total = 0.0, 0, [], [], 0.0, 0
     per_action: dict[str, dict[str, float]] = {}
     rows: list[dict[str, Any]] = []
@@ -144,8 +145,11 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
         for cam in view.cameras:
             if not (truth_dir / action_id / "normal" / f"{cam}.exr").exists():
                 continue
-            res = evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam),
-                                  _load_truth(truth_dir, action_id, cam))
+            truth = _load_truth(truth_dir, action_id, cam)
+            res = evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam), truth)
+            if "normal_diffuse" in view.kinds:  # the specular-fitted normals, over the same pixels
+                diffuse_pool.add(evaluate_camera(view.normals(cam, diffuse=True), view.normal_alpha(cam),
+                                                 view.albedo(cam), view.mask(cam), truth)["err_valid"])
             for region, pool in pools.items():
                 pool.add(res[f"err_{region}"])
             a_pool.add(res["err_valid"])
@@ -191,6 +195,9 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
         "albedo_ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "mask_iou": float(np.mean(ious)) if ious else float("nan"),
         "actions_ok": float(len(ok_ids)), "actions_failed": float(len(actions) - len(ok_ids))}
+    diffuse = diffuse_pool.stats()
+    overall |= {f"normal_{k}{'_deg' if k in ('mean', 'median') else ''}_diffuse": diffuse[k]
+                for k in ("mean", "median", "under5_pct") if k in diffuse}
     overall |= _camera_overall(rel, truth_dir, ok_ids)
     overall |= _mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id)
@@ -261,6 +268,21 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                 per_action.setdefault(action_id, {})[key] = float(value)
                 rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
                              "value": float(value), "source": "evaluate", "run_id": run_id})
+        if "normal_diffuse" in rel.action(action_id).kinds:  # the same with the specular-fitted normal maps
+            metrics = heldout_metrics(release, action_id, truth_dir=truth_dir if (truth_dir / action_id).is_dir()
+                                      else None, diffuse_normals=True)
+            for base in HELDOUT_METRICS:
+                if not base.startswith("heldout_normal"):
+                    continue  # the albedo is the same
+                for key, region in ((base, "heldout_diffuse"), (f"{base}_truth", "heldout_truth_diffuse")):
+                    value = metrics.get(key)
+                    if value is None or not np.isfinite(value):
+                        continue
+                    name = key.replace(base, f"{base}_diffuse")
+                    values.setdefault(name, []).append(float(value))
+                    per_action.setdefault(action_id, {})[name] = float(value)
+                    rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
+                                 "value": float(value), "source": "evaluate", "run_id": run_id})
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
@@ -440,6 +462,10 @@ def print_overall(summary: EvaluationSummary) -> None:
     print(f"  normals, unoccluded   : {o.get('normal_mean_deg_unoccluded', float('nan')):.2f} deg (valid), "
           f"occluded {o.get('normal_mean_deg_occluded', float('nan')):.2f} deg (valid)")
     print(f"  normals, all fg       : mean {o.get('normal_mean_deg_all', float('nan')):.2f} deg")
+    if "normal_mean_deg_diffuse" in o:
+        print(f"  normals, specular out : mean {o['normal_mean_deg_diffuse']:.2f} deg, median "
+              f"{o.get('normal_median_deg_diffuse', float('nan')):.2f} deg, "
+              f"{o.get('normal_under5_pct_diffuse', float('nan')):.1f}% < 5 deg (normal_diffuse, valid pixels)")
     print(f"  albedo                : PSNR {o.get('albedo_psnr_db', float('nan')):.2f} dB, SSIM "
           f"{o.get('albedo_ssim', float('nan')):.3f}; mask IoU {o.get('mask_iou', float('nan')):.3f}")
     if "cam_rotation_err_deg" in o:
@@ -456,6 +482,11 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"RMSE {o.get('heldout_albedo_rmse', float('nan')):.3f}; normals {o['heldout_normal_mean_deg']:.2f} deg, "
               f"{o.get('heldout_normal_under5_pct', float('nan')):.1f}% < 5, {o.get('heldout_normal_under25_pct', float('nan')):.1f}% < 25 "
               "(vs the held-out photometric maps)")
+        if "heldout_normal_mean_deg_diffuse" in o:
+            print(f"  held-out, specular out: normals {o['heldout_normal_mean_deg_diffuse']:.2f} deg, "
+                  f"{o.get('heldout_normal_under5_pct_diffuse', float('nan')):.1f}% < 5, "
+                  f"{o.get('heldout_normal_under25_pct_diffuse', float('nan')):.1f}% < 25 (normal_diffuse maps as "
+                  "sources and references)")
     if "roughness_mae" in o:
         print(f"  materials             : roughness MAE {o['roughness_mae']:.3f} (bias {o.get('roughness_bias', float('nan')):+.3f}); "
               f"albedo texture {o.get('albedo_texture_psnr_db', float('nan')):.2f} dB, de-occluded "

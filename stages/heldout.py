@@ -62,10 +62,11 @@ def spread_heldout(cameras: dict[str, dict[str, Any]], n: int = 2) -> tuple[str,
 class ActionGBuffers:
     """The cameras, maps and mesh of one released action, with the mesh depth of each camera cached."""
 
-    def __init__(self, release_dir: str | Path, action_id: str):
+    def __init__(self, release_dir: str | Path, action_id: str, diffuse_normals: bool = False):
         from manifests import open_release
 
         self.view = open_release(release_dir).action(action_id)
+        self.diffuse_normals = diffuse_normals  # the specular-fitted normal maps as sources and references
         self.action_id = action_id
         self.cameras = release_cameras(self.view.transforms())
         self.vertices, self.faces = self.view.mesh()
@@ -87,7 +88,7 @@ class ActionGBuffers:
 
     def photometric(self, cam: str) -> dict[str, np.ndarray]:
         """Photometric maps of ``cam``: normal (H, W, 3), albedo (H, W, 3), alpha (H, W), mask (H, W) bool."""
-        return {"normal": self.view.normals(cam), "albedo": self.view.albedo(cam),
+        return {"normal": self.view.normals(cam, diffuse=self.diffuse_normals), "albedo": self.view.albedo(cam),
                 "alpha": self.view.normal_alpha(cam), "mask": self.view.mask(cam)}
 
     def source(self, cam: str) -> SourceView:
@@ -186,7 +187,7 @@ def synthesise_heldout(data: ActionGBuffers, cam: str, heldout: Sequence[str], k
 
 def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[str] | None = DEFAULT_HELDOUT,
                     truth_dir: str | Path | None = None, k: int = 6, data: ActionGBuffers | None = None,
-                    return_maps: bool = False, **reproject_kwargs) -> dict[str, Any]:
+                    return_maps: bool = False, diffuse_normals: bool = False, **reproject_kwargs) -> dict[str, Any]:
     """Held-out G-buffer metrics of one action (see the module docstring).
 
     Args:
@@ -196,6 +197,8 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
         truth_dir: ``capture/ground_truth`` for the ``_truth`` metrics (optional).
         k: sources per held-out view.
         data: an already opened :class:`ActionGBuffers` (reuses its cached depth renders).
+        diffuse_normals: use the normal maps with the specular reflection fitted out (``normal_diffuse``) as
+            sources and references instead of eq. 1's (ignored when ``data`` is given).
         return_maps: also return the synthesised and reference maps per view under ``"maps"``.
         reproject_kwargs: passed to :func:`reproject_gbuffer` (weighting, depth_tolerance_m, ...).
 
@@ -207,7 +210,7 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
         ``heldout_seconds_per_view``, ``heldout_cameras`` and ``per_view`` (the metrics of each view).
         Every float is finite (metrics without pixels are left out).
     """
-    data = data if data is not None else ActionGBuffers(release_dir, action_id)
+    data = data if data is not None else ActionGBuffers(release_dir, action_id, diffuse_normals)
     if heldout is None or not set(heldout) <= set(data.cameras) or len(set(heldout)) >= len(data.cameras):
         heldout = spread_heldout(data.cameras, 2)
     heldout = tuple(heldout)

@@ -67,6 +67,9 @@ class RelightConfig(Documented):
     "mesh" (the mesh's smooth normals). On the simulator the mesh's are closer to the truth (5-6 vs 6-8.5 deg
     on the novel views) yet relight no better with the reprojected albedo (22.25 vs 22.24 dB): the
     reprojected normals and albedo come from the same maps and their errors partly cancel."""
+    diffuse_normals: bool = True
+    """Reproject the photometric normals with the specular reflection fitted out (``normal_diffuse``, when
+    the photometric stage wrote them) rather than eq. 1's."""
     shadows: bool = True
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
     visibility_directions: int = 256
@@ -297,7 +300,11 @@ class RelightStage(Stage):
             h, w = valid.shape
             depth = render_mesh(None, None, cam["K"], cam["cam_from_world"], h, w, scene=scene)["depth_m"]
             albedo = read_exr(ctx.upstream["photometric"] / "albedo" / f"{cam_id}.exr")[..., :3]
-            sources.append(SourceView(normal=np.ascontiguousarray(normal_alpha[..., :3]), albedo=albedo, valid=valid,
+            normals = normal_alpha[..., :3]
+            diffuse_path = ctx.upstream["photometric"] / "normal_diffuse" / f"{cam_id}.exr"
+            if cfg.diffuse_normals and diffuse_path.exists():
+                normals = read_exr(diffuse_path)[..., :3]
+            sources.append(SourceView(normal=np.ascontiguousarray(normals), albedo=albedo, valid=valid,
                                       K=np.asarray(cam["K"], np.float64),
                                       cam_from_world=np.asarray(cam["cam_from_world"], np.float64), depth_m=depth))
             cameras[cam_id] = {**cam, "width": w, "height": h}

@@ -72,6 +72,8 @@ def test_release_layout_and_manifests(first_run):
     assert rel.frames.raw_sha256.str.len().eq(64).all()
     normals = rel.action("A0001").normals("00002")
     assert normals.shape == (SMALL.height, SMALL.width, 3)
+    diffuse = rel.action("A0001").normals("00002", diffuse=True)  # the specular-fitted normal maps
+    assert diffuse.shape == normals.shape and not np.array_equal(diffuse, normals)
     assert verify_release(release).ok
 
 
@@ -130,10 +132,11 @@ def test_outputs_are_finite_and_normals_unit(first_run):
     for path in (out / "release" / "actions").rglob("*.exr"):
         data = read_exr(path)
         assert np.isfinite(data).all(), path
-    na = read_exr(out / "release" / "actions" / "A0000" / "normal_alpha" / "00000.exr")
-    valid = na[..., 3] > 0.5
-    assert valid.sum() > 200
-    assert np.allclose(np.linalg.norm(na[..., :3][valid], axis=-1), 1.0, atol=2e-3)
+    for slot in ("normal_alpha", "normal_diffuse"):
+        na = read_exr(out / "release" / "actions" / "A0000" / slot / "00000.exr")
+        valid = na[..., 3] > 0.5
+        assert valid.sum() > 200
+        assert np.allclose(np.linalg.norm(na[..., :3][valid], axis=-1), 1.0, atol=2e-3), slot
 
 
 def test_accuracy_against_ground_truth(first_run, capture):
@@ -146,6 +149,7 @@ def test_accuracy_against_ground_truth(first_run, capture):
     # mask IoU 0.95. Random or axis-swapped normals give 60-90 deg, so these bounds catch real breakage.
     assert overall["normal_mean_deg"] < 25.0
     assert overall["normal_mean_deg_unoccluded"] < overall["normal_mean_deg_occluded"]
+    assert overall["normal_mean_deg_diffuse"] < 25.0 and overall["heldout_normal_mean_deg_diffuse"] < 40.0
     assert overall["valid_fraction"] > 0.7
     assert overall["albedo_psnr_db"] > 17.0
     assert overall["mask_iou"] > 0.8
