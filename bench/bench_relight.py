@@ -101,9 +101,12 @@ class ActionScene:
         from stages.materials import load_atlas_mesh
         from stages.numerics.mesh import vertex_normals
         from stages.numerics.raycast import mesh_scene
-        from stages.relight import ActionAsset
+        from manifests import open_release
+        from stages.relight import ActionAsset, RelightConfig
 
-        self.data = ActionGBuffers(release, action)
+        # the stage's sources: the specular-fitted normal maps when the release has them
+        diffuse = RelightConfig().diffuse_normals and "normal_diffuse" in open_release(release).action(action).kinds
+        self.data = ActionGBuffers(release, action, diffuse_normals=diffuse)
         self.view = self.data.view
         self.scene = mesh_scene(self.data.vertices, self.data.faces)
         self.data._scene = self.scene  # the sources' depth renders share it

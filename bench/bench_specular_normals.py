@@ -70,7 +70,7 @@ def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]
     decoded = next((root / "work" / "artifacts" / "decode").glob("*/*/cameras.json")).parent
     lights = next((root / "work" / "artifacts" / "lights").glob("*/*/_SUCCESS.json")).parent
     model = load_light_model(lights)
-    truth = next((root / "capture" / "ground_truth").iterdir())
+    truth = root / "capture" / "ground_truth" / "A0000"
     cams = json.loads((decoded / "cameras.json").read_text())["cameras"]
     found: dict[str, dict[str, list]] = {}
     for cam in cams:
