@@ -285,7 +285,19 @@ def test_photometric_maps_smoke_and_semantics():
     inside = maps.mask & subject & ~clipped
     np.testing.assert_allclose(maps.normals[inside], n[inside], atol=1e-5)
     np.testing.assert_allclose(maps.albedo[inside], 0.5, atol=1e-5)
-    assert (maps.alpha[inside] > 0.99).all()
+    # pixels touching the background (8-connected) are mixed pixels: in the mask, alpha capped (invalid)
+    from scipy import ndimage
+
+    edge = maps.mask & ~ndimage.binary_erosion(maps.mask, np.ones((3, 3), bool), border_value=1)
+    assert 0 < edge.sum() < 0.1 * maps.mask.sum()
+    assert (maps.alpha[inside & ~edge] > 0.99).all()
+    assert (maps.alpha[edge] <= 0.25).all()
+    no_edge = photometric_maps(full, pos, neg, clipped, WHITE, background=plate,
+                               params=PhotometricParams(edge_px=0))
+    assert (no_edge.alpha[inside] > 0.99).all()
+    np.testing.assert_array_equal(no_edge.alpha[~edge], maps.alpha[~edge])
+    with pytest.raises(ValueError, match="edge_px"):
+        PhotometricParams(edge_px=-1)
     assert (maps.alpha[clipped] == 0).all()
     assert not maps.normals[~maps.mask].any() and not maps.albedo[~maps.mask].any()
     assert (maps.alpha[~maps.mask] == 0).all()
