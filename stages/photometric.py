@@ -26,8 +26,8 @@ class SpecularConfig(Documented):
 
     enabled: bool = True
     """Also write ``normal_diffuse``: each pixel's normal fitted as Lambertian plus GGX reflection instead of
-    eq. 1's ratio alone (default capture: 11.2 -> 8.9 deg mean error against the simulator's normals over
-    valid pixels; bench/bench_specular_normals.py: 10.6 -> 8.8 deg on a subject the prior was not chosen on). The ratio normals stay the release's ``normal_alpha``: the SDF is
+    eq. 1's ratio alone (default capture: 10.0 -> 7.7 deg mean error against the simulator's normals over
+    valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a subject the prior was not chosen on). The ratio normals stay the release's ``normal_alpha``: the SDF is
     fitted to those (with the fitted ones its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm: the
     roughness prior leaves a few hundredths of n.v of bias per material, which moves a 10 cm limb's
     surface by millimetres)."""
