@@ -145,12 +145,13 @@ def test_accuracy_against_ground_truth(first_run, capture):
     out, _ = first_run
     overall = evaluate_release(out / "release", capture / "ground_truth").overall
     # Measured at this tiny size (96 px wide, where demosaicing across a few pixels per limb dominates):
-    # 18.8 deg mean on valid pixels, 17.1 unoccluded, 24.3 occluded, valid fraction 0.84, albedo 20.1 dB,
+    # 18.8 deg mean on valid pixels, 17.1 unoccluded, 24.3 occluded, valid fraction 0.84 (0.66 since the
+    # silhouette's outer ring of mixed pixels is invalid: a large share of a 96 px mask), albedo 20.1 dB,
     # mask IoU 0.95. Random or axis-swapped normals give 60-90 deg, so these bounds catch real breakage.
     assert overall["normal_mean_deg"] < 25.0
     assert overall["normal_mean_deg_unoccluded"] < overall["normal_mean_deg_occluded"]
     assert overall["normal_mean_deg_diffuse"] < 25.0 and overall["heldout_normal_mean_deg_diffuse"] < 40.0
-    assert overall["valid_fraction"] > 0.7
+    assert overall["valid_fraction"] > 0.55
     assert overall["albedo_psnr_db"] > 17.0
     assert overall["mask_iou"] > 0.8
     assert overall["actions_ok"] == 2 and overall["actions_failed"] == 0
