@@ -54,13 +54,15 @@ class EvaluationSummary:
 
 
 def evaluate_camera(normals: np.ndarray, alpha: np.ndarray, albedo: np.ndarray, mask: np.ndarray,
-                    truth: dict[str, np.ndarray]) -> dict[str, Any]:
+                    truth: dict[str, np.ndarray], diffuse_normals: np.ndarray | None = None) -> dict[str, Any]:
     """Errors of one camera's maps against ground truth at the maps' resolution.
 
     Args:
         normals: (H, W, 3) estimated world normals; alpha: (H, W); albedo: (H, W, 3); mask: (H, W) bool.
         truth: "normal" (H', W', 3), "albedo" (H', W', 3), "mask" (H', W') bool, "visibility" (H', W'),
             at the same or an integer multiple of the maps' resolution.
+        diffuse_normals: optional (H, W, 3) second normal map (``normal_diffuse``) scored over the same
+            valid pixels (``err_valid_diffuse``).
     Returns:
         error arrays per region and scalar albedo/mask scores.
     """
@@ -74,7 +76,8 @@ def evaluate_camera(normals: np.ndarray, alpha: np.ndarray, albedo: np.ndarray, 
     unoccluded = gt_vis >= UNOCCLUDED_VISIBILITY
     fg = gt_mask
     sq = ((albedo - gt_albedo) ** 2)[fg]
-    return {"err_valid": err[valid], "err_all": err[fg], "err_valid_unoccluded": err[valid & unoccluded],
+    extra = {} if diffuse_normals is None else {"err_valid_diffuse": angular_error_deg(diffuse_normals, gt_normal)[valid]}
+    return extra | {"err_valid": err[valid], "err_all": err[fg], "err_valid_unoccluded": err[valid & unoccluded],
             "err_valid_occluded": err[valid & ~unoccluded], "err_all_unoccluded": err[fg & unoccluded],
             "err_all_occluded": err[fg & ~unoccluded],
             "valid_fraction": float(valid.sum() / max(int(fg.sum()), 1)),
@@ -141,15 +144,16 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     rows: list[dict[str, Any]] = []
     for action_id in ok_ids:
         view = rel.action(action_id)
+        has_diffuse = "normal_diffuse" in view.kinds
         a_pool, a_sq, a_cnt, a_valid, a_fg = _ErrorPool(), 0.0, 0, 0.0, 0
         for cam in view.cameras:
             if not (truth_dir / action_id / "normal" / f"{cam}.exr").exists():
                 continue
-            truth = _load_truth(truth_dir, action_id, cam)
-            res = evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam), truth)
-            if "normal_diffuse" in view.kinds:  # the specular-fitted normals, over the same pixels
-                diffuse_pool.add(evaluate_camera(view.normals(cam, diffuse=True), view.normal_alpha(cam),
-                                                 view.albedo(cam), view.mask(cam), truth)["err_valid"])
+            diffuse = view.normals(cam, diffuse=True) if has_diffuse else None
+            res = evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam),
+                                  _load_truth(truth_dir, action_id, cam), diffuse_normals=diffuse)
+            if diffuse is not None:  # the specular-fitted normals, over the same pixels
+                diffuse_pool.add(res["err_valid_diffuse"])
             for region, pool in pools.items():
                 pool.add(res[f"err_{region}"])
             a_pool.add(res["err_valid"])
@@ -252,13 +256,15 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
     """The paper's table-1 protocol on every action with a mesh: two held-out cameras' albedo and normal
     maps synthesised from the other cameras, against the held-out photometric maps and (``_truth``)
     against the simulator's maps (:mod:`stages.heldout`)."""
-    from stages.heldout import heldout_metrics
+    from stages.heldout import ActionGBuffers, heldout_metrics
 
     values: dict[str, list[float]] = {}
     for action_id in ok_ids:
         if "mesh" not in rel.action(action_id).kinds:
             continue
-        metrics = heldout_metrics(release, action_id, truth_dir=truth_dir if (truth_dir / action_id).is_dir() else None)
+        truth = truth_dir if (truth_dir / action_id).is_dir() else None
+        data = ActionGBuffers(release, action_id)
+        metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data)
         for base in HELDOUT_METRICS:
             for key, region in ((base, "heldout"), (f"{base}_truth", "heldout_truth")):
                 value = metrics.get(key)
@@ -268,9 +274,8 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                 per_action.setdefault(action_id, {})[key] = float(value)
                 rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
                              "value": float(value), "source": "evaluate", "run_id": run_id})
-        if "normal_diffuse" in rel.action(action_id).kinds:  # the same with the specular-fitted normal maps
-            metrics = heldout_metrics(release, action_id, truth_dir=truth_dir if (truth_dir / action_id).is_dir()
-                                      else None, diffuse_normals=True)
+        if "normal_diffuse" in data.view.kinds:  # the same with the specular-fitted normal maps
+            metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data.with_normals(diffuse=True))
             for base in HELDOUT_METRICS:
                 if not base.startswith("heldout_normal"):
                     continue  # the albedo is the same

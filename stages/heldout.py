@@ -74,6 +74,15 @@ class ActionGBuffers:
         self._render: dict[str, dict[str, np.ndarray]] = {}
         self._sources: dict[str, SourceView] = {}
 
+    def with_normals(self, diffuse: bool) -> ActionGBuffers:
+        """The same action with the other normal maps as sources and references (``normal_diffuse`` or eq.
+        1's), sharing this one's mesh, ray-casting scene and cached depth renders."""
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
+        other.diffuse_normals = diffuse
+        other._sources = {}
+        return other
+
     def render(self, cam: str) -> dict[str, np.ndarray]:
         """The mesh seen by camera ``cam`` (render_mesh output, cached)."""
         from stages.numerics.raycast import mesh_scene, render_mesh
