@@ -121,7 +121,7 @@ def _fit_chunk(obs: torch.Tensor, views: torch.Tensor, init: torch.Tensor, rough
 
 def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_dirs: np.ndarray,
                         normals_init: np.ndarray, pixels: np.ndarray, roughness: float | np.ndarray = 0.6,
-                        f0: float = 0.04, steps: int = 80, lr: float = 0.03, retry_residual: float = 1e-3,
+                        f0: float = 0.04, steps: int = 40, lr: float = 0.03, retry_residual: float = 1e-5,
                         chunk: int = 262144, device: str | None = None) -> SpecularFit:
     """Fit normals and diffuse albedo with the GGX reflection modelled (module docstring).
 
