@@ -27,10 +27,10 @@ class SpecularConfig(Documented):
     enabled: bool = True
     """Also write ``normal_diffuse``: each pixel's normal fitted as Lambertian plus GGX reflection instead of
     eq. 1's ratio alone (default capture: 10.0 -> 7.7 deg mean error against the simulator's normals over
-    valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a subject the prior was not chosen on). The ratio normals stay the release's ``normal_alpha``: the SDF is
-    fitted to those (with the fitted ones its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm: the
-    roughness prior leaves a few hundredths of n.v of bias per material, which moves a 10 cm limb's
-    surface by millimetres)."""
+    valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a subject the prior was not chosen on).
+    The ratio normals stay the release's ``normal_alpha``: the SDF is fitted to those (with the fitted ones
+    its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm: the roughness prior leaves a few hundredths of
+    n.v of bias per material, which moves a 10 cm limb's surface by millimetres)."""
     roughness: float = 0.6
     """Perceptual GGX roughness assumed for every pixel (a prior: one pixel cannot also pin it down)."""
     f0: float = 0.04
@@ -109,6 +109,8 @@ class PhotometricStage(Stage):
         write_png(out / "mask" / f"{view}.png", maps.mask)
         if self.config.previews:
             write_png(out / "previews" / f"normal_{view}.png", preview_normals(maps.normals, maps.alpha))
+            if diffuse is not None:
+                write_png(out / "previews" / f"normal_diffuse_{view}.png", preview_normals(diffuse, maps.alpha))
             write_png(out / "previews" / f"albedo_{view}.png", preview_linear(maps.albedo, exposure=1.0))
         mask = maps.mask
         valid = (maps.alpha > 0.5) & mask
@@ -137,10 +139,12 @@ class PhotometricStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            pics = [read_png(ctx.out_dir / "previews" / f"normal_{v}.png") for v in sorted(view_stats)
-                    if "missing" not in view_stats[v]]
-            if pics:
-                write_png(ctx.out_dir / "previews" / "normals_sheet.png", contact_sheet(pics))
+            for prefix, sheet in (("normal_", "normals_sheet.png"), ("normal_diffuse_", "normals_diffuse_sheet.png")):
+                paths = [ctx.out_dir / "previews" / f"{prefix}{v}.png" for v in sorted(view_stats)
+                         if "missing" not in view_stats[v]]
+                pics = [read_png(p) for p in paths if p.exists()]
+                if pics:
+                    write_png(ctx.out_dir / "previews" / sheet, contact_sheet(pics))
         fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 

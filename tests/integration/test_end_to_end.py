@@ -48,7 +48,7 @@ def test_release_layout_and_manifests(first_run):
     release = out / "release"
     for action in ("A0000", "A0001"):
         for folder, ext in (("full_on", "exr"), ("pos", "exr"), ("neg", "exr"), ("mask", "png"),
-                            ("normal_alpha", "exr"), ("albedo", "exr")):
+                            ("normal_alpha", "exr"), ("normal_diffuse", "exr"), ("albedo", "exr")):
             files = sorted((release / "actions" / action / folder).glob(f"*.{ext}"))
             assert [f.stem for f in files] == [f"{i:05d}" for i in range(6)], (action, folder)
         transforms = json.loads((release / "actions" / action / "transforms.json").read_text())
@@ -61,7 +61,7 @@ def test_release_layout_and_manifests(first_run):
                      "renders/N000/normal.exr", "renders/N000/albedo.exr", "renders/N000/roughness.exr",
                      "renders/N000/mask.png", "renders/N000/procedural_sky.exr",
                      "renders/N000/procedural_studio.exr", "previews/relit.png", "textures/diffuse_ratio.exr",
-                     "textures/albedo_intrinsic.exr"):
+                     "textures/albedo_intrinsic.exr", "previews/normals_sheet.png", "previews/normals_diffuse_sheet.png"):
             assert (release / "actions" / action / name).is_file(), (action, name)
     assert (release / "CONVENTIONS.md").exists() and (release / "config.yaml").exists()
     from manifests import open_release, verify_release
