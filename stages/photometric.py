@@ -76,7 +76,7 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
 
 class PhotometricStage(Stage):
     name = "photometric"
-    version = "3"
+    version = "4"
     scope = "action"
     requires = ("decode", "plates", "lights")
     outputs = ("normal_alpha", "normal_diffuse", "albedo", "mask", "previews")
