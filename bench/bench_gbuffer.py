@@ -20,7 +20,6 @@ Writes bench_gbuffer.json and bench_gbuffer.png.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -165,19 +164,14 @@ def figure(result: dict, path: Path) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
-    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
-    args = parser.parse_args()
+    from _release import check_inputs, release_parser
+
+    args = release_parser(__doc__).parse_args()
     out = Path(args.out)
     release, capture = Path(args.release), Path(args.capture)
-    if not (release / "manifests").is_dir():
-        print(f"bench_gbuffer: no release at {release} (run `make dataset`); skipped")
+    go_on, truth_dir = check_inputs("bench_gbuffer", release, capture, need_truth=False)
+    if not go_on:
         return 0
-    truth_dir = capture / "ground_truth" if (capture / "ground_truth").is_dir() else None
-    if truth_dir is None:
-        print(f"bench_gbuffer: no ground truth under {capture}: truth metrics skipped")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     out.mkdir(parents=True, exist_ok=True)
 

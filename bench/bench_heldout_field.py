@@ -24,7 +24,6 @@ prints why and exits 0. One torch thread. Writes bench_heldout_field.json, .md a
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -196,24 +195,19 @@ def markdown(report: dict) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
-    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
+    from _release import check_inputs, release_parser
+
+    parser = release_parser(__doc__, actions="A0000,A0001")
     parser.add_argument("--work", help="artifact store of the release (default: <release>.work)")
     parser.add_argument("--lengths", default="100,400,1000", help="training steps of the field, comma-separated")
-    parser.add_argument("--actions", default="A0000,A0001")
     parser.add_argument("--preset", default="cpu")
     args = parser.parse_args()
     out = Path(args.out)
     release, capture = Path(args.release), Path(args.capture)
     work = Path(args.work) if args.work else release.with_name(release.name + ".work")
-    if not (release / "manifests").is_dir():
-        print(f"bench_heldout_field: no release at {release} (run `make dataset`); skipped")
+    go_on, truth_dir = check_inputs("bench_heldout_field", release, capture, need_truth=False)
+    if not go_on:
         return 0
-    truth_dir = capture / "ground_truth" if (capture / "ground_truth").is_dir() else None
-    if truth_dir is None:
-        print(f"bench_heldout_field: no ground truth under {capture}: truth metrics skipped")
     lengths = [int(x) for x in args.lengths.split(",") if x.strip()]
     if not lengths or min(lengths) < 1:
         parser.error("--lengths must list positive integers")

@@ -30,7 +30,6 @@ runs/default/capture; without them (or without ground truth) it prints why and e
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -377,20 +376,12 @@ def figure(report: dict, path: Path) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
-    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
-    parser.add_argument("--actions", default="", help="comma-separated action ids (default: every action)")
-    parser.add_argument("--threads", type=int, default=2, help="torch and Embree threads")
-    args = parser.parse_args()
+    from _release import check_inputs, release_parser
+
+    args = release_parser(__doc__, actions="", threads=2).parse_args()
     release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
-    truth_dir = capture / "ground_truth"
-    if not (release / "manifests").is_dir():
-        print(f"bench_materials: no release at {release} (run `make dataset`); skipped")
-        return 0
-    if not truth_dir.is_dir():
-        print(f"bench_materials: no ground truth under {capture}: nothing to measure against; skipped")
+    go_on, truth_dir = check_inputs("bench_materials", release, capture, need_truth=True)
+    if not go_on:
         return 0
     from _threads import set_numeric_threads
 

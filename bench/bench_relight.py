@@ -31,7 +31,6 @@ runs/default/capture; without them, the ground truth or the maps it prints why a
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -364,19 +363,11 @@ def figure(report: dict, path: Path) -> None:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
-    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
-    parser.add_argument("--actions", default="", help="comma-separated action ids (default: every action)")
-    parser.add_argument("--threads", type=int, default=2, help="torch and Embree threads")
-    args = parser.parse_args()
+    from _release import check_inputs, release_parser
+
+    args = release_parser(__doc__, actions="", threads=2).parse_args()
     release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
-    if not (release / "manifests").is_dir():
-        print(f"bench_relight: no release at {release} (run `make dataset`); skipped")
-        return 0
-    if not (capture / "capture.json").exists() or not (capture / "ground_truth").is_dir():
-        print(f"bench_relight: no simulated capture with ground truth at {capture}; skipped")
+    if not check_inputs("bench_relight", release, capture, need_truth=True)[0]:
         return 0
     from _threads import set_numeric_threads
 
