@@ -12,11 +12,19 @@ normal and albedo reprojected from the other 30 cameras) this reports
 4. a baseline in the spirit of the paper's Instant-NGP comparison: the **mesh's own normals** (smooth,
    interpolated vertex normals of the release mesh) as the held-out normal map;
 5. a figure (bench_gbuffer.png): photometric vs synthesised vs truth normals and albedo of one held-out
-   view, with the angular error maps.
+   view, with the angular error maps;
+6. the same protocol on the ``normal_diffuse`` maps (specular reflection fitted out), as ``evaluate`` reports;
+7. an **error budget** (with ground truth; bench_gbuffer_budget.png): the protocol with the simulator's true
+   normal and albedo maps in place of the photometric ones (same cameras, mesh, depth tests and compared
+   pixels: what the reprojection alone costs), and the photometric maps' own error against the truth by
+   distance to the silhouette (ring 1 touches the background; every camera), which the held-out reference
+   carries into the comparison view by view and the synthesis cannot predict; and how the protocol's
+   numbers move when one or two more silhouette rings are left out of the compared pixels (a sensitivity,
+   not the reported metric).
 
 ``python bench/bench_gbuffer.py --out bench/out [--release DIR --capture DIR]``; defaults
 runs/default/release and runs/default/capture (``make dataset``); without them it prints why and exits 0.
-Writes bench_gbuffer.json and bench_gbuffer.png.
+Writes bench_gbuffer.json, bench_gbuffer.png and bench_gbuffer_budget.png.
 """
 from __future__ import annotations
 
@@ -108,6 +116,119 @@ def photometric_vs_truth(result: dict) -> dict:
     return {k: round(float(v), 4) for k, v in summarise(parts, "_truth").items()} if parts else {}
 
 
+def maps_variant(data, transform):
+    """``data`` (an ActionGBuffers) with its photometric maps passed through ``transform(maps, cam) -> maps``,
+    sharing its mesh scene and cached depth renders."""
+    from stages.heldout import ActionGBuffers
+
+    class MapsVariant(ActionGBuffers):
+        def photometric(self, cam: str) -> dict:
+            return transform(super().photometric(cam), cam)
+
+    other = data.with_normals(data.diffuse_normals)  # a copy with its own source cache
+    other.__class__ = MapsVariant
+    return other
+
+
+def silhouette_ring(mask: np.ndarray) -> np.ndarray:
+    """(H, W) int32 chessboard distance of each mask pixel to the background (1 = touches it, 8-connected)."""
+    from scipy import ndimage
+
+    return ndimage.distance_transform_cdt(mask, metric="chessboard").astype(np.int32)
+
+
+def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int = 6) -> dict:
+    """The error budget of the held-out protocol for one action (module docstring, item 7)."""
+    from stages.heldout import _load_truth, heldout_metrics
+    from stages.numerics.metrics import angular_error_deg
+
+    diffuse = data.with_normals(True)
+
+    def truth_maps(maps: dict, cam: str) -> dict:
+        t = _load_truth(truth_dir, action, cam, maps["mask"].shape)
+        return maps | {"normal": t["normal"], "albedo": t["albedo"]}
+
+    def without_rings(px: int):
+        def transform(maps: dict, cam: str) -> dict:
+            edge = maps["mask"] & (silhouette_ring(maps["mask"]) <= px)
+            return maps | {"alpha": np.where(edge, np.minimum(maps["alpha"], 0.25), maps["alpha"])}
+        return transform
+
+    out = {"truth_maps": _short(heldout_metrics(release, action, data=maps_variant(diffuse, truth_maps)), ("",)),
+           "rings_left_out": {str(px): _short(heldout_metrics(release, action, data=maps_variant(diffuse, without_rings(px))), ("",))
+                              for px in (1, 2, 3)}}
+    acc = {r: {"eq1": [], "diffuse": [], "albedo_sq": []} for r in range(1, rings + 1)}
+    for cam in sorted(data.cameras):
+        maps = data.photometric(cam)
+        t = _load_truth(truth_dir, action, cam, maps["mask"].shape)
+        if t is None:
+            continue
+        ring = np.minimum(silhouette_ring(maps["mask"]), rings)
+        defined = maps["mask"] & t["mask"] & np.any(maps["normal"] != 0, axis=-1)
+        e1 = angular_error_deg(maps["normal"], t["normal"])
+        ed = angular_error_deg(diffuse.photometric(cam)["normal"], t["normal"])
+        sq = ((maps["albedo"] - t["albedo"]) ** 2).mean(axis=-1)
+        for r in acc:
+            sel = defined & (ring == r)
+            acc[r]["eq1"].append(e1[sel])
+            acc[r]["diffuse"].append(ed[sel])
+            acc[r]["albedo_sq"].append(sq[sel])
+    by_ring = {}
+    for r, parts in acc.items():
+        e1, ed, sq = (np.concatenate(parts[k]) for k in ("eq1", "diffuse", "albedo_sq"))
+        if e1.size:
+            by_ring[f"{r}+" if r == rings else str(r)] = {
+                "pixels": int(e1.size), "normal_eq1_mean_deg": round(float(e1.mean()), 3),
+                "normal_diffuse_mean_deg": round(float(ed.mean()), 3),
+                "albedo_rmse": round(float(np.sqrt(sq.mean())), 4)}
+    out["photometric_vs_truth_by_ring"] = by_ring
+    return out
+
+
+def budget_figure(report: dict, path: Path) -> None:
+    """Held-out metrics of the protocol variants next to the paper, and the photometric error by ring."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    actions = [a for a, e in report["actions"].items() if "error_budget" in e]
+    if not actions:
+        return
+    rows = {"paper (table 1)": report["paper_table1"]}
+    for a in actions:
+        e = report["actions"][a]
+        rows[f"{a} eq. 1 maps"] = e["metrics"]
+        rows[f"{a} diffuse maps"] = e["metrics_diffuse"]
+        rows[f"{a} true maps"] = e["error_budget"]["truth_maps"]
+    fig, axes = plt.subplots(1, 4, figsize=(18, 4.5))
+    for ax, key, label in ((axes[0], "heldout_albedo_psnr_db", "albedo PSNR (dB)"),
+                           (axes[1], "heldout_albedo_ssim", "albedo SSIM"),
+                           (axes[2], "heldout_normal_mean_deg", "normal mean error (deg)")):
+        names = [n for n in rows if key in rows[n]]
+        ax.barh(range(len(names)), [rows[n][key] for n in names],
+                color=[next(c for tag, c in (("paper", "k"), ("eq. 1", "C1"), ("diffuse", "C2"), ("true", "C0"))
+                            if tag in n) for n in names])
+        ax.set_yticks(range(len(names)), names if ax is axes[0] else [""] * len(names), fontsize=7)
+        ax.set_xlabel(label)
+        ax.invert_yaxis()
+        lo = min(rows[n][key] for n in names)
+        ax.set_xlim(lo * 0.9 if key != "heldout_normal_mean_deg" else 0, None)
+    for a in actions:
+        by_ring = report["actions"][a]["error_budget"]["photometric_vs_truth_by_ring"]
+        x = list(range(1, len(by_ring) + 1))
+        axes[3].plot(x, [v["normal_eq1_mean_deg"] for v in by_ring.values()], "o-", label=f"{a} eq. 1")
+        axes[3].plot(x, [v["normal_diffuse_mean_deg"] for v in by_ring.values()], "s--", label=f"{a} diffuse")
+        axes[3].set_xticks(x, list(by_ring))
+    axes[3].set_xlabel("silhouette ring (1 = touches the background)")
+    axes[3].set_ylabel("photometric normal error vs truth (deg)")
+    axes[3].legend(fontsize=7)
+    fig.suptitle("held-out protocol: what the reprojection costs (true maps) and what the photometric maps bring")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
 def figure(result: dict, path: Path) -> None:
     import matplotlib
 
@@ -189,6 +310,8 @@ def main() -> int:
         first_s = time.perf_counter() - t0
         entry = {"heldout_cameras": res["heldout_cameras"], "metrics": _short(res),
                  "per_view": {c: _short(v) for c, v in res["per_view"].items()},
+                 "metrics_diffuse": _short(heldout_metrics(release, action, truth_dir=truth_dir,
+                                                           data=data.with_normals(True))),
                  "photometric_heldout_vs_truth": photometric_vs_truth(res),
                  "mesh_normals_baseline": mesh_normal_baseline(data, res, truth_dir),
                  "seconds": {"load_release_action": round(load_s, 3),
@@ -205,9 +328,13 @@ def main() -> int:
         for weighting in ("uniform", "angle", "angle_distance", "angle_distance_grazing"):
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, weighting=weighting)
             entry["vs_weighting"][weighting] = _short(r)
+        if truth_dir is not None:
+            entry["error_budget"] = error_budget(data, release, action, truth_dir)
+            print(action, "error budget", json.dumps(entry["error_budget"]["truth_maps"]), flush=True)
         report["actions"][action] = entry
     if first_maps is not None:
         figure(first_maps, out / "bench_gbuffer.png")
+    budget_figure(report, out / "bench_gbuffer_budget.png")
     means = {}
     for key in next(iter(report["actions"].values()))["metrics"] if report["actions"] else []:
         vals = [e["metrics"][key] for e in report["actions"].values() if key in e["metrics"]]
