@@ -56,6 +56,11 @@ class SimConfig:
     """Standard deviation of the angle between each camera's true and nominal orientation, degrees."""
     spec_focal_pct: float = 0.5
     """Standard deviation of the nominal focal length's error, percent."""
+    supersample: int = 2
+    """Rays per pixel side: each pixel averages s x s rays over its square, as a sensor pixel integrates the
+    light over its area (1 = one ray through the pixel centre, which aliases detail finer than a pixel
+    and gives silhouette pixels that are all subject or all stage). The ground-truth maps are the same
+    pixel averages (synthetic.shading.render_view)."""
     exposure_target: float = 0.5
     """Normalised green raw value of an albedo-1 unoccluded Lambertian under full_on (per-camera
     exposures jitter by +-8% around it)."""
@@ -72,6 +77,7 @@ class SimConfig:
             (0 <= self.subdivisions <= 3, "subdivisions must be in 0..3"),
             (self.full_well_e > 0.0 and self.read_noise_dn >= 0.0, "noise parameters must be positive"),
             (0.0 < self.exposure_target < 0.9, "exposure_target must be in (0, 0.9)"),
+            (1 <= self.supersample <= 8, "supersample must be in 1..8"),
             (min(self.spec_shift_mm, self.spec_angle_deg, self.spec_focal_pct) >= 0.0, "rig spec errors must be >= 0"),
         ]
         for ok, message in checks:

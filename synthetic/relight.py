@@ -235,7 +235,8 @@ class TruthRelighter:
         if action_id not in action_ids:
             raise ValueError(f"{record_path}: unknown action id {action_id!r} (actions: {action_ids})")
         fields = {f.name for f in dataclasses.fields(SimConfig)}
-        self.config = SimConfig(**{k: v for k, v in record["simulator"].items() if k in fields})
+        # captures written before SimConfig.supersample traced one ray per pixel
+        self.config = SimConfig(**({"supersample": 1} | {k: v for k, v in record["simulator"].items() if k in fields}))
         self.action_id = action_id
         self.session_id = record["actions"][action_ids.index(action_id)]["session_id"]
         self.lights = int(lights)
@@ -330,18 +331,23 @@ class TruthRelighter:
             raise ValueError(f"image size must be positive integers, got {height} x {width}")
         height, width = int(height), int(width)
         lighting = self.lighting(env)
-        camera = Camera("relight", width, height, K, cam_from_world, 0.0, 0.0)
+        # the capture's pixels average s x s rays (SimConfig.supersample): so do these
+        s = self.config.supersample
+        camera = shading.supersampled_camera(Camera("relight", width, height, K, cam_from_world, 0.0, 0.0), s)
         with limit_blas_threads(1):
             hits = shading.cast_primary_rays(self.scene, camera, self.subject.triangles)
             radiance, normals, albedo, roughness, visibility = shading.shade_hits(
                 hits, self.subject, lighting, specular=self.config.specular if specular is None else bool(specular))
 
         def image(values: np.ndarray, channels: int) -> np.ndarray:
-            return shading.hits_image(hits.pixels, values, channels, height, width)
+            return shading.hits_image(hits.pixels, values, channels, camera.height, camera.width)
 
-        mask = np.zeros(height * width, bool)
+        mask = np.zeros(camera.height * camera.width, bool)
         mask[hits.pixels] = True
-        rgb = np.nan_to_num(image(radiance[:, 0:3], 3), nan=0.0, posinf=0.0, neginf=0.0)
-        return {"radiance": rgb, "mask": mask.reshape(height, width), "normals_world": image(normals, 3),
-                "albedo": image(albedo, 3), "roughness": image(roughness, 1), "depth_m": image(hits.depth_m, 1),
-                "visibility": image(visibility, 1)}
+        fine = shading.ViewRender(image(radiance[:, 0:3], 3), mask.reshape(camera.height, camera.width),
+                                  image(normals, 3), image(albedo, 3), image(roughness, 1), image(hits.depth_m, 1),
+                                  image(visibility, 1))
+        view = shading.pixel_average(fine, s) if s > 1 else fine
+        rgb = np.nan_to_num(view.radiance, nan=0.0, posinf=0.0, neginf=0.0)
+        return {"radiance": rgb, "mask": view.mask, "normals_world": view.normals_world, "albedo": view.albedo,
+                "roughness": view.roughness, "depth_m": view.depth_m, "visibility": view.visibility}

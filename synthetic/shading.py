@@ -22,6 +22,7 @@ Scheme (chosen to be faithful yet fit the time budget; no interreflections, dire
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -321,9 +322,19 @@ def shade_hits(hits: SurfaceHits, subject: ActionSubject, lighting: SurfaceLight
 
 def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, lighting: SurfaceLighting,
                 leds: LedSphere, camera: Camera, specular: bool = True,
-                background: np.ndarray | None = None) -> ViewRender:
+                background: np.ndarray | None = None, supersample: int = 1) -> ViewRender:
     """Render one camera: primary rays, interpolated surface attributes, diffuse + specular shading,
-    the dim stage behind. `background`: the camera's precomputed `background_image` (H, W), or None."""
+    the dim stage behind. `background`: the camera's precomputed `background_image` (H, W), or None.
+
+    `supersample` s > 1 traces s x s rays per pixel (a regular grid over the pixel's square) and box-averages
+    them, as a sensor pixel integrates light over its area: silhouette pixels mix subject and stage, and
+    surface detail finer than a pixel is averaged instead of aliased. The ground-truth maps are the same
+    pixel averages over the rays that hit the subject (normals renormalised); the mask holds pixels where
+    at least half the rays hit; the background is the pixel-centre value of `background`."""
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    if supersample > 1:
+        return _render_view_supersampled(scene, subject, lighting, leds, camera, specular, background, supersample)
     h, w = camera.height, camera.width
     hits = cast_primary_rays(scene, camera, subject.triangles)
     radiance_hits, normals, albedo, roughness, visibility = shade_hits(hits, subject, lighting, specular)
@@ -337,6 +348,58 @@ def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, l
     mask[hits.pixels] = True
     return ViewRender(radiance.reshape(h, w, 9), mask.reshape(h, w), image(normals, 3), image(albedo, 3),
                       image(roughness, 1), image(hits.depth_m, 1), image(visibility, 1))
+
+
+def supersampled_camera(camera: Camera, s: int) -> Camera:
+    """The camera with an s-times finer pixel grid over the same sensor: pixel (i, j) of ``camera`` covers
+    the fine pixels (s i .. s i + s - 1, s j .. s j + s - 1), whose centres are a regular grid in its square."""
+    K = np.array(camera.K, np.float64)
+    K[0, 0] *= s
+    K[1, 1] *= s
+    K[0, 1] *= s
+    K[0, 2] = (K[0, 2] + 0.5) * s - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * s - 0.5
+    return dataclasses.replace(camera, width=camera.width * s, height=camera.height * s, K=K)
+
+
+def _render_view_supersampled(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject,
+                              lighting: SurfaceLighting, leds: LedSphere, camera: Camera, specular: bool,
+                              background: np.ndarray | None, s: int) -> ViewRender:
+    if background is None:
+        background = background_image(camera, leds.radius_m)
+    fine = render_view(scene, subject, lighting, leds, supersampled_camera(camera, s), specular,
+                       np.repeat(np.repeat(background, s, axis=0), s, axis=1))
+    return pixel_average(fine, s)
+
+
+def pixel_average(fine: ViewRender, s: int) -> ViewRender:
+    """A render on an s-times finer grid (:func:`supersampled_camera`) averaged to the camera's pixels: the
+    radiance over all s x s rays, the ground-truth maps over the rays that hit the subject (normals
+    renormalised), the mask where at least half of them did; every map is 0 off the mask."""
+    h, w = fine.mask.shape[0] // s, fine.mask.shape[1] // s
+    if (h * s, w * s) != fine.mask.shape:
+        raise ValueError(f"a {fine.mask.shape} render is not {s} x {s} rays per pixel")
+
+    def blocks(x: np.ndarray) -> np.ndarray:
+        """(H s, W s, ...) -> per-pixel sums (H, W, ...)."""
+        return x.reshape((h, s, w, s) + x.shape[2:]).sum(axis=(1, 3), dtype=np.float64)
+
+    hit = fine.mask.astype(np.float64)
+    count = blocks(hit)
+    inv = np.divide(1.0, count, out=np.zeros_like(count), where=count > 0)
+    mask = count >= 0.5 * s * s
+
+    def over_hits(x: np.ndarray) -> np.ndarray:
+        x3 = x if x.ndim == 3 else x[..., None]
+        out = np.where(mask[..., None], blocks(x3 * hit[..., None]) * inv[..., None], 0.0).astype(np.float32)
+        return out if x.ndim == 3 else out[..., 0]
+
+    normals = over_hits(fine.normals_world)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 1e-6)
+    return ViewRender((blocks(fine.radiance) / (s * s)).astype(np.float32), mask, normals,
+                      over_hits(fine.albedo), over_hits(fine.roughness), over_hits(fine.depth_m),
+                      over_hits(fine.visibility))
 
 
 def hits_image(pixels: np.ndarray, values: np.ndarray, channels: int, height: int, width: int) -> np.ndarray:

@@ -240,7 +240,7 @@ def _render_views(config: SimConfig, action_index: int, session_index: int
     session = make_session(config, base, session_index)
     subject, scene, lighting = prepare_action(config, base, session, action_index)
     views = [shading.render_view(scene, subject, lighting, session.leds, camera, specular=config.specular,
-                                 background=background)
+                                 background=background, supersample=config.supersample)
              for camera, background in zip(session.cameras, session.backgrounds)]
     return session, subject, views
 
@@ -260,7 +260,7 @@ def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Sess
     thumbnails = []
     for cam_index, (camera, gain) in enumerate(zip(session.cameras, session.gains)):
         view = shading.render_view(scene, subject, lighting, leds, camera, specular=config.specular,
-                                   background=session.backgrounds[cam_index])
+                                   background=session.backgrounds[cam_index], supersample=config.supersample)
         for illum_index, illumination in enumerate(ILLUMINATIONS):
             rng = (np.random.default_rng([config.seed, _NOISE, action_index, cam_index, illum_index])
                    if config.noise else None)

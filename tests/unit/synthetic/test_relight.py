@@ -19,9 +19,10 @@ from synthetic.simulate import render_views
 
 LIGHTS = 128
 # procedural subject (concave: self-shadowed), ideal LEDs so the simulator's full_on is a constant
-# environment of radiance 1; no noise, no clean plates (the relighter reads capture.json and ground_truth)
+# environment of radiance 1; no noise, no clean plates (the relighter reads capture.json and ground_truth);
+# one ray per pixel, so every pixel is a per-ray identity (supersampled silhouette pixels also hold the stage)
 CONFIG = SimConfig(actions=1, width=64, n_cameras=2, n_leds=LIGHTS, mesh="procedural", noise=False,
-                   background=False, led_error=0.0)
+                   background=False, led_error=0.0, supersample=1)
 
 
 @pytest.fixture(scope="module")

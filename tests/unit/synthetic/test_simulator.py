@@ -90,7 +90,8 @@ def test_loop_subdivision_of_a_closed_mesh():
 
 def test_ratio_normals_on_a_convex_sphere(sphere_obj):
     """Unoccluded Lambertian, ideal LEDs: (pos-neg)/(pos+neg) = 2/3 n and pos + neg = full_on."""
-    config = SimConfig(mesh=str(sphere_obj), led_error=0.0, noise=False, specular=False, **TINY)
+    # one ray per pixel: the identities hold per ray, and averaged silhouette pixels also see the stage
+    config = SimConfig(mesh=str(sphere_obj), led_error=0.0, noise=False, specular=False, supersample=1, **TINY)
     _, _, views = render_views(config)
     errors, lengths, sum_errors = [], [], []
     for view in views:
@@ -126,13 +127,80 @@ def test_occlusion_biases_normals_on_the_concave_procedural_subject():
 
 
 def test_specular_adds_view_dependent_light(sphere_obj):
-    base = dict(mesh=str(sphere_obj), led_error=0.0, noise=False, **TINY)
+    base = dict(mesh=str(sphere_obj), led_error=0.0, noise=False, supersample=1, **TINY)  # off-mask = stage only
     _, _, lambert = render_views(SimConfig(specular=False, **base))
     _, _, glossy = render_views(SimConfig(specular=True, **base))
     extra = glossy[0].radiance - lambert[0].radiance
     assert np.all(extra[glossy[0].mask] >= -1e-6)
     assert extra[glossy[0].mask].mean() > 0.005
     np.testing.assert_allclose(glossy[0].radiance[~glossy[0].mask], lambert[0].radiance[~glossy[0].mask])
+
+
+def test_supersampled_camera_grid():
+    """Fine pixel (s i + k) of an s-times finer camera has its centre at k + 1/2 of s steps across coarse pixel i."""
+    from synthetic.rig import Camera
+    from synthetic.shading import supersampled_camera
+
+    K = np.array([[100.0, 0.0, 31.5], [0.0, 100.0, 47.5], [0.0, 0.0, 1.0]])
+    camera = Camera("c", 64, 96, K, np.hstack([np.eye(3), np.zeros((3, 1))]), 50.0, 0.01)
+    fine = supersampled_camera(camera, 3)
+    assert (fine.width, fine.height) == (192, 288)
+    point = np.array([0.1, -0.2, 2.0])
+    coarse_uv = (K @ point)[:2] / point[2]  # (36.5, 37.5)
+    fine_uv = (fine.K @ point)[:2] / point[2]
+    np.testing.assert_allclose(fine_uv, (coarse_uv + 0.5) * 3 - 0.5)
+    # coarse pixel 36's square [35.5, 36.5) holds fine pixels 108..110, centres at 35.5 + (k + 0.5) / 3
+    np.testing.assert_allclose((np.arange(108, 111) + 0.5) / 3 - 0.5, 35.5 + (np.arange(3) + 0.5) / 3)
+    with pytest.raises(ValueError, match="supersample"):
+        SimConfig(supersample=0)
+
+
+def test_pixel_average_by_hand():
+    """2 x 2 rays per pixel: radiance over all rays, truth maps over the rays that hit, mask from half of them."""
+    from synthetic.shading import ViewRender, pixel_average
+
+    mask = np.array([[1, 1, 1, 0], [1, 0, 0, 0]], bool)  # pixel 0: 3 of 4 rays hit, pixel 1: 1 of 4
+    radiance = np.zeros((2, 4, 9), np.float32)
+    radiance[mask] = 4.0
+    radiance[~mask] = 0.5  # the stage behind
+    albedo = np.where(mask[..., None], np.array([[[0.2], [0.4], [0.6], [0.0]], [[0.8], [0.0], [0.0], [0.0]]]), 0.0)
+    albedo = np.repeat(albedo, 3, axis=-1).astype(np.float32)
+    normals = np.zeros((2, 4, 3), np.float32)
+    normals[mask] = [0.0, 0.0, 1.0]
+    normals[0, 1] = [1.0, 0.0, 0.0]
+    scalar = np.where(mask, 2.0, 0.0).astype(np.float32)
+    out = pixel_average(ViewRender(radiance, mask, normals, albedo, scalar, scalar, scalar), 2)
+    np.testing.assert_array_equal(out.mask, [[True, False]])
+    np.testing.assert_allclose(out.radiance[0, 0], (3 * 4.0 + 0.5) / 4)
+    np.testing.assert_allclose(out.radiance[0, 1], (4.0 + 3 * 0.5) / 4)
+    np.testing.assert_allclose(out.albedo[0, 0], (0.2 + 0.4 + 0.8) / 3, rtol=1e-6)
+    np.testing.assert_allclose(out.normals_world[0, 0], np.array([1.0, 0.0, 2.0]) / np.sqrt(5.0), rtol=1e-6)
+    assert np.all(out.albedo[0, 1] == 0) and np.all(out.normals_world[0, 1] == 0) and out.depth_m[0, 1] == 0
+    np.testing.assert_allclose(out.depth_m[0, 0], 2.0)
+    with pytest.raises(ValueError, match="rays per pixel"):
+        pixel_average(ViewRender(radiance[:, :3], mask[:, :3], normals[:, :3], albedo[:, :3], scalar[:, :3],
+                                 scalar[:, :3], scalar[:, :3]), 2)
+
+
+def test_supersampled_render_integrates_the_pixels(sphere_obj):
+    """Against one ray per pixel: the same subject (mask, normals), and silhouette pixels that mix it with the
+    stage behind (what one ray per pixel cannot give)."""
+    base = dict(mesh=str(sphere_obj), led_error=0.0, noise=False, specular=False, **TINY)
+    _, _, single = render_views(SimConfig(supersample=1, **base))
+    _, _, multi = render_views(SimConfig(supersample=3, **base))
+    a, b = single[0], multi[0]
+    assert (a.mask & b.mask).sum() / (a.mask | b.mask).sum() > 0.9
+    both = a.mask & b.mask
+    assert angle_deg(a.normals_world[both], b.normals_world[both]).mean() < 3.0
+    for arr in (b.radiance, b.normals_world, b.albedo, b.depth_m, b.roughness, b.visibility):
+        assert np.all(np.isfinite(arr))
+    full_a, full_b = a.radiance[..., 0:3].mean(-1), b.radiance[..., 0:3].mean(-1)
+    stage = np.median(full_a[~a.mask])
+    sphere = np.median(full_a[a.mask])
+    # pixels between the stage's and the subject's brightness occur only along the silhouette when averaging
+    between = (full_b > stage + 0.2 * (sphere - stage)) & (full_b < sphere - 0.2 * (sphere - stage))
+    between_single = (full_a > stage + 0.2 * (sphere - stage)) & (full_a < sphere - 0.2 * (sphere - stage))
+    assert between.sum() > between_single.sum() + 10 and (between & ~b.mask).sum() > 0
 
 
 def test_specular_led_clusters_approximate_the_exact_lobe(sphere_obj):
