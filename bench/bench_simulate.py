@@ -8,6 +8,9 @@
 3. The gradient-ratio normals n = normalize((pos - neg) / (pos + neg)) against the ground-truth normals
    on pre-sensor radiance (no noise, no demosaicing): ideal Lambertian LEDs, + LED errors, + specular,
    split by ground-truth visibility; and on the rawpy-decoded DNGs of part 1 (noise and demosaicing).
+4. Pixel integration (SimConfig.supersample): time per camera and error of the radiance and the true
+   normals with 1 ray per pixel and with the default s x s, against 4 x 4 rays per pixel (the pixel
+   integral, nearly converged), one action, 8 cameras.
 
     python bench/bench_simulate.py --out bench/out
 """
@@ -76,6 +79,31 @@ def specular_clusters_vs_exact(config: SimConfig, cameras: list[int]) -> dict:
     mse = float(np.mean(np.concatenate(squared)))
     result["psnr_db"] = round(10 * np.log10(1.0 / max(mse, 1e-20)), 2)
     result["relative_rms"] = round(float(np.sqrt(mse / np.mean(np.concatenate(reference)))), 5)
+    return result
+
+
+def pixel_integration(config: SimConfig, cameras: list[int], reference: int = 4) -> dict:
+    """Radiance PSNR (decoded units, peak 1) and normal error of s rays per pixel side against ``reference``."""
+    mesh_path = resolve_mesh(config.mesh)
+    base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
+    session = make_session(config, base, 0)
+    subject, scene, lighting = prepare_action(config, base, session, 0)
+    renders, result = {}, {"cameras": len(cameras), "reference_rays_per_side": reference}
+    for s in sorted({1, config.supersample, reference}):
+        start = time.perf_counter()
+        renders[s] = [shading.render_view(scene, subject, lighting, session.leds, session.cameras[c],
+                                          background=session.backgrounds[c], supersample=s) for c in cameras]
+        result[f"s{s}_s_per_camera"] = round((time.perf_counter() - start) / len(cameras), 4)
+    for s in sorted({1, config.supersample}):
+        squared, angles = [], []
+        for c, view, ref in zip(cameras, renders[s], renders[reference]):
+            squared.append(((view.radiance - ref.radiance) * session.gains[c]).ravel() ** 2)
+            both = view.mask & ref.mask
+            cos = np.clip(np.sum(view.normals_world[both] * ref.normals_world[both], axis=-1), -1.0, 1.0)
+            angles.append(np.degrees(np.arccos(cos)))
+        mse = float(np.mean(np.concatenate(squared)))
+        result[f"s{s}_radiance_psnr_db"] = round(10 * np.log10(1.0 / max(mse, 1e-20)), 2)
+        result[f"s{s}_normal_mean_deg"] = round(float(np.concatenate(angles).mean()), 3)
     return result
 
 
@@ -176,6 +204,8 @@ def main() -> int:
         result["specular_clusters_vs_exact"] = specular_clusters_vs_exact(SimConfig(), cameras)
         print(f"specular clusters vs exact: {result['specular_clusters_vs_exact']}", flush=True)
         result["ratio_normals_presensor"] = ratio_normal_errors(SimConfig(), cameras)
+        result["pixel_integration"] = pixel_integration(SimConfig(), cameras)
+        print(f"pixel integration: {result['pixel_integration']}", flush=True)
     (out / "bench_simulate.json").write_text(json.dumps(result, indent=1) + "\n")
     plot(result, out)
     print(json.dumps({k: v for k, v in result.items() if k != "default_capture"}, indent=1))
