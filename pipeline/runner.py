@@ -198,7 +198,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              f"{len(capture.sessions)} session(s), {len(next(iter(capture.sessions.values())).camera_ids)} cameras).",
              f"- Origin: {'synthetic, rendered by the UltraStage simulator' if sim else 'light-stage capture'}.",
              "- Contents: decoded linear images (full_on, pos, neg), world-space normals with validity alpha, "
-             "albedo from the white image, foreground masks, cameras (transforms.json); per action, when the "
+             "albedo from the white image (albedo and normal_diffuse denoised edge-preservingly), foreground masks, "
+             "cameras (transforms.json); per action, when the "
              "neural stages ran, a mesh, a UV atlas with albedo/normal/roughness/occlusion textures and relit "
              "novel views (renders/).",
              "- Known biases: photometric normals are biased where the lit hemisphere is occluded (armpits, "
