@@ -58,7 +58,12 @@ class DenoiseConfig(Documented):
     """Filter the albedo and ``normal_diffuse`` maps with a joint bilateral filter guided by the albedo, over
     valid pixels only. Chosen against the simulator's truth, not the held-out protocol (default capture, three
     cameras per action: albedo 28.21 -> 28.47 and 27.11 -> 27.35 dB, normal_diffuse 6.46 -> 6.46 and 8.07 ->
-    7.38 deg; a 1.5 px spatial width smooths the normals of A0000 too much, 6.78 deg)."""
+    7.38 deg; a 1.5 px spatial width smooths the normals of A0000 too much, 6.78 deg; over every camera,
+    `make dataset`: normal_diffuse 7.40 -> 7.08 deg, albedo 24.71 -> 24.82 dB). The price: maps reprojected
+    from these (held-out views, relighting) lose a little detail the blend of views had kept (held-out
+    normals against the truth 5.94 -> 6.17 deg, albedo SSIM 0.912 -> 0.908, relit 23.23 -> 23.16 dB), while
+    the held-out protocol against the photometric maps gains most (5.41 -> 4.16 deg), because its references
+    lose their pixel noise."""
     normal_alpha: bool = False
     """Also filter ``normal_alpha``, the maps the SDF is fitted to. Off: filtered, they are closer to the truth
     (default capture: 9.82 -> 9.20 deg) but the mesh came out worse (Chamfer 2.26 -> 2.49 mm, F-score at 1 mm
