@@ -336,17 +336,9 @@ class TruthRelighter:
         camera = shading.supersampled_camera(Camera("relight", width, height, K, cam_from_world, 0.0, 0.0), s)
         with limit_blas_threads(1):
             hits = shading.cast_primary_rays(self.scene, camera, self.subject.triangles)
-            radiance, normals, albedo, roughness, visibility = shading.shade_hits(
+            radiance, *maps = shading.shade_hits(
                 hits, self.subject, lighting, specular=self.config.specular if specular is None else bool(specular))
-
-        def image(values: np.ndarray, channels: int) -> np.ndarray:
-            return shading.hits_image(hits.pixels, values, channels, camera.height, camera.width)
-
-        mask = np.zeros(camera.height * camera.width, bool)
-        mask[hits.pixels] = True
-        fine = shading.ViewRender(image(radiance[:, 0:3], 3), mask.reshape(camera.height, camera.width),
-                                  image(normals, 3), image(albedo, 3), image(roughness, 1), image(hits.depth_m, 1),
-                                  image(visibility, 1))
+        fine = shading.view_from_hits(hits, radiance[:, 0:3], *maps, camera.height, camera.width)
         view = shading.pixel_average(fine, s) if s > 1 else fine
         rgb = np.nan_to_num(view.radiance, nan=0.0, posinf=0.0, neginf=0.0)
         return {"radiance": rgb, "mask": view.mask, "normals_world": view.normals_world, "albedo": view.albedo,

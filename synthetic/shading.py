@@ -339,19 +339,28 @@ def render_view(scene: o3d.t.geometry.RaycastingScene, subject: ActionSubject, l
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     if supersample > 1:
         return _render_view_supersampled(scene, subject, lighting, leds, camera, specular, background, supersample)
-    h, w = camera.height, camera.width
     hits = cast_primary_rays(scene, camera, subject.triangles)
-    radiance_hits, normals, albedo, roughness, visibility = shade_hits(hits, subject, lighting, specular)
-    radiance = render_background(camera, leds, background).reshape(-1, 9)
-    radiance[hits.pixels] = radiance_hits
+    shaded = shade_hits(hits, subject, lighting, specular)
+    return view_from_hits(hits, *shaded, camera.height, camera.width, render_background(camera, leds, background))
 
-    def image(values: np.ndarray, channels: int) -> np.ndarray:
-        return hits_image(hits.pixels, values, channels, h, w)
 
-    mask = np.zeros(h * w, bool)
+def view_from_hits(hits: SurfaceHits, radiance: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                   roughness: np.ndarray, visibility: np.ndarray, height: int, width: int,
+                   behind: np.ndarray | None = None) -> ViewRender:
+    """Per-hit shading (shade_hits' outputs, (N, C)) scattered to a ViewRender of height x width; `behind`:
+    (H, W, C) radiance where no ray hit (None: 0)."""
+    channels = radiance.shape[-1]
+    image = np.zeros((height * width, channels), np.float32) if behind is None else \
+        np.array(behind, np.float32).reshape(-1, channels)
+    image[hits.pixels] = radiance
+    mask = np.zeros(height * width, bool)
     mask[hits.pixels] = True
-    return ViewRender(radiance.reshape(h, w, 9), mask.reshape(h, w), image(normals, 3), image(albedo, 3),
-                      image(roughness, 1), image(hits.depth_m, 1), image(visibility, 1))
+
+    def scatter(values: np.ndarray, c: int) -> np.ndarray:
+        return hits_image(hits.pixels, values, c, height, width)
+
+    return ViewRender(image.reshape(height, width, channels), mask.reshape(height, width), scatter(normals, 3),
+                      scatter(albedo, 3), scatter(roughness, 1), scatter(hits.depth_m, 1), scatter(visibility, 1))
 
 
 def supersampled_camera(camera: Camera, s: int) -> Camera:
