@@ -156,7 +156,7 @@ def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int =
 
     out = {"truth_maps": _short(heldout_metrics(release, action, data=maps_variant(diffuse, truth_maps)), ("",)),
            "rings_left_out": {str(px): _short(heldout_metrics(release, action, data=maps_variant(diffuse, without_rings(px))), ("",))
-                              for px in (1, 2, 3)}}
+                              for px in (2, 3)}}  # 1 is the stage's own edge: metrics_diffuse
     acc = {r: {"eq1": [], "diffuse": [], "albedo_sq": []} for r in range(1, rings + 1)}
     for cam in sorted(data.cameras):
         maps = data.photometric(cam)
