@@ -1,9 +1,14 @@
-"""Action stage ``photometric``: normals (eq. 1), validity alpha, albedo and mask, one task per camera.
+"""Action stages ``photometric`` (normals by eq. 1, validity alpha, albedo and mask) and ``diffuse_normals``
+(the normals with the specular reflection fitted out, each pixel with the materials stage's roughness), one
+task per camera each.
 
-Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps`.
+Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps` and
+:func:`stages.numerics.specular_normals.fit_diffuse_normals`.
 """
 from __future__ import annotations
 
+import functools
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,10 +28,12 @@ from stages.numerics.specular_normals import fit_diffuse_normals, view_direction
 
 @dataclass(frozen=True)
 class SpecularConfig(Documented):
-    """Second normal maps with the specular reflection fitted out (stages/numerics/specular_normals.py)."""
+    """Second normal maps with the specular reflection fitted out (stages/numerics/specular_normals.py). The
+    photometric stage's are a first pass with one roughness for every pixel; the release's ``normal_diffuse``
+    are the diffuse_normals stage's refit with the materials' roughness (``DiffuseNormalsConfig``)."""
 
     enabled: bool = True
-    """Also write ``normal_diffuse``: each pixel's normal fitted as Lambertian plus GGX reflection instead of
+    """Also write ``normal_diffuse`` (and so release them): each pixel's normal fitted as Lambertian plus GGX reflection instead of
     eq. 1's ratio alone (default capture: 10.0 -> 7.7 deg mean error against the simulator's normals over
     valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a subject the prior was not chosen on).
     The ratio normals stay the release's ``normal_alpha``: the SDF is fitted to those (with the fitted ones
@@ -108,6 +115,23 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
     return sheet
 
 
+def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray, normals_init: np.ndarray,
+                          defined: np.ndarray, model: Any, spec: SpecularConfig, roughness: float | np.ndarray,
+                          light_iterations: int) -> np.ndarray:
+    """(H, W, 3) normals fitted as Lambertian plus GGX reflection of the given ``roughness`` (a scalar or
+    (H, W)) where ``defined``; with the session's LED model, eq. 1 through that model of the frames less the
+    fitted specular part, so they are on the same footing as the ratio normals."""
+    if not defined.any():
+        return np.zeros_like(normals_init)
+    white = np.asarray(cam["white_reference"], np.float32)
+    views = view_directions(cam["K"], cam["cam_from_world"], pos.shape[0], pos.shape[1])
+    fit = fit_diffuse_normals(pos, neg, white, views, normals_init, defined, roughness=roughness, f0=spec.f0,
+                              steps=spec.steps, lr=spec.lr, retry_residual=spec.retry_residual)
+    if model is None:
+        return fit.normals
+    return corrected_normals(pos - fit.specular_pos, neg - fit.specular_neg, model, defined, light_iterations)
+
+
 class PhotometricStage(Stage):
     name = "photometric"
     version = "5"
@@ -169,17 +193,8 @@ class PhotometricStage(Stage):
         spec = self.config.specular
         if not spec.enabled:
             return None
-        if not defined.any():
-            return np.zeros_like(normals)
-        white = np.asarray(cam["white_reference"], np.float32)
-        views = view_directions(cam["K"], cam["cam_from_world"], pos.shape[0], pos.shape[1])
-        fit = fit_diffuse_normals(pos, neg, white, views, normals, defined, roughness=spec.roughness, f0=spec.f0,
-                                  steps=spec.steps, lr=spec.lr, retry_residual=spec.retry_residual)
-        if model is None:
-            return fit.normals
-        # the Lambertian part of the frames through the session's LED model, like the ratio normals
-        return corrected_normals(pos - fit.specular_pos, neg - fit.specular_neg, model, defined,
-                                 self.config.light_iterations)
+        return specular_free_normals(cam, pos, neg, normals, defined, model, spec, spec.roughness,
+                                     self.config.light_iterations)
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
@@ -193,8 +208,123 @@ class PhotometricStage(Stage):
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        # normal_diffuse here is the first pass (one roughness prior); the release gets the diffuse_normals
+        # stage's refit with the materials' roughness instead
         files = []
-        for slot, ext in (("normal_alpha", "exr"), ("normal_diffuse", "exr"), ("albedo", "exr"), ("mask", "png")):
+        for slot, ext in (("normal_alpha", "exr"), ("albedo", "exr"), ("mask", "png")):
             files += [(p, f"{slot}/{p.name}", slot, p.stem) for p in sorted((artifact / slot).glob(f"*.{ext}"))]
-        files += [(p, f"previews/{p.name}", "preview", None) for p in sorted((artifact / "previews").glob("*sheet*.png"))]
+        files += [(p, f"previews/{p.name}", "preview", None) for p in sorted((artifact / "previews").glob("*sheet*.png"))
+                  if p.name != "normals_diffuse_sheet.png"]
         return files
+
+
+@dataclass(frozen=True)
+class DiffuseNormalsConfig(Documented):
+    """The released ``normal_diffuse`` maps: the specular fit again, with each pixel's roughness from the
+    materials stage instead of one prior for every pixel."""
+
+    use_materials_roughness: bool = True
+    """Refit each pixel with the materials stage's roughness texture seen through the textured mesh. On the
+    default capture the maps come closer to the simulator's normals (6.66 -> 6.03 deg on A0000, 7.50 ->
+    6.73 on A0001, valid pixels of every camera; the simulator's own roughness would give 5.96 and 6.61), the
+    shiny materials gaining most. Off: the photometric stage's first pass (``photometric.specular``, one
+    roughness for every pixel) is released as it is."""
+    fit: SpecularConfig = field(default_factory=SpecularConfig)
+    """The per-pixel fit; its ``roughness`` is used only where the textured mesh does not cover a pixel, and
+    its ``enabled`` is not read (the photometric stage's decides whether there are maps at all)."""
+    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
+    """The same edge-preserving filter as the photometric stage's maps get, guided by the released albedo
+    (``normal_alpha`` is not read here)."""
+    light_iterations: int = 4
+    """Gauss-Newton iterations when inverting the session's LED ratio model (as ``photometric``'s)."""
+    previews: bool = True
+    """Write a PNG preview per camera and a contact sheet."""
+
+
+@functools.lru_cache(maxsize=2)
+def _roughness_atlas(textures_dir: str, materials_dir: str) -> tuple[Any, Any, np.ndarray]:
+    """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process)."""
+    from stages.materials import load_atlas_mesh
+    from stages.numerics.raycast import mesh_scene
+
+    vertices, faces, atlas = load_atlas_mesh(Path(textures_dir) / "mesh" / "textured.obj")
+    texture = read_exr(Path(materials_dir) / "textures" / "roughness.exr")
+    return mesh_scene(vertices, faces), atlas, (texture[..., 0] if texture.ndim == 3 else texture)
+
+
+class DiffuseNormalsStage(Stage):
+    """``normal_diffuse`` refitted with per-pixel roughness, one task per camera (see the config)."""
+
+    name = "diffuse_normals"
+    version = "1"
+    scope = "action"
+    requires = ("decode", "lights", "photometric", "textures", "materials")
+    outputs = ("normal_diffuse", "previews")
+    per_view = True
+
+    def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
+        from stages.numerics.bake import texture_in_camera
+
+        cfg: DiffuseNormalsConfig = self.config
+        decoded, photometric = ctx.upstream["decode"], ctx.upstream["photometric"]
+        cameras = load_cameras(decoded / "cameras.json")
+        first_pass = photometric / "normal_diffuse" / f"{view}.exr"
+        if view not in cameras or not first_pass.exists():
+            return {"missing": "no photometric normal_diffuse for this camera"}
+        out = ctx.out_dir / "normal_diffuse" / f"{view}.exr"
+        normal_alpha = read_exr(photometric / "normal_alpha" / f"{view}.exr")
+        alpha = normal_alpha[..., 3]
+        if not cfg.use_materials_roughness:
+            released = read_exr(first_pass)
+            write_exr(out, released)
+            self._preview(ctx, view, released[..., :3], alpha)
+            return {"refit": False}
+        start = time.perf_counter()
+        cam = cameras[view]
+        pos = read_exr(decoded / "pos" / f"{view}.exr")
+        neg = read_exr(decoded / "neg" / f"{view}.exr")
+        h, w = alpha.shape
+        scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))
+        roughness, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"],
+                                               cam["cam_from_world"], h, w)
+        on_mesh &= np.isfinite(roughness) & (roughness > 0)
+        roughness = np.where(on_mesh, roughness, cfg.fit.roughness).astype(np.float32)
+        normals_init = normal_alpha[..., :3]  # eq. 1 (through the LED model when there is one), unfiltered
+        defined = np.any(normals_init != 0, axis=-1)
+        normals = specular_free_normals(cam, pos, neg, normals_init, defined, load_light_model(ctx.upstream["lights"]),
+                                        cfg.fit, roughness, cfg.light_iterations)
+        mask = read_png(photometric / "mask" / f"{view}.png") > 0
+        mask = mask[..., 0] if mask.ndim == 3 else mask
+        valid = (alpha > 0.5) & mask
+        if cfg.denoise.enabled:
+            albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
+            _, (normals,) = joint_bilateral(albedo, [normals], valid, cfg.denoise.spatial_sigma_px,
+                                            cfg.denoise.range_sigma, cfg.denoise.radius)
+        normals = np.where(np.isfinite(normals), normals, 0.0).astype(np.float32)
+        write_exr(out, np.concatenate([normals, alpha[..., None]], -1))
+        self._preview(ctx, view, normals, alpha)
+        fitted = defined & valid
+        return {"refit": True, "seconds": time.perf_counter() - start,
+                "roughness_mean": float(roughness[fitted].mean()) if fitted.any() else 0.0,
+                "on_mesh_fraction": float(on_mesh[fitted].mean()) if fitted.any() else 0.0}
+
+    def _preview(self, ctx: StageContext, view: str, normals: np.ndarray, alpha: np.ndarray) -> None:
+        if self.config.previews:
+            write_png(ctx.out_dir / "previews" / f"normal_diffuse_{view}.png", preview_normals(normals, alpha))
+
+    def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        if self.config.previews:
+            paths = [ctx.out_dir / "previews" / f"normal_diffuse_{v}.png" for v in sorted(view_stats)
+                     if "missing" not in view_stats[v]]
+            pics = [read_png(p) for p in paths if p.exists()]
+            if pics:
+                write_png(ctx.out_dir / "previews" / "normals_diffuse_sheet.png", contact_sheet(pics))
+        refit = [s for s in view_stats.values() if s.get("refit")]
+        return {"views": view_stats, "refit_views": len(refit),
+                "seconds": float(sum(s["seconds"] for s in refit))}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        files = [(p, f"normal_diffuse/{p.name}", "normal_diffuse", p.stem)
+                 for p in sorted((artifact / "normal_diffuse").glob("*.exr"))]
+        sheet = artifact / "previews" / "normals_diffuse_sheet.png"
+        return files + ([(sheet, f"previews/{sheet.name}", "preview", None)] if sheet.exists() else [])

@@ -12,12 +12,12 @@ from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, Textu
 from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
 from stages.materials import MaterialsConfig, MaterialsStage
 from stages.numerics.sdf import SDF_PRESETS
-from stages.photometric import PhotometricConfig, PhotometricStage
+from stages.photometric import DiffuseNormalsConfig, DiffuseNormalsStage, PhotometricConfig, PhotometricStage
 from stages.relight import RelightConfig, RelightStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
                                           PhotometricStage, GeometryStage, TexturesStage,
-                                          MaterialsStage, RelightStage)
+                                          MaterialsStage, DiffuseNormalsStage, RelightStage)
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,8 @@ class PipelineConfig:
     """UV atlas and baked albedo/normal textures."""
     materials: MaterialsConfig = field(default_factory=MaterialsConfig)
     """Roughness texture by inverse rendering, occlusion and the occlusion-free albedo."""
+    diffuse_normals: DiffuseNormalsConfig = field(default_factory=DiffuseNormalsConfig)
+    """The released normal_diffuse maps: the specular fit again with the materials' roughness per pixel."""
     relight: RelightConfig = field(default_factory=RelightConfig)
     """Novel views under HDR environments (renders/)."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)

@@ -69,8 +69,8 @@ class RelightConfig(Documented):
     with ``normal_diffuse``, 22.24 vs 22.24 with eq. 1's): the reprojected normals and albedo come from the
     same maps and their errors partly cancel."""
     diffuse_normals: bool = True
-    """Reproject the photometric normals with the specular reflection fitted out (``normal_diffuse``, when
-    the photometric stage wrote them) rather than eq. 1's (relit 22.48 vs 22.24 dB, bench_relight)."""
+    """Reproject the normal maps with the specular reflection fitted out (``normal_diffuse`` of the
+    diffuse_normals stage, when there are any) rather than eq. 1's (relit 22.48 vs 22.24 dB, bench_relight)."""
     shadows: bool = True
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
     visibility_directions: int = 256
@@ -247,7 +247,7 @@ class RelightStage(Stage):
     name = "relight"
     version = "3"
     scope = "action"
-    requires = ("geometry", "textures", "materials", "decode", "photometric")
+    requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")
 
     def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
@@ -302,7 +302,7 @@ class RelightStage(Stage):
             depth = render_mesh(None, None, cam["K"], cam["cam_from_world"], h, w, scene=scene)["depth_m"]
             albedo = read_exr(ctx.upstream["photometric"] / "albedo" / f"{cam_id}.exr")[..., :3]
             normals = normal_alpha[..., :3]
-            diffuse_path = ctx.upstream["photometric"] / "normal_diffuse" / f"{cam_id}.exr"
+            diffuse_path = ctx.upstream["diffuse_normals"] / "normal_diffuse" / f"{cam_id}.exr"
             if cfg.diffuse_normals and diffuse_path.exists():
                 normals = read_exr(diffuse_path)[..., :3]
             sources.append(SourceView(normal=np.ascontiguousarray(normals), albedo=albedo, valid=valid,

@@ -37,7 +37,7 @@ from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normal
 from stages.numerics.raycast import mesh_scene, render_mesh
 
 __all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "gather_observations",
-           "sample_texture", "dilate_texture"]
+           "sample_texture", "texture_in_camera", "dilate_texture"]
 
 _MIN_TAP_SUPPORT = 0.5  # a view needs valid, depth-consistent pixels under half its bilinear weight
 
@@ -207,6 +207,32 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     x = np.clip(uv[..., 0] * w - 0.5, 0.0, w - 1.0)
     y = np.clip((1.0 - uv[..., 1]) * h - 0.5, 0.0, h - 1.0)
     return _bilinear(tex, x, y)
+
+
+def texture_in_camera(scene, uv_faces: np.ndarray, uvs: np.ndarray, texture: np.ndarray, K: np.ndarray,
+                      cam_from_world: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """A texture seen by a camera through a textured mesh: each pixel's ray hits the mesh, its UV is
+    interpolated over the hit face and the texture is looked up there (:func:`sample_texture`).
+
+    Args:
+        scene: ray-casting scene of the mesh (:func:`stages.numerics.raycast.mesh_scene`).
+        uv_faces: (F, 3) per-corner indices into ``uvs``, face for face with the scene's faces.
+        uvs: (U, 2) OBJ-convention texture coordinates.
+        texture: (Ht, Wt) or (Ht, Wt, C).
+        K, cam_from_world: the camera; height, width: its image size.
+
+    Returns:
+        ``(values (H, W[, C]) float32 (0 where no hit), hit (H, W) bool)``.
+    """
+    from stages.numerics.raycast import render_uvs
+
+    tex = np.asarray(texture)
+    if tex.ndim not in (2, 3):
+        raise ValueError(f"texture must be (H, W) or (H, W, C), got shape {tex.shape}")
+    uv, hit = render_uvs(scene, uv_faces, uvs, K, cam_from_world, height, width)
+    values = sample_texture(tex, uv.reshape(-1, 2)).reshape((int(height), int(width)) + tex.shape[2:])
+    hit_b = hit.reshape((int(height), int(width)) + (1,) * (tex.ndim - 2))
+    return np.where(hit_b, values, 0.0).astype(np.float32), hit
 
 
 def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -77,6 +77,28 @@ def test_release_layout_and_manifests(first_run):
     assert verify_release(release).ok
 
 
+def test_released_normal_diffuse_is_the_refit_with_the_materials_roughness(first_run):
+    from manifests import open_release
+    from pipeline.codecs.exr import read_exr
+
+    out, _ = first_run
+    artifacts = out / "work" / "artifacts"
+
+    def artifact(stage: str, action: str) -> Path:
+        key = json.loads((artifacts / stage / action / "latest.json").read_text())["key"]
+        return artifacts / stage / action / key[:16]
+
+    for action in ("A0000", "A0001"):
+        stats = json.loads((artifact("diffuse_normals", action) / "_SUCCESS.json").read_text())["stats"]
+        assert stats["refit_views"] == 6
+        for view in stats["views"].values():
+            assert 0.05 <= view["roughness_mean"] <= 1.0 and view["on_mesh_fraction"] > 0.9
+        released = open_release(out / "release").action(action).normals("00001", diffuse=True)
+        first_pass = read_exr(artifact("photometric", action) / "normal_diffuse" / "00001.exr")[..., :3]
+        refit = read_exr(artifact("diffuse_normals", action) / "normal_diffuse" / "00001.exr")[..., :3]
+        assert np.array_equal(released, refit) and not np.array_equal(refit, first_pass)
+
+
 def test_materials_and_renders_through_the_consumer_api(first_run):
     from manifests import open_release
 
@@ -190,6 +212,7 @@ def test_second_run_is_all_cached_and_config_change_reruns_photometric_and_downs
     assert st[("photometric", "A0000")] == "ran" and st[("photometric", "A0001")] == "ran"
     assert st[("geometry", "A0000")] == "ran" and st[("textures", "A0001")] == "ran"
     assert st[("materials", "A0000")] == "ran" and st[("relight", "A0001")] == "ran"
+    assert st[("diffuse_normals", "A0000")] == "ran"
     assert any("config.params.ratio_min 0.3 -> 0.35" in line for line in lines)
 
 

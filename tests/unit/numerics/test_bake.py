@@ -288,3 +288,28 @@ def test_bake_ignores_non_finite_pixels(sphere_atlas, sphere_bake):
     assert res.stats["coverage"] > 0.98
     err = np.abs(sample_texture(res.textures["albedo"], atlas.uvs) - albedo_of(v[atlas.vmapping]))
     assert np.percentile(err, 99) < 0.05
+
+
+def test_texture_in_camera_hand_computed_on_a_quad():
+    from stages.numerics.bake import texture_in_camera
+    from stages.numerics.raycast import mesh_scene
+
+    # a 2 m square at z = 2 facing the camera at the origin, u = (x + 1) / 2, v = (1 - y) / 2 (y down)
+    vertices = np.array([[-1, -1, 2], [1, -1, 2], [1, 1, 2], [-1, 1, 2]], np.float64)
+    faces = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    uvs = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)
+    texture = np.tile(np.arange(4, dtype=np.float32), (4, 1))  # value = texel column
+    K = np.array([[50.0, 0, 49.5], [0, 50.0, 49.5], [0, 0, 1]])
+    pose = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
+    values, hit = texture_in_camera(mesh_scene(vertices, faces), faces, uvs, texture, K, pose, 100, 100)
+    assert values.shape == (100, 100) and hit.shape == (100, 100)
+    x = (np.arange(100) - 49.5) / 50.0 * 2.0  # world x of each column's ray at z = 2
+    inside = np.abs(x) < 1.0
+    assert hit[50][inside].all() and not hit[50][~inside].any()
+    expected = np.clip((x + 1) / 2 * 4 - 0.5, 0, 3)  # bilinear lookup of a linear texture is exact
+    assert np.allclose(values[50][inside], expected[inside], atol=1e-4)
+    assert np.all(values[50][~inside] == 0)
+    rgb, _ = texture_in_camera(mesh_scene(vertices, faces), faces, uvs, np.stack([texture] * 3, -1), K, pose, 100, 100)
+    assert rgb.shape == (100, 100, 3) and np.allclose(rgb[..., 1], values)
+    with pytest.raises(ValueError, match="texture"):
+        texture_in_camera(mesh_scene(vertices, faces), faces, uvs, np.zeros(4), K, pose, 100, 100)
