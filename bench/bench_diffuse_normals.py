@@ -1,0 +1,178 @@
+"""The released ``normal_diffuse`` maps: the specular fit with one roughness prior against the fit with the
+materials stage's roughness (what the ``diffuse_normals`` stage releases) and with the simulator's own
+roughness (an oracle), in the same process, on the same cameras.
+
+Needs `make dataset` (the release and its work folder: decoded frames, photometric maps, the textured mesh,
+the roughness texture and the session's LED model) and the simulator's ground truth. For every action and
+every ``--stride``-th camera it reports per variant:
+
+1. the error of the maps against the simulator's normals over the valid pixels (alpha > 0.5, mask): mean,
+   median, % under 5 deg, and the mean on shiny (true roughness < 0.3) and other pixels;
+2. seconds per camera of the fit (and of seeing the roughness texture through the mesh), and the ratio to
+   the one-prior baseline;
+3. that the ``materials`` variant reproduces the released maps (max abs difference).
+
+Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant).
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def _artifact(work: Path, stage: str, scope: str) -> Path:
+    key = json.loads((work / "artifacts" / stage / scope / "latest.json").read_text())["key"]
+    return work / "artifacts" / stage / scope / key[:16]
+
+
+def _scalar(image: np.ndarray) -> np.ndarray:
+    return image[..., 0] if image.ndim == 3 else image
+
+
+def measure_action(work: Path, truth: Path, action: str, session: str, stride: int) -> dict:
+    """The variants of one action (module docstring)."""
+    from pipeline.codecs.exr import read_exr
+    from pipeline.codecs.image import read_png
+    from stages.cameras import load_cameras
+    from stages.lightcolour import load_light_model
+    from stages.materials import load_atlas_mesh
+    from stages.numerics.bake import texture_in_camera
+    from stages.numerics.denoise import joint_bilateral
+    from stages.numerics.metrics import angular_error_deg
+    from stages.numerics.raycast import mesh_scene
+    from stages.photometric import DiffuseNormalsConfig, specular_free_normals
+
+    cfg = DiffuseNormalsConfig()
+    decoded, photometric = _artifact(work, "decode", action), _artifact(work, "photometric", action)
+    released_dir = _artifact(work, "diffuse_normals", action) / "normal_diffuse"
+    model = load_light_model(_artifact(work, "lights", session))
+    vertices, faces, atlas = load_atlas_mesh(_artifact(work, "textures", action) / "mesh" / "textured.obj")
+    scene = mesh_scene(vertices, faces)
+    texture = _scalar(read_exr(_artifact(work, "materials", action) / "textures" / "roughness.exr"))
+    cameras = load_cameras(decoded / "cameras.json")
+    variants = ("one prior", "materials", "simulator (oracle)")
+    errors = {v: [] for v in variants}
+    shiny = []
+    seconds = {v: 0.0 for v in variants}
+    lookup_s, reproduced, count = 0.0, 0.0, 0
+    for cam_id in sorted(cameras)[::stride]:
+        normal_alpha_path = photometric / "normal_alpha" / f"{cam_id}.exr"
+        if not normal_alpha_path.exists():
+            continue
+        cam = cameras[cam_id]
+        normal_alpha = read_exr(normal_alpha_path)
+        alpha, init = normal_alpha[..., 3], normal_alpha[..., :3]
+        h, w = alpha.shape
+        pos, neg = read_exr(decoded / "pos" / f"{cam_id}.exr"), read_exr(decoded / "neg" / f"{cam_id}.exr")
+        mask = _scalar(read_png(photometric / "mask" / f"{cam_id}.png")) > 0
+        albedo = read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3]
+        valid = (alpha > 0.5) & mask
+        defined = np.any(init != 0, axis=-1)
+        t0 = time.perf_counter()
+        seen, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"], cam["cam_from_world"], h, w)
+        lookup_s += time.perf_counter() - t0
+        true_rough = _scalar(read_exr(truth / action / "roughness" / f"{cam_id}.exr"))
+        true_normals = read_exr(truth / action / "normal" / f"{cam_id}.exr")[..., :3]
+        true_mask = _scalar(read_png(truth / action / "mask" / f"{cam_id}.png")) > 127
+        roughness = {"one prior": cfg.fit.roughness,
+                     "materials": np.where(on_mesh & (seen > 0), seen, cfg.fit.roughness).astype(np.float32),
+                     "simulator (oracle)": np.where(true_mask & (true_rough > 0), true_rough, cfg.fit.roughness).astype(np.float32)}
+        scored = valid & true_mask
+        for variant in variants:
+            t0 = time.perf_counter()
+            normals = specular_free_normals(cam, pos, neg, init, defined, model, cfg.fit, roughness[variant],
+                                            cfg.light_iterations)
+            seconds[variant] += time.perf_counter() - t0
+            _, (normals,) = joint_bilateral(albedo, [normals], valid, cfg.denoise.spatial_sigma_px,
+                                            cfg.denoise.range_sigma, cfg.denoise.radius)
+            errors[variant].append(angular_error_deg(normals, true_normals)[scored])
+            if variant == "materials" and (released_dir / f"{cam_id}.exr").exists():
+                released = read_exr(released_dir / f"{cam_id}.exr")[..., :3]
+                reproduced = max(reproduced, float(np.abs(released - normals)[scored].max()))
+        shiny.append(true_rough[scored] < 0.3)
+        count += 1
+    shiny_all = np.concatenate(shiny)
+    out = {"cameras": count, "roughness_lookup_s_per_camera": round(lookup_s / max(count, 1), 3),
+           "materials_vs_released_max_abs": reproduced, "variants": {}}
+    base_s = seconds["one prior"]
+    for variant in variants:
+        e = np.concatenate(errors[variant])
+        out["variants"][variant] = {
+            "mean_deg": round(float(e.mean()), 3), "median_deg": round(float(np.median(e)), 3),
+            "under5_pct": round(float(100 * np.mean(e <= 5)), 2),
+            "shiny_mean_deg": round(float(e[shiny_all].mean()), 3) if shiny_all.any() else None,
+            "other_mean_deg": round(float(e[~shiny_all].mean()), 3),
+            "fit_s_per_camera": round(seconds[variant] / max(count, 1), 3),
+            "time_vs_one_prior": round(seconds[variant] / max(base_s, 1e-9), 2)}
+    return out
+
+
+def figure(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    actions = list(report["actions"])
+    variants = list(next(iter(report["actions"].values()))["variants"])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    width = 0.8 / len(variants)
+    for i, variant in enumerate(variants):
+        x = np.arange(len(actions)) + i * width
+        axes[0].bar(x, [report["actions"][a]["variants"][variant]["mean_deg"] for a in actions], width, label=variant)
+        axes[1].bar(x, [report["actions"][a]["variants"][variant]["shiny_mean_deg"] or 0 for a in actions], width,
+                    label=variant)
+    for ax, title in zip(axes, ("all valid pixels", "shiny pixels (true roughness < 0.3)")):
+        ax.set_xticks(np.arange(len(actions)) + width * (len(variants) - 1) / 2, actions)
+        ax.set_ylabel("mean angular error vs truth (deg)")
+        ax.set_title(title)
+    axes[0].legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> int:
+    from _release import check_inputs, release_parser
+
+    parser = release_parser(__doc__, threads=2)
+    parser.add_argument("--stride", type=int, default=4, help="every stride-th camera (default 4: 8 of 32)")
+    args = parser.parse_args()
+    release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
+    go_on, truth = check_inputs("bench_diffuse_normals", release, capture, need_truth=True)
+    if not go_on:
+        return 0
+    run = json.loads((release / "run.json").read_text())
+    work = Path(run["work"])
+    if not (work / "artifacts" / "diffuse_normals").is_dir():
+        print(f"bench_diffuse_normals: no diffuse_normals artifacts under {work} (rerun `make dataset`); skipped")
+        return 0
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    import torch
+
+    torch.set_num_threads(args.threads)
+    capture_json = json.loads((capture / "capture.json").read_text())
+    session_of = {a["action_id"]: a["session_id"] for a in capture_json["actions"]}
+    report = {"stride": args.stride, "threads": args.threads, "actions": {}}
+    for action in sorted(session_of):
+        if not (work / "artifacts" / "diffuse_normals" / action).is_dir():
+            continue
+        report["actions"][action] = measure_action(work, truth, action, session_of[action], args.stride)
+        print(action, json.dumps(report["actions"][action]), flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_diffuse_normals.json").write_text(json.dumps(report, indent=1))
+    if report["actions"]:
+        figure(report, out / "bench_diffuse_normals.png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
