@@ -72,7 +72,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
         alpha, init = normal_alpha[..., 3], normal_alpha[..., :3]
         h, w = alpha.shape
         pos, neg = read_exr(decoded / "pos" / f"{cam_id}.exr"), read_exr(decoded / "neg" / f"{cam_id}.exr")
-        mask = _scalar(read_png(photometric / "mask" / f"{cam_id}.png")) > 0
+        mask = _scalar(read_png(photometric / "mask" / f"{cam_id}.png")) > 127
         albedo = read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3]
         valid = (alpha > 0.5) & mask
         defined = np.any(init != 0, axis=-1)

@@ -225,10 +225,11 @@ class DiffuseNormalsConfig(Documented):
 
     use_materials_roughness: bool = True
     """Refit each pixel with the materials stage's roughness texture seen through the textured mesh. On the
-    default capture the maps come closer to the simulator's normals (6.66 -> 6.03 deg on A0000, 7.50 ->
-    6.73 on A0001, valid pixels of every camera; the simulator's own roughness would give 5.96 and 6.61), the
-    shiny materials gaining most. Off: the photometric stage's first pass (``photometric.specular``, one
-    roughness for every pixel) is released as it is."""
+    default capture (`make dataset`, valid pixels of every camera) the maps come closer to the simulator's
+    normals, 7.08 -> 6.38 deg, shiny leather (roughness 0.25) most: 11.6 -> 8.2 deg. bench_diffuse_normals
+    (8 cameras per action): 7.20 -> 6.51 and 7.94 -> 7.15 deg, against 6.34 and 6.92 with the simulator's
+    own roughness, for the same fit time. Off: the photometric stage's first pass (``photometric.specular``,
+    one roughness for every pixel) is released as it is."""
     fit: SpecularConfig = field(default_factory=SpecularConfig)
     """The per-pixel fit; its ``roughness`` is used only where the textured mesh does not cover a pixel, and
     its ``enabled`` is not read (the photometric stage's decides whether there are maps at all)."""
@@ -293,8 +294,8 @@ class DiffuseNormalsStage(Stage):
         defined = np.any(normals_init != 0, axis=-1)
         normals = specular_free_normals(cam, pos, neg, normals_init, defined, load_light_model(ctx.upstream["lights"]),
                                         cfg.fit, roughness, cfg.light_iterations)
-        mask = read_png(photometric / "mask" / f"{view}.png") > 0
-        mask = mask[..., 0] if mask.ndim == 3 else mask
+        mask = read_png(photometric / "mask" / f"{view}.png")
+        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
         valid = (alpha > 0.5) & mask
         if cfg.denoise.enabled:
             albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
