@@ -8,8 +8,8 @@ every ``--stride``-th camera it reports per variant:
 
 1. the error of the maps against the simulator's normals over the valid pixels (alpha > 0.5, mask): mean,
    median, % under 5 deg, and the mean on shiny (true roughness < 0.3) and other pixels;
-2. seconds per camera of the fit (and of seeing the roughness texture through the mesh), and the ratio to
-   the one-prior baseline;
+2. seconds per camera of the fit and its edge-preserving filter (and of seeing the roughness texture through
+   the mesh), and the ratio to the one-prior baseline;
 3. that the ``materials`` variant reproduces the released maps (max abs difference).
 
 Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant).
@@ -44,11 +44,9 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     from stages.cameras import load_cameras
     from stages.lightcolour import load_light_model
     from stages.materials import load_atlas_mesh
-    from stages.numerics.bake import texture_in_camera
-    from stages.numerics.denoise import joint_bilateral
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.raycast import mesh_scene
-    from stages.photometric import DiffuseNormalsConfig, specular_free_normals
+    from stages.photometric import DiffuseNormalsConfig, materials_roughness, refit_diffuse_normals
 
     cfg = DiffuseNormalsConfig()
     decoded, photometric = _artifact(work, "decode", action), _artifact(work, "photometric", action)
@@ -69,30 +67,26 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
             continue
         cam = cameras[cam_id]
         normal_alpha = read_exr(normal_alpha_path)
-        alpha, init = normal_alpha[..., 3], normal_alpha[..., :3]
+        alpha = normal_alpha[..., 3]
         h, w = alpha.shape
         pos, neg = read_exr(decoded / "pos" / f"{cam_id}.exr"), read_exr(decoded / "neg" / f"{cam_id}.exr")
         mask = _scalar(read_png(photometric / "mask" / f"{cam_id}.png")) > 127
         albedo = read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3]
         valid = (alpha > 0.5) & mask
-        defined = np.any(init != 0, axis=-1)
         t0 = time.perf_counter()
-        seen, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"], cam["cam_from_world"], h, w)
+        from_materials, _ = materials_roughness(scene, atlas, texture, cam, h, w, cfg.fit.roughness)
         lookup_s += time.perf_counter() - t0
         true_rough = _scalar(read_exr(truth / action / "roughness" / f"{cam_id}.exr"))
         true_normals = read_exr(truth / action / "normal" / f"{cam_id}.exr")[..., :3]
         true_mask = _scalar(read_png(truth / action / "mask" / f"{cam_id}.png")) > 127
         roughness = {"one prior": cfg.fit.roughness,
-                     "materials": np.where(on_mesh & (seen > 0), seen, cfg.fit.roughness).astype(np.float32),
+                     "materials": from_materials,
                      "simulator (oracle)": np.where(true_mask & (true_rough > 0), true_rough, cfg.fit.roughness).astype(np.float32)}
         scored = valid & true_mask
         for variant in variants:
             t0 = time.perf_counter()
-            normals = specular_free_normals(cam, pos, neg, init, defined, model, cfg.fit, roughness[variant],
-                                            cfg.light_iterations)
+            normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo, model, cfg, roughness[variant])
             seconds[variant] += time.perf_counter() - t0
-            _, (normals,) = joint_bilateral(albedo, [normals], valid, cfg.denoise.spatial_sigma_px,
-                                            cfg.denoise.range_sigma, cfg.denoise.radius)
             errors[variant].append(angular_error_deg(normals, true_normals)[scored])
             if variant == "materials" and (released_dir / f"{cam_id}.exr").exists():
                 released = read_exr(released_dir / f"{cam_id}.exr")[..., :3]

@@ -253,6 +253,36 @@ def _roughness_atlas(textures_dir: str, materials_dir: str) -> tuple[Any, Any, n
     return mesh_scene(vertices, faces), atlas, (texture[..., 0] if texture.ndim == 3 else texture)
 
 
+def materials_roughness(scene: Any, atlas: Any, texture: np.ndarray, cam: dict[str, Any], height: int, width: int,
+                        fallback: float) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) float32 roughness of each pixel from the materials' texture seen through the textured mesh
+    (``fallback`` where the mesh does not cover the pixel or the texture holds no value), and the (H, W)
+    bool pixels that got it from the texture."""
+    from stages.numerics.bake import texture_in_camera
+
+    seen, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"], cam["cam_from_world"],
+                                      height, width)
+    on_mesh = on_mesh & np.isfinite(seen) & (seen > 0)
+    return np.where(on_mesh, seen, fallback).astype(np.float32), on_mesh
+
+
+def refit_diffuse_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray, normal_alpha: np.ndarray,
+                          mask: np.ndarray, albedo: np.ndarray, model: Any, cfg: DiffuseNormalsConfig,
+                          roughness: float | np.ndarray) -> np.ndarray:
+    """The diffuse_normals stage's maps of one camera for a given roughness: the specular fit from eq. 1's
+    normals (``normal_alpha`` (H, W, 4)) where they are defined, then the edge-preserving filter over the
+    valid pixels (alpha > 0.5 inside ``mask``) guided by ``albedo``. (H, W, 3) float32, finite."""
+    normals_init = normal_alpha[..., :3]  # eq. 1 (through the LED model when there is one), unfiltered
+    defined = np.any(normals_init != 0, axis=-1)
+    normals = specular_free_normals(cam, pos, neg, normals_init, defined, model, cfg.fit, roughness,
+                                    cfg.light_iterations)
+    if cfg.denoise.enabled:
+        valid = (normal_alpha[..., 3] > 0.5) & mask
+        _, (normals,) = joint_bilateral(albedo, [normals], valid, cfg.denoise.spatial_sigma_px,
+                                        cfg.denoise.range_sigma, cfg.denoise.radius)
+    return np.where(np.isfinite(normals), normals, 0.0).astype(np.float32)
+
+
 class DiffuseNormalsStage(Stage):
     """``normal_diffuse`` refitted with per-pixel roughness, one task per camera (see the config)."""
 
@@ -264,8 +294,6 @@ class DiffuseNormalsStage(Stage):
     per_view = True
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        from stages.numerics.bake import texture_in_camera
-
         cfg: DiffuseNormalsConfig = self.config
         decoded, photometric = ctx.upstream["decode"], ctx.upstream["photometric"]
         cameras = load_cameras(decoded / "cameras.json")
@@ -284,27 +312,16 @@ class DiffuseNormalsStage(Stage):
         cam = cameras[view]
         pos = read_exr(decoded / "pos" / f"{view}.exr")
         neg = read_exr(decoded / "neg" / f"{view}.exr")
-        h, w = alpha.shape
-        scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))
-        roughness, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"],
-                                               cam["cam_from_world"], h, w)
-        on_mesh &= np.isfinite(roughness) & (roughness > 0)
-        roughness = np.where(on_mesh, roughness, cfg.fit.roughness).astype(np.float32)
-        normals_init = normal_alpha[..., :3]  # eq. 1 (through the LED model when there is one), unfiltered
-        defined = np.any(normals_init != 0, axis=-1)
-        normals = specular_free_normals(cam, pos, neg, normals_init, defined, load_light_model(ctx.upstream["lights"]),
-                                        cfg.fit, roughness, cfg.light_iterations)
         mask = read_png(photometric / "mask" / f"{view}.png")
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        valid = (alpha > 0.5) & mask
-        if cfg.denoise.enabled:
-            albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
-            _, (normals,) = joint_bilateral(albedo, [normals], valid, cfg.denoise.spatial_sigma_px,
-                                            cfg.denoise.range_sigma, cfg.denoise.radius)
-        normals = np.where(np.isfinite(normals), normals, 0.0).astype(np.float32)
+        albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
+        scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))
+        roughness, on_mesh = materials_roughness(scene, atlas, texture, cam, *alpha.shape, cfg.fit.roughness)
+        normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo,
+                                        load_light_model(ctx.upstream["lights"]), cfg, roughness)
         write_exr(out, np.concatenate([normals, alpha[..., None]], -1))
         self._preview(ctx, view, normals, alpha)
-        fitted = defined & valid
+        fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
         return {"refit": True, "seconds": time.perf_counter() - start,
                 "roughness_mean": float(roughness[fitted].mean()) if fitted.any() else 0.0,
                 "on_mesh_fraction": float(on_mesh[fitted].mean()) if fitted.any() else 0.0}
