@@ -7,8 +7,9 @@ normal and albedo reprojected from the other 30 cameras) this reports
    simulator's **truth** (``_truth``), with the held-out photometric map's own score against the truth
    beside them (what a perfect synthesis of the photometric map would score there);
 2. time per synthesised view (reprojection only, after the source depth renders, and with them);
-3. metrics against K (1, 2, 4, 6, 8) and against the weighting (uniform, angle, angle+distance,
-   angle+distance+grazing);
+3. metrics against K (1, 2, 4, 6, 8), against the weighting (uniform, angle, angle+distance,
+   angle+distance+grazing) and against the source lookup (bilinear, cubic: metrics, time per view and the
+   cubic/bilinear time ratio, same process, source renders cached);
 4. a baseline in the spirit of the paper's Instant-NGP comparison: the **mesh's own normals** (smooth,
    interpolated vertex normals of the release mesh) as the held-out normal map;
 5. a figure (bench_gbuffer.png): photometric vs synthesised vs truth normals and albedo of one held-out
@@ -324,6 +325,14 @@ def main() -> int:
         for k in (1, 2, 4, 6, 8):
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, k=k)
             entry["vs_k"][str(k)] = _short(r) | {"seconds_per_view": round(r["heldout_seconds_per_view"], 4)}
+        entry["vs_interpolation"] = {}
+        for interpolation in ("bilinear", "cubic"):  # the source depth renders are cached by now: lookups only
+            r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, interpolation=interpolation)
+            entry["vs_interpolation"][interpolation] = _short(r) | {
+                "seconds_per_view": round(r["heldout_seconds_per_view"], 4)}
+        vi = entry["vs_interpolation"]
+        vi["cubic_time_ratio"] = round(vi["cubic"]["seconds_per_view"] / max(vi["bilinear"]["seconds_per_view"], 1e-9), 2)
+        print(action, "interpolation", json.dumps(vi), flush=True)
         entry["vs_weighting"] = {}
         for weighting in ("uniform", "angle", "angle_distance", "angle_distance_grazing"):
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, weighting=weighting)

@@ -245,7 +245,7 @@ class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
     name = "relight"
-    version = "3"
+    version = "4"  # 4: G-buffers read the sources with cubic convolution
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")

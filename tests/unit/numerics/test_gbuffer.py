@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.numerics.gbuffer import WEIGHTINGS, SourceView, camera_centre, nearest_views, reproject_gbuffer
+from stages.numerics.gbuffer import (INTERPOLATIONS, WEIGHTINGS, SourceView, _sample_consistent, camera_centre,
+                                     nearest_views, reproject_gbuffer)
 from stages.numerics.metrics import angular_error_deg
 from stages.numerics.raycast import camera_rays
 from synthetic.rig import look_at as rig_look_at
@@ -106,11 +107,11 @@ def sphere_scene():
     return sources, target_P, target
 
 
-@pytest.mark.parametrize("weighting", WEIGHTINGS)
-def test_reprojection_matches_analytic_sphere(sphere_scene, weighting):
+@pytest.mark.parametrize("weighting,interpolation", [(w, "cubic") for w in WEIGHTINGS] + [(WEIGHTINGS[-1], "bilinear")])
+def test_reprojection_matches_analytic_sphere(sphere_scene, weighting, interpolation):
     sources, target_P, target = sphere_scene
     out = reproject_gbuffer(target["depth_m"], K, target_P, sources, k=5, depth_tolerance_m=0.05,
-                            weighting=weighting)
+                            weighting=weighting, interpolation=interpolation)
     assert out["normal"].shape == (H, W, 3) and out["albedo"].shape == (H, W, 3)
     assert out["weight"].shape == (H, W) and out["valid"].shape == (H, W) and out["view_count"].shape == (H, W)
     assert out["valid"].dtype == bool
@@ -177,6 +178,41 @@ def test_occluder_hides_source_and_gets_no_weight():
     assert np.abs(both["albedo"] - target["albedo"])[seen1].max() < 0.03
 
 
+def _plane_lookup(u: float, v: float, interpolation: str, valid: np.ndarray | None = None):
+    """A source at constant depth 2 m (K = identity: pixel column i at u = i, row j at v = j)
+    holding the map u^2 + 3 v; the point projecting to (u, v) is looked up."""
+    h, w = 12, 16
+    Kp = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    depth = np.full((h, w), 2.0, np.float32)
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float32)
+    values = (uu ** 2 + 3 * vv)[..., None]
+    valid = np.ones((h, w), bool) if valid is None else valid
+    point = np.array([[u * 2.0, v * 2.0, 2.0]])
+    vis, (sample,) = _sample_consistent(point, Kp, depth, valid, (values,), 0.01, interpolation)
+    return float(vis[0]), float(sample[0, 0])
+
+
+def test_cubic_lookup_is_exact_on_a_quadratic_and_bilinear_is_not():
+    u, v = 7.3, 4.6
+    exact = u * u + 3 * v  # 53.29 + 13.8
+    vis_c, cubic = _plane_lookup(u, v, "cubic")
+    vis_b, bilinear = _plane_lookup(u, v, "bilinear")
+    assert vis_c == pytest.approx(1.0) and vis_b == pytest.approx(1.0)  # the visibility is the bilinear one
+    assert cubic == pytest.approx(exact, abs=1e-4)  # Keys (a = -0.5) reproduces quadratics
+    assert bilinear == pytest.approx(0.7 * 49 + 0.3 * 64 + 3 * v, abs=1e-4)  # 53.5 + 13.8: off by u(1-u) = 0.21
+    assert abs(bilinear - exact) > 0.2
+
+
+def test_cubic_lookup_falls_back_to_bilinear_next_to_an_invalid_tap():
+    u, v = 7.3, 4.6
+    valid = np.ones((12, 16), bool)
+    valid[3, 6] = False  # one of the 16 cubic taps (rows 3..6, cols 6..9), not one of the 4 bilinear ones
+    _, cubic = _plane_lookup(u, v, "cubic", valid)
+    _, bilinear = _plane_lookup(u, v, "bilinear", valid)
+    assert cubic == pytest.approx(bilinear, abs=1e-5)
+    assert INTERPOLATIONS == ("bilinear", "cubic")
+
+
 def test_nan_in_source_maps_never_reaches_outputs(sphere_scene):
     sources, target_P, target = sphere_scene
     s = sources[1]
@@ -206,6 +242,8 @@ def test_reproject_input_checks(sphere_scene):
         reproject_gbuffer(d, K[:2], target_P, sources)
     with pytest.raises(ValueError, match="weighting"):
         reproject_gbuffer(d, K, target_P, sources, weighting="median")
+    with pytest.raises(ValueError, match="interpolation"):
+        reproject_gbuffer(d, K, target_P, sources, interpolation="lanczos")
     with pytest.raises(ValueError, match="no source"):
         reproject_gbuffer(d, K, target_P, [])
     with pytest.raises(ValueError, match="source_indices"):
