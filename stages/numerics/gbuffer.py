@@ -46,8 +46,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "reproject_gbuffer", "interpolate_camera",
-           "novel_camera_pairs"]
+__all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "reproject_gbuffer",
+           "interpolate_camera", "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")
@@ -204,14 +204,20 @@ def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, 
     v0 = np.floor(v).astype(np.int64)
     fu = (u - u0).astype(np.float32)
     fv = (v - v0).astype(np.float32)
+
+    def tap(du: int, dv: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Clipped indices of the tap at offset (du, dv) from the floor, and whether it sees the point."""
+        uu, vv = u0 + du, v0 + dv
+        uc, vc = np.clip(uu, 0, w - 1), np.clip(vv, 0, h - 1)
+        tap_depth = depth[vc, uc]
+        use = (in_front & (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h) & valid[vc, uc] & (tap_depth > 0)
+               & (np.abs(tap_depth - z) <= tolerance))
+        return uc, vc, use
+
     coverage = np.zeros(len(z), np.float32)
     sums = [np.zeros((len(z), m.shape[-1]), np.float32) for m in maps]
     for du, dv, bw in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
-        uu, vv = u0 + du, v0 + dv
-        inside = in_front & (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
-        uc, vc = np.clip(uu, 0, w - 1), np.clip(vv, 0, h - 1)
-        tap_depth = depth[vc, uc]
-        use = inside & valid[vc, uc] & (tap_depth > 0) & (np.abs(tap_depth - z) <= tolerance)
+        uc, vc, use = tap(du, dv)
         bw = np.where(use, bw, 0.0).astype(np.float32)
         coverage += bw
         for acc, m in zip(sums, maps):
@@ -220,16 +226,12 @@ def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, 
     samples = [acc * inv[:, None] for acc in sums]
     if interpolation == "cubic":
         wu, wv = _keys_weights(fu), _keys_weights(fv)
-        whole = in_front & (coverage > 1e-6)
+        whole = coverage > 1e-6
         cubic = [np.zeros((len(z), m.shape[-1]), np.float32) for m in maps]
         for j, dv in enumerate((-1, 0, 1, 2)):
-            vv = v0 + dv
             for i, du in enumerate((-1, 0, 1, 2)):
-                uu = u0 + du
-                inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
-                uc, vc = np.clip(uu, 0, w - 1), np.clip(vv, 0, h - 1)
-                tap_depth = depth[vc, uc]
-                whole &= inside & valid[vc, uc] & (tap_depth > 0) & (np.abs(tap_depth - z) <= tolerance)
+                uc, vc, use = tap(du, dv)
+                whole &= use
                 cw = (wu[i] * wv[j]).astype(np.float32)
                 for acc, m in zip(cubic, maps):
                     acc += cw[:, None] * m[vc, uc]
