@@ -7,7 +7,9 @@ normal and albedo reprojected from the other 30 cameras) this reports
    simulator's **truth** (``_truth``), with the held-out photometric map's own score against the truth
    beside them (what a perfect synthesis of the photometric map would score there);
 2. time per synthesised view (reprojection only, after the source depth renders, and with them);
-3. metrics against K (1, 2, 4, 6, 8), against the weighting (uniform, angle, angle+distance,
+3. metrics with the learned blend (``stages.numerics.learned_blend``, trained leave one out on the 30
+   training cameras; its fit time) beside the heuristic weights; metrics against K (1, 2, 4, 6, 8), against
+   the weighting (uniform, angle, angle+distance,
    angle+distance+grazing) and against the source lookup (bilinear, cubic: metrics, time per view and the
    cubic/bilinear time ratio, same process, source renders cached);
 4. a baseline in the spirit of the paper's Instant-NGP comparison: the **mesh's own normals** (smooth,
@@ -299,6 +301,7 @@ def main() -> int:
 
     from manifests import open_release
     from stages.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics
+    from stages.numerics.learned_blend import LearnedBlendConfig
 
     report: dict = {"paper_table1": PAPER_TABLE1, "actions": {}}
     first_maps = None
@@ -333,6 +336,13 @@ def main() -> int:
         vi = entry["vs_interpolation"]
         vi["cubic_time_ratio"] = round(vi["cubic"]["seconds_per_view"] / max(vi["bilinear"]["seconds_per_view"], 1e-9), 2)
         print(action, "interpolation", json.dumps(vi), flush=True)
+        # the learned blend (trained leave one out on the 30 training cameras) against the heuristic weights
+        learned = heldout_metrics(release, action, truth_dir=truth_dir, data=data,
+                                  learned_blend=LearnedBlendConfig(enabled=True))
+        entry["vs_blend"] = {"weighted": _short(res), "learned": _short(learned),
+                             "learned_fit_s": round(learned["heldout_blend_fit_s"], 2),
+                             "learned_record": learned["blend"]}
+        print(action, "blend", json.dumps(entry["vs_blend"], default=float), flush=True)
         entry["vs_weighting"] = {}
         for weighting in ("uniform", "angle", "angle_distance", "angle_distance_grazing"):
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, weighting=weighting)

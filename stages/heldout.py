@@ -15,6 +15,10 @@ compared with: no gain is fitted. That photometric albedo still holds the ambien
 hemisphere (the paper says so); the simulator's albedo does not, so the ``_truth`` albedo scores include
 that bias (the bench reports the held-out photometric map's own score against the truth beside it).
 
+**Blend.** With an enabled ``learned_blend`` the sources are blended by a network trained leave one out
+on the action's other cameras (:mod:`stages.numerics.learned_blend`; the held-out cameras are neither targets nor
+sources of that training), else by the heuristic weights of ``reproject_gbuffer``.
+
 Reads the release only through :mod:`manifests` (``open_release(path).action(id)``).
 """
 from __future__ import annotations
@@ -196,7 +200,8 @@ def synthesise_heldout(data: ActionGBuffers, cam: str, heldout: Sequence[str], k
 
 def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[str] | None = DEFAULT_HELDOUT,
                     truth_dir: str | Path | None = None, k: int = 6, data: ActionGBuffers | None = None,
-                    return_maps: bool = False, diffuse_normals: bool = False, **reproject_kwargs) -> dict[str, Any]:
+                    return_maps: bool = False, diffuse_normals: bool = False,
+                    learned_blend: Any = None, **reproject_kwargs) -> dict[str, Any]:
     """Held-out G-buffer metrics of one action (see the module docstring).
 
     Args:
@@ -209,6 +214,9 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
         diffuse_normals: use the normal maps with the specular reflection fitted out (``normal_diffuse``) as
             sources and references instead of eq. 1's (ignored when ``data`` is given).
         return_maps: also return the synthesised and reference maps per view under ``"maps"``.
+        learned_blend: a :class:`stages.numerics.learned_blend.LearnedBlendConfig`: train the blend on the
+            cameras not held out and blend with it (None, ``enabled=False`` or fewer than 3 such cameras:
+            the heuristic weights).
         reproject_kwargs: passed to :func:`reproject_gbuffer` (weighting, depth_tolerance_m, ...).
 
     Returns:
@@ -216,13 +224,26 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
         ``heldout_normal_mean_deg``, ``heldout_normal_median_deg``, ``heldout_normal_under5_pct``,
         ``heldout_normal_under25_pct``, ``heldout_pixels``, ``heldout_coverage`` (share of the held-out
         masks' pixels synthesised), the same with ``_truth`` when ``truth_dir`` is given,
-        ``heldout_seconds_per_view``, ``heldout_cameras`` and ``per_view`` (the metrics of each view).
+        ``heldout_seconds_per_view``, ``heldout_cameras`` and ``per_view`` (the metrics of each view);
+        with a learned blend also ``heldout_blend_fit_s`` and ``blend`` (its training record).
         Every float is finite (metrics without pixels are left out).
     """
     data = data if data is not None else ActionGBuffers(release_dir, action_id, diffuse_normals)
     if heldout is None or not set(heldout) <= set(data.cameras) or len(set(heldout)) >= len(data.cameras):
         heldout = spread_heldout(data.cameras, 2)
     heldout = tuple(heldout)
+    blend_record = None
+    training_ids = [c for c in sorted(data.cameras) if c not in set(heldout)]
+    if learned_blend is not None and learned_blend.enabled and len(training_ids) >= 3:
+        from stages.numerics.learned_blend import fit_learned_blend
+
+        start = time.perf_counter()
+        training = [data.source(c) for c in training_ids]
+        blend = fit_learned_blend(training, learned_blend, k=k,
+                                  depth_tolerance_m=reproject_kwargs.get("depth_tolerance_m", 0.01),
+                                  interpolation=reproject_kwargs.get("interpolation", "cubic"))
+        reproject_kwargs = reproject_kwargs | {"blend": blend}
+        blend_record = blend.record | {"fit_s": time.perf_counter() - start}
     parts, parts_truth, per_view, maps = [], [], {}, {}
     covered = masked = 0
     seconds = []
@@ -256,8 +277,12 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
         result |= summarise(parts_truth, "_truth")
     result["heldout_seconds_per_view"] = float(np.mean(seconds))
     result = {k_: v for k_, v in result.items() if np.isfinite(v)}
+    if blend_record is not None:
+        result["heldout_blend_fit_s"] = float(blend_record["fit_s"])
     result["heldout_cameras"] = list(heldout)
     result["per_view"] = per_view
+    if blend_record is not None:
+        result["blend"] = blend_record
     if return_maps:
         result["maps"] = maps
     return result

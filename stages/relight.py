@@ -4,7 +4,8 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
 
 1. depth from the action's mesh (Embree), the G-buffer (normal, albedo) reprojected from the ``sources``
    nearest captured views with depth tests (:func:`stages.numerics.gbuffer.reproject_gbuffer`, the paper's
-   depth-guided reprojection), roughness and occlusion looked up in the materials textures through the
+   depth-guided reprojection; ``learned_blend`` optionally blends with weights learned leave one out on
+   the captured views, :mod:`stages.numerics.learned_blend`), roughness and occlusion looked up in the materials textures through the
    textured mesh's UVs (pixels the mesh covers but no source sees take the baked textures and the mesh's
    smooth normals; ``normals: mesh`` uses those everywhere);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
@@ -24,7 +25,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,7 @@ from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from stages.numerics.learned_blend import LearnedBlendConfig
 from stages.geometry import camera_maps
 from stages.numerics import numeric_threads
 
@@ -83,6 +85,10 @@ class RelightConfig(Documented):
     """Source map pixels with a lower photometric validity alpha are not reprojected."""
     previews: bool = True
     """Write a preview sheet (views x environments, tone-mapped)."""
+    learned_blend: LearnedBlendConfig = field(default_factory=LearnedBlendConfig)
+    """With ``enabled: true``, blend the sources with weights learned leave one out on the action's captured
+    views (the paper's blending network, :mod:`stages.numerics.learned_blend`) instead of the heuristic
+    weights. Off by default: relit novel views 23.12 -> 23.04 dB against the simulator (default capture)."""
 
     def __post_init__(self) -> None:
         if not self.environments:
@@ -184,8 +190,9 @@ class ActionAsset:
 
 
 def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
-                       sources: int = 6, depth_tolerance_m: float = 0.01) -> dict[str, np.ndarray]:
-    """The G-buffer of one novel camera (step 1 of the module docstring).
+                       sources: int = 6, depth_tolerance_m: float = 0.01, blend: Any = None) -> dict[str, np.ndarray]:
+    """The G-buffer of one novel camera (step 1 of the module docstring); ``blend`` a trained
+    :class:`stages.numerics.learned_blend.LearnedBlend` or None (the heuristic weights).
 
     Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
     ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
@@ -201,7 +208,8 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     h, w = int(height), int(width)
     seen = render_mesh(None, None, K, pose, h, w, scene=asset.scene)
     depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
-    gbuffer = reproject_gbuffer(depth, K, pose, asset.sources, k=sources, depth_tolerance_m=depth_tolerance_m)
+    gbuffer = reproject_gbuffer(depth, K, pose, asset.sources, k=sources, depth_tolerance_m=depth_tolerance_m,
+                                blend=blend)
     reprojected = gbuffer["valid"]
     # Pixels the mesh covers but no source sees (about 1%) take the baked albedo and the mesh's normal.
     uv, on_atlas = render_uvs(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, K, pose, h, w)
@@ -323,14 +331,22 @@ class RelightStage(Stage):
                             occlusion_tex=_single_channel(read_exr(materials / "occlusion.exr")),
                             diffuse_ratio_tex=read_exr(materials / "diffuse_ratio.exr")[..., :3])
         directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
-
         views = novel_cameras(cameras, cfg.novel_views)
+        blend = None
+        if cfg.learned_blend.enabled and len(sources) >= 3:
+            from stages.numerics.learned_blend import fit_learned_blend
+
+            blend = fit_learned_blend(sources, cfg.learned_blend, k=cfg.sources, depth_tolerance_m=cfg.depth_tolerance_m)
+            ctx.log.info("relight: learned blend on %d views, %d pixels: loss %.4f vs heuristic %.4f (%.0f s)",
+                         blend.record["views"], blend.record["pixels"], blend.record["learned_loss"],
+                         blend.record["heuristic_loss"], blend.record["gather_s"] + blend.record["train_s"])
+
         records, sheet_rows = [], []
         for index, view in enumerate(views):
             t0 = time.perf_counter()
             h, w = view["height"], view["width"]
             gb = novel_view_gbuffer(asset, view["K"], view["cam_from_world"], h, w, sources=cfg.sources,
-                                    depth_tolerance_m=cfg.depth_tolerance_m)
+                                    depth_tolerance_m=cfg.depth_tolerance_m, blend=blend)
             mask, pix = gb["mask"], gb["pix"]
             shading_normals = gb[f"normal_{cfg.normals}"]
             normals = shading_normals.reshape(-1, 3)[pix]
@@ -369,12 +385,14 @@ class RelightStage(Stage):
             {"environments": [{k: v for k, v in e.items() if k != "lobes"} | {"lobes": e["lobes"].numpy().to_dict()}
                               for e in environments],
              "shading": {"sg_lobes": cfg.sg_lobes, "shadows": cfg.shadows, "f0": cfg.f0, "normals": cfg.normals,
-                         "radiance_units": "the environment map's"}}, indent=1, default=float))
+                         "radiance_units": "the environment map's"},
+             "blend": blend.record if blend is not None else "heuristic"}, indent=1, default=float))
         if cfg.previews and sheet_rows:
             write_png(out / "previews" / "relit.png", np.concatenate(sheet_rows, axis=0))
         return {"novel_views": len(views), "environments": [e["label"] for e in environments],
                 "fallbacks": [e["name"] for e in environments if e["source"].startswith("FALLBACK")],
                 "sg_fit_seconds": float(sum(e["fit_seconds"] for e in environments)),
+                "blend_seconds": float(blend.record["gather_s"] + blend.record["train_s"]) if blend is not None else 0.0,
                 "seconds": time.perf_counter() - started}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:

@@ -34,6 +34,10 @@ ways) and against the simulator's truth 0.896 -> 0.901, PSNR 26.96 -> 27.09 dB, 
 (0.15 -> 0.32 s per 320 x 480 view, six sources, source depth renders cached). Negative lobes can
 overshoot: the albedo sample is clamped at 0 (the blended normal is renormalised anyway).
 
+A trained :class:`stages.numerics.learned_blend.LearnedBlend` (``blend``) replaces the heuristic weights by
+learned ones per pixel; :func:`source_candidates` gives its input, each source's samples and terms before
+blending.
+
 Normals are blended as vectors and renormalised; albedo is blended linearly (same scale as the sources).
 The default is ``"angle_distance_grazing"``: on the held-out views of the default simulated capture it
 scores best against the simulator's truth (bench/bench_gbuffer.py compares the four). No output holds NaN
@@ -46,8 +50,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "reproject_gbuffer",
-           "interpolate_camera", "novel_camera_pairs"]
+__all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "source_candidates",
+           "reproject_gbuffer", "interpolate_camera", "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")
@@ -239,36 +243,66 @@ def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, 
     return coverage * (coverage > 1e-6), samples
 
 
-def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
-                      sources: Sequence[SourceView], k: int = 6, depth_tolerance_m: float = 0.01,
-                      weighting: str = "angle_distance_grazing", angle_sigma_deg: float = 20.0,
-                      subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
-                      source_indices: Sequence[int] | None = None,
-                      interpolation: str = "cubic") -> dict[str, np.ndarray]:
-    """Normal and albedo maps of a target camera blended from the ``k`` nearest visible source views.
+def _lift(depth: np.ndarray, K: np.ndarray, P: np.ndarray):
+    """World points of the pixels with a depth: rows, cols (N,), points (N, 3), unit directions to the
+    camera (N, 3) and the camera's sampling density ``(f / distance)^2`` (N,)."""
+    rows, cols = np.nonzero(depth > 0)
+    z = depth[rows, cols].astype(np.float64)
+    # lift: x_cam = z K^-1 [u, v, 1], x_world = R^T (x_cam - t)
+    y_cam = (rows - K[1, 2]) / K[1, 1]
+    x_cam = (cols - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
+    pts_cam = np.stack([x_cam * z, y_cam * z, z], axis=-1)
+    R, t = P[:, :3], P[:, 3]
+    pts = (pts_cam - t) @ R  # rows of R^T (x - t)
+    to_target = camera_centre(P) - pts
+    dist_target = np.linalg.norm(to_target, axis=-1)
+    to_target /= np.maximum(dist_target, 1e-12)[:, None]
+    density_target = (K[0, 0] / np.maximum(dist_target, 1e-12)) ** 2
+    return rows, cols, pts, to_target, density_target
 
-    Args:
-        target_depth_m: (H, W) camera z of the surface seen by the target (0 = no surface there).
-        K: (3, 3) target intrinsics. cam_from_world: (3, 4) target pose.
-        sources: the captured views (:class:`SourceView`; any size each).
-        k: number of nearest sources (by :func:`nearest_views`) looked up per pixel.
-        depth_tolerance_m: a source tap is visible when its mesh depth is within this of the point's
-            depth in that source.
-        weighting: one of :data:`WEIGHTINGS` (see the module docstring).
-        angle_sigma_deg: width of the angular weight.
-        subject_centre: (3,) centre used to pick the nearest views.
-        source_indices: use these sources instead of the ``k`` nearest.
-        interpolation: one of :data:`INTERPOLATIONS`: how a source map is read at the point's projection,
-            ``"bilinear"`` or ``"cubic"`` (Keys' cubic convolution where the 4 x 4 taps are all visible,
-            bilinear elsewhere; module docstring).
 
-    Returns:
-        ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,
-        ``weight`` (H, W) float32 total blend weight (relative units: 1 = one fully visible source seen
-        head-on from the target's direction and distance), ``valid`` (H, W) bool (a surface and at
-        least one visible source), ``view_count`` (H, W) int32 sources that contributed, ``sources``
-        (k,) int64 indices of the sources used.
-    """
+def _source_terms(sources: Sequence[SourceView], i: int, pts: np.ndarray, to_target: np.ndarray,
+                  density_target: np.ndarray, depth_tolerance_m: float, weighting: str, angle_sigma_deg: float,
+                  interpolation: str) -> dict[str, np.ndarray]:
+    """One source's look at the points (N, 3): its samples ``normal``/``albedo`` (N, 3), soft
+    ``visibility``, the angle ``theta`` at the point between the rays to the target and to the source,
+    ``log_density`` (log of the source's sampling density over the target's), ``cos_source`` and
+    ``cos_target`` (the sampled normal against the rays to the source and to the target) and the
+    heuristic blend ``weight`` of ``weighting`` (module docstring), all (N,)."""
+    s_normal, s_albedo, s_valid, s_depth, s_K, s_P = _check_source(i, sources[i])
+    pc = pts @ s_P[:, :3].T + s_P[:, 3]
+    visibility, (nrm, alb) = _sample_consistent(pc, s_K, s_depth, s_valid, (s_normal, s_albedo),
+                                                float(depth_tolerance_m), interpolation)
+    if interpolation == "cubic":  # the kernel's negative lobes may overshoot below 0 at a dark edge
+        alb = np.maximum(alb, 0.0)
+    to_src = camera_centre(s_P) - pts
+    dist_src = np.linalg.norm(to_src, axis=-1)
+    to_src /= np.maximum(dist_src, 1e-12)[:, None]
+    cosang = np.clip(np.einsum("ij,ij->i", to_src, to_target), -1.0, 1.0)
+    theta = np.arctan2(np.linalg.norm(np.cross(to_src, to_target), axis=-1), cosang)
+    density = (s_K[0, 0] / np.maximum(dist_src, 1e-12)) ** 2 / density_target
+    nrm64 = nrm.astype(np.float64)
+    cos_source = np.einsum("ij,ij->i", nrm64, to_src)
+    wgt = visibility.astype(np.float64)
+    if weighting != "uniform":
+        wgt = wgt * np.exp(-0.5 * (theta / np.radians(angle_sigma_deg)) ** 2)
+        if weighting in ("angle_distance", "angle_distance_grazing"):
+            wgt = wgt * density
+        if weighting == "angle_distance_grazing":
+            wgt = wgt * np.clip(cos_source, 0.0, 1.0)
+    return {"normal": nrm, "albedo": alb, "visibility": visibility, "theta": theta,
+            "log_density": np.log(np.maximum(density, 1e-12)), "cos_source": cos_source,
+            "cos_target": np.einsum("ij,ij->i", nrm64, to_target), "weight": np.where(np.isfinite(wgt), wgt, 0.0)}
+
+
+def _stack_terms(terms: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Per-source terms stacked along axis 1: (N, k) and (N, k, 3) arrays."""
+    return {key: np.stack([t[key] for t in terms], axis=1) for key in terms[0]}
+
+
+def _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, weighting, angle_sigma_deg,
+             subject_centre, source_indices, interpolation) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Checked inputs of a reprojection: depth (H, W), K, P (3, 4) and the indices of the sources used."""
     depth = np.asarray(target_depth_m)
     if depth.ndim != 2 or depth.size == 0:
         raise ValueError(f"target_depth_m must be a non-empty (H, W) map, got {depth.shape}")
@@ -287,7 +321,7 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
     if not (angle_sigma_deg > 0) or not np.isfinite(angle_sigma_deg):
         raise ValueError(f"angle_sigma_deg must be positive, got {angle_sigma_deg}")
     if len(sources) == 0:
-        raise ValueError("reproject_gbuffer: no source views")
+        raise ValueError("reprojection: no source views")
     if source_indices is None:
         chosen = nearest_views(P, [s.cam_from_world for s in sources], k, subject_centre)
     else:
@@ -295,53 +329,89 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
         if chosen.size == 0 or chosen.min() < 0 or chosen.max() >= len(sources):
             raise ValueError(f"source_indices must index the {len(sources)} sources, got {chosen.tolist()}")
 
-    h, w = depth.shape
-    has = depth > 0
-    rows, cols = np.nonzero(has)
-    z = depth[rows, cols].astype(np.float64)
-    # lift: x_cam = z K^-1 [u, v, 1], x_world = R^T (x_cam - t)
-    y_cam = (rows - K[1, 2]) / K[1, 1]
-    x_cam = (cols - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
-    pts_cam = np.stack([x_cam * z, y_cam * z, z], axis=-1)
-    R, t = P[:, :3], P[:, 3]
-    pts = (pts_cam - t) @ R  # rows of R^T (x - t)
-    c_target = camera_centre(P)
-    to_target = c_target - pts
-    dist_target = np.linalg.norm(to_target, axis=-1)
-    to_target /= np.maximum(dist_target, 1e-12)[:, None]
-    density_target = (K[0, 0] / np.maximum(dist_target, 1e-12)) ** 2
-    sigma = np.radians(angle_sigma_deg)
+    return depth, K, P, chosen
 
+
+def source_candidates(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+                      sources: Sequence[SourceView], k: int = 6, depth_tolerance_m: float = 0.01,
+                      weighting: str = "angle_distance_grazing", angle_sigma_deg: float = 20.0,
+                      subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
+                      interpolation: str = "cubic") -> dict[str, np.ndarray]:
+    """What each of the ``k`` nearest sources offers every target pixel with a depth, before blending (the
+    input of a learned blend, :mod:`stages.numerics.learned_blend`).
+
+    Returns ``rows``, ``cols`` (N,) of the pixels, ``sources`` (k,) and the terms of each source
+    (``_source_terms``): ``normal``, ``albedo`` (N, k, 3); ``visibility``, ``theta``, ``log_density``,
+    ``cos_source``, ``cos_target``, ``weight`` (N, k). Memory: about 60 bytes per pixel and source.
+    """
+    depth, K, P, chosen = _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, weighting,
+                                   angle_sigma_deg, subject_centre, None, interpolation)
+    rows, cols, pts, to_target, density_target = _lift(depth, K, P)
+    cand = _stack_terms([_source_terms(sources, int(i), pts, to_target, density_target, depth_tolerance_m,
+                                       weighting, angle_sigma_deg, interpolation) for i in chosen])
+    return cand | {"rows": rows, "cols": cols, "sources": chosen}
+
+
+def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
+                      sources: Sequence[SourceView], k: int = 6, depth_tolerance_m: float = 0.01,
+                      weighting: str = "angle_distance_grazing", angle_sigma_deg: float = 20.0,
+                      subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
+                      source_indices: Sequence[int] | None = None,
+                      interpolation: str = "cubic", blend=None) -> dict[str, np.ndarray]:
+    """Normal and albedo maps of a target camera blended from the ``k`` nearest visible source views.
+
+    Args:
+        target_depth_m: (H, W) camera z of the surface seen by the target (0 = no surface there).
+        K: (3, 3) target intrinsics. cam_from_world: (3, 4) target pose.
+        sources: the captured views (:class:`SourceView`; any size each).
+        k: number of nearest sources (by :func:`nearest_views`) looked up per pixel.
+        depth_tolerance_m: a source tap is visible when its mesh depth is within this of the point's
+            depth in that source.
+        weighting: one of :data:`WEIGHTINGS` (see the module docstring).
+        angle_sigma_deg: width of the angular weight.
+        subject_centre: (3,) centre used to pick the nearest views.
+        source_indices: use these sources instead of the ``k`` nearest.
+        interpolation: one of :data:`INTERPOLATIONS`: how a source map is read at the point's projection,
+            ``"bilinear"`` or ``"cubic"`` (Keys' cubic convolution where the 4 x 4 taps are all visible,
+            bilinear elsewhere; module docstring).
+        blend: a trained :class:`stages.numerics.learned_blend.LearnedBlend`: its per-pixel weights over the
+            ``k`` sources replace the ``weighting``'s (which stays its prior and its input); None = the
+            heuristic weights.
+
+    Returns:
+        ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,
+        ``weight`` (H, W) float32 total blend weight (relative units: 1 = one fully visible source seen
+        head-on from the target's direction and distance), ``valid`` (H, W) bool (a surface and at
+        least one visible source), ``view_count`` (H, W) int32 sources that contributed, ``sources``
+        (k,) int64 indices of the sources used.
+    """
+    depth, K, P, chosen = _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, weighting,
+                                   angle_sigma_deg, subject_centre, source_indices, interpolation)
+    h, w = depth.shape
+    rows, cols, pts, to_target, density_target = _lift(depth, K, P)
     n = len(rows)
     normal_acc = np.zeros((n, 3), np.float64)
     albedo_acc = np.zeros((n, 3), np.float64)
     weight_acc = np.zeros(n, np.float64)
     count = np.zeros(n, np.int32)
-    for i in chosen:
-        s_normal, s_albedo, s_valid, s_depth, s_K, s_P = _check_source(int(i), sources[int(i)])
-        pc = pts @ s_P[:, :3].T + s_P[:, 3]
-        visibility, (nrm, alb) = _sample_consistent(pc, s_K, s_depth, s_valid, (s_normal, s_albedo),
-                                                    float(depth_tolerance_m), interpolation)
-        if interpolation == "cubic":  # the kernel's negative lobes may overshoot below 0 at a dark edge
-            alb = np.maximum(alb, 0.0)
-        wgt = visibility.astype(np.float64)
-        if weighting != "uniform":
-            to_src = camera_centre(s_P) - pts
-            dist_src = np.linalg.norm(to_src, axis=-1)
-            to_src /= np.maximum(dist_src, 1e-12)[:, None]
-            cosang = np.clip(np.einsum("ij,ij->i", to_src, to_target), -1.0, 1.0)
-            sinang = np.linalg.norm(np.cross(to_src, to_target), axis=-1)
-            theta = np.arctan2(sinang, cosang)
-            wgt = wgt * np.exp(-0.5 * (theta / sigma) ** 2)
-            if weighting in ("angle_distance", "angle_distance_grazing"):
-                wgt = wgt * ((s_K[0, 0] / np.maximum(dist_src, 1e-12)) ** 2 / density_target)
-            if weighting == "angle_distance_grazing":
-                wgt = wgt * np.clip(np.einsum("ij,ij->i", nrm.astype(np.float64), to_src), 0.0, 1.0)
-        wgt = np.where(np.isfinite(wgt), wgt, 0.0)
-        normal_acc += wgt[:, None] * nrm
-        albedo_acc += wgt[:, None] * alb
-        weight_acc += wgt
-        count += (wgt > 0).astype(np.int32)
+    if blend is None:  # one source at a time: no (pixels, k) arrays at full resolution
+        for i in chosen:
+            terms = _source_terms(sources, int(i), pts, to_target, density_target, depth_tolerance_m, weighting,
+                                  angle_sigma_deg, interpolation)
+            wgt = terms["weight"]
+            normal_acc += wgt[:, None] * terms["normal"]
+            albedo_acc += wgt[:, None] * terms["albedo"]
+            weight_acc += wgt
+            count += (wgt > 0).astype(np.int32)
+    else:
+        cand = _stack_terms([_source_terms(sources, int(i), pts, to_target, density_target, depth_tolerance_m,
+                                           weighting, angle_sigma_deg, interpolation) for i in chosen])
+        # the learned weights are a softmax: scale them by the heuristic total so ``weight`` keeps its units
+        wgt = blend.weights(cand) * cand["weight"].sum(axis=1, keepdims=True)
+        normal_acc = np.einsum("nk,nkc->nc", wgt, cand["normal"].astype(np.float64))
+        albedo_acc = np.einsum("nk,nkc->nc", wgt, cand["albedo"].astype(np.float64))
+        weight_acc = wgt.sum(axis=1)
+        count = (wgt > 0).sum(axis=1).astype(np.int32)
 
     ok = weight_acc > 1e-12
     inv = np.divide(1.0, weight_acc, out=np.zeros_like(weight_acc), where=ok)
