@@ -49,7 +49,8 @@ class LearnedBlendConfig(Documented):
     dB, normals 3.97 -> 3.90 deg, 82.3 -> 82.7% under 5 deg; against the simulator's truth the albedo
     27.63 -> 27.54 dB, eq. 1's normals 7.53 -> 8.07 deg, and relit novel views 23.12 -> 23.04 dB. It learns
     the view-dependent residue that neighbouring photometric maps share (eq. 1's specular tilt, highlights),
-    which the truth does not hold. About 100 s per fit on 2 cores (30 views of 320 x 480)."""
+    which the truth does not hold. A fit (30 views of 320 x 480, 2 cores) takes 28-29 s in bench_gbuffer.py
+    (gather 10-12 s, 400 steps 15 s) and took 100-122 s inside `ultrastage evaluate`, not profiled."""
     hidden_width: int = 32
     """Width of the MLP's two hidden layers."""
     steps: int = 400
