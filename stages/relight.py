@@ -5,8 +5,8 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
 1. depth from the action's mesh (Embree), the G-buffer (normal, albedo) reprojected from the ``sources``
    nearest captured views with depth tests (:func:`stages.numerics.gbuffer.reproject_gbuffer`, the paper's
    depth-guided reprojection; ``learned_blend`` optionally blends with weights learned leave one out on
-   the captured views, :mod:`stages.numerics.learned_blend`), roughness and occlusion looked up in the materials textures through the
-   textured mesh's UVs (pixels the mesh covers but no source sees take the baked textures and the mesh's
+   the captured views, :mod:`stages.numerics.learned_blend`), roughness and occlusion looked up in the
+   materials textures through the textured mesh's UVs (pixels the mesh covers but no source sees take the baked textures and the mesh's
    smooth normals; ``normals: mesh`` uses those everywhere);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
@@ -36,9 +36,9 @@ from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.numerics.learned_blend import LearnedBlendConfig
 from stages.geometry import camera_maps
 from stages.numerics import numeric_threads
+from stages.numerics.learned_blend import LearnedBlendConfig
 
 PROCEDURAL_PREFIX = "procedural:"
 #: What an environment found nowhere is replaced by (a capture without ../shared still gets renders).
