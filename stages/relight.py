@@ -6,8 +6,8 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
    nearest captured views with depth tests (:func:`stages.numerics.gbuffer.reproject_gbuffer`, the paper's
    depth-guided reprojection; ``learned_blend`` optionally blends with weights learned leave one out on
    the captured views, :mod:`stages.numerics.learned_blend`), roughness and occlusion looked up in the
-   materials textures through the textured mesh's UVs (pixels the mesh covers but no source sees take the baked textures and the mesh's
-   smooth normals; ``normals: mesh`` uses those everywhere);
+   materials textures through the textured mesh's UVs (pixels the mesh covers but no source sees take the
+   baked textures and the mesh's smooth normals; ``normals: mesh`` uses those everywhere);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
 3. shading: Lambertian diffuse + GGX specular under the lobes (F0 0.02), with the mesh's self-occlusion
