@@ -36,6 +36,7 @@ from stages.numerics.gbuffer import SourceView, source_candidates
 __all__ = ["LearnedBlendConfig", "LearnedBlend", "BlendNet", "candidate_features", "fit_learned_blend"]
 
 FEATURES = 8  # visibility, theta, log density, cos source, cos target, log prior weight, albedo and normal deviation
+_CANDIDATE_KEYS = ("visibility", "theta", "log_density", "cos_source", "cos_target", "weight", "albedo", "normal")
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,7 @@ def candidate_features(cand: dict[str, Any]) -> dict[str, torch.Tensor]:
     Returns ``features`` (N, k, 8), ``prior`` (N, k) the heuristic weights normalised over the sources,
     ``albedo`` (N, k, 3), ``normal`` (N, k, 3) and ``visible`` (N, k) bool, float32 tensors.
     """
-    t = {key: torch.as_tensor(np.asarray(cand[key]), dtype=torch.float32)
-         for key in ("visibility", "theta", "log_density", "cos_source", "cos_target", "weight", "albedo", "normal")}
+    t = {key: torch.as_tensor(np.asarray(cand[key]), dtype=torch.float32) for key in _CANDIDATE_KEYS}
     weight = torch.nan_to_num(t["weight"]).clamp_min(0.0)
     prior = weight / weight.sum(1, keepdim=True).clamp_min(1e-12)
     albedo, normal = torch.nan_to_num(t["albedo"]), torch.nan_to_num(t["normal"])
@@ -139,9 +139,7 @@ class LearnedBlend:
         n = len(np.asarray(cand["weight"]))
         out = np.zeros(np.asarray(cand["weight"]).shape, np.float64)
         for lo in range(0, n, chunk):
-            part = candidate_features({key: np.asarray(cand[key])[lo:lo + chunk] for key in
-                                       ("visibility", "theta", "log_density", "cos_source", "cos_target", "weight",
-                                        "albedo", "normal")})
+            part = candidate_features({key: np.asarray(cand[key])[lo:lo + chunk] for key in _CANDIDATE_KEYS})
             out[lo:lo + chunk] = self.net(part["features"], part["prior"], part["visible"]).double().numpy()
         return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
 
@@ -185,9 +183,7 @@ def fit_learned_blend(views: Sequence[SourceView], config: LearnedBlendConfig = 
         if idx.size > config.pixels_per_view:
             idx = np.sort(rng.choice(idx, config.pixels_per_view, replace=False))
         if idx.size:
-            feats = candidate_features({key: cand[key][idx] for key in
-                                        ("visibility", "theta", "log_density", "cos_source", "cos_target", "weight",
-                                         "albedo", "normal")})
+            feats = candidate_features({key: cand[key][idx] for key in _CANDIDATE_KEYS})
             feats["ref_albedo"] = torch.from_numpy(ref_albedo[idx])
             feats["ref_normal"] = torch.from_numpy(ref_normal[idx])
             parts.append(feats)
