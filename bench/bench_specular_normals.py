@@ -2,7 +2,8 @@
 
 A small capture (1 action, 8 cameras, default width; ``--seeds`` picks the subjects: seed 0 is the
 subject the roughness prior was chosen on, the others are held out) goes through the pipeline up to
-``photometric`` with the specular fit off; then, per camera, from the same decoded frames:
+``photometric`` (which fits no specular reflection: the ``diffuse_normals`` stage does); then, per camera,
+from the same decoded frames:
 
 - ``eq1``: the ratio of eq. 1 (through the session's LED model when there is one): the baseline;
 - ``fit r=R``: :func:`stages.numerics.specular_normals.fit_diffuse_normals` with roughness prior R
@@ -17,7 +18,6 @@ bench_specular_normals.json/.md/.png.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import shutil
 import sys
@@ -32,16 +32,14 @@ from _threads import set_numeric_threads  # noqa: E402
 
 
 def prepare(root: Path, seed: int, width: int, cameras: int) -> Path:
-    """Simulate and run through photometric (specular fit off); returns the work folder."""
+    """Simulate and run through photometric; returns the work folder."""
     from pipeline.runner import ExecutionConfig, run_pipeline
-    from stages.photometric import PhotometricConfig, SpecularConfig
     from stages.registry import PRESETS, build_stages
     from synthetic import SimConfig, simulate
 
     shutil.rmtree(root, ignore_errors=True)
     simulate(root / "capture", SimConfig(actions=1, n_cameras=cameras, width=width, seed=seed))
-    preset = dataclasses.replace(PRESETS["default"],
-                                 photometric=PhotometricConfig(specular=SpecularConfig(enabled=False)))
+    preset = PRESETS["default"]
     run_pipeline(root / "capture", root / "release", root / "work", build_stages(preset, through="photometric"),
                  preset, ExecutionConfig(scheduler="sync"), echo=lambda line: None)
     return root

@@ -205,9 +205,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "- Known biases: photometric normals are biased where the lit hemisphere is occluded (armpits, "
              "between limbs) and by specular reflection (normal_alpha, eq. 1; normal_diffuse has the "
              "specular reflection fitted out, with the roughness of the materials stage and an assumed F0, and is "
-             "closer to the surface, but the specular fit that starts the chain (one assumed roughness) leaves "
-             "small per-material biases that would inflate the mesh by millimetres, so the mesh is "
-             "fitted to normal_alpha); the white-light albedo still contains ambient "
+             "closer to the surface, but it leaves small per-material biases that would inflate the mesh by "
+             "millimetres, so the mesh is fitted to normal_alpha); the white-light albedo still contains ambient "
              "occlusion (textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh "
              "smooths creases); roughness assumes Fresnel F0 = 0.02 everywhere; relit views have no "
              "interreflections; see metrics.parquet.",

@@ -28,19 +28,15 @@ from stages.numerics.specular_normals import fit_diffuse_normals, view_direction
 
 @dataclass(frozen=True)
 class SpecularConfig(Documented):
-    """Second normal maps with the specular reflection fitted out (stages/numerics/specular_normals.py). The
-    photometric stage's are a first pass with one roughness for every pixel; the release's ``normal_diffuse``
-    are the diffuse_normals stage's refit with the materials' roughness (``DiffuseNormalsConfig``)."""
+    """The per-pixel fit of the normals with the specular reflection fitted out
+    (stages/numerics/specular_normals.py): each pixel's normal fitted as Lambertian plus GGX reflection instead
+    of eq. 1's ratio alone (default capture, one roughness prior for every pixel: 10.0 -> 7.7 deg mean error
+    against the simulator's normals over valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a
+    subject the prior was not chosen on)."""
 
-    enabled: bool = True
-    """Also write ``normal_diffuse`` (and so release them): each pixel's normal fitted as Lambertian plus GGX reflection instead of
-    eq. 1's ratio alone (default capture: 10.0 -> 7.7 deg mean error against the simulator's normals over
-    valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a subject the prior was not chosen on).
-    The ratio normals stay the release's ``normal_alpha``: the SDF is fitted to those (with the fitted ones
-    its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm: the roughness prior leaves a few hundredths of
-    n.v of bias per material, which moves a 10 cm limb's surface by millimetres)."""
     roughness: float = 0.6
-    """Perceptual GGX roughness assumed for every pixel (a prior: one pixel cannot also pin it down)."""
+    """Perceptual GGX roughness assumed for every pixel the materials' roughness does not reach (a prior: one
+    pixel cannot also pin it down)."""
     f0: float = 0.04
     """Schlick Fresnel reflectance at normal incidence assumed (dielectrics: 0.02-0.05)."""
     steps: int = 40
@@ -53,7 +49,7 @@ class SpecularConfig(Documented):
     def __post_init__(self) -> None:
         if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0
                 and self.retry_residual >= 0):
-            raise ValueError("photometric.specular: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0, "
+            raise ValueError("diffuse_normals.fit: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0, "
                              "retry_residual >= 0")
 
 
@@ -62,15 +58,15 @@ class DenoiseConfig(Documented):
     """Edge-preserving denoising of the albedo and normal maps (stages/numerics/denoise.py)."""
 
     enabled: bool = True
-    """Filter the albedo and ``normal_diffuse`` maps with a joint bilateral filter guided by the albedo, over
-    valid pixels only. Chosen against the simulator's truth, not the held-out protocol (default capture, three
-    cameras per action: albedo 28.21 -> 28.47 and 27.11 -> 27.35 dB, normal_diffuse 6.46 -> 6.46 and 8.07 ->
-    7.38 deg; a 1.5 px spatial width smooths the normals of A0000 too much, 6.78 deg; over every camera,
-    `make dataset`: normal_diffuse 7.40 -> 7.08 deg, albedo 24.71 -> 24.82 dB). The price: maps reprojected
-    from these (held-out views, relighting) lose a little detail the blend of views had kept (held-out
-    normals against the truth 5.94 -> 6.17 deg, albedo SSIM 0.912 -> 0.908, relit 23.23 -> 23.16 dB), while
-    the held-out protocol against the photometric maps gains most (5.41 -> 4.16 deg), because its references
-    lose their pixel noise."""
+    """Filter the albedo maps (and the diffuse_normals stage's ``normal_diffuse``, with its own copy of this
+    config) with a joint bilateral filter guided by the albedo, over valid pixels only. Chosen against the
+    simulator's truth, not the held-out protocol (default capture, three cameras per action: albedo 28.21 ->
+    28.47 and 27.11 -> 27.35 dB, normal_diffuse 6.46 -> 6.46 and 8.07 -> 7.38 deg; a 1.5 px spatial width
+    smooths the normals of A0000 too much, 6.78 deg; over every camera, `make dataset`: normal_diffuse 7.40 ->
+    7.08 deg, albedo 24.71 -> 24.82 dB). The price: maps reprojected from these (held-out views, relighting)
+    lose a little detail the blend of views had kept (held-out normals against the truth 5.94 -> 6.17 deg,
+    albedo SSIM 0.912 -> 0.908, relit 23.23 -> 23.16 dB), while the held-out protocol against the photometric
+    maps gains most (5.41 -> 4.16 deg), because its references lose their pixel noise."""
     normal_alpha: bool = False
     """Also filter ``normal_alpha``, the maps the SDF is fitted to. Off: filtered, they are closer to the truth
     (default capture: 9.82 -> 9.20 deg) but the mesh came out worse (Chamfer 2.26 -> 2.49 mm, F-score at 1 mm
@@ -98,10 +94,8 @@ class PhotometricConfig(Documented):
     """Write PNG previews (normals, albedo, mask) and a contact sheet per action."""
     light_iterations: int = 4
     """Gauss-Newton iterations when inverting the session's fitted LED ratio model."""
-    specular: SpecularConfig = field(default_factory=SpecularConfig)
-    """The second normal maps with the specular reflection fitted out (``normal_diffuse``)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
-    """Edge-preserving denoising of the albedo and normal maps."""
+    """Edge-preserving denoising of the albedo maps (and of ``normal_alpha`` when asked)."""
 
 
 def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
@@ -134,10 +128,10 @@ def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
 
 class PhotometricStage(Stage):
     name = "photometric"
-    version = "5"
+    version = "6"
     scope = "action"
     requires = ("decode", "plates", "lights")
-    outputs = ("normal_alpha", "normal_diffuse", "albedo", "mask", "previews")
+    outputs = ("normal_alpha", "albedo", "mask", "previews")
     per_view = True
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
@@ -158,81 +152,67 @@ class PhotometricStage(Stage):
         defined = np.any(maps.normals != 0, axis=-1)
         if model is not None:  # the session's LEDs were calibrated: invert their ratio model
             maps.normals[...] = corrected_normals(pos, neg, model, defined, self.config.light_iterations)
-        diffuse = self._diffuse_normals(cam, pos, neg, maps.normals, defined, model)
         mask = maps.mask
         valid = (maps.alpha > 0.5) & mask
         albedo, normals = maps.albedo, maps.normals
         den = self.config.denoise
         if den.enabled:
-            maps_in = ([normals] if den.normal_alpha else []) + ([diffuse] if diffuse is not None else [])
-            albedo, filtered = joint_bilateral(albedo, maps_in, valid, den.spatial_sigma_px, den.range_sigma,
-                                               den.radius)
+            albedo, filtered = joint_bilateral(albedo, [normals] if den.normal_alpha else [], valid,
+                                               den.spatial_sigma_px, den.range_sigma, den.radius)
             if den.normal_alpha:
-                normals = filtered.pop(0)
-            if diffuse is not None:
-                diffuse = filtered.pop(0)
+                normals = filtered[0]
         out = ctx.out_dir
         write_exr(out / "normal_alpha" / f"{view}.exr", np.concatenate([normals, maps.alpha[..., None]], -1))
-        if diffuse is not None:
-            write_exr(out / "normal_diffuse" / f"{view}.exr", np.concatenate([diffuse, maps.alpha[..., None]], -1))
         write_exr(out / "albedo" / f"{view}.exr", albedo)
         write_png(out / "mask" / f"{view}.png", maps.mask)
         if self.config.previews:
             write_png(out / "previews" / f"normal_{view}.png", preview_normals(normals, maps.alpha))
-            if diffuse is not None:
-                write_png(out / "previews" / f"normal_diffuse_{view}.png", preview_normals(diffuse, maps.alpha))
             write_png(out / "previews" / f"albedo_{view}.png", preview_linear(albedo, exposure=1.0))
         return {"mask_fraction": float(mask.mean()),
                 "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
                 "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,
                 "plate": background is not None}
 
-    def _diffuse_normals(self, cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray, normals: np.ndarray,
-                         defined: np.ndarray, model: Any) -> np.ndarray | None:
-        """The normals with the fitted specular reflection taken out of the frames (None when off)."""
-        spec = self.config.specular
-        if not spec.enabled:
-            return None
-        return specular_free_normals(cam, pos, neg, normals, defined, model, spec, spec.roughness,
-                                     self.config.light_iterations)
-
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            for prefix, sheet in (("normal_", "normals_sheet.png"), ("normal_diffuse_", "normals_diffuse_sheet.png")):
-                paths = [ctx.out_dir / "previews" / f"{prefix}{v}.png" for v in sorted(view_stats)
-                         if "missing" not in view_stats[v]]
-                pics = [read_png(p) for p in paths if p.exists()]
-                if pics:
-                    write_png(ctx.out_dir / "previews" / sheet, contact_sheet(pics))
+            paths = [ctx.out_dir / "previews" / f"normal_{v}.png" for v in sorted(view_stats)
+                     if "missing" not in view_stats[v]]
+            pics = [read_png(p) for p in paths if p.exists()]
+            if pics:
+                write_png(ctx.out_dir / "previews" / "normals_sheet.png", contact_sheet(pics))
         fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        # normal_diffuse here is the first pass (one roughness prior); the release gets the diffuse_normals
-        # stage's refit with the materials' roughness instead
         files = []
         for slot, ext in (("normal_alpha", "exr"), ("albedo", "exr"), ("mask", "png")):
             files += [(p, f"{slot}/{p.name}", slot, p.stem) for p in sorted((artifact / slot).glob(f"*.{ext}"))]
-        files += [(p, f"previews/{p.name}", "preview", None) for p in sorted((artifact / "previews").glob("*sheet*.png"))
-                  if p.name != "normals_diffuse_sheet.png"]
+        files += [(p, f"previews/{p.name}", "preview", None)
+                  for p in sorted((artifact / "previews").glob("*sheet*.png"))]
         return files
 
 
 @dataclass(frozen=True)
 class DiffuseNormalsConfig(Documented):
-    """The released ``normal_diffuse`` maps: the specular fit again, with each pixel's roughness from the
-    materials stage instead of one prior for every pixel."""
+    """The released ``normal_diffuse`` maps: the specular fit, each pixel with its roughness from the materials
+    stage. The photometric stage does not fit them: the mesh and the roughness texture need only eq. 1's
+    ``normal_alpha``, so a first pass with one roughness prior for every pixel would be thrown away (it cost
+    1.5 s per camera on the default capture)."""
 
+    enabled: bool = True
+    """Write ``normal_diffuse`` (and so release them). The ratio normals stay the release's ``normal_alpha``: the
+    SDF is fitted to those (with the specular-fitted ones its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm:
+    the fit leaves a few hundredths of n.v of bias per material, which moves a 10 cm limb's surface by
+    millimetres)."""
     use_materials_roughness: bool = True
     """Refit each pixel with the materials stage's roughness texture seen through the textured mesh. On the
     default capture (`make dataset`, valid pixels of every camera) the maps come closer to the simulator's
     normals, 7.08 -> 6.38 deg, shiny leather (roughness 0.25) most: 11.6 -> 8.2 deg. bench_diffuse_normals
     (8 cameras per action): 7.20 -> 6.51 and 7.94 -> 7.15 deg, against 6.34 and 6.92 with the simulator's
-    own roughness, for the same fit time. Off: the photometric stage's first pass (``photometric.specular``,
-    one roughness for every pixel) is released as it is."""
+    own roughness, for the same fit time. Off: every pixel is fitted with ``fit.roughness``."""
     fit: SpecularConfig = field(default_factory=SpecularConfig)
-    """The per-pixel fit; its ``roughness`` is used only where the textured mesh does not cover a pixel, and
-    its ``enabled`` is not read (the photometric stage's decides whether there are maps at all)."""
+    """The per-pixel fit; its ``roughness`` is used where the textured mesh does not cover a pixel (every
+    pixel with ``use_materials_roughness`` off)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """The same edge-preserving filter as the photometric stage's maps get, guided by the released albedo
     (``normal_alpha`` is not read here)."""
@@ -284,10 +264,10 @@ def refit_diffuse_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
 
 
 class DiffuseNormalsStage(Stage):
-    """``normal_diffuse`` refitted with per-pixel roughness, one task per camera (see the config)."""
+    """``normal_diffuse`` fitted with per-pixel roughness, one task per camera (see the config)."""
 
     name = "diffuse_normals"
-    version = "1"
+    version = "2"
     scope = "action"
     requires = ("decode", "lights", "photometric", "textures", "materials")
     outputs = ("normal_diffuse", "previews")
@@ -295,19 +275,16 @@ class DiffuseNormalsStage(Stage):
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
         cfg: DiffuseNormalsConfig = self.config
+        if not cfg.enabled:
+            return {"disabled": True}
         decoded, photometric = ctx.upstream["decode"], ctx.upstream["photometric"]
         cameras = load_cameras(decoded / "cameras.json")
-        first_pass = photometric / "normal_diffuse" / f"{view}.exr"
-        if view not in cameras or not first_pass.exists():
-            return {"missing": "no photometric normal_diffuse for this camera"}
+        normal_alpha_path = photometric / "normal_alpha" / f"{view}.exr"
+        if view not in cameras or not normal_alpha_path.exists():
+            return {"missing": "no photometric normal_alpha for this camera"}
         out = ctx.out_dir / "normal_diffuse" / f"{view}.exr"
-        normal_alpha = read_exr(photometric / "normal_alpha" / f"{view}.exr")
+        normal_alpha = read_exr(normal_alpha_path)
         alpha = normal_alpha[..., 3]
-        if not cfg.use_materials_roughness:
-            released = read_exr(first_pass)
-            write_exr(out, released)
-            self._preview(ctx, view, released[..., :3], alpha)
-            return {"refit": False}
         start = time.perf_counter()
         cam = cameras[view]
         pos = read_exr(decoded / "pos" / f"{view}.exr")
@@ -315,14 +292,19 @@ class DiffuseNormalsStage(Stage):
         mask = read_png(photometric / "mask" / f"{view}.png")
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
         albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
-        scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))
-        roughness, on_mesh = materials_roughness(scene, atlas, texture, cam, *alpha.shape, cfg.fit.roughness)
+        if cfg.use_materials_roughness:
+            scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]),
+                                                     str(ctx.upstream["materials"]))
+            roughness, on_mesh = materials_roughness(scene, atlas, texture, cam, *alpha.shape, cfg.fit.roughness)
+        else:
+            roughness = np.full(alpha.shape, cfg.fit.roughness, np.float32)
+            on_mesh = np.zeros(alpha.shape, bool)
         normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo,
                                         load_light_model(ctx.upstream["lights"]), cfg, roughness)
         write_exr(out, np.concatenate([normals, alpha[..., None]], -1))
         self._preview(ctx, view, normals, alpha)
         fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
-        return {"refit": True, "seconds": time.perf_counter() - start,
+        return {"fitted": True, "seconds": time.perf_counter() - start,
                 "roughness_mean": float(roughness[fitted].mean()) if fitted.any() else 0.0,
                 "on_mesh_fraction": float(on_mesh[fitted].mean()) if fitted.any() else 0.0}
 
@@ -337,9 +319,9 @@ class DiffuseNormalsStage(Stage):
             pics = [read_png(p) for p in paths if p.exists()]
             if pics:
                 write_png(ctx.out_dir / "previews" / "normals_diffuse_sheet.png", contact_sheet(pics))
-        refit = [s for s in view_stats.values() if s.get("refit")]
-        return {"views": view_stats, "refit_views": len(refit),
-                "seconds": float(sum(s["seconds"] for s in refit))}
+        fitted = [s for s in view_stats.values() if s.get("fitted")]
+        return {"views": view_stats, "fitted_views": len(fitted),
+                "seconds": float(sum(s["seconds"] for s in fitted))}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
         files = [(p, f"normal_diffuse/{p.name}", "normal_diffuse", p.stem)

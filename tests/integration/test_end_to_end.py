@@ -77,26 +77,42 @@ def test_release_layout_and_manifests(first_run):
     assert verify_release(release).ok
 
 
-def test_released_normal_diffuse_is_the_refit_with_the_materials_roughness(first_run):
+def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_run):
     from manifests import open_release
     from pipeline.codecs.exr import read_exr
+    from pipeline.codecs.image import read_png
+    from stages.cameras import load_cameras
+    from stages.lightcolour import load_light_model
+    from stages.photometric import refit_diffuse_normals
 
     out, _ = first_run
     artifacts = out / "work" / "artifacts"
+    cfg = PRESETS["test"].diffuse_normals
 
-    def artifact(stage: str, action: str) -> Path:
-        key = json.loads((artifacts / stage / action / "latest.json").read_text())["key"]
-        return artifacts / stage / action / key[:16]
+    def artifact(stage: str, scope: str) -> Path:
+        key = json.loads((artifacts / stage / scope / "latest.json").read_text())["key"]
+        return artifacts / stage / scope / key[:16]
 
+    model = load_light_model(artifact("lights", "S000"))
     for action in ("A0000", "A0001"):
         stats = json.loads((artifact("diffuse_normals", action) / "_SUCCESS.json").read_text())["stats"]
-        assert stats["refit_views"] == 6
+        assert stats["fitted_views"] == 6
         for view in stats["views"].values():
             assert 0.05 <= view["roughness_mean"] <= 1.0 and view["on_mesh_fraction"] > 0.9
+        # the photometric stage no longer fits a first pass nobody reads
+        photometric, decoded = artifact("photometric", action), artifact("decode", action)
+        assert not (photometric / "normal_diffuse").exists()
         released = open_release(out / "release").action(action).normals("00001", diffuse=True)
-        first_pass = read_exr(artifact("photometric", action) / "normal_diffuse" / "00001.exr")[..., :3]
-        refit = read_exr(artifact("diffuse_normals", action) / "normal_diffuse" / "00001.exr")[..., :3]
-        assert np.array_equal(released, refit) and not np.array_equal(refit, first_pass)
+        fitted = read_exr(artifact("diffuse_normals", action) / "normal_diffuse" / "00001.exr")[..., :3]
+        assert np.array_equal(released, fitted)
+        # and the materials' roughness changed the maps against one prior for every pixel
+        mask = read_png(photometric / "mask" / "00001.png")
+        one_prior = refit_diffuse_normals(
+            load_cameras(decoded / "cameras.json")["00001"], read_exr(decoded / "pos" / "00001.exr"),
+            read_exr(decoded / "neg" / "00001.exr"), read_exr(photometric / "normal_alpha" / "00001.exr"),
+            (mask[..., 0] if mask.ndim == 3 else mask) > 127, read_exr(photometric / "albedo" / "00001.exr")[..., :3],
+            model, cfg, cfg.fit.roughness)
+        assert one_prior.shape == fitted.shape and not np.allclose(one_prior, fitted, atol=1e-3)
 
 
 def test_materials_and_renders_through_the_consumer_api(first_run):

@@ -35,3 +35,18 @@ def test_contact_sheet_tiles_row_major():
     sheet = contact_sheet(pics, columns=3)
     assert sheet.shape == (4, 9, 3)
     assert sheet[0, 3, 0] == 1 and sheet[2, 0, 0] == 3 and sheet[2, 3, 0] == 4 and sheet[2, 6, 0] == 0
+
+
+def test_diffuse_normals_off_reads_and_writes_nothing(tmp_path):
+    from pipeline.stage import StageContext
+    from stages.photometric import DiffuseNormalsConfig, DiffuseNormalsStage, PhotometricStage
+
+    # upstream folders that do not exist: a disabled stage must not look at them
+    absent = {name: tmp_path / "absent" / name for name in DiffuseNormalsStage.requires}
+    ctx = StageContext(stage="diffuse_normals", scope_id="A0000", session_id="S000", action_id="A0000",
+                       out_dir=tmp_path / "out", upstream=absent, raw_inputs={}, rig={}, capture_root=tmp_path)
+    stage = DiffuseNormalsStage(DiffuseNormalsConfig(enabled=False))
+    assert stage.run_view(ctx, "00000") == {"disabled": True}
+    assert not (tmp_path / "out").exists()
+    # the photometric stage leaves the specular fit to this stage
+    assert "normal_diffuse" not in PhotometricStage.outputs and "normal_diffuse" in DiffuseNormalsStage.outputs
