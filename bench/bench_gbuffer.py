@@ -23,7 +23,9 @@ normal and albedo reprojected from the other 30 cameras) this reports
    distance to the silhouette (ring 1 touches the background; every camera), which the held-out reference
    carries into the comparison view by view and the synthesis cannot predict; and how the protocol's
    numbers move when one or two more silhouette rings are left out of the compared pixels (a sensitivity,
-   not the reported metric).
+   not the reported metric); and the geometry's share: the protocol with the simulator's depth maps in place
+   of the mesh's renders (target and sources), with the albedo SSIM per band of distance to the silhouette
+   for both.
 
 ``python bench/bench_gbuffer.py --out bench/out [--release DIR --capture DIR]``; defaults
 runs/default/release and runs/default/capture (``make dataset``); without them it prints why and exits 0.
@@ -133,6 +135,44 @@ def maps_variant(data, transform):
     return other
 
 
+def depth_variant(data, depth_of):
+    """``data`` (an ActionGBuffers) with every camera's depth from ``depth_of(cam) -> (H, W)`` instead of the
+    mesh's render (target and sources, so the depth tests use it too); its own render and source caches."""
+    from stages.heldout import ActionGBuffers
+
+    class DepthVariant(ActionGBuffers):
+        def render(self, cam: str) -> dict:
+            if cam not in self._render:
+                self._render[cam] = {"depth_m": depth_of(cam)}
+            return self._render[cam]
+
+    other = data.with_normals(data.diffuse_normals)
+    other._render = {}
+    other.__class__ = DepthVariant
+    return other
+
+
+def ssim_by_ring(result: dict, groups=((2, 4), (5, 6), (7, 10), (11, None))) -> dict:
+    """Mean albedo SSIM (the protocol's map: 7 x 7 windows, both images zeroed outside the compared pixels)
+    of the held-out views of a ``heldout_metrics(..., return_maps=True)`` result, per band of distance to
+    the held-out mask's silhouette (ring 1 touches the background), pooled over the views."""
+    from skimage.metrics import structural_similarity
+
+    values: dict[str, list] = {}
+    for m in result["maps"].values():
+        keep = m["compare"]
+        a = np.where(keep[..., None], m["synth"]["albedo"], 0.0)
+        b = np.where(keep[..., None], m["photometric"]["albedo"], 0.0)
+        _, smap = structural_similarity(a, b, data_range=1.0, win_size=7, full=True, channel_axis=-1)
+        smap = smap.mean(axis=-1)
+        ring = silhouette_ring(m["photometric"]["mask"])
+        for lo, hi in groups:
+            sel = keep & (ring >= lo) & (ring <= (hi if hi is not None else ring.max()))
+            values.setdefault(f"{lo}-{hi}" if hi is not None else f"{lo}+", []).append(smap[sel])
+    return {k: {"ssim": round(float(np.concatenate(v).mean()), 4), "pixels": int(sum(x.size for x in v))}
+            for k, v in values.items() if sum(x.size for x in v)}
+
+
 def silhouette_ring(mask: np.ndarray) -> np.ndarray:
     """(H, W) int32 chessboard distance of each mask pixel to the background (1 = touches it, 8-connected)."""
     from scipy import ndimage
@@ -185,6 +225,25 @@ def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int =
                 "normal_diffuse_mean_deg": round(float(ed.mean()), 3),
                 "albedo_rmse": round(float(np.sqrt(sq.mean())), 4)}
     out["photometric_vs_truth_by_ring"] = by_ring
+
+    # The geometry's share: the simulator's depth maps in place of the mesh's renders, eq. 1's maps as the
+    # protocol (what a perfect mesh would score with these maps and this blend), SSIM by silhouette band.
+    from pipeline.codecs.exr import read_exr
+
+    def true_depth(cam: str) -> np.ndarray:
+        z = read_exr(truth_dir / action / "depth" / f"{cam}.exr")
+        z = z[..., 0] if z.ndim == 3 else z
+        expected = data.photometric(cam)["mask"].shape
+        if z.shape != expected:
+            raise ValueError(f"{truth_dir / action / 'depth' / (cam + '.exr')}: {z.shape}, maps are {expected}")
+        return np.where(np.isfinite(z) & (z > 0), z, 0.0).astype(np.float32)
+
+    if all((truth_dir / action / "depth" / f"{c}.exr").exists() for c in data.cameras):
+        eq1 = data.with_normals(False)
+        mesh = heldout_metrics(release, action, data=eq1, return_maps=True)
+        true = heldout_metrics(release, action, data=depth_variant(eq1, true_depth), return_maps=True)
+        out["true_depth"] = {"mesh": _short(mesh, ("",)), "true_depth": _short(true, ("",)),
+                             "ssim_by_silhouette_band": {"mesh": ssim_by_ring(mesh), "true_depth": ssim_by_ring(true)}}
     return out
 
 
