@@ -172,3 +172,21 @@ def test_new_action_in_a_session_reuses_the_session_stages(tmp_path):
     st = _statuses(result)
     assert st[("calib", "S000")] == "cached"  # calibrated once per session, not per action
     assert st[("read", "A0001")] == "ran" and st[("read", "A0000")] == "cached"
+
+
+def test_local_cluster_workers_keep_glibc_malloc_trim(monkeypatch):
+    import os
+
+    from pipeline.graph import DaskExecutor
+
+    # dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which made numeric work 2.6x slower
+    # (bench/bench_executor.py); the executor's workers keep this process's setting (here: none)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    for var in ("ULTRASTAGE_NUMERIC_THREADS", "OMP_NUM_THREADS"):  # the executor sets them for its workers
+        monkeypatch.setenv(var, "1")
+    executor = DaskExecutor(workers=1)
+    try:
+        seen = executor.client.submit(os.environ.get, "MALLOC_TRIM_THRESHOLD_", "unset", pure=False).result()
+    finally:
+        executor.close()
+    assert seen == "unset"
