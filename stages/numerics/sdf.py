@@ -214,8 +214,9 @@ class SDFConfig(Documented):
 
 SDF_PRESETS: dict[str, SDFConfig] = {
     # `make dataset` on a 2-core machine: one action (32 views, 320x480) on one thread while the other action
-    # trains on the other core, planned at ~100 s (budget 150 s); the current development machine, slower,
-    # takes 425-450 s (training.json's time_s on the default capture). With the calibrated cameras the silhouettes are
+    # trains on the other core, planned at ~100 s (budget 150 s); the development machine takes about 205 s
+    # (training.json's time_s on the default capture; 499 s while dask's workers trimmed malloc's heap at
+    # 64 KiB, see pipeline.graph.DaskExecutor). With the calibrated cameras the silhouettes are
     # pixel-exact, so the mask loss earns a larger weight: Chamfer on the default capture (A0000 / A0001,
     # 256^3 marching) 2.79 / 2.85 mm at weight_mask 0.1, 2.20 / 2.27 at 0.5 (0.3: 2.29, 1.0: 2.60 on A0000),
     # against 2.52 mm for the visual hull alone (bench/bench_geometry.py).
