@@ -7,7 +7,8 @@ from the same decoded frames:
 
 - ``eq1``: the ratio of eq. 1 (through the session's LED model when there is one): the baseline;
 - ``fit r=R``: :func:`stages.numerics.specular_normals.fit_diffuse_normals` with roughness prior R
-  (F0 0.04, the stage's steps), and the default prior with 20 / 80 / 150 steps;
+  (F0 0.04, the stage's solver and steps), and the default prior with Adam's 40 steps (the former
+  solver) and 3 / 12 Levenberg-Marquardt steps;
 - ``fit oracle r``: the simulator's per-pixel roughness (what a perfect roughness would give);
 - ``fit per-pixel r``: each pixel's roughness chosen from {0.3, 0.5, 0.7, 0.9} by the lowest residual.
 
@@ -49,8 +50,9 @@ def variants(default_roughness: float) -> dict[str, dict]:
     out = {"eq1": {}}
     for r in (0.4, 0.5, 0.6, 0.7, 0.8):
         out[f"fit r={r}"] = {"roughness": r}
-    for steps in (20, 80, 150):
-        out[f"fit r={default_roughness} {steps} steps"] = {"roughness": default_roughness, "steps": steps}
+    for solver, steps in (("adam", 40), ("levenberg_marquardt", 3), ("levenberg_marquardt", 12)):
+        out[f"fit r={default_roughness} {solver} {steps} steps"] = {"roughness": default_roughness, "steps": steps,
+                                                                    "solver": solver}
     out["fit oracle r"] = {"roughness": "truth"}
     out["fit per-pixel r"] = {"roughness": "grid"}
     return out
@@ -99,7 +101,8 @@ def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]
                 normals = eq1
                 seconds = eq1_s
             else:
-                kwargs = {"steps": spec.get("steps", SpecularConfig().steps), "f0": 0.04}
+                kwargs = {"steps": spec.get("steps", SpecularConfig().steps), "f0": 0.04,
+                          "solver": spec.get("solver", SpecularConfig().solver)}
                 if spec["roughness"] == "grid":
                     fits = [fit_diffuse_normals(pos, neg, white, views, eq1, defined, roughness=g, **kwargs)
                             for g in (0.3, 0.5, 0.7, 0.9)]

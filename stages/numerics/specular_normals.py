@@ -11,9 +11,16 @@ pixel's g+ and g- values as Lambertian plus GGX reflection under the stage's lin
 (:func:`stages.numerics.materials.shade_stage_illuminations`, exact GGX moments, no occlusion), for a
 *given* roughness and Fresnel F0 (a prior: one pixel's six values cannot also pin the roughness down;
 see the bench for what a per-pixel choice does). For a fixed ``n`` the albedo is linear and solved in
-closed form per channel, so the optimisation is over the normal only (Adam on an unnormalised 3-vector,
-from the Lambertian normal; where that explains the pixel badly, also from the half-way vector between it
-and the view, which is where a mirror-like pixel's normal lies; the lower residual wins).
+closed form per channel, so the optimisation is over the normal only, from the Lambertian normal; where
+that explains the pixel badly, also from the half-way vector between it and the view, which is where a
+mirror-like pixel's normal lies; the lower residual wins.
+
+**Solver.** Levenberg-Marquardt in the tangent plane of the current normal (two parameters per pixel, the
+Jacobian of the six residuals by forward differences, a 2 x 2 solve, steps of at most 0.5 rad, the damping
+per pixel), or Adam on an unnormalised 3-vector (the former default). On the default capture (16 cameras,
+the materials' roughness) 6 Levenberg-Marquardt steps reach 6.78 deg against the simulator's normals where
+40 Adam steps reached 6.83, at a third of the time (0.76 vs 2.39 s per camera with the edge-preserving
+filter, one thread); 12 steps give 6.78 too.
 
 Conventions of docs/CONTRACTS.md: stage frame, OpenCV cameras ``x_cam = R x_world + t``, images
 ``(H, W, 3)`` float32; radiance in white units (decoded value / ``white_reference``). Pure numerics:
@@ -26,7 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["SpecularFit", "view_directions", "fit_diffuse_normals"]
+__all__ = ["SOLVERS", "SpecularFit", "view_directions", "fit_diffuse_normals"]
+
+SOLVERS = ("levenberg_marquardt", "adam")
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,31 +88,70 @@ def _specular_only(n: torch.Tensor, views: torch.Tensor, roughness: torch.Tensor
 
 
 def _fit_chunk(obs: torch.Tensor, views: torch.Tensor, init: torch.Tensor, roughness: torch.Tensor, f0: float,
-               steps: int, lr: float, retry_residual: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               solver: str, steps: int, lr: float,
+               retry_residual: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """obs (N, 2, 3) g+/g- in white units -> normals (N, 3), albedo (N, 3), relative residual (N,)."""
     scale = obs.sum((1, 2)).square().clamp_min(1e-12)
 
-    def residual_of(x: torch.Tensor, sub):
-        n = torch.nn.functional.normalize(x, dim=-1)
+    def residuals_of(n: torch.Tensor, sub) -> tuple[torch.Tensor, torch.Tensor]:
+        """The six residuals (N, 6) of unit normals ``n`` relative to the signal, and the albedo (N, 3)."""
         spec = _specular_only(n, sub(views), sub(roughness), f0)[:, 1:]  # (N, 2 illum, 3 rgb)
         a_pos, a_neg = 0.5 + n / 3.0, 0.5 - n / 3.0  # Lambertian g+/g- per unit albedo (unoccluded)
         o = sub(obs)
         y_pos, y_neg = o[:, 0] - spec[:, 0], o[:, 1] - spec[:, 1]
         albedo = ((y_pos * a_pos + y_neg * a_neg) / (a_pos.square() + a_neg.square())).clamp_min(0.0)
-        res = ((albedo * a_pos - y_pos).square() + (albedo * a_neg - y_neg).square()).sum(-1) / sub(scale)
-        return n, albedo, res
+        res = torch.cat([albedo * a_pos - y_pos, albedo * a_neg - y_neg], -1) / sub(scale).sqrt()[:, None]
+        return res, albedo
 
-    def descend(start: torch.Tensor, rows: torch.Tensor | None):
+    def adam(start: torch.Tensor, sub):
         x = start.clone().requires_grad_(True)
         optimiser = torch.optim.Adam([x], lr=lr)
-        sub = (lambda t: t) if rows is None else (lambda t: t[rows])  # noqa: E731
         for _ in range(steps):
-            _, _, res = residual_of(x, sub)
+            res, _ = residuals_of(torch.nn.functional.normalize(x, dim=-1), sub)
             optimiser.zero_grad()
-            res.sum().backward()
+            res.square().sum().backward()
             optimiser.step()
         with torch.no_grad():
-            n, albedo, res = residual_of(x, sub)
+            n = torch.nn.functional.normalize(x, dim=-1)
+            res, albedo = residuals_of(n, sub)
+        return n, albedo, res.square().sum(-1)
+
+    @torch.no_grad()
+    def levenberg_marquardt(start: torch.Tensor, sub, eps: float = 1e-3, max_step: float = 0.5):
+        n = torch.nn.functional.normalize(start, dim=-1)
+        res, albedo = residuals_of(n, sub)
+        cost = torch.nan_to_num(res.square().sum(-1), nan=np.inf)
+        damping = torch.full_like(cost, 1e-2)
+        x_axis = n.new_tensor([1.0, 0.0, 0.0])
+        y_axis = n.new_tensor([0.0, 1.0, 0.0])
+        for _ in range(steps):
+            t1 = torch.nn.functional.normalize(
+                torch.cross(n, torch.where(n[:, :1].abs() < 0.9, x_axis, y_axis), dim=-1), dim=-1)
+            t2 = torch.cross(n, t1, dim=-1)
+            j1 = (residuals_of(torch.nn.functional.normalize(n + eps * t1, dim=-1), sub)[0] - res) / eps
+            j2 = (residuals_of(torch.nn.functional.normalize(n + eps * t2, dim=-1), sub)[0] - res) / eps
+            a11, a12, a22 = (j1 * j1).sum(-1), (j1 * j2).sum(-1), (j2 * j2).sum(-1)
+            g1, g2 = (j1 * res).sum(-1), (j2 * res).sum(-1)
+            d11, d22 = a11 * (1.0 + damping) + 1e-12, a22 * (1.0 + damping) + 1e-12
+            det = d11 * d22 - a12 * a12
+            det = torch.where(det.abs() > 1e-20, det, torch.full_like(det, 1e-20))
+            s1, s2 = -(d22 * g1 - a12 * g2) / det, (a12 * g1 - d11 * g2) / det
+            shrink = (max_step / torch.sqrt(s1 * s1 + s2 * s2).clamp_min(1e-12)).clamp(max=1.0)
+            trial = torch.nn.functional.normalize(n + (shrink * s1)[:, None] * t1 + (shrink * s2)[:, None] * t2,
+                                                  dim=-1)
+            trial_res, trial_albedo = residuals_of(trial, sub)
+            trial_cost = torch.nan_to_num(trial_res.square().sum(-1), nan=np.inf)
+            better = trial_cost < cost
+            n = torch.where(better[:, None], trial, n)
+            res = torch.where(better[:, None], trial_res, res)
+            albedo = torch.where(better[:, None], trial_albedo, albedo)
+            cost = torch.where(better, trial_cost, cost)
+            damping = torch.where(better, damping * 0.3, damping * 4.0).clamp(1e-7, 1e7)
+        return n, albedo, cost
+
+    def descend(start: torch.Tensor, rows: torch.Tensor | None):
+        sub = (lambda t: t) if rows is None else (lambda t: t[rows])  # noqa: E731
+        n, albedo, res = (levenberg_marquardt if solver == "levenberg_marquardt" else adam)(start, sub)
         return n, albedo, torch.nan_to_num(res, nan=np.inf)
 
     n, albedo, res = descend(init, None)
@@ -121,8 +169,9 @@ def _fit_chunk(obs: torch.Tensor, views: torch.Tensor, init: torch.Tensor, rough
 
 def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_dirs: np.ndarray,
                         normals_init: np.ndarray, pixels: np.ndarray, roughness: float | np.ndarray = 0.6,
-                        f0: float = 0.04, steps: int = 40, lr: float = 0.03, retry_residual: float = 1e-5,
-                        chunk: int = 262144, device: str | None = None) -> SpecularFit:
+                        f0: float = 0.04, steps: int = 6, lr: float = 0.03, retry_residual: float = 1e-5,
+                        chunk: int = 262144, device: str | None = None,
+                        solver: str = "levenberg_marquardt") -> SpecularFit:
     """Fit normals and diffuse albedo with the GGX reflection modelled (module docstring).
 
     Args:
@@ -133,11 +182,13 @@ def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_
         pixels: (H, W) bool where to fit (e.g. the mask where the ratio is defined).
         roughness: perceptual GGX roughness assumed, a scalar or (H, W).
         f0: Schlick Fresnel reflectance at normal incidence assumed.
-        steps, lr: Adam iterations and step per start.
+        steps: iterations per start (Levenberg-Marquardt: 6 converge; Adam needed about 40).
+        lr: Adam's step size (``solver="adam"`` only).
         retry_residual: pixels whose relative residual from the first start exceeds this get the second
             (half-way) start too; 0 = every pixel.
         chunk: pixels per batch (bounds memory).
         device: torch device; None = CUDA when available, else CPU.
+        solver: one of ``SOLVERS`` (module docstring).
 
     Returns:
         :class:`SpecularFit`.
@@ -158,6 +209,8 @@ def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_
     rough_map = np.broadcast_to(np.asarray(roughness, np.float32), shape)
     if not np.all(np.isfinite(rough_map)):
         raise ValueError("roughness must be finite")
+    if solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
     if not (0.0 <= f0 <= 1.0) or steps < 0 or lr <= 0 or chunk < 1:
         raise ValueError(f"need 0 <= f0 <= 1, steps >= 0, lr > 0 and chunk >= 1 (got {f0}, {steps}, {lr}, {chunk})")
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
@@ -180,7 +233,7 @@ def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_
         to = {"device": device, "dtype": torch.float32}
         obs, views = torch.as_tensor(obs_all[sl]).to(**to), torch.as_tensor(views_all[sl]).to(**to)
         n, rho, res = _fit_chunk(obs, views, torch.as_tensor(init_all[sl]).to(**to),
-                                 torch.as_tensor(rough_all[sl]).to(**to), f0, steps, lr, retry_residual)
+                                 torch.as_tensor(rough_all[sl]).to(**to), f0, solver, steps, lr, retry_residual)
         with torch.no_grad():
             s = _specular_only(n, views, torch.as_tensor(rough_all[sl]).to(**to), f0)
         r_, c_ = rows[sl], cols[sl]
