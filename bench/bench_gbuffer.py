@@ -121,34 +121,27 @@ def photometric_vs_truth(result: dict) -> dict:
     return {k: round(float(v), 4) for k, v in summarise(parts, "_truth").items()} if parts else {}
 
 
-def maps_variant(data, transform):
-    """``data`` (an ActionGBuffers) with its photometric maps passed through ``transform(maps, cam) -> maps``,
-    sharing its mesh scene and cached depth renders."""
+def data_variant(data, maps=None, depth_of=None):
+    """``data`` (an ActionGBuffers) with its photometric maps passed through ``maps(maps, cam) -> maps``
+    and/or every camera's depth from ``depth_of(cam) -> (H, W)`` instead of the mesh's render (target and
+    sources, so the depth tests use it too). It keeps its own source cache, and shares ``data``'s cached
+    depth renders unless ``depth_of`` replaces them."""
     from stages.heldout import ActionGBuffers
 
-    class MapsVariant(ActionGBuffers):
+    class Variant(ActionGBuffers):
         def photometric(self, cam: str) -> dict:
-            return transform(super().photometric(cam), cam)
+            out = super().photometric(cam)
+            return maps(out, cam) if maps is not None else out
 
-    other = data.with_normals(data.diffuse_normals)  # a copy with its own source cache
-    other.__class__ = MapsVariant
-    return other
-
-
-def depth_variant(data, depth_of):
-    """``data`` (an ActionGBuffers) with every camera's depth from ``depth_of(cam) -> (H, W)`` instead of the
-    mesh's render (target and sources, so the depth tests use it too); its own render and source caches."""
-    from stages.heldout import ActionGBuffers
-
-    class DepthVariant(ActionGBuffers):
         def render(self, cam: str) -> dict:
-            if cam not in self._render:
+            if depth_of is not None and cam not in self._render:
                 self._render[cam] = {"depth_m": depth_of(cam)}
-            return self._render[cam]
+            return super().render(cam)
 
     other = data.with_normals(data.diffuse_normals)
-    other._render = {}
-    other.__class__ = DepthVariant
+    if depth_of is not None:
+        other._render = {}
+    other.__class__ = Variant
     return other
 
 
@@ -197,8 +190,8 @@ def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int =
             return maps | {"alpha": np.where(edge, np.minimum(maps["alpha"], 0.25), maps["alpha"])}
         return transform
 
-    out = {"truth_maps": _short(heldout_metrics(release, action, data=maps_variant(diffuse, truth_maps)), ("",)),
-           "rings_left_out": {str(px): _short(heldout_metrics(release, action, data=maps_variant(diffuse, without_rings(px))), ("",))
+    out = {"truth_maps": _short(heldout_metrics(release, action, data=data_variant(diffuse, maps=truth_maps)), ("",)),
+           "rings_left_out": {str(px): _short(heldout_metrics(release, action, data=data_variant(diffuse, maps=without_rings(px))), ("",))
                               for px in (2, 3)}}  # 1 is the stage's own edge: metrics_diffuse
     acc = {r: {"eq1": [], "diffuse": [], "albedo_sq": []} for r in range(1, rings + 1)}
     for cam in sorted(data.cameras):
@@ -241,7 +234,7 @@ def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int =
     if all((truth_dir / action / "depth" / f"{c}.exr").exists() for c in data.cameras):
         eq1 = data.with_normals(False)
         mesh = heldout_metrics(release, action, data=eq1, return_maps=True)
-        true = heldout_metrics(release, action, data=depth_variant(eq1, true_depth), return_maps=True)
+        true = heldout_metrics(release, action, data=data_variant(eq1, depth_of=true_depth), return_maps=True)
         out["true_depth"] = {"mesh": _short(mesh, ("",)), "true_depth": _short(true, ("",)),
                              "ssim_by_silhouette_band": {"mesh": ssim_by_ring(mesh), "true_depth": ssim_by_ring(true)}}
     return out
