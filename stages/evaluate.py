@@ -129,8 +129,11 @@ def camera_errors(transforms: dict[str, Any], truth: dict[str, dict[str, Any]]) 
             "cam_focal_err_pct": float(np.mean(focal)), "cameras_registered": float(len(est))}
 
 
-def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -> EvaluationSummary:
-    """Evaluate every published action; writes rows to the metrics manifest (source "evaluate")."""
+def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
+                     relit_cache: Path | None = None) -> EvaluationSummary:
+    """Evaluate every published action; writes rows to the metrics manifest (source "evaluate").
+    ``relit_cache``: a folder that keeps the simulator's renders the relit views are compared with
+    (:class:`RelitTruthCache`); None renders them every time."""
     from manifests import append_rows, open_release
 
     rel = open_release(release)
@@ -206,7 +209,7 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate") -
     overall |= _mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
-    overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
+    overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache)
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     for metric, value in overall.items():
         rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
@@ -375,11 +378,66 @@ def relit_truth_lights(cameras: list[dict]) -> int:
     return 2048 if largest >= 256 else 512
 
 
+class RelitTruthCache:
+    """The simulator's renders of one action's true subject (``radiance``, ``mask``) kept on disk, so that
+    evaluating a changed release does not render the same reference again (about 100 s of the default
+    capture's 146 s evaluation).
+
+    A render's key is the sha256 of a sorted record: the simulator's source files, the capture's
+    ``capture.json``, the action's ``truth.json`` and true mesh (file digests), the light count, the camera
+    (K, pose, size) and the environment map's bytes and shape. Files are written under a temporary name and
+    renamed."""
+
+    def __init__(self, folder: Path, capture_root: Path, action_id: str, lights: int):
+        import hashlib
+
+        import synthetic
+
+        def digest(path: Path) -> str:
+            return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else "absent"
+
+        simulator = hashlib.sha256()
+        for path in sorted(Path(synthetic.__file__).parent.glob("*.py")):
+            simulator.update(path.name.encode() + b"\0" + path.read_bytes())
+        truth = Path(capture_root) / "ground_truth" / action_id
+        self.folder = Path(folder)
+        self.record = {"format": 1, "simulator": simulator.hexdigest(), "lights": int(lights),
+                       "capture": digest(Path(capture_root) / "capture.json"),
+                       "truth": digest(truth / "truth.json"), "mesh": digest(truth / "mesh.ply")}
+
+    def key(self, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, env: np.ndarray) -> str:
+        import hashlib
+        import json
+
+        env = np.ascontiguousarray(env, np.float32)
+        record = self.record | {"K": np.asarray(K, np.float64).round(9).tolist(),
+                                "cam_from_world": np.asarray(cam_from_world, np.float64).round(9).tolist(),
+                                "size": [int(height), int(width)], "env_shape": list(env.shape),
+                                "env": hashlib.sha256(env.tobytes()).hexdigest()}
+        return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+
+    def load(self, key: str) -> dict[str, np.ndarray] | None:
+        path = self.folder / f"{key[:32]}.npz"
+        if not path.exists():
+            return None
+        with np.load(path) as data:
+            return {"radiance": data["radiance"], "mask": data["mask"]}
+
+    def save(self, key: str, render: dict[str, np.ndarray]) -> None:
+        import os
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        tmp = self.folder / f".{key[:32]}.{os.getpid()}.tmp.npz"
+        np.savez_compressed(tmp, radiance=np.asarray(render["radiance"]), mask=np.asarray(render["mask"], bool))
+        os.replace(tmp, self.folder / f"{key[:32]}.npz")
+
+
 def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
-                   rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
+                   rows: list[dict[str, Any]], run_id: str, cache_dir: Path | None = None) -> dict[str, float]:
     """Relit novel views against the simulator's subject rendered under the same environment from the same
-    camera (:class:`synthetic.relight.TruthRelighter`): PSNR after a common exposure
-    (:func:`stages.numerics.metrics.relit_psnr`), per view and environment, averaged."""
+    camera (:class:`synthetic.relight.TruthRelighter`, kept in ``cache_dir`` by :class:`RelitTruthCache`
+    when given): PSNR after a common exposure (:func:`stages.numerics.metrics.relit_psnr`), per view and
+    environment, averaged."""
     from stages.numerics.metrics import relit_psnr
     from stages.relight import find_environment, load_environment
 
@@ -395,14 +453,23 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
             continue
         envs = view.release.load(view.asset("render_environments", None))["environments"]
         cams = view.render_cameras()
-        truth = TruthRelighter(capture_root, action_id, lights=relit_truth_lights(cams))
+        lights = relit_truth_lights(cams)
+        cache = RelitTruthCache(cache_dir, capture_root, action_id, lights) if cache_dir is not None else None
+        truth = None  # built on the first render the cache does not hold
         scores = []
         for env_record in envs:
             env, _ = load_environment(env_record["name"], find_environment(env_record["name"], capture_root))
             for cam in cams:
                 relit = view.relit(cam["camera_id"], env_record["label"])
-                true = truth.render(np.asarray(cam["K"]), np.asarray(cam["cam_from_world"]), cam["height"],
-                                    cam["width"], env)
+                args = (np.asarray(cam["K"]), np.asarray(cam["cam_from_world"]), cam["height"], cam["width"], env)
+                key = cache.key(*args) if cache is not None else None
+                true = cache.load(key) if cache is not None else None
+                if true is None:
+                    if truth is None:
+                        truth = TruthRelighter(capture_root, action_id, lights=lights)
+                    true = truth.render(*args)
+                    if cache is not None:
+                        cache.save(key, true)
                 score = relit_psnr(relit[..., :3], relit[..., 3] > 0.5, true["radiance"], true["mask"])
                 scores.append(score["psnr_db"])
                 rows.append({"action_id": action_id, "camera_id": cam["camera_id"], "metric": "relit_psnr_db",
@@ -453,7 +520,7 @@ def evaluate_release_cached(release: Path, truth_dir: Path, work: Path,
         saved = json.loads(record.read_text())
         if saved.get("key") == key:
             return EvaluationSummary(saved["overall"], saved["per_action"]), True
-    summary = evaluate_release(release, truth_dir, run_id=run_id)
+    summary = evaluate_release(release, truth_dir, run_id=run_id, relit_cache=work / "cache" / "relit_truth")
     record.write_text(json.dumps({"key": key, "overall": summary.overall, "per_action": summary.per_action}))
     return summary, False
 

@@ -115,6 +115,36 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
         assert one_prior.shape == fitted.shape and not np.allclose(one_prior, fitted, atol=1e-3)
 
 
+def test_relit_truth_renders_are_kept_by_their_inputs(first_run, capture, tmp_path, monkeypatch):
+    import synthetic.relight
+    from manifests import open_release
+    from stages.evaluate import RelitTruthCache, _relit_overall
+
+    out, _ = first_run
+    release = open_release(out / "release")
+
+    def evaluate():
+        rows: list[dict] = []
+        return _relit_overall(release, capture / "ground_truth", ["A0000"], {}, rows, "t", tmp_path), rows
+
+    first, rows = evaluate()
+    assert len(list(tmp_path.glob("*.npz"))) == len(rows) > 0 and first["relit_psnr_db"] > 10
+
+    class NoRenders:
+        def __init__(self, *args, **kwargs):
+            raise AssertionError("the simulator was set up although every render was kept")
+
+    monkeypatch.setattr(synthetic.relight, "TruthRelighter", NoRenders)
+    assert evaluate()[0] == first
+    # the key follows the inputs: another environment or camera is another render
+    cache = RelitTruthCache(tmp_path, capture, "A0000", 512)
+    K, pose, env = np.diag([100.0, 100.0, 1.0]), np.eye(4)[:3], np.zeros((4, 8, 3), np.float32)
+    key = cache.key(K, pose, 10, 12, env)
+    assert key == cache.key(K.copy(), pose.copy(), 10, 12, env.copy())
+    assert key != cache.key(K, pose, 10, 12, env + 1) and key != cache.key(K, pose, 10, 13, env)
+    assert key != RelitTruthCache(tmp_path, capture, "A0001", 512).key(K, pose, 10, 12, env)
+
+
 def test_materials_and_renders_through_the_consumer_api(first_run):
     from manifests import open_release
 
