@@ -388,7 +388,7 @@ class RelitTruthCache:
     (K, pose, size) and the environment map's bytes and shape. Files are written under a temporary name and
     renamed."""
 
-    def __init__(self, folder: Path, capture_root: Path, action_id: str, lights: int):
+    def __init__(self, folder: Path, truth_dir: Path, action_id: str, lights: int):
         import hashlib
 
         import synthetic
@@ -399,10 +399,10 @@ class RelitTruthCache:
         simulator = hashlib.sha256()
         for path in sorted(Path(synthetic.__file__).parent.glob("*.py")):
             simulator.update(path.name.encode() + b"\0" + path.read_bytes())
-        truth = Path(capture_root) / "ground_truth" / action_id
+        truth = Path(truth_dir) / action_id
         self.folder = Path(folder)
         self.record = {"format": 1, "simulator": simulator.hexdigest(), "lights": int(lights),
-                       "capture": digest(Path(capture_root) / "capture.json"),
+                       "capture": digest(Path(truth_dir).parent / "capture.json"),
                        "truth": digest(truth / "truth.json"), "mesh": digest(truth / "mesh.ply")}
 
     def key(self, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, env: np.ndarray) -> str:
@@ -417,11 +417,16 @@ class RelitTruthCache:
         return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
 
     def load(self, key: str) -> dict[str, np.ndarray] | None:
+        import zipfile
+
         path = self.folder / f"{key[:32]}.npz"
         if not path.exists():
             return None
-        with np.load(path) as data:
-            return {"radiance": data["radiance"], "mask": data["mask"]}
+        try:
+            with np.load(path) as data:
+                return {"radiance": data["radiance"], "mask": data["mask"]}
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # unreadable: render it again
+            return None
 
     def save(self, key: str, render: dict[str, np.ndarray]) -> None:
         import os
@@ -454,7 +459,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
         envs = view.release.load(view.asset("render_environments", None))["environments"]
         cams = view.render_cameras()
         lights = relit_truth_lights(cams)
-        cache = RelitTruthCache(cache_dir, capture_root, action_id, lights) if cache_dir is not None else None
+        cache = RelitTruthCache(cache_dir, truth_dir, action_id, lights) if cache_dir is not None else None
         truth = None  # built on the first render the cache does not hold
         scores = []
         for env_record in envs:

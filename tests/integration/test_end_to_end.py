@@ -137,12 +137,15 @@ def test_relit_truth_renders_are_kept_by_their_inputs(first_run, capture, tmp_pa
     monkeypatch.setattr(synthetic.relight, "TruthRelighter", NoRenders)
     assert evaluate()[0] == first
     # the key follows the inputs: another environment or camera is another render
-    cache = RelitTruthCache(tmp_path, capture, "A0000", 512)
+    cache = RelitTruthCache(tmp_path, capture / "ground_truth", "A0000", 512)
     K, pose, env = np.diag([100.0, 100.0, 1.0]), np.eye(4)[:3], np.zeros((4, 8, 3), np.float32)
     key = cache.key(K, pose, 10, 12, env)
     assert key == cache.key(K.copy(), pose.copy(), 10, 12, env.copy())
     assert key != cache.key(K, pose, 10, 12, env + 1) and key != cache.key(K, pose, 10, 13, env)
-    assert key != RelitTruthCache(tmp_path, capture, "A0001", 512).key(K, pose, 10, 12, env)
+    assert key != RelitTruthCache(tmp_path, capture / "ground_truth", "A0001", 512).key(K, pose, 10, 12, env)
+    # a damaged file is a miss (rendered again), not a crash
+    (tmp_path / f"{key[:32]}.npz").write_bytes(b"not an npz")
+    assert cache.load(key) is None
 
 
 def test_materials_and_renders_through_the_consumer_api(first_run):
