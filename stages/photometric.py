@@ -23,7 +23,7 @@ from stages.cameras import load_cameras
 from stages.lightcolour import corrected_normals, load_light_model
 from stages.numerics.denoise import joint_bilateral
 from stages.numerics.photometric import PhotometricParams, photometric_maps
-from stages.numerics.specular_normals import fit_diffuse_normals, view_directions
+from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions
 
 
 @dataclass(frozen=True)
@@ -51,8 +51,6 @@ class SpecularConfig(Documented):
     """Pixels the first start leaves with a larger relative residual also get the half-way start."""
 
     def __post_init__(self) -> None:
-        from stages.numerics.specular_normals import SOLVERS
-
         if self.solver not in SOLVERS:
             raise ValueError(f"diffuse_normals.fit.solver must be one of {SOLVERS}, got {self.solver!r}")
         if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0
