@@ -266,9 +266,12 @@ class ActionView:
         """(H, W) float32 validity alpha of the normals in [0, 1]."""
         return self._load("normal_alpha", cam, ("A",))
 
-    def albedo(self, cam: str) -> np.ndarray:
-        """(H, W, 3) float32 linear sRGB diffuse albedo."""
-        return self._load("albedo", cam, ("R", "G", "B"))
+    def albedo(self, cam: str, diffuse: bool = False) -> np.ndarray:
+        """(H, W, 3) float32 linear sRGB albedo from the white light (``full_on / white_reference``: it holds the
+        white light's specular reflection and the stage's ambient occlusion), or with ``diffuse=True`` the same
+        with the fitted specular reflection taken out (``albedo_diffuse``, closer to the diffuse albedo; KeyError
+        when the release was made without it)."""
+        return self._load("albedo_diffuse" if diffuse else "albedo", cam, ("R", "G", "B"))
 
     def mask(self, cam: str) -> np.ndarray:
         """(H, W) bool subject mask."""

@@ -176,7 +176,8 @@ ASSETS = TableSpec(
                    "previews of several cameras, release-level files)."),
         Column("kind", _STR, "What the file is: 'full_on', 'pos', 'neg' (decoded linear sRGB RGB "
                "half-float EXR), 'mask' (uint8 0/255 PNG), 'normal_alpha' (RGBA EXR: world normal xyz + "
-               "validity alpha), 'normal_diffuse' (the same with the specular reflection fitted out), 'albedo' (RGB EXR), 'preview' (PNG), 'transforms' (JSON), ..."),
+               "validity alpha), 'normal_diffuse' (the same with the specular reflection fitted out), 'albedo' (RGB EXR), "
+               "'albedo_diffuse' (the same less the fitted specular reflection), 'preview' (PNG), 'transforms' (JSON), ..."),
         Column("path", _STR, "Path of the file relative to the release root (posix).", relative_path=True),
         Column("bytes", _I64, "Size of the file in bytes.", min_value=0),
         Column("sha256", _STR, "SHA-256 of the file, lowercase hex.", pattern=SHA256_PATTERN),

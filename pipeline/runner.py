@@ -198,7 +198,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              f"{len(capture.sessions)} session(s), {len(next(iter(capture.sessions.values())).camera_ids)} cameras).",
              f"- Origin: {'synthetic, rendered by the UltraStage simulator' if sim else 'light-stage capture'}.",
              "- Contents: decoded linear images (full_on, pos, neg), world-space normals with validity alpha, "
-             "albedo from the white image (albedo and normal_diffuse denoised edge-preservingly), foreground masks, "
+             "albedo from the white image (albedo and normal_diffuse denoised edge-preservingly; albedo_diffuse "
+             "with the fitted specular light taken out), foreground masks, "
              "cameras (transforms.json); per action, when the "
              "neural stages ran, a mesh, a UV atlas with albedo/normal/roughness/occlusion textures and relit "
              "novel views (renders/).",
@@ -208,7 +209,9 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "closer to the surface, but it leaves small per-material biases that would inflate the mesh by "
              "millimetres, so the mesh is fitted to normal_alpha); the white-light albedo still contains ambient "
              "occlusion (textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh "
-             "smooths creases); roughness assumes Fresnel F0 = 0.02 everywhere; relit views have no "
+             "smooths creases); albedo holds the white light's specular reflection (6-10% head-on, more at grazing "
+             "views on the simulator; albedo_diffuse takes the fitted one out); roughness assumes Fresnel F0 = 0.02 "
+             "everywhere; relit views have no "
              "interreflections; see metrics.parquet.",
              "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
     (release / "DATASHEET.md").write_text("\n".join(lines))

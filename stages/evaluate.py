@@ -54,7 +54,8 @@ class EvaluationSummary:
 
 
 def evaluate_camera(normals: np.ndarray, alpha: np.ndarray, albedo: np.ndarray, mask: np.ndarray,
-                    truth: dict[str, np.ndarray], diffuse_normals: np.ndarray | None = None) -> dict[str, Any]:
+                    truth: dict[str, np.ndarray], diffuse_normals: np.ndarray | None = None,
+                    diffuse_albedo: np.ndarray | None = None) -> dict[str, Any]:
     """Errors of one camera's maps against ground truth at the maps' resolution.
 
     Args:
@@ -63,6 +64,8 @@ def evaluate_camera(normals: np.ndarray, alpha: np.ndarray, albedo: np.ndarray, 
             at the same or an integer multiple of the maps' resolution.
         diffuse_normals: optional (H, W, 3) second normal map (``normal_diffuse``) scored over the same
             valid pixels (``err_valid_diffuse``).
+        diffuse_albedo: optional (H, W, 3) second albedo map (``albedo_diffuse``) scored over the same pixels
+            (``albedo_diffuse_sq_sum``).
     Returns:
         error arrays per region and scalar albedo/mask scores.
     """
@@ -77,6 +80,8 @@ def evaluate_camera(normals: np.ndarray, alpha: np.ndarray, albedo: np.ndarray, 
     fg = gt_mask
     sq = ((albedo - gt_albedo) ** 2)[fg]
     extra = {} if diffuse_normals is None else {"err_valid_diffuse": angular_error_deg(diffuse_normals, gt_normal)[valid]}
+    if diffuse_albedo is not None:
+        extra["albedo_diffuse_sq_sum"] = float(((diffuse_albedo - gt_albedo) ** 2)[fg].sum(dtype=np.float64))
     return extra | {"err_valid": err[valid], "err_all": err[fg], "err_valid_unoccluded": err[valid & unoccluded],
             "err_valid_occluded": err[valid & ~unoccluded], "err_all_unoccluded": err[fg & unoccluded],
             "err_all_occluded": err[fg & ~unoccluded],
@@ -143,18 +148,26 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
                                        "all_unoccluded", "all_occluded")}
     diffuse_pool = _ErrorPool()
     sq_sum, sq_count, ssims, ious, valid_fg, fg_total = 0.0, 0, [], [], 0.0, 0
+    diffuse_sq, diffuse_count = 0.0, 0
     per_action: dict[str, dict[str, float]] = {}
     rows: list[dict[str, Any]] = []
     for action_id in ok_ids:
         view = rel.action(action_id)
         has_diffuse = "normal_diffuse" in view.kinds
+        has_diffuse_albedo = "albedo_diffuse" in view.kinds
         a_pool, a_sq, a_cnt, a_valid, a_fg = _ErrorPool(), 0.0, 0, 0.0, 0
+        a_dsq, a_dcnt = 0.0, 0
         for cam in view.cameras:
             if not (truth_dir / action_id / "normal" / f"{cam}.exr").exists():
                 continue
             diffuse = view.normals(cam, diffuse=True) if has_diffuse else None
+            diffuse_albedo = view.albedo(cam, diffuse=True) if has_diffuse_albedo else None
             res = evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam),
-                                  _load_truth(truth_dir, action_id, cam), diffuse_normals=diffuse)
+                                  _load_truth(truth_dir, action_id, cam), diffuse_normals=diffuse,
+                                  diffuse_albedo=diffuse_albedo)
+            if diffuse_albedo is not None:  # the albedo with the fitted specular light out, over the same pixels
+                a_dsq += res["albedo_diffuse_sq_sum"]
+                a_dcnt += res["albedo_sq_count"]
             if diffuse is not None:  # the specular-fitted normals, over the same pixels
                 diffuse_pool.add(res["err_valid_diffuse"])
             for region, pool in pools.items():
@@ -187,6 +200,10 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
                                  "normal_under5_pct": st.get("under5_pct", float("nan")),
                                  "valid_fraction": a_valid / max(a_fg, 1),
                                  "albedo_psnr_db": _psnr_from_mse(a_sq / max(a_cnt, 1))}
+        if a_dcnt:
+            per_action[action_id]["albedo_psnr_db_diffuse"] = _psnr_from_mse(a_dsq / a_dcnt)
+            diffuse_sq += a_dsq
+            diffuse_count += a_dcnt
     valid, all_fg = pools["valid"].stats(), pools["all"].stats()
     overall: dict[str, float] = {
         "normal_mean_deg": valid.get("mean", float("nan")), "normal_median_deg": valid.get("median", float("nan")),
@@ -202,6 +219,8 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
         "albedo_ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "mask_iou": float(np.mean(ious)) if ious else float("nan"),
         "actions_ok": float(len(ok_ids)), "actions_failed": float(len(actions) - len(ok_ids))}
+    if diffuse_count:
+        overall["albedo_psnr_db_diffuse"] = _psnr_from_mse(diffuse_sq / diffuse_count)
     diffuse = diffuse_pool.stats()
     overall |= {f"normal_{k}{'_deg' if k in ('mean', 'median') else ''}_diffuse": diffuse[k]
                 for k in ("mean", "median", "under5_pct") if k in diffuse}
@@ -277,11 +296,13 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                 per_action.setdefault(action_id, {})[key] = float(value)
                 rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
                              "value": float(value), "source": "evaluate", "run_id": run_id})
-        if "normal_diffuse" in data.view.kinds:  # the same with the specular-fitted normal maps
-            metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data.with_normals(diffuse=True))
+        if "normal_diffuse" in data.view.kinds:  # the same with the specular-fitted maps
+            diffuse_albedo = "albedo_diffuse" in data.view.kinds
+            metrics = heldout_metrics(release, action_id, truth_dir=truth,
+                                      data=data.with_normals(diffuse=True).with_albedo(diffuse_albedo))
             for base in HELDOUT_METRICS:
-                if not base.startswith("heldout_normal"):
-                    continue  # the albedo is the same
+                if not (base.startswith("heldout_normal") or (diffuse_albedo and base.startswith("heldout_albedo"))):
+                    continue  # the white-light albedo: the same as above
                 for key, region in ((base, "heldout_diffuse"), (f"{base}_truth", "heldout_truth_diffuse")):
                     value = metrics.get(key)
                     if value is None or not np.isfinite(value):
@@ -545,6 +566,8 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"{o.get('normal_under5_pct_diffuse', float('nan')):.1f}% < 5 deg (normal_diffuse, valid pixels)")
     print(f"  albedo                : PSNR {o.get('albedo_psnr_db', float('nan')):.2f} dB, SSIM "
           f"{o.get('albedo_ssim', float('nan')):.3f}; mask IoU {o.get('mask_iou', float('nan')):.3f}")
+    if "albedo_psnr_db_diffuse" in o:
+        print(f"  albedo, specular out  : PSNR {o['albedo_psnr_db_diffuse']:.2f} dB (albedo_diffuse)")
     if "cam_rotation_err_deg" in o:
         reprojection = f", reprojection {o['reprojection_err_px']:.3f} px" if "reprojection_err_px" in o else ""
         print(f"  cameras               : rotation {o['cam_rotation_err_deg']:.4f} deg, centre {o['cam_center_err_mm']:.2f} mm, "
@@ -564,6 +587,11 @@ def print_overall(summary: EvaluationSummary) -> None:
                   f"{o.get('heldout_normal_under5_pct_diffuse', float('nan')):.1f}% < 5, "
                   f"{o.get('heldout_normal_under25_pct_diffuse', float('nan')):.1f}% < 25 (normal_diffuse maps as "
                   "sources and references)")
+        if "heldout_albedo_ssim_diffuse" in o:
+            print(f"  held-out, albedo_diffuse: {o.get('heldout_albedo_psnr_db_diffuse', float('nan')):.2f} dB, SSIM "
+                  f"{o['heldout_albedo_ssim_diffuse']:.3f}; against the simulator's albedo "
+                  f"{o.get('heldout_albedo_psnr_db_diffuse_truth', float('nan')):.2f} dB (white-light albedo "
+                  f"{o.get('heldout_albedo_psnr_db_truth', float('nan')):.2f} dB)")
     if "roughness_mae" in o:
         print(f"  materials             : roughness MAE {o['roughness_mae']:.3f} (bias {o.get('roughness_bias', float('nan')):+.3f}); "
               f"albedo texture {o.get('albedo_texture_psnr_db', float('nan')):.2f} dB, de-occluded "

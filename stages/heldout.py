@@ -71,6 +71,7 @@ class ActionGBuffers:
 
         self.view = open_release(release_dir).action(action_id)
         self.diffuse_normals = diffuse_normals  # the specular-fitted normal maps as sources and references
+        self.diffuse_albedo = False  # the white-light albedo less the fitted specular light (albedo_diffuse)
         self.action_id = action_id
         self.cameras = release_cameras(self.view.transforms())
         self.vertices, self.faces = self.view.mesh()
@@ -87,6 +88,13 @@ class ActionGBuffers:
         other._sources = {}
         return other
 
+    def with_albedo(self, diffuse: bool) -> ActionGBuffers:
+        """The same action with the other albedo maps as sources and references (``albedo_diffuse`` or the
+        white-light ``albedo``), sharing the mesh, scene and cached depth renders."""
+        other = self.with_normals(self.diffuse_normals)
+        other.diffuse_albedo = diffuse
+        return other
+
     def render(self, cam: str) -> dict[str, np.ndarray]:
         """The mesh seen by camera ``cam`` (render_mesh output, cached)."""
         from stages.numerics.raycast import mesh_scene, render_mesh
@@ -101,7 +109,8 @@ class ActionGBuffers:
 
     def photometric(self, cam: str) -> dict[str, np.ndarray]:
         """Photometric maps of ``cam``: normal (H, W, 3), albedo (H, W, 3), alpha (H, W), mask (H, W) bool."""
-        return {"normal": self.view.normals(cam, diffuse=self.diffuse_normals), "albedo": self.view.albedo(cam),
+        return {"normal": self.view.normals(cam, diffuse=self.diffuse_normals),
+                "albedo": self.view.albedo(cam, diffuse=self.diffuse_albedo),
                 "alpha": self.view.normal_alpha(cam), "mask": self.view.mask(cam)}
 
     def source(self, cam: str) -> SourceView:

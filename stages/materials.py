@@ -96,6 +96,19 @@ class MaterialsConfig(Documented):
                 raise ValueError(f"materials.{name} must be >= 1")
 
 
+def fitted_f0(artifact: Path) -> float:
+    """The Fresnel F0 a materials artifact's roughness texture was fitted with (its record's config): roughness
+    and F0 trade off under broad light, so whoever models the specular light with that texture uses this F0."""
+    path = Path(artifact) / "_SUCCESS.json"
+    try:
+        f0 = float(json.loads(path.read_text())["record"]["config"]["f0"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"no materials f0 in the artifact's record ({type(exc).__name__}: {exc})") from exc
+    if not 0.0 <= f0 <= 1.0:
+        raise InputError(path, f"materials f0 {f0} is outside [0, 1]")
+    return f0
+
+
 def load_atlas_mesh(obj_path: Path):
     """The textured OBJ of the textures stage as ``(vertices (V, 3) welded, faces (F, 3) into them,
     Atlas)``: the OBJ splits vertices along chart seams; welding identical positions gives back one

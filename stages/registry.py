@@ -39,7 +39,8 @@ class PipelineConfig:
     materials: MaterialsConfig = field(default_factory=MaterialsConfig)
     """Roughness texture by inverse rendering, occlusion and the occlusion-free albedo."""
     diffuse_normals: DiffuseNormalsConfig = field(default_factory=DiffuseNormalsConfig)
-    """The released normal_diffuse maps: the specular fit again with the materials' roughness per pixel."""
+    """The released normal_diffuse and albedo_diffuse maps: the specular fit again with the materials' roughness
+    per pixel, and the white-light albedo less the specular light it predicts."""
     relight: RelightConfig = field(default_factory=RelightConfig)
     """Novel views under HDR environments (renders/)."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["SOLVERS", "SpecularFit", "view_directions", "fit_diffuse_normals"]
+__all__ = ["SOLVERS", "SpecularFit", "view_directions", "fit_diffuse_normals", "white_light_specular"]
 
 SOLVERS = ("levenberg_marquardt", "adam")
 
@@ -245,3 +245,47 @@ def fit_diffuse_normals(pos: np.ndarray, neg: np.ndarray, white_reference, view_
     return SpecularFit(normals=clean(normals), albedo=clean(albedo), specular_full=clean(spec[0]),
                        specular_pos=clean(spec[1]), specular_neg=clean(spec[2]),
                        residual=np.nan_to_num(residual, nan=1.0, posinf=1.0, neginf=1.0))
+
+
+def white_light_specular(normals: np.ndarray, view_dirs: np.ndarray, roughness: float | np.ndarray, f0: float,
+                         chunk: int = 262144) -> np.ndarray:
+    """GGX reflection of each pixel under the stage's white light (``full_on``), in white units: what the
+    white-light albedo ``full_on / white_reference`` holds on top of the diffuse albedo (exact GGX moments as
+    the fit, no occlusion). A mirror seen head-on gives ``f0``, at ``n.v = 0.5`` Schlick's
+    ``f0 + (1 - f0) 0.5^5``.
+
+    Args:
+        normals: (H, W, 3) unit stage-frame normals; pixels whose normal is not a unit vector (0 = undefined,
+            or non-finite) get 0.
+        view_dirs: (H, W, 3) unit directions towards the camera (:func:`view_directions`).
+        roughness: perceptual GGX roughness, a scalar or (H, W) (clamped to the fit's bounds).
+        f0: Schlick Fresnel reflectance at normal incidence (the one the roughness was fitted with).
+        chunk: pixels per batch.
+
+    Returns:
+        (H, W, 3) float32, >= 0 and finite.
+    """
+    from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN
+
+    normals = np.asarray(normals, np.float32)
+    shape = normals.shape[:2]
+    if normals.ndim != 3 or normals.shape[2] != 3 or np.shape(view_dirs) != normals.shape:
+        raise ValueError(f"normals and view_dirs must both be (H, W, 3), got {normals.shape} and {np.shape(view_dirs)}")
+    rough_map = np.broadcast_to(np.asarray(roughness, np.float32), shape)
+    if not np.all(np.isfinite(rough_map)):
+        raise ValueError("roughness must be finite")
+    if not 0.0 <= f0 <= 1.0 or chunk < 1:
+        raise ValueError(f"need 0 <= f0 <= 1 and chunk >= 1, got {f0} and {chunk}")
+    finite = np.all(np.isfinite(normals), axis=-1)
+    length = np.linalg.norm(np.where(finite[..., None], normals, 0.0), axis=-1)
+    rows, cols = np.nonzero(finite & (np.abs(length - 1.0) < 0.1))
+    out = np.zeros(shape + (3,), np.float32)
+    n_all, v_all = normals[rows, cols], np.asarray(view_dirs, np.float32)[rows, cols]
+    r_all = np.clip(rough_map[rows, cols], ROUGHNESS_MIN, ROUGHNESS_MAX)
+    with torch.no_grad():
+        for start in range(0, len(rows), chunk):
+            sl = slice(start, start + chunk)
+            spec = _specular_only(torch.as_tensor(n_all[sl]), torch.as_tensor(v_all[sl]),
+                                  torch.as_tensor(r_all[sl]), f0)[:, 0]
+            out[rows[sl], cols[sl]] = spec.numpy()
+    return np.clip(np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)

@@ -48,7 +48,8 @@ def test_release_layout_and_manifests(first_run):
     release = out / "release"
     for action in ("A0000", "A0001"):
         for folder, ext in (("full_on", "exr"), ("pos", "exr"), ("neg", "exr"), ("mask", "png"),
-                            ("normal_alpha", "exr"), ("normal_diffuse", "exr"), ("albedo", "exr")):
+                            ("normal_alpha", "exr"), ("normal_diffuse", "exr"), ("albedo", "exr"),
+                            ("albedo_diffuse", "exr")):
             files = sorted((release / "actions" / action / folder).glob(f"*.{ext}"))
             assert [f.stem for f in files] == [f"{i:05d}" for i in range(6)], (action, folder)
         transforms = json.loads((release / "actions" / action / "transforms.json").read_text())
@@ -113,6 +114,19 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
             (mask[..., 0] if mask.ndim == 3 else mask) > 127, read_exr(photometric / "albedo" / "00001.exr")[..., :3],
             model, cfg, cfg.fit.roughness)
         assert one_prior.shape == fitted.shape and not np.allclose(one_prior, fitted, atol=1e-3)
+        # albedo_diffuse: the white-light albedo less the specular light the materials' F0 and roughness predict
+        view = open_release(out / "release").action(action)
+        white, diffuse = view.albedo("00001"), view.albedo("00001", diffuse=True)
+        defined = np.any(fitted != 0, axis=-1)
+        assert white.shape == diffuse.shape and defined.sum() > 200
+        assert np.all(diffuse <= white + 1e-3)  # half floats
+        taken = (white - diffuse).mean(axis=-1)[defined & (white.mean(axis=-1) > 0.05)]
+        assert 0.005 < np.median(taken) < 0.1
+        assert np.array_equal(diffuse[~defined], np.clip(white, 0.0, 1.0)[~defined])
+        for stat in stats["views"].values():
+            assert stat["albedo_f0"] == 0.02 and 0.0 < stat["specular_taken_mean"] < 0.2
+        relight = json.loads((artifact("relight", action) / "_SUCCESS.json").read_text())["stats"]
+        assert relight["source_albedo"] == "albedo_diffuse"
 
 
 def test_relit_truth_renders_are_kept_by_their_inputs(first_run, capture, tmp_path, monkeypatch):
@@ -224,6 +238,9 @@ def test_accuracy_against_ground_truth(first_run, capture):
     assert overall["normal_mean_deg_diffuse"] < 25.0 and overall["heldout_normal_mean_deg_diffuse"] < 40.0
     assert overall["valid_fraction"] > 0.55
     assert overall["albedo_psnr_db"] > 17.0
+    # the specular light taken out of albedo_diffuse brings it closer to the simulator's albedo
+    assert overall["albedo_psnr_db_diffuse"] > overall["albedo_psnr_db"]
+    assert overall["heldout_albedo_psnr_db_diffuse_truth"] > overall["heldout_albedo_psnr_db_truth"]
     assert overall["mask_iou"] > 0.8
     assert overall["actions_ok"] == 2 and overall["actions_failed"] == 0
     # The mesh of a 6-camera, 96 px capture with the test preset's short SDF schedule is a coarse body

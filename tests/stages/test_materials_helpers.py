@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
-from stages.materials import load_atlas_mesh, surface_median, texel_uvs
+from stages.materials import fitted_f0, load_atlas_mesh, surface_median, texel_uvs
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals
 
@@ -116,3 +116,18 @@ def test_materials_config_checks():
         MaterialsConfig(min_occlusion=0.0)
     with pytest.raises(ValueError, match="median_neighbours"):
         MaterialsConfig(median_neighbours=0)
+
+
+def test_fitted_f0_reads_the_artifact_record(tmp_path):
+    import json
+
+    (tmp_path / "_SUCCESS.json").write_text(json.dumps({"record": {"config": {"f0": 0.03, "texture_size": 256}}}))
+    assert fitted_f0(tmp_path) == 0.03
+    (tmp_path / "_SUCCESS.json").write_text(json.dumps({"record": {"config": {"texture_size": 256}}}))
+    with pytest.raises(InputError, match="_SUCCESS.json: no materials f0"):
+        fitted_f0(tmp_path)
+    (tmp_path / "_SUCCESS.json").write_text(json.dumps({"record": {"config": {"f0": 1.5}}}))
+    with pytest.raises(InputError, match="outside"):
+        fitted_f0(tmp_path)
+    with pytest.raises(InputError, match="no materials f0"):
+        fitted_f0(tmp_path / "missing")

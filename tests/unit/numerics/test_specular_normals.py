@@ -7,7 +7,7 @@ import torch
 
 from stages.numerics.materials import shade_stage_illuminations
 from stages.numerics.metrics import angular_error_deg
-from stages.numerics.specular_normals import fit_diffuse_normals, view_directions
+from stages.numerics.specular_normals import fit_diffuse_normals, view_directions, white_light_specular
 
 torch.set_num_threads(1)
 
@@ -145,3 +145,45 @@ def test_input_checks():
         fit_diffuse_normals(ok[0], ok[1], [1.0, 0.0, 1.0], *ok[3:])
     with pytest.raises(ValueError, match="f0"):
         fit_diffuse_normals(*ok, f0=2.0)
+
+
+def test_white_light_specular_of_a_mirror_is_schlicks_fresnel():
+    # a near-mirror (the fit's smallest roughness) at n.v = 1, 0.5 and 0.2: f0 + (1 - f0)(1 - n.v)^5
+    cos = np.array([1.0, 0.5, 0.2])
+    views = np.stack([np.sqrt(1 - cos ** 2), np.zeros(3), cos], -1).reshape(1, 3, 3).astype(np.float32)
+    normals = np.tile(np.array([0, 0, 1], np.float32), (1, 3, 1))
+    spec = white_light_specular(normals, views, 0.05, f0=0.04)
+    assert spec.shape == (1, 3, 3) and spec.dtype == np.float32
+    np.testing.assert_allclose(spec[0, :, 0], 0.04 + 0.96 * (1 - cos) ** 5, rtol=0.02)
+    assert np.all(spec[..., 0] == spec[..., 2])  # the white light is white
+    # rougher lobes spread: less at grazing than the mirror, and f0 scales it
+    rough = white_light_specular(normals, views, 0.6, f0=0.04)
+    assert rough[0, 2, 0] < spec[0, 2, 0]
+    assert np.all(white_light_specular(normals, views, 0.6, f0=0.02) < rough)
+
+
+def test_white_light_specular_is_what_the_fit_took_out():
+    rng = np.random.default_rng(3)
+    s = scene(rng)
+    pixels = np.ones(s["pos"].shape[:2], bool)
+    fit = fit_diffuse_normals(s["pos"], s["neg"], s["white"], s["views"], eq1(s["pos"], s["neg"]), pixels,
+                              roughness=0.5, f0=0.04)
+    spec = white_light_specular(fit.normals, s["views"], 0.5, f0=0.04)
+    np.testing.assert_allclose(spec * s["white"], fit.specular_full, atol=1e-5)
+    # so the white-light albedo less it is the diffuse albedo
+    np.testing.assert_allclose(s["full_on"] / s["white"] - spec, s["albedo"], atol=0.02)
+
+
+def test_white_light_specular_undefined_normals_and_checks():
+    normals = np.zeros((2, 2, 3), np.float32)
+    normals[0, 0] = (0, 0, 1)
+    normals[1, 1] = np.nan
+    views = np.tile(np.array([0, 0, 1], np.float32), (2, 2, 1))
+    spec = white_light_specular(normals, views, np.full((2, 2), 0.5, np.float32), f0=0.04, chunk=1)
+    assert spec[0, 0, 0] > 0 and np.all(spec[0, 1] == 0) and np.all(spec[1] == 0) and np.all(np.isfinite(spec))
+    with pytest.raises(ValueError, match="view_dirs"):
+        white_light_specular(normals, views[:1], 0.5, f0=0.04)
+    with pytest.raises(ValueError, match="roughness"):
+        white_light_specular(normals, views, np.nan, f0=0.04)
+    with pytest.raises(ValueError, match="f0"):
+        white_light_specular(normals, views, 0.5, f0=1.5)
