@@ -10,7 +10,11 @@ every ``--stride``-th camera it reports per variant:
    median, % under 5 deg, and the mean on shiny (true roughness < 0.3) and other pixels;
 2. seconds per camera of the fit and its edge-preserving filter (and of seeing the roughness texture through
    the mesh), and the ratio to the one-prior baseline;
-3. that the ``materials`` variant reproduces the released maps (max abs difference).
+3. that the ``materials`` variant reproduces the released maps (max abs difference);
+4. the released ``albedo_diffuse`` against the white-light ``albedo``: the median difference to the
+   simulator's albedo per band of n.v (true normal, view direction) and the PSNR over the valid pixels, and the
+   seconds per camera of taking the specular light out (:func:`stages.photometric.diffuse_albedo`, which
+   must reproduce the released map).
 
 Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant).
 """
@@ -46,7 +50,9 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     from stages.materials import load_atlas_mesh
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.raycast import mesh_scene
-    from stages.photometric import DiffuseNormalsConfig, materials_roughness, refit_diffuse_normals
+    from stages.materials import fitted_f0
+    from stages.numerics.specular_normals import view_directions
+    from stages.photometric import DiffuseNormalsConfig, diffuse_albedo, materials_roughness, refit_diffuse_normals
 
     cfg = DiffuseNormalsConfig()
     decoded, photometric = _artifact(work, "decode", action), _artifact(work, "photometric", action)
@@ -61,6 +67,10 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     shiny = []
     seconds = {v: 0.0 for v in variants}
     lookup_s, reproduced, count = 0.0, 0.0, 0
+    albedo_dir = _artifact(work, "diffuse_normals", action) / "albedo_diffuse"
+    f0 = fitted_f0(_artifact(work, "materials", action))
+    albedo_rows: list[tuple[np.ndarray, ...]] = []
+    albedo_s, albedo_reproduced = 0.0, 0.0
     for cam_id in sorted(cameras)[::stride]:
         normal_alpha_path = photometric / "normal_alpha" / f"{cam_id}.exr"
         if not normal_alpha_path.exists():
@@ -91,11 +101,35 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
             if variant == "materials" and (released_dir / f"{cam_id}.exr").exists():
                 released = read_exr(released_dir / f"{cam_id}.exr")[..., :3]
                 reproduced = max(reproduced, float(np.abs(released - normals)[scored].max()))
+            if variant == "materials" and (albedo_dir / f"{cam_id}.exr").exists():
+                t0 = time.perf_counter()
+                diffuse = diffuse_albedo(albedo, normals, cam, roughness[variant], f0)
+                albedo_s += time.perf_counter() - t0
+                released_albedo = read_exr(albedo_dir / f"{cam_id}.exr")[..., :3]
+                albedo_reproduced = max(albedo_reproduced, float(np.abs(released_albedo - diffuse)[scored].max()))
+                true_albedo = read_exr(truth / action / "albedo" / f"{cam_id}.exr")[..., :3]
+                n_dot_v = (true_normals * view_directions(cam["K"], cam["cam_from_world"], h, w)).sum(-1)
+                albedo_rows.append((n_dot_v[scored], (albedo - true_albedo)[scored],
+                                    (released_albedo - true_albedo)[scored]))
         shiny.append(true_rough[scored] < 0.3)
         count += 1
     shiny_all = np.concatenate(shiny)
     out = {"cameras": count, "roughness_lookup_s_per_camera": round(lookup_s / max(count, 1), 3),
            "materials_vs_released_max_abs": reproduced, "variants": {}}
+    if albedo_rows:
+        n_dot_v = np.concatenate([r[0] for r in albedo_rows])
+        white, diffuse = (np.concatenate([r[i] for r in albedo_rows]) for i in (1, 2))
+        bands = {}
+        for lo, hi in ((0.7, 1.01), (0.5, 0.7), (0.3, 0.5), (0.15, 0.3), (0.0, 0.15)):
+            sel = (n_dot_v >= lo) & (n_dot_v < hi)
+            if sel.any():
+                bands[f"{lo}-{min(hi, 1.0)}"] = {"pixels": int(sel.sum()),
+                                                 "white_minus_truth": round(float(np.median(white[sel].mean(-1))), 4),
+                                                 "diffuse_minus_truth": round(float(np.median(diffuse[sel].mean(-1))), 4)}
+        psnr = lambda e: round(float(10 * np.log10(1.0 / max(float(np.mean(e.astype(np.float64) ** 2)), 1e-12))), 2)  # noqa: E731
+        out["albedo"] = {"f0": f0, "by_n_dot_v": bands, "psnr_white_db": psnr(white), "psnr_diffuse_db": psnr(diffuse),
+                         "seconds_per_camera": round(albedo_s / len(albedo_rows), 3),
+                         "released_max_abs_difference": albedo_reproduced}
     base_s = seconds["one prior"]
     for variant in variants:
         e = np.concatenate(errors[variant])
@@ -117,7 +151,7 @@ def figure(report: dict, path: Path) -> None:
 
     actions = list(report["actions"])
     variants = list(next(iter(report["actions"].values()))["variants"])
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.6))
     width = 0.8 / len(variants)
     for i, variant in enumerate(variants):
         x = np.arange(len(actions)) + i * width
@@ -129,6 +163,16 @@ def figure(report: dict, path: Path) -> None:
         ax.set_ylabel("mean angular error vs truth (deg)")
         ax.set_title(title)
     axes[0].legend(fontsize=8, loc="lower left")
+    for action, result in report["actions"].items():
+        bands = result.get("albedo", {}).get("by_n_dot_v", {})
+        for key, style in (("white_minus_truth", "--"), ("diffuse_minus_truth", "-")):
+            axes[2].plot(list(bands), [b[key] for b in bands.values()], style, marker="o",
+                         label=f"{action} {'albedo' if key.startswith('white') else 'albedo_diffuse'}")
+    axes[2].axhline(0.0, color="grey", lw=0.8)
+    axes[2].set_xlabel("n.v band (true normal, view)")
+    axes[2].set_ylabel("median albedo - simulator's albedo")
+    axes[2].set_title("released per-view albedo maps")
+    axes[2].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
