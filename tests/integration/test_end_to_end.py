@@ -127,6 +127,9 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
             assert stat["albedo_f0"] == 0.02 and 0.0 < stat["specular_taken_mean"] < 0.2
         relight = json.loads((artifact("relight", action) / "_SUCCESS.json").read_text())["stats"]
         assert relight["source_albedo"] == "albedo_diffuse"
+        # the roughness median's voters: fitted texels the body does not shadow (some are, some are not)
+        materials = json.loads((artifact("materials", action) / "_SUCCESS.json").read_text())["stats"]
+        assert 0.0 < materials["median_voters_fraction"] < 1.0
 
 
 def test_relit_truth_renders_are_kept_by_their_inputs(first_run, capture, tmp_path, monkeypatch):

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
-from stages.materials import fitted_f0, load_atlas_mesh, surface_median, texel_uvs
+from stages.materials import fitted_f0, load_atlas_mesh, roughness_median, surface_median, texel_uvs
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals
 
@@ -131,3 +131,21 @@ def test_fitted_f0_reads_the_artifact_record(tmp_path):
         fitted_f0(tmp_path)
     with pytest.raises(InputError, match="no materials f0"):
         fitted_f0(tmp_path / "missing")
+
+
+def test_roughness_median_leaves_shadowed_texels_out_of_the_vote():
+    # a row of texels 1 cm apart: the first six are open (fitted 0.3), the last four shadowed (fitted too rough)
+    points = np.stack([np.arange(10) * 0.01, np.zeros(10), np.zeros(10)], axis=1)
+    roughness = np.array([0.3] * 6 + [0.7] * 4, np.float32)
+    fitted = np.ones(10, bool)
+    fitted[0] = False  # no views: neither votes nor counts as open
+    visibility = np.array([1.0] * 6 + [0.6] * 4)
+    smooth, voters = roughness_median(points, roughness, fitted, visibility, 0.95, neighbours=3)
+    assert voters.tolist() == [False] + [True] * 5 + [False] * 4
+    np.testing.assert_allclose(smooth, 0.3)  # every texel's 3 nearest voters are open ones
+    # every texel voting (0): the shadowed end keeps its own value
+    everyone, voters = roughness_median(points, roughness, fitted, visibility, 0.0, neighbours=3)
+    assert voters.sum() == 9 and everyone[-1] == np.float32(0.7) and everyone[1] == np.float32(0.3)
+    # no texel open enough: every fitted texel votes rather than none
+    fallback, voters = roughness_median(points, roughness, fitted, visibility, 1.5, neighbours=3)
+    assert voters.sum() == 9 and np.array_equal(fallback, everyone)
