@@ -3,15 +3,16 @@
 For each action of a release (default A0000 and A0001) this rebuilds the materials stage's steps outside the
 stage, from the release's own files, with the numerics the stage calls (``stages.numerics.bake``
 ``rasterize_atlas`` / ``gather_observations``, ``stages.numerics.materials.fit_roughness``,
-``stages.materials.surface_median``, ``stages.numerics.shadowing.ambient_occlusion``), and scores every
+``stages.materials.roughness_median``, ``stages.numerics.shadowing.ambient_occlusion``), and scores every
 variant like ``ultrastage evaluate`` does (``stages.evaluate._materials_overall``): the textures are seen
 through the textured mesh from every **true** camera (pixels where the truth has the subject and the mesh
 is hit) and compared with the simulator's roughness and albedo maps.
 
 1. **Roughness** (texture 256): mean absolute error and bias against the truth for ``specular_model``
    ggx_table vs sg, ``fit_albedo`` on/off, ``max_views`` 8/16 (the 8 best views are the first 8 of the 16
-   gathered: same ranking) and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's
-   defaults, with the fit time (``fit_roughness``, ``--threads`` torch threads) and the smoothing time.
+   gathered: same ranking), ``median_min_visibility`` 0/0.85/0.95 (which texels vote in the surface median: those
+   whose ambient visibility on the mesh reaches it) and ``median_neighbours`` 1/25/100/200, one change at a
+   time from the stage's defaults, with the fit time (``fit_roughness``, ``--threads`` torch threads) and the smoothing time.
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
    variation gives) and, as oracles, the truth's own mean and median over the compared pixels (the median
    is the constant with the least absolute error).
@@ -41,11 +42,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
-DEFAULTS = {"specular_model": "ggx_table", "fit_albedo": True, "max_views": 8, "median_neighbours": 100}
-VARIANTS = [("default (ggx_table, fit_albedo, 8 views)", {}),
+DEFAULTS = {"specular_model": "ggx_table", "fit_albedo": True, "max_views": 8, "median_neighbours": 100,
+            "median_min_visibility": 0.95}
+VARIANTS = [("default (ggx_table, fit_albedo, 8 views, voters >= 0.95 visible)", {}),
             ("specular_model sg", {"specular_model": "sg"}),
             ("fit_albedo off", {"fit_albedo": False}),
-            ("max_views 16", {"max_views": 16})]
+            ("max_views 16", {"max_views": 16}),
+            ("median_min_visibility 0 (every fitted texel votes)", {"median_min_visibility": 0.0}),
+            ("median_min_visibility 0.85", {"median_min_visibility": 0.85})]
 NEIGHBOURS = (1, 25, 100, 200)
 OCCLUSION_RAYS = (16, 64, 128)
 MIN_OCCLUSION = (0.1, 0.2, 0.4)
@@ -166,7 +170,9 @@ class TruthProbe:
 
 def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
     """Per-texel fits for every variant, smoothed and scored; times of the gather, fits and medians."""
-    from stages.materials import _dilate, surface_median, texel_uvs
+    from stages.materials import _dilate, roughness_median, texel_uvs
+    from stages.numerics.raycast import mesh_scene
+    from stages.numerics.shadowing import ambient_occlusion
     from stages.numerics.bake import gather_observations, rasterize_atlas, sample_texture
     from stages.numerics.materials import NO_VIEWS_RESIDUAL, fit_roughness
 
@@ -179,7 +185,11 @@ def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
     max_k = max(DEFAULTS["max_views"], *(v.get("max_views", 0) for _, v in VARIANTS))
     obs = gather_observations(data["vertices"], data["faces"], points, normals, data["views"], max_k)
     gather_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    visibility = ambient_occlusion(points, normals, mesh_scene(data["vertices"], data["faces"]), rays=64)
+    visibility_s = time.perf_counter() - t0
     out = {"texels": int(len(points)), "gather_s_16_views": round(gather_s, 2),
+           "texel_visibility_s": round(visibility_s, 2),
            "mean_valid_views": round(float(obs["valid"].sum(axis=1).mean()), 2), "variants": [], "neighbours": []}
 
     def texture_of(values: np.ndarray) -> np.ndarray:
@@ -205,7 +215,8 @@ def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
         fit_s = time.perf_counter() - t0
         fitted = rms != NO_VIEWS_RESIDUAL
         t0 = time.perf_counter()
-        smooth = surface_median(points, rough, fitted, cfg["median_neighbours"])
+        smooth, _ = roughness_median(points, rough, fitted, visibility, cfg["median_min_visibility"],
+                                     cfg["median_neighbours"])
         median_s = time.perf_counter() - t0
         smooth = np.clip(np.nan_to_num(smooth, nan=0.5), 0.05, 1.0)
         score = probe.roughness_errors(texture_of(smooth))
@@ -220,7 +231,8 @@ def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
     rough, fitted = default_fit
     for neighbours in NEIGHBOURS:
         t0 = time.perf_counter()
-        smooth = np.clip(np.nan_to_num(surface_median(points, rough, fitted, neighbours), nan=0.5), 0.05, 1.0)
+        smooth, _ = roughness_median(points, rough, fitted, visibility, DEFAULTS["median_min_visibility"], neighbours)
+        smooth = np.clip(np.nan_to_num(smooth, nan=0.5), 0.05, 1.0)
         median_s = time.perf_counter() - t0
         score = probe.roughness_errors(texture_of(smooth))
         out["neighbours"].append({"median_neighbours": neighbours, "median_s": round(median_s, 2),
@@ -234,8 +246,9 @@ def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
                                             ("constant_truth_median_oracle", truth_median))}
     out["baselines"]["released_texture"] = _round(probe.roughness_errors(data["released"]["roughness"]))
     levels = np.round(probe.roughness, 2)
-    smooth_default = texture_of(np.clip(np.nan_to_num(surface_median(points, rough, fitted,
-                                                                     DEFAULTS["median_neighbours"]), nan=0.5), 0.05, 1))
+    smooth_default = texture_of(np.clip(np.nan_to_num(roughness_median(
+        points, rough, fitted, visibility, DEFAULTS["median_min_visibility"], DEFAULTS["median_neighbours"])[0],
+        nan=0.5), 0.05, 1))
     seen = sample_texture(smooth_default, probe.uv)
     out["default_by_true_level"] = [
         {"true_roughness": float(v), "share": round(float(np.mean(levels == v)), 4),

@@ -6,15 +6,15 @@ cameras that see it best, depth-tested against the mesh), :func:`stages.numerics
 (GGX under full_on / pos / neg in closed form, F0 fixed) and :func:`stages.numerics.shadowing.ambient_occlusion`.
 
 Method (measured on the simulator's default capture, ``python bench/bench_materials.py``; MAE of the
-roughness seen from the 32 true cameras, A0000 / A0001):
+roughness seen from the 32 true cameras, A0000 / A0001, with the other steps at their defaults):
 
 * Each texel of a ``texture_size`` atlas gets the decoded full_on / pos / neg values of its ``max_views`` best
   cameras (validity from the photometric alpha, so saturated and grazing pixels are out), the mesh normal and
   the view directions. The albedo is solved with the roughness (``fit_albedo``): the white-light albedo
-  still holds the specular light, and fixing it pushes every fit towards rough (MAE 0.27 / 0.24 without).
+  still holds the specular light, and fixing it pushes every fit towards rough (MAE 0.36 / 0.36 without).
 * The specular term under the linear gradients is the exact GGX lobe's tabulated moments
   (``specular_model="ggx_table"``); the spherical-Gaussian lobes of PhySG (``"sg"``) are 7-10% off in
-  specular energy and fit roughness biased rough (MAE 0.22 / 0.22 vs 0.07 / 0.08).
+  specular energy and fit roughness biased rough (MAE 0.13 / 0.13 vs 0.06 / 0.07).
 * Per-texel fits are noisy (a few views, noise on a small lobe); roughness varies slowly over a surface, so
   the texture is the median over each texel's ``median_neighbours`` nearest texels *on the surface* (3D, so
   atlas charts do not matter): MAE 0.12 / 0.15 without it. A constant roughness (the fits' median) scores
@@ -59,7 +59,7 @@ class MaterialsConfig(Documented):
     """Width and height of the roughness texture (the atlas of the textures stage; roughness varies slowly)."""
     max_views: int = 8
     """Cameras used per texel (the best by angle, distance and support). On the simulator 8 and 16 are close
-    (MAE 0.072/0.084 vs 0.083/0.079 on A0000/A0001); 8 takes half the time."""
+    (MAE 0.061/0.067 vs 0.068/0.068 on A0000/A0001); 8 takes half the time."""
     specular_model: str = "ggx_table"
     """"ggx_table" (exact GGX lobe moments under the linear gradients) or "sg" (the spherical-Gaussian lobes
     relighting uses). Measured on the simulator the table is the more accurate (see bench_materials)."""

@@ -214,8 +214,10 @@ class DiffuseNormalsConfig(Documented):
     """Fit each pixel with the materials stage's roughness texture seen through the textured mesh. On the
     default capture (`make dataset`, valid pixels of every camera, the Adam fit of the time) the maps came
     closer to the simulator's normals, 7.08 -> 6.38 deg, shiny leather (roughness 0.25) most: 11.6 -> 8.2 deg
-    (6.33 deg with the Levenberg-Marquardt fit). bench_diffuse_normals (8 cameras per action): 7.13 -> 6.47
-    and 7.88 -> 7.09 deg, against 6.32 and 6.87 with the simulator's own roughness, for the same fit time.
+    (6.33 deg with the Levenberg-Marquardt fit; 6.38 since the materials stage leaves shadowed texels out of
+    its roughness median, which brought the roughness closer to the truth, MAE 0.079 -> 0.064).
+    bench_diffuse_normals (8 cameras per action): 7.13 -> 6.48 and 7.88 -> 7.12 deg, against 6.32 and 6.87 with
+    the simulator's own roughness, for the same fit time.
     Off: every pixel is fitted with ``fit.roughness``."""
     fit: SpecularConfig = field(default_factory=SpecularConfig)
     """The per-pixel fit; its ``roughness`` is used where the textured mesh does not cover a pixel (every
@@ -230,8 +232,8 @@ class DiffuseNormalsConfig(Documented):
     that the fitted normals, each pixel's roughness and the materials stage's F0 predict (its roughness was
     fitted with that F0). On the default capture (bench_diffuse_normals, 8 cameras per action, median over the
     valid pixels) the white-light albedo lies 0.017-0.020 above the simulator's albedo head-on (n.v > 0.7) and
-    0.057-0.060 at grazing views (n.v < 0.15); ``albedo_diffuse`` lies within 0.006 at every angle (PSNR 27.2
-    -> 27.7 and 26.9 -> 27.5 dB), for 0.03 s per camera. It still holds the stage's ambient occlusion, as the
+    0.057-0.060 at grazing views (n.v < 0.15); ``albedo_diffuse`` lies within 0.005 for n.v > 0.15 and 0.011 below
+    (PSNR 27.2 -> 27.6 and 26.9 -> 27.5 dB), for 0.04 s per camera. It still holds the stage's ambient occlusion, as the
     white-light albedo."""
     previews: bool = True
     """Write a PNG preview per camera and a contact sheet."""
