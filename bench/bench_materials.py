@@ -12,7 +12,8 @@ is hit) and compared with the simulator's roughness and albedo maps.
    ggx_table vs sg, ``fit_albedo`` on/off, ``max_views`` 8/16 (the 8 best views are the first 8 of the 16
    gathered: same ranking), ``median_min_visibility`` 0/0.85/0.95 (which texels vote in the surface median: those
    whose ambient visibility on the mesh reaches it) and ``median_neighbours`` 1/25/100/200, one change at a
-   time from the stage's defaults, with the fit time (``fit_roughness``, ``--threads`` torch threads) and the smoothing time.
+   time from the stage's defaults, with the fit time (``fit_roughness``, ``--threads`` torch threads) and the
+   smoothing time.
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
    variation gives) and, as oracles, the truth's own mean and median over the compared pixels (the median
    is the constant with the least absolute error).

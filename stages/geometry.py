@@ -60,19 +60,21 @@ class TexturesConfig(Documented):
     """Write PNG previews of the textures."""
 
 
+def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, dict[str, Any]]:
+    """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
+    missing camera, with no calibration or failed frames, has none)."""
+    cameras = load_cameras(decode_dir / "cameras.json")
+    return {c: cameras[c] for c in sorted(cameras) if (photometric_dir / "normal_alpha" / f"{c}.exr").exists()}
+
+
 def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
     """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
-    calibrated cameras that have maps, sorted by id (a missing camera has no normal map and is skipped);
-    ``valid`` = alpha above ``min_alpha`` inside the mask."""
-    cameras = load_cameras(decode_dir / "cameras.json")
-    for cam_id in sorted(cameras):
-        path = photometric_dir / "normal_alpha" / f"{cam_id}.exr"
-        if not path.exists():  # missing camera (no calibration, or its frames failed)
-            continue
-        normal_alpha = read_exr(path)
+    :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
+    for cam_id, cam in mapped_cameras(decode_dir, photometric_dir).items():
+        normal_alpha = read_exr(photometric_dir / "normal_alpha" / f"{cam_id}.exr")
         mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        yield cam_id, cameras[cam_id], normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
+        yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
 
 
 def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:

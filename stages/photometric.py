@@ -201,9 +201,10 @@ class PhotometricStage(Stage):
 @dataclass(frozen=True)
 class DiffuseNormalsConfig(Documented):
     """The released ``normal_diffuse`` maps: the specular fit, each pixel with its roughness from the materials
-    stage; and ``albedo_diffuse``, the white-light albedo less the specular light that fit predicts. The photometric stage does not fit them: the mesh and the roughness texture need only eq. 1's
-    ``normal_alpha``, so a first pass with one roughness prior for every pixel would be thrown away (it cost
-    1.5 s per camera on the default capture)."""
+    stage; and ``albedo_diffuse``, the white-light albedo less the specular light that fit predicts. The
+    photometric stage does not fit them: the mesh and the roughness texture need only eq. 1's ``normal_alpha``,
+    so a first pass with one roughness prior for every pixel would be thrown away (it cost 1.5 s per camera on
+    the default capture)."""
 
     enabled: bool = True
     """Write ``normal_diffuse`` (and so release them). The ratio normals stay the release's ``normal_alpha``: the
@@ -232,9 +233,9 @@ class DiffuseNormalsConfig(Documented):
     that the fitted normals, each pixel's roughness and the materials stage's F0 predict (its roughness was
     fitted with that F0). On the default capture (bench_diffuse_normals, 8 cameras per action, median over the
     valid pixels) the white-light albedo lies 0.017-0.020 above the simulator's albedo head-on (n.v > 0.7) and
-    0.057-0.060 at grazing views (n.v < 0.15); ``albedo_diffuse`` lies within 0.005 for n.v > 0.15 and 0.011 below
-    (PSNR 27.2 -> 27.6 and 26.9 -> 27.5 dB), for 0.04 s per camera. It still holds the stage's ambient occlusion, as the
-    white-light albedo."""
+    0.057-0.060 at grazing views (n.v < 0.15); ``albedo_diffuse`` lies within 0.005 for n.v > 0.15 and 0.011
+    below (PSNR 27.2 -> 27.6 and 26.9 -> 27.5 dB), for 0.04 s per camera. It still holds the stage's ambient
+    occlusion, as the white-light albedo."""
     previews: bool = True
     """Write a PNG preview per camera and a contact sheet."""
 

@@ -38,7 +38,7 @@ from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.geometry import camera_maps
+from stages.geometry import camera_maps, mapped_cameras
 from stages.numerics import numeric_threads
 from stages.numerics.learned_blend import LearnedBlendConfig
 
@@ -317,12 +317,13 @@ class RelightStage(Stage):
         vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")
         scene = mesh_scene(vertices, faces)
         sources, cameras = [], {}
-        maps = list(camera_maps(ctx.upstream["decode"], ctx.upstream["photometric"], cfg.min_alpha))
         diffuse_dir = ctx.upstream["diffuse_normals"]
         # every source's albedo_diffuse or none: the shading treats the reprojected albedo as one kind
-        use_diffuse_albedo = cfg.diffuse_albedo and bool(maps) and all(
-            (diffuse_dir / "albedo_diffuse" / f"{m[0]}.exr").exists() for m in maps)
-        for cam_id, cam, normal_alpha, _, valid in maps:
+        mapped = mapped_cameras(ctx.upstream["decode"], ctx.upstream["photometric"])
+        use_diffuse_albedo = cfg.diffuse_albedo and bool(mapped) and all(
+            (diffuse_dir / "albedo_diffuse" / f"{cam_id}.exr").exists() for cam_id in mapped)
+        for cam_id, cam, normal_alpha, _, valid in camera_maps(ctx.upstream["decode"], ctx.upstream["photometric"],
+                                                               cfg.min_alpha):
             h, w = valid.shape
             depth = render_mesh(None, None, cam["K"], cam["cam_from_world"], h, w, scene=scene)["depth_m"]
             albedo = read_exr((diffuse_dir / "albedo_diffuse" if use_diffuse_albedo else
