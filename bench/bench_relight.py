@@ -10,10 +10,13 @@ views, the materials textures through the atlas, ``fit_sg_environment``, ``direc
 rendering of the true subject (common exposure from the truth's 99th percentile, union of the masks).
 
 1. **Variants**, one change at a time from the stage's defaults (32 lobes, shadows with 256 visibility
-   directions, reprojected normals, albedo de-occluded): ``sg_lobes`` 8/16/32/64 (with the SG fit time per
-   environment), ``visibility_directions`` 64/128/256, shadows off (with the de-occluded and with the
-   photometric albedo: the stage with ``shadows: false`` shades the photometric albedo unshadowed), shadows
-   with the photometric albedo (occlusion counted twice), ``normals: mesh``. Time per view: the G-buffer
+   directions, fused normals, the sources' ``albedo_diffuse`` when the release has it, de-occluded):
+   ``sg_lobes`` 8/16/32/64 (with the SG fit time per environment), ``visibility_directions`` 64/128/256,
+   shadows off (with the de-occluded and with the photometric albedo: the stage with ``shadows: false``
+   shades the photometric albedo unshadowed), shadows with the photometric albedo (occlusion counted twice),
+   ``normals`` reprojected, mesh, fused at 8 and 30 mm (the stage's ``normal_fusion_m`` is 15 mm), the
+   white-light albedo as the sources (times the diffuse-ratio texture, as before ``albedo_diffuse``, and
+   without it). The shading normals' mean angle to the simulator's is reported per kind. Time per view: the G-buffer
    (mesh depth, reprojection, atlas lookups; the first view also renders the sources' depth), the
    visibility and the shading under the 3 environments; ``x_baseline`` is that time over the simplest
    variant's (no shadows, photometric albedo) in the same process. The ``released`` row scores the
@@ -21,8 +24,9 @@ rendering of the true subject (common exposure from the truth's 99th percentile,
 2. **Decomposition** on the pixels both the truth and our mask cover, at the true surface points with the
    true mesh's visibility (256 directions), 32 lobes, F0 0.02 (the simulator's skin has 0.028, cloth 0.04):
    the true G-buffers (normal, albedo, roughness) shaded with SG = the shading model's floor (also without
-   shadows); then our normal, our (de-occluded) albedo or our roughness swapped in one at a time, all three
-   together, and our default render itself (our geometry, silhouette and visibility too).
+   shadows); then our normal (also the reprojected one), our (de-occluded, and not de-occluded) albedo or our
+   roughness swapped in one at a time, all three together, and our default render itself (our geometry,
+   silhouette and visibility too).
 
 ``python bench/bench_relight.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
 writes DIR/bench_relight.json, DIR/bench_relight.md (tables) and DIR/bench_relight.png (PSNR against
@@ -31,6 +35,7 @@ runs/default/capture; without them, the ground truth or the maps it prints why a
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -44,19 +49,26 @@ sys.path.insert(0, str(ROOT))
 ENVIRONMENTS = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
 LOBES = (8, 16, 32, 64)
 DIRECTIONS = (64, 128, 256)
-DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "reprojected", "albedo": "deoccluded",
-           "diffuse_ratio": True}
+DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "fused", "albedo": "deoccluded",
+           "diffuse_ratio": True, "sources": "stage"}
+FUSION_WIDTHS_M = (0.008, 0.03)  # frequency splits of the fused normals besides the stage's (normal_fusion_m)
 VARIANTS = [("default", {}),
             ("sg_lobes 8", {"lobes": 8}), ("sg_lobes 16", {"lobes": 16}), ("sg_lobes 64", {"lobes": 64}),
             ("visibility_directions 64", {"directions": 64}), ("visibility_directions 128", {"directions": 128}),
             ("shadows off, de-occluded albedo", {"shadows": False}),
             ("shadows off, photometric albedo (baseline)", {"shadows": False, "albedo": "photometric"}),
             ("shadows on, photometric albedo", {"albedo": "photometric"}),
+            ("normals reprojected", {"normals": "reprojected"}),
             ("normals mesh", {"normals": "mesh"}),
-            ("white-light albedo (no diffuse ratio)", {"diffuse_ratio": False})]
+            ("normals fused 8 mm", {"normals": "fused_0.008"}),
+            ("normals fused 30 mm", {"normals": "fused_0.03"}),
+            ("white-light sources x diffuse ratio", {"sources": "white"}),
+            ("white-light sources, no diffuse ratio", {"sources": "white", "diffuse_ratio": False})]
 BASELINE = "shadows off, photometric albedo (baseline)"
 DECOMPOSITION = ("truth G-buffers (SG floor)", "truth G-buffers, no shadows", "truth + our normal",
-                 "truth + our albedo", "truth + our roughness", "our normal+albedo+roughness",
+                 "truth + our reprojected normal", "truth + our albedo", "truth + our albedo, not de-occluded",
+                 "truth + our roughness",
+                 "our normal+albedo+roughness",
                  "our default render")
 F0 = 0.02
 SOURCES = 6
@@ -103,37 +115,54 @@ class ActionScene:
         from manifests import open_release
         from stages.relight import ActionAsset, RelightConfig
 
-        # the stage's sources: the specular-fitted normal maps when the release has them
-        diffuse = RelightConfig().diffuse_normals and "normal_diffuse" in open_release(release).action(action).kinds
+        # the stage's sources: the specular-fitted normal maps and albedo_diffuse when the release has them
+        kinds = open_release(release).action(action).kinds
+        diffuse = RelightConfig().diffuse_normals and "normal_diffuse" in kinds
+        self.diffuse_albedo = RelightConfig().diffuse_albedo and "albedo_diffuse" in kinds
         self.data = ActionGBuffers(release, action, diffuse_normals=diffuse)
+        stage_data = self.data.with_albedo(self.diffuse_albedo)
         self.view = self.data.view
         self.scene = mesh_scene(self.data.vertices, self.data.faces)
         self.data._scene = self.scene  # the sources' depth renders share it
         vertices, faces, atlas = load_atlas_mesh(self.view.path("mesh_textured"))
         self.asset = ActionAsset(scene=self.scene, faces=self.data.faces,
                                  smooth_normals=vertex_normals(self.data.vertices, self.data.faces),
-                                 sources=[self.data.source(c) for c in sorted(self.data.cameras)],
+                                 sources=[stage_data.source(c) for c in sorted(self.data.cameras)],
                                  atlas_scene=mesh_scene(vertices, faces), atlas=atlas,
                                  albedo_tex=self.view.texture("albedo")[..., :3],
                                  roughness_tex=self.view.texture("roughness"),
                                  occlusion_tex=self.view.texture("occlusion"),
-                                 diffuse_ratio_tex=self.view.texture("diffuse_ratio")[..., :3])
+                                 diffuse_ratio_tex=self.view.texture("diffuse_ratio")[..., :3],
+                                 sources_diffuse_albedo=self.diffuse_albedo)
+        # the white-light albedo as the sources (x the diffuse-ratio texture), as before albedo_diffuse
+        self.asset_white = (dataclasses.replace(self.asset, sources=[self.data.source(c) for c in sorted(self.data.cameras)],
+                                                sources_diffuse_albedo=False) if self.diffuse_albedo else self.asset)
 
     def gbuffer(self, cam: dict) -> dict:
         """The stage's G-buffer of a novel camera (stages.relight.novel_view_gbuffer), with both normal
         choices, per mask pixel, and the full maps for the decomposition."""
-        from stages.relight import novel_view_gbuffer
+        from stages.numerics.gbuffer import fuse_normals
+        from stages.relight import RelightConfig, novel_view_gbuffer
 
         h, w = int(cam["height"]), int(cam["width"])
         gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
                                 depth_tolerance_m=DEPTH_TOLERANCE_M)
+        white = gb if self.asset_white is self.asset else novel_view_gbuffer(
+            self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES, depth_tolerance_m=DEPTH_TOLERANCE_M)
         pix = gb["pix"]
+        full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
+        for width in FUSION_WIDTHS_M:
+            full[f"fused_{width:g}"] = fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
+                                                    gb["normal_fusion_px"] * width / RelightConfig().normal_fusion_m)
         return {"mask": gb["mask"], "pix": pix, "points": gb["points"], "view_dirs": gb["view_dirs"], "shape": (h, w),
-                "normals": {k: gb[f"normal_{k}"].reshape(-1, 3)[pix].astype(np.float64) for k in ("reprojected", "mesh")},
-                "albedo_white": gb["albedo"].reshape(-1, 3)[pix], "diffuse_ratio": gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                "normals": {k: n.reshape(-1, 3)[pix].astype(np.float64) for k, n in full.items()},
+                "normals_full": full,
+                "albedo": {"stage": gb["albedo"].reshape(-1, 3)[pix], "white": white["albedo"].reshape(-1, 3)[pix]},
+                "diffuse_ratio": {"stage": gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                                  "white": white["diffuse_ratio"].reshape(-1, 3)[pix]},
                 "occlusion": gb["occlusion"].reshape(-1)[pix],
                 "roughness": np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0),
-                "albedo_full": gb["albedo"], "diffuse_ratio_full": gb["diffuse_ratio"], "normal_full": gb["normal_reprojected"],
+                "albedo_full": gb["albedo"], "diffuse_ratio_full": gb["diffuse_ratio"],
                 "roughness_full": gb["roughness"], "occlusion_full": gb["occlusion"]}
 
 
@@ -154,7 +183,7 @@ def shade(normals, view_dirs, albedo, roughness, lobes, visibility=None, directi
 
 def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, threads: int, progress) -> dict:
     """Every variant and the decomposition for one novel camera under every environment."""
-    from stages.numerics.metrics import relit_psnr
+    from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.numerics.sg import fibonacci_sphere
     from stages.numerics.shadowing import direction_visibility
     from stages.relight import _pixel_points, shading_albedo
@@ -164,17 +193,17 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
     gbuffer_s = time.perf_counter() - t0
     directions = {d: fibonacci_sphere(d) for d in DIRECTIONS}
     visibility, vis_s = {}, {}
-    for normals_kind, counts in (("reprojected", DIRECTIONS), ("mesh", (DEFAULT["directions"],))):
-        for d in counts:
+    for normals_kind in gb["normals"]:
+        for d in (DIRECTIONS if normals_kind == DEFAULT["normals"] else (DEFAULT["directions"],)):
             t0 = time.perf_counter()
             visibility[(normals_kind, d)] = direction_visibility(gb["points"], gb["normals"][normals_kind],
                                                                  scene.scene, directions[d], threads=threads)
             vis_s[(normals_kind, d)] = time.perf_counter() - t0
     K, pose = np.asarray(cam["K"], np.float64), np.asarray(cam["cam_from_world"], np.float64)
     h, w = gb["shape"]
-    albedos = {(kind, ratio): shading_albedo(gb["albedo_white"], gb["diffuse_ratio"] if ratio else 1.0,
-                                             gb["occlusion"] if kind == "deoccluded" else None)
-               for kind in ("deoccluded", "photometric") for ratio in (True, False)}
+    albedos = {(kind, ratio, src): shading_albedo(gb["albedo"][src], gb["diffuse_ratio"][src] if ratio else 1.0,
+                                                  gb["occlusion"] if kind == "deoccluded" else None)
+               for kind in ("deoccluded", "photometric") for ratio in (True, False) for src in ("stage", "white")}
 
     rows = {label: {"psnr_db": {}, "shade_s": {}} for label, _ in VARIANTS}
     rows["released"] = {"psnr_db": {}}
@@ -189,7 +218,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
             cfg = DEFAULT | change
             vis = visibility[(cfg["normals"], cfg["directions"])] if cfg["shadows"] else None
             t0 = time.perf_counter()
-            rgb = shade(gb["normals"][cfg["normals"]], gb["view_dirs"], albedos[(cfg["albedo"], cfg["diffuse_ratio"])],
+            rgb = shade(gb["normals"][cfg["normals"]], gb["view_dirs"], albedos[(cfg["albedo"], cfg["diffuse_ratio"], cfg["sources"])],
                         gb["roughness"],
                         fit[cfg["lobes"]], vis, directions[cfg["directions"]] if vis is not None else None)
             rows[label]["shade_s"][env_name] = time.perf_counter() - t0
@@ -214,12 +243,17 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
             view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
             true_normals = true["normals_world"].reshape(-1, 3)[bp].astype(np.float64)
             true_vis = direction_visibility(points, true_normals, true_scene, directions[256], threads=threads)
-            ours = {"normal": gb["normal_full"].reshape(-1, 3)[bp].astype(np.float64),
+            ours = {"normal": gb["normals_full"][DEFAULT["normals"]].reshape(-1, 3)[bp].astype(np.float64),
+                    "reprojected normal": gb["normals_full"]["reprojected"].reshape(-1, 3)[bp].astype(np.float64),
                     "albedo": shading_albedo(gb["albedo_full"].reshape(-1, 3)[bp],
                                              gb["diffuse_ratio_full"].reshape(-1, 3)[bp],
                                              gb["occlusion_full"].reshape(-1)[bp]),
+                    "albedo_occluded": shading_albedo(gb["albedo_full"].reshape(-1, 3)[bp],
+                                                      gb["diffuse_ratio_full"].reshape(-1, 3)[bp], None),
                     "roughness": np.clip(gb["roughness_full"].reshape(-1)[bp], 0.05, 1.0)}
             true_geometry = (points, view_dirs, true_normals, true_vis, ours)
+            normal_error = {kind: float(np.mean(angular_error_deg(n.reshape(-1, 3)[bp], true_normals)))
+                            for kind, n in gb["normals_full"].items()}
         points, view_dirs, true_normals, true_vis, ours = true_geometry
         t_buf = {"normal": true_normals, "albedo": true["albedo"].reshape(-1, 3)[bp],
                  "roughness": np.clip(true["roughness"].reshape(-1)[bp], 0.05, 1.0)}
@@ -235,7 +269,9 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
         decomposition["truth G-buffers, no shadows"][env_name] = score(t_buf, shadows=False)
         for name in ("normal", "albedo", "roughness"):
             decomposition[f"truth + our {name}"][env_name] = score(t_buf | {name: ours[name]})
-        decomposition["our normal+albedo+roughness"][env_name] = score(ours)
+        decomposition["truth + our reprojected normal"][env_name] = score(t_buf | {"normal": ours["reprojected normal"]})
+        decomposition["truth + our albedo, not de-occluded"][env_name] = score(t_buf | {"albedo": ours["albedo_occluded"]})
+        decomposition["our normal+albedo+roughness"][env_name] = score({k: ours[k] for k in ("normal", "albedo", "roughness")})
         decomposition["our default render"][env_name] = relit_psnr(default_images[env_name] * both[..., None], both,
                                                                    target, both)["psnr_db"]
         rows["released"].setdefault("truth_render_s", {})[env_name] = truth_s
@@ -251,6 +287,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
              + ", ".join(f"{e[:12]} {v:.2f}" for e, v in rows["default"]["psnr_db"].items()) + " dB; floor "
              + ", ".join(f"{v:.2f}" for v in decomposition["truth G-buffers (SG floor)"].values()))
     return {"camera_id": cam["camera_id"], "pixels": int(len(gb["pix"])), "gbuffer_s": gbuffer_s,
+            "normal_error_deg": normal_error,
             "visibility_s": {f"{k[0]}_{k[1]}": v for k, v in vis_s.items()}, "variants": variants,
             "decomposition": decomposition}
 
@@ -283,6 +320,8 @@ def summarise(report: dict) -> dict:
         per_env = {e: float(np.mean([v["decomposition"][label][e] for v in views])) for e in envs}
         out["decomposition"][label] = {"psnr_db": round(float(np.mean(list(per_env.values()))), 3),
                                        "per_environment": {e: round(x, 3) for e, x in per_env.items()}}
+    out["normal_error_deg"] = {kind: round(float(np.mean([v["normal_error_deg"][kind] for v in views])), 3)
+                               for kind in views[0]["normal_error_deg"]}
     lobes_psnr = {}
     for count in LOBES:
         label = "default" if count == DEFAULT["lobes"] else f"sg_lobes {count}"
@@ -316,6 +355,8 @@ def markdown(report: dict) -> str:
     for label, row in s["decomposition"].items():
         lines.append(f"| {label} | {row['psnr_db']:.2f} | "
                      + " | ".join(f"{row['per_environment'][e]:.2f}" for e in envs) + " |")
+    lines += ["", "Shading normals against the simulator's (mean angle, degrees, pixels in both masks): "
+              + ", ".join(f"{kind} {err:.2f}" for kind, err in s["normal_error_deg"].items()) + "."]
     lines += ["", "SG fits (fit_height 64, torch threads as above):", "",
               "| environment | lobes | fit s | irradiance rel L2 | map rel L2 (64 rows) | relit PSNR |",
               "|---" * 6 + "|"]

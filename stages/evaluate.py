@@ -422,7 +422,7 @@ class RelitTruthCache:
             simulator.update(path.name.encode() + b"\0" + path.read_bytes())
         truth = Path(truth_dir) / action_id
         self.folder = Path(folder)
-        self.record = {"format": 1, "simulator": simulator.hexdigest(), "lights": int(lights),
+        self.record = {"format": 2, "simulator": simulator.hexdigest(), "lights": int(lights),
                        "capture": digest(Path(truth_dir).parent / "capture.json"),
                        "truth": digest(truth / "truth.json"), "mesh": digest(truth / "mesh.ply")}
 
@@ -445,7 +445,7 @@ class RelitTruthCache:
             return None
         try:
             with np.load(path) as data:
-                return {"radiance": data["radiance"], "mask": data["mask"]}
+                return {"radiance": data["radiance"], "mask": data["mask"], "normals_world": data["normals_world"]}
         except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # unreadable: render it again
             return None
 
@@ -454,7 +454,8 @@ class RelitTruthCache:
 
         self.folder.mkdir(parents=True, exist_ok=True)
         tmp = self.folder / f".{key[:32]}.{os.getpid()}.tmp.npz"
-        np.savez_compressed(tmp, radiance=np.asarray(render["radiance"]), mask=np.asarray(render["mask"], bool))
+        np.savez_compressed(tmp, radiance=np.asarray(render["radiance"]), mask=np.asarray(render["mask"], bool),
+                            normals_world=np.asarray(render["normals_world"], np.float32))
         os.replace(tmp, self.folder / f"{key[:32]}.npz")
 
 
@@ -463,8 +464,10 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     """Relit novel views against the simulator's subject rendered under the same environment from the same
     camera (:class:`synthetic.relight.TruthRelighter`, kept in ``cache_dir`` by :class:`RelitTruthCache`
     when given): PSNR after a common exposure (:func:`stages.numerics.metrics.relit_psnr`), per view and
-    environment, averaged."""
-    from stages.numerics.metrics import relit_psnr
+    environment, averaged; and ``relit_normal_mean_deg``, the released shading normals
+    (``renders/<view>/normal.exr``) against the true subject's, mean angle over the pixels both masks cover,
+    averaged over views."""
+    from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.relight import find_environment, load_environment
 
     capture_root = Path(truth_dir).parent
@@ -473,6 +476,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     from synthetic.relight import TruthRelighter
 
     values: list[float] = []
+    normal_values: list[float] = []
     for action_id in ok_ids:
         view = rel.action(action_id)
         if "render_environments" not in view.kinds:
@@ -483,6 +487,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
         cache = RelitTruthCache(cache_dir, truth_dir, action_id, lights) if cache_dir is not None else None
         truth = None  # built on the first render the cache does not hold
         scores = []
+        normal_errors: dict[str, float] = {}
         for env_record in envs:
             env, _ = load_environment(env_record["name"], find_environment(env_record["name"], capture_root))
             for cam in cams:
@@ -498,13 +503,28 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                         cache.save(key, true)
                 score = relit_psnr(relit[..., :3], relit[..., 3] > 0.5, true["radiance"], true["mask"])
                 scores.append(score["psnr_db"])
+                if cam["camera_id"] not in normal_errors:  # the true normals do not depend on the environment
+                    both = (relit[..., 3] > 0.5) & np.asarray(true["mask"], bool)
+                    if both.any():
+                        normal = view.render_gbuffer(cam["camera_id"])["normal"]
+                        error = float(angular_error_deg(normal[both], np.asarray(true["normals_world"])[both]).mean())
+                        normal_errors[cam["camera_id"]] = error
+                        rows.append({"action_id": action_id, "camera_id": cam["camera_id"],
+                                     "metric": "relit_normal_mean_deg", "region": "all", "value": error,
+                                     "source": "evaluate", "run_id": run_id})
                 rows.append({"action_id": action_id, "camera_id": cam["camera_id"], "metric": "relit_psnr_db",
                              "region": env_record["label"], "value": score["psnr_db"], "source": "evaluate",
                              "run_id": run_id})
         if scores:
             per_action.setdefault(action_id, {})["relit_psnr_db"] = float(np.mean(scores))
             values.append(float(np.mean(scores)))
-    return {"relit_psnr_db": float(np.mean(values))} if values else {}
+        if normal_errors:
+            per_action.setdefault(action_id, {})["relit_normal_mean_deg"] = float(np.mean(list(normal_errors.values())))
+            normal_values.append(float(np.mean(list(normal_errors.values()))))
+    out = {"relit_psnr_db": float(np.mean(values))} if values else {}
+    if normal_values:
+        out["relit_normal_mean_deg"] = float(np.mean(normal_values))
+    return out
 
 
 def _camera_overall(rel: Any, truth_dir: Path, ok_ids: list[str]) -> dict[str, float]:
@@ -599,4 +619,6 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"{o.get('albedo_intrinsic_psnr_db', float('nan')):.2f} dB (vs the simulator's albedo)")
     if "relit_psnr_db" in o:
         print(f"  relit novel views     : PSNR {o['relit_psnr_db']:.2f} dB against the true subject under the same environments")
+    if "relit_normal_mean_deg" in o:
+        print(f"  relit shading normals : {o['relit_normal_mean_deg']:.2f} deg mean against the true subject's")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

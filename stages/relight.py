@@ -7,7 +7,9 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
    depth-guided reprojection; ``learned_blend`` optionally blends with weights learned leave one out on
    the captured views, :mod:`stages.numerics.learned_blend`), roughness and occlusion looked up in the
    materials textures through the textured mesh's UVs (pixels the mesh covers but no source sees take the
-   baked textures and the mesh's smooth normals; ``normals: mesh`` uses those everywhere);
+   baked textures and the mesh's smooth normals; ``normals: mesh`` uses those everywhere). The shading
+   normals are by default ``fused``: the reprojected normals' detail on the mesh normals' low frequencies
+   (:func:`stages.numerics.gbuffer.fuse_normals`, split at ``normal_fusion_m`` on the surface);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
 3. shading: Lambertian diffuse + GGX specular under the lobes (F0 0.02), with the mesh's self-occlusion
@@ -66,12 +68,19 @@ class RelightConfig(Documented):
     """Spherical Gaussians per environment (bench_sg: 0.9% median irradiance error at 32)."""
     fit_height: int = 64
     """Rows of the downsampled map the SG fit works on."""
-    normals: str = "reprojected"
-    """Shading normals: "reprojected" (the G-buffer's, blended from the photometric maps, as the paper) or
-    "mesh" (the mesh's smooth normals). On the simulator the mesh's are closer to the truth (5-6 vs 6-8.5 deg
-    on the novel views with eq. 1's maps) yet relight worse with the reprojected albedo (22.20 vs 22.48 dB
-    with ``normal_diffuse``, 22.24 vs 22.24 with eq. 1's): the reprojected normals and albedo come from the
-    same maps and their errors partly cancel."""
+    normals: str = "fused"
+    """Shading normals (also released as ``renders/<view>/normal.exr``): "fused" (the reprojected normals'
+    detail on the mesh normals' low frequencies, :func:`stages.numerics.gbuffer.fuse_normals`), "reprojected"
+    (the G-buffer's, blended from the photometric maps, as the paper) or "mesh" (the mesh's smooth normals).
+    On the default capture's novel views (bench/bench_relight.py, both actions, 3 views, 3 environments) the
+    photometric normals carry smooth biases the mesh's do not (eq. 1's lean, specular residue) and the mesh
+    lacks their detail: against the simulator's normals reprojected 6.28 deg, mesh 5.58, fused 5.53 (8 mm:
+    5.45, 30 mm: 5.67); relit 23.37 dB reprojected, 23.24 mesh, 23.47 fused (8 mm: 23.43, 30 mm: 23.48). The
+    mesh's normals alone relight worse than they measure: the reprojected albedo's errors partly cancel the
+    reprojected normals' at the scale of the detail, which the fusion keeps."""
+    normal_fusion_m: float = 0.015
+    """Frequency split of the "fused" normals: the Gaussian's sigma on the surface, metres (turned into pixels
+    at each novel view's median depth; 3 px on the default capture)."""
     diffuse_normals: bool = True
     """Reproject the normal maps with the specular reflection fitted out (``normal_diffuse`` of the
     diffuse_normals stage, when there are any) rather than eq. 1's (relit 22.48 vs 22.24 dB, bench_relight)."""
@@ -100,8 +109,10 @@ class RelightConfig(Documented):
     def __post_init__(self) -> None:
         if not self.environments:
             raise ValueError("relight.environments must name at least one environment")
-        if self.normals not in ("mesh", "reprojected"):
-            raise ValueError(f"relight.normals must be 'mesh' or 'reprojected', got {self.normals!r}")
+        if self.normals not in ("mesh", "reprojected", "fused"):
+            raise ValueError(f"relight.normals must be 'fused', 'reprojected' or 'mesh', got {self.normals!r}")
+        if not (np.isfinite(self.normal_fusion_m) and self.normal_fusion_m > 0):
+            raise ValueError(f"relight.normal_fusion_m must be positive, got {self.normal_fusion_m!r}")
         for name in ("novel_views", "sources", "sg_lobes", "fit_height", "visibility_directions"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"relight.{name} must be >= 1")
@@ -200,19 +211,23 @@ class ActionAsset:
 
 
 def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
-                       sources: int = 6, depth_tolerance_m: float = 0.01, blend: Any = None) -> dict[str, np.ndarray]:
+                       sources: int = 6, depth_tolerance_m: float = 0.01, blend: Any = None,
+                       normal_fusion_m: float = 0.015) -> dict[str, np.ndarray]:
     """The G-buffer of one novel camera (step 1 of the module docstring); ``blend`` a trained
-    :class:`stages.numerics.learned_blend.LearnedBlend` or None (the heuristic weights).
+    :class:`stages.numerics.learned_blend.LearnedBlend` or None (the heuristic weights); ``normal_fusion_m``
+    the frequency split of ``normal_fused`` on the surface (metres; the Gaussian's sigma, turned into pixels
+    at the mask's median depth).
 
     Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
     ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
-    ``normal_mesh``, ``albedo`` (the sources', reprojected, the baked white-light texture where no source sees
+    ``normal_mesh``, ``normal_fused`` (:func:`stages.numerics.gbuffer.fuse_normals`: the reprojected normals'
+    detail on the mesh normals' low frequencies), ``albedo`` (the sources', reprojected, the baked white-light texture where no source sees
     the pixel), ``roughness``, ``occlusion``, ``diffuse_ratio`` (1 where the sources' albedo is already
     ``albedo_diffuse``); and per mask pixel ``pix`` (flat indices),
     ``points`` (P, 3) and ``view_dirs`` (P, 3, towards the camera). 0 outside the mask.
     """
     from stages.numerics.bake import sample_texture
-    from stages.numerics.gbuffer import reproject_gbuffer
+    from stages.numerics.gbuffer import fuse_normals, reproject_gbuffer
     from stages.numerics.raycast import render_attributes, render_mesh, render_uvs
 
     K, pose = np.asarray(K, np.float64), np.asarray(cam_from_world, np.float64)
@@ -240,9 +255,12 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     points = _pixel_points(K, pose, depth).reshape(-1, 3)[pix]
     view_dirs = centre[None] - points
     view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+    normal_reprojected = np.where(reprojected[..., None], gbuffer["normal"], mesh_normals).astype(np.float32)
+    fusion_px = float(normal_fusion_m * K[0, 0] / np.median(depth[mask])) if mask.any() else 1.0
     return {"mask": mask, "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
-            "normal_reprojected": np.where(reprojected[..., None], gbuffer["normal"], mesh_normals).astype(np.float32),
-            "normal_mesh": mesh_normals.astype(np.float32),
+            "normal_reprojected": normal_reprojected, "normal_mesh": mesh_normals.astype(np.float32),
+            "normal_fused": fuse_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3)),
+            "normal_fusion_px": fusion_px,
             "albedo": np.where(mask[..., None], albedo, 0.0).astype(np.float32),
             "roughness": texture(asset.roughness_tex, 0.0), "occlusion": texture(asset.occlusion_tex, 1.0),
             "diffuse_ratio": np.where((reprojected & asset.sources_diffuse_albedo)[..., None], 1.0,
@@ -266,7 +284,7 @@ class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
     name = "relight"
-    version = "4"  # 4: G-buffers read the sources with cubic convolution
+    version = "5"  # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")
@@ -366,7 +384,8 @@ class RelightStage(Stage):
             t0 = time.perf_counter()
             h, w = view["height"], view["width"]
             gb = novel_view_gbuffer(asset, view["K"], view["cam_from_world"], h, w, sources=cfg.sources,
-                                    depth_tolerance_m=cfg.depth_tolerance_m, blend=blend)
+                                    depth_tolerance_m=cfg.depth_tolerance_m, blend=blend,
+                                    normal_fusion_m=cfg.normal_fusion_m)
             mask, pix = gb["mask"], gb["pix"]
             shading_normals = gb[f"normal_{cfg.normals}"]
             normals = shading_normals.reshape(-1, 3)[pix]
@@ -396,6 +415,7 @@ class RelightStage(Stage):
                 row.append(preview_linear(image, exposure=_auto_exposure(image, mask)))
             sheet_rows.append(np.concatenate(row, axis=1))
             records.append({**view, "pixels": int(len(pix)), "coverage": gb["coverage"],
+                            "normal_fusion_px": gb["normal_fusion_px"],
                             "seconds": time.perf_counter() - t0})
             ctx.progress(index + 1, len(views), f"view {view['camera_id']} relit under {len(environments)} "
                                                 f"environment(s)")

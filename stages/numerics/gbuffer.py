@@ -51,7 +51,7 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "source_candidates",
-           "reproject_gbuffer", "interpolate_camera", "novel_camera_pairs"]
+           "reproject_gbuffer", "fuse_normals", "interpolate_camera", "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")
@@ -432,6 +432,61 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
     out_valid[rows, cols] = ok
     return {"normal": out_normal, "albedo": out_albedo, "weight": out_weight, "valid": out_valid,
             "view_count": out_count, "sources": chosen}
+
+
+def fuse_normals(normal_detail: np.ndarray, normal_base: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Normals with the low frequencies of ``normal_base`` and the detail of ``normal_detail``.
+
+    ``unit(d - G(d) + G(b))`` per pixel, ``G`` a Gaussian of ``sigma_px`` over the mask (normalised
+    convolution: pixels outside the mask, or where a map is undefined, neither count nor receive). The
+    reprojected photometric normals carry detail the mesh lacks but also smooth, view-dependent biases
+    (eq. 1's lean, specular residue); the mesh's normals are fitted to every view and silhouette at once, so
+    at low frequencies they are the better estimate.
+
+    Args:
+        normal_detail: (H, W, 3) normals whose detail is kept (e.g. the reprojected photometric ones).
+        normal_base: (H, W, 3) normals whose low frequencies are kept (e.g. the mesh's smooth normals).
+        mask: (H, W) bool pixels to fuse.
+        sigma_px: > 0, the Gaussian's standard deviation in pixels (the frequency split).
+
+    Returns:
+        (H, W, 3) float32 unit normals inside the mask (``normal_base``'s direction where the fused vector
+        vanishes or the detail is undefined, 0 where neither is defined), 0 outside. No NaN or Inf.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    detail = np.asarray(normal_detail, dtype=np.float64)
+    base = np.asarray(normal_base, dtype=np.float64)
+    mask = np.asarray(mask).astype(bool, copy=False)
+    if detail.ndim != 3 or detail.shape[-1] != 3:
+        raise ValueError(f"normal_detail must be (H, W, 3), got {detail.shape}")
+    if base.shape != detail.shape or mask.shape != detail.shape[:2]:
+        raise ValueError(f"normal_base {base.shape} and mask {mask.shape} must match normal_detail {detail.shape}")
+    if not (np.isfinite(sigma_px) and sigma_px > 0):
+        raise ValueError(f"sigma_px must be positive, got {sigma_px}")
+
+    def defined(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ok = mask & np.all(np.isfinite(n), axis=-1)
+        n = np.where(ok[..., None], n, 0.0)
+        norm = np.linalg.norm(n, axis=-1)
+        ok &= norm > 1e-6
+        return np.where(ok[..., None], n / np.maximum(norm, 1e-6)[..., None], 0.0), ok
+
+    detail, detail_ok = defined(detail)
+    base, base_ok = defined(base)
+
+    def smooth(n: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        weight = gaussian_filter(ok.astype(np.float64), sigma_px, mode="constant")
+        blurred = np.stack([gaussian_filter(n[..., c], sigma_px, mode="constant") for c in range(3)], axis=-1)
+        return blurred / np.maximum(weight, 1e-9)[..., None]
+
+    both = detail_ok & base_ok
+    fused = detail - smooth(detail, detail_ok) + smooth(base, base_ok)
+    norm = np.linalg.norm(fused, axis=-1)
+    use = both & (norm > 1e-6)
+    fused = np.where(use[..., None], fused / np.maximum(norm, 1e-6)[..., None], base)
+    out = np.where(use[..., None] | base_ok[..., None], fused, detail)
+    return np.where(mask[..., None], out, 0.0).astype(np.float32)
 
 
 def interpolate_camera(K_a: np.ndarray, cam_from_world_a: np.ndarray, K_b: np.ndarray,

@@ -102,5 +102,9 @@ def test_config_checks():
         RelightConfig(environments=())
     with pytest.raises(ValueError, match="normals"):
         RelightConfig(normals="bent")
+    assert RelightConfig(normals="reprojected").normals == "reprojected"
+    for width in (0.0, -0.01, float("nan")):
+        with pytest.raises(ValueError, match="normal_fusion_m"):
+            RelightConfig(normal_fusion_m=width)
     with pytest.raises(ValueError, match="sg_lobes"):
         RelightConfig(sg_lobes=0)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from stages.numerics.gbuffer import (INTERPOLATIONS, WEIGHTINGS, SourceView, _sample_consistent, camera_centre,
-                                     nearest_views, reproject_gbuffer)
+                                     fuse_normals, nearest_views, reproject_gbuffer)
 from stages.numerics.metrics import angular_error_deg
 from stages.numerics.raycast import camera_rays
 from synthetic.rig import look_at as rig_look_at
@@ -273,3 +273,83 @@ def test_spread_heldout_and_summary():
     assert s["heldout_albedo_rmse_x"] == pytest.approx(0.1)
     assert s["heldout_albedo_psnr_db_x"] == pytest.approx(20.0)
     assert s["heldout_albedo_ssim_x"] == pytest.approx(0.9)
+
+
+# ---------------------------------------------------------------------------------------------- fuse_normals
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _tilted_field(h: int = 40, w: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth base field (normals turning slowly across the image) and a high-frequency detail pattern."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    base = _unit(np.stack([0.3 * np.sin(xx / 15.0), 0.2 * np.cos(yy / 12.0), np.ones_like(xx)], -1))
+    detail = 0.08 * np.stack([np.where((xx.astype(int) // 2) % 2 == 0, 1.0, -1.0), np.zeros_like(xx),
+                              np.zeros_like(xx)], -1)
+    return base, detail
+
+
+def test_fuse_normals_hand_case_constant_fields():
+    # constant fields: G(d) = d and G(b) = b away from the edges, so the fused normal is b exactly there
+    h, w = 30, 30
+    d = np.broadcast_to(_unit(np.array([0.3, 0.0, 1.0])), (h, w, 3)).copy()
+    b = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (h, w, 3)).copy()
+    out = fuse_normals(d, b, np.ones((h, w), bool), sigma_px=2.0)
+    assert out.shape == (h, w, 3) and out.dtype == np.float32
+    assert np.allclose(out, b, atol=1e-6)  # normalised convolution: the image edge is no different
+
+
+def test_fuse_normals_keeps_detail_and_replaces_the_low_frequencies():
+    base, detail = _tilted_field()
+    bias = np.array([0.15, -0.1, 0.0])  # a smooth bias of the detailed normals (eq. 1's lean, say)
+    photometric = _unit(base + detail + bias)
+    truth = _unit(base + detail)
+    mask = np.ones(base.shape[:2], bool)
+    fused = fuse_normals(photometric, base, mask, sigma_px=3.0)
+    inner = (slice(6, -6), slice(6, -6))
+    err_photometric = angular_error_deg(photometric, truth)[inner].mean()
+    err_base = angular_error_deg(base, truth)[inner].mean()
+    err_fused = angular_error_deg(fused, truth)[inner].mean()
+    assert err_fused < 0.5 * min(err_photometric, err_base), (err_fused, err_photometric, err_base)
+    assert np.allclose(np.linalg.norm(fused, axis=-1), 1.0, atol=1e-5)
+
+
+def test_fuse_normals_ignores_what_lies_outside_the_mask_and_undefined_pixels():
+    base, detail = _tilted_field()
+    photometric = _unit(base + detail)
+    mask = np.zeros(base.shape[:2], bool)
+    mask[5:35, 8:40] = True
+    fused = fuse_normals(photometric, base, mask, sigma_px=2.0)
+    garbage = photometric.copy()
+    garbage[~mask] = [0.0, -1.0, 0.0]
+    base_garbage = base.copy()
+    base_garbage[~mask] = np.nan
+    assert np.allclose(fuse_normals(garbage, base_garbage, mask, sigma_px=2.0), fused, atol=1e-6)
+    assert np.all(fused[~mask] == 0)
+    # an undefined detailed normal takes the base's direction; an undefined base keeps the detail's
+    hole = photometric.copy()
+    hole[20, 20] = np.nan
+    hole[21, 21] = 0.0
+    out = fuse_normals(hole, base, mask, sigma_px=2.0)
+    assert np.all(np.isfinite(out))
+    assert np.allclose(out[20, 20], base[20, 20], atol=1e-6) and np.allclose(out[21, 21], base[21, 21], atol=1e-6)
+    no_base = base.copy()
+    no_base[10, 10] = 0.0
+    assert np.allclose(fuse_normals(photometric, no_base, mask, 2.0)[10, 10], photometric[10, 10], atol=1e-6)
+
+
+def test_fuse_normals_input_checks():
+    n = np.zeros((4, 4, 3))
+    n[..., 2] = 1
+    m = np.ones((4, 4), bool)
+    with pytest.raises(ValueError, match="normal_detail"):
+        fuse_normals(n[..., :2], n, m, 1.0)
+    with pytest.raises(ValueError, match="must match"):
+        fuse_normals(n, n[:3], m, 1.0)
+    with pytest.raises(ValueError, match="must match"):
+        fuse_normals(n, n, m[:3], 1.0)
+    for sigma in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="sigma_px"):
+            fuse_normals(n, n, m, sigma)
