@@ -221,10 +221,11 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
     ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
     ``normal_mesh``, ``normal_fused`` (:func:`stages.numerics.gbuffer.fuse_normals`: the reprojected normals'
-    detail on the mesh normals' low frequencies), ``albedo`` (the sources', reprojected, the baked white-light texture where no source sees
-    the pixel), ``roughness``, ``occlusion``, ``diffuse_ratio`` (1 where the sources' albedo is already
-    ``albedo_diffuse``); and per mask pixel ``pix`` (flat indices),
-    ``points`` (P, 3) and ``view_dirs`` (P, 3, towards the camera). 0 outside the mask.
+    detail on the mesh normals' low frequencies), ``albedo`` (the sources', reprojected, the baked white-light
+    texture where no source sees the pixel), ``roughness``, ``occlusion``, ``diffuse_ratio`` (1 where the
+    sources' albedo is already ``albedo_diffuse``); per mask pixel ``pix`` (flat indices), ``points`` (P, 3)
+    and ``view_dirs`` (P, 3, towards the camera); 0 outside the mask. Also the floats ``coverage`` (share
+    of the mesh's silhouette in the mask) and ``normal_fusion_px`` (the split in pixels).
     """
     from stages.numerics.bake import sample_texture
     from stages.numerics.gbuffer import fuse_normals, reproject_gbuffer
