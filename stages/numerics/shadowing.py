@@ -16,6 +16,7 @@ does not shadow itself.
 * :func:`direction_visibility`: ``V(p, w_d)`` for a fixed set of directions (N, D) bool, True only where
   the direction is above the normal's horizon and unoccluded.
 * :func:`shade_sg_visible`: :func:`stages.numerics.sg.shade_sg` with those visibilities.
+* :func:`deocclude_normals`: photometric normals with the occlusion of the LED sphere divided out (below).
 
 **Diffuse with occlusion.** With lobes ``G_l`` the occluded irradiance is
 ``E = sum_l int G_l(w) V(w) max(0, n.w) dw``. Each lobe keeps its closed-form unoccluded integral
@@ -47,6 +48,18 @@ of them. Against the same reference (SG BRDF x L x V x cos, 200 points, r = 0.3 
 occluded specular (mean |error| / mean unoccluded specular) is 1.1-4.0% at D = 256 (2.3-9.0% at
 D = 128) with that cap, vs up to 20% uncapped at D = 128 and 2-15% with a cap of ``D / (4 pi)``.
 
+**Photometric normals with occlusion.** Under the gradient pair ``L+-(w) = (1 +- w_c) / 2`` (channel ``c``
+carries axis ``c``) a Lambertian point gives eq. 1's ratio ``d_c = int V w_c max(0, n.w) dw / int V max(0,
+n.w) dw``: the albedo cancels, and ``d`` is the cosine-weighted mean of the *visible* directions, the bent
+normal, which equals ``2/3 n`` only where nothing occludes. Where a limb or the other leg hides part of
+the sphere, eq. 1's normal leans away from the occluder (a half-space wall at the horizon: 32.5 deg).
+:func:`deocclude_normals` inverts this with the mesh's visibility: it finds ``n`` whose predicted deflection
+``unit(b(n, V)) - unit(b(n, 1))`` (both by the same quadrature over the D directions, so the quadrature's
+own error cancels) carries it onto the measured direction, by a fixed-point iteration. On the default
+capture's release (A0000, 8 cameras, 256 directions, the mesh's visibility) the released ``normal_diffuse``
+maps came 6.47 -> 4.77 deg closer to the simulator's normals (pixels whose cosine-weighted visible fraction
+is below 0.8: 15.7 -> 6.9 deg), eq. 1's ``normal_alpha`` 9.06 -> 7.85 deg.
+
 The visibility fractions are constants for autograd (visibility is discrete); gradients flow through
 the closed-form lobes and shade_sg as usual.
 """
@@ -69,6 +82,8 @@ __all__ = [
     "direction_visibility",
     "default_sharpness_cap",
     "shade_sg_visible",
+    "deocclude_normals",
+    "deocclude_view",
 ]
 
 #: Rays per point of :func:`ambient_occlusion`. On A0000's reconstructed mesh (100k surface points):
@@ -355,3 +370,130 @@ def shade_sg_visible(normals, view_dirs, albedo, roughness, lobes: SGLobes, visi
     if as_numpy:
         out = {k: val.detach().numpy().astype(np.float32) for k, val in out.items()}
     return out
+
+
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+
+
+def deocclude_normals(measured, visibility, directions, surface_normals, iterations: int = 24,
+                      min_visible: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Photometric (eq. 1) normals with the occlusion of a uniform light sphere divided out (module docstring).
+
+    Args:
+        measured: (N, 3) measured normal directions (any length; rows of zeros stay zero).
+        visibility: (N, D) bool from :func:`direction_visibility` for ``directions`` at the points.
+        directions: (D, 3) the directions traced (normalised here).
+        surface_normals: (N, 3) the normals ``visibility`` was traced with. Directions below their horizon
+            count as unblocked: the surface's own tangent plane is no occluder, and the candidate normal's
+            cosine already drops what lies below *its* horizon.
+        iterations: fixed-point steps ``n <- unit(n + m - unit(n + unit(b(n, V)) - unit(b(n, 1))))``, with
+            ``b(n, V) = sum_d V_d max(0, n.w_d) w_d``; the deflection changes slowly with ``n``, so a few
+            steps converge, linearly (a half-space wall: 4.1 deg off after 4 steps, 0.04 after 16; the residual angle is returned).
+        min_visible: points whose cosine-weighted visible fraction (around the measured normal) is below
+            this keep the measured normal: almost nothing lights them, so the model has little to invert.
+
+    Returns:
+        normals (N, 3) float32 unit (zero where ``measured`` is zero), and the residual (N,) float32: the angle
+        in degrees between the measured direction and the direction the returned normal predicts (0 where
+        left unchanged).
+    """
+    m = np.asarray(measured, dtype=np.float64)
+    if m.ndim != 2 or m.shape[1] != 3:
+        raise ValueError(f"measured must be (N, 3), got shape {m.shape}")
+    count = len(m)
+    d = np.asarray(directions, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3 or len(d) < 4:
+        raise ValueError(f"directions must be (D, 3) with D >= 4, got shape {d.shape}")
+    v = np.asarray(visibility)
+    if v.shape != (count, len(d)):
+        raise ValueError(f"visibility must be (N, D) = {(count, len(d))}, got shape {v.shape}")
+    s = np.asarray(surface_normals, dtype=np.float64)
+    if s.shape != (count, 3):
+        raise ValueError(f"surface_normals must be (N, 3) = {(count, 3)}, got shape {s.shape}")
+    if not (np.isfinite(m).all() and np.isfinite(d).all() and np.isfinite(s).all()):
+        raise ValueError("measured, directions and surface_normals must be finite (found NaN or Inf)")
+    if int(iterations) < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations!r}")
+    if not 0.0 <= float(min_visible) < 1.0:
+        raise ValueError(f"min_visible must be in [0, 1), got {min_visible!r}")
+    d = _unit_rows(d)
+    defined = np.linalg.norm(m, axis=-1) > 1e-9
+    m = _unit_rows(m)
+    open_ = v.astype(bool) | (s @ d.T <= 0.0)  # (N, D)
+    d32 = d.astype(np.float32)
+
+    def deflected(n: np.ndarray, vis: np.ndarray) -> np.ndarray:
+        cos = np.maximum(n.astype(np.float32) @ d32.T, 0.0)
+        return _unit_rows(n + _unit_rows((cos * vis) @ d32).astype(np.float64) - _unit_rows(cos @ d32))
+
+    cos_m = np.maximum(m @ d.T, 0.0)
+    visible_fraction = (cos_m * open_).sum(1) / np.maximum(cos_m.sum(1), 1e-12)
+    work = np.flatnonzero(defined & (visible_fraction >= float(min_visible)))
+    n = m.copy()
+    residual = np.zeros(count)
+    if len(work):
+        mw, vis = m[work], open_[work].astype(np.float32)
+        nw = mw.copy()
+        pred = deflected(nw, vis)
+        miss = np.linalg.norm(pred - mw, axis=-1)
+        step = np.ones(len(mw))
+        for _ in range(int(iterations)):
+            # Damped per point: where a step does not bring the prediction closer, it is halved and retried
+            # (strongly occluded points otherwise oscillate). Converged points (1e-6 rad) are left alone.
+            live = np.flatnonzero(miss > 1e-6)
+            if len(live) == 0:
+                break
+            trial = _unit_rows(nw[live] + step[live, None] * (mw[live] - pred[live]))
+            trial_pred = deflected(trial, vis[live])
+            trial_miss = np.linalg.norm(trial_pred - mw[live], axis=-1)
+            better = trial_miss < miss[live]
+            take = live[better]
+            nw[take], pred[take], miss[take] = trial[better], trial_pred[better], trial_miss[better]
+            step[live] = np.where(better, np.minimum(step[live] * 1.5, 1.0), step[live] * 0.5)
+        n[work] = nw
+        residual[work] = np.degrees(np.arccos(np.clip((pred * mw).sum(-1), -1.0, 1.0)))
+    n[~defined] = 0.0
+    return n.astype(np.float32), residual.astype(np.float32)
+
+
+def deocclude_view(scene, K: np.ndarray, cam_from_world: np.ndarray, normals: np.ndarray, directions: int = 256,
+                   min_visible: float = 0.1) -> tuple[np.ndarray, dict[str, float]]:
+    """One camera's (H, W, 3) photometric ``normals`` with the occlusion by the mesh in ``scene`` divided out
+    (:func:`deocclude_normals`) where the mesh covers a pixel whose normal is defined (non-zero); elsewhere
+    unchanged. The visibility is traced from the mesh's surface point of each pixel along its face normal,
+    over ``directions`` Fibonacci directions.
+
+    Returns the (H, W, 3) float32 normals and statistics: ``occlusion_pixels_fraction`` (share of the defined
+    pixels the mesh covers), ``occlusion_correction_mean_deg`` (mean turn of those pixels' normals),
+    ``occlusion_residual_mean_deg`` (mean fixed-point residual).
+    """
+    from stages.numerics.raycast import camera_rays, render_mesh
+    from stages.numerics.sg import fibonacci_sphere
+
+    normals = np.asarray(normals)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"normals must be (H, W, 3), got shape {normals.shape}")
+    h, w = normals.shape[:2]
+    finite = np.isfinite(normals).all(axis=-1)
+    out = np.where(finite[..., None], normals, 0.0).astype(np.float32)
+    defined = np.any(out != 0, axis=-1)
+    seen = render_mesh(None, None, K, cam_from_world, h, w, scene=scene)
+    todo = defined & seen["hit"]
+    stats = {"occlusion_pixels_fraction": float(todo.sum() / max(int(defined.sum()), 1)),
+             "occlusion_correction_mean_deg": 0.0, "occlusion_residual_mean_deg": 0.0}
+    if not todo.any():
+        return out, stats
+    rows, cols = np.nonzero(todo)
+    origins, rays, z_per_t = camera_rays(K, cam_from_world, h, w, pixels=np.stack([cols, rows], -1).astype(np.float64))
+    points = origins + rays * (seen["depth_m"][rows, cols] / z_per_t)[:, None]
+    surface = seen["normals_world"][rows, cols].astype(np.float64)
+    dirs = fibonacci_sphere(int(directions)).astype(np.float64)
+    visible = direction_visibility(points, surface, scene, dirs)
+    before = _unit_rows(out[rows, cols].astype(np.float64))
+    fixed, residual = deocclude_normals(before, visible, dirs, surface, min_visible=min_visible)
+    out[rows, cols] = fixed
+    turned = np.degrees(np.arccos(np.clip((before * fixed).sum(-1), -1.0, 1.0)))
+    stats["occlusion_correction_mean_deg"] = float(turned.mean())
+    stats["occlusion_residual_mean_deg"] = float(residual.mean())
+    return out, stats

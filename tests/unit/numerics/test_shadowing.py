@@ -10,8 +10,8 @@ import torch
 
 from stages.numerics import sg
 from stages.numerics.raycast import mesh_scene
-from stages.numerics.shadowing import (ambient_occlusion, default_sharpness_cap, direction_visibility,
-                                       shade_sg_visible)
+from stages.numerics.shadowing import (ambient_occlusion, deocclude_normals, default_sharpness_cap,
+                                       direction_visibility, shade_sg_visible)
 
 torch.set_num_threads(1)
 THREADS = 1
@@ -281,3 +281,86 @@ def test_bad_inputs_raise():
         shade_sg_visible(g_normals, views, albedo, rough, _lobes(), vis, dirs, sharpness_cap=0.0)
     with pytest.raises(ValueError, match="albedo"):
         shade_sg_visible(g_normals, views, albedo[:3], rough, _lobes(), vis, dirs)
+
+
+# ------------------------------------------------------------------------------------ deocclude_normals
+
+
+def _bent(normal, visible, directions):
+    """Eq. 1's direction for a Lambertian point: the cosine-weighted mean of the visible directions."""
+    cos = np.maximum(directions @ normal, 0.0) * visible
+    return unit(cos @ directions)
+
+
+def test_deocclude_leaves_unoccluded_normals_alone():
+    dirs = sg.fibonacci_sphere(256).astype(np.float64)
+    normals = unit(np.random.default_rng(0).normal(size=(50, 3)))
+    visible = normals @ dirs.T > 0  # every direction above the horizon
+    fixed, residual = deocclude_normals(normals, visible, dirs, normals)
+    assert fixed.shape == (50, 3) and fixed.dtype == np.float32 and residual.shape == (50,)
+    np.testing.assert_allclose(fixed, normals, atol=1e-6)
+    assert residual.max() < 1e-3
+
+
+def test_deocclude_half_space_wall_by_hand():
+    # A wall blocking every direction with x > 0 above a surface facing +z: eq. 1 measures the bent normal
+    # (-4 / (3 pi), 0, 2 / 3) / |.|, atan(2 / pi) = 32.48 deg from the true normal towards -x.
+    dirs = sg.fibonacci_sphere(2048).astype(np.float64)
+    tilt = math.atan(2.0 / math.pi)
+    measured = np.array([[-math.sin(tilt), 0.0, math.cos(tilt)]])
+    np.testing.assert_allclose(_bent(np.array([0.0, 0.0, 1.0]), (dirs[:, 0] <= 0), dirs), measured[0], atol=2e-3)
+    visible = ((dirs[:, 0] <= 0) & (dirs[:, 2] > 0))[None]
+    fixed, residual = deocclude_normals(measured, visible, dirs, np.array([[0.0, 0.0, 1.0]]))
+    error = math.degrees(math.acos(min(1.0, float(fixed[0, 2]))))
+    assert error < 0.3, error
+    assert residual[0] < 0.05
+    # a few steps are not enough: the iteration count is what converges it
+    early, _ = deocclude_normals(measured, visible, dirs, np.array([[0.0, 0.0, 1.0]]), iterations=2)
+    assert math.degrees(math.acos(min(1.0, float(early[0, 2])))) > 5.0
+
+
+def test_deocclude_inverts_its_forward_model_under_random_occluders():
+    rng = np.random.default_rng(1)
+    dirs = sg.fibonacci_sphere(512).astype(np.float64)
+    truth = unit(rng.normal(size=(40, 3)))
+    # each point loses a random cap of the sphere (cone of 40-70 deg around a random axis); the damped
+    # iteration converges for every one of them
+    axes = unit(rng.normal(size=(40, 3)))
+    half = np.radians(rng.uniform(40, 70, size=(40, 1)))
+    visible = (truth @ dirs.T > 0) & (axes @ dirs.T < np.cos(half))
+    measured = np.stack([_bent(n, v, dirs) for n, v in zip(truth, visible)])
+    lean = np.degrees(np.arccos(np.clip((measured * truth).sum(-1), -1, 1)))
+    fixed, residual = deocclude_normals(measured, visible, dirs, truth, min_visible=0.0)
+    error = np.degrees(np.arccos(np.clip((fixed * truth).sum(-1), -1, 1)))
+    assert lean.mean() > 5.0  # the occluders matter
+    assert error.max() < 1.0 and residual.max() < 1.0, (error.max(), residual.max())
+
+
+def test_deocclude_keeps_dark_and_undefined_pixels():
+    dirs = sg.fibonacci_sphere(256).astype(np.float64)
+    measured = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.3, 0.0, 1.0]])
+    visible = np.zeros((3, 256), bool)  # nothing lit at all
+    visible[2] = dirs[:, 2] > 0
+    fixed, residual = deocclude_normals(measured, visible, dirs, np.tile([0.0, 0.0, 1.0], (3, 1)))
+    np.testing.assert_allclose(fixed[0], [0, 0, 1], atol=1e-6)  # too dark: kept
+    np.testing.assert_array_equal(fixed[1], [0, 0, 0])  # undefined: stays zero
+    assert np.isfinite(fixed).all() and np.isfinite(residual).all()
+    np.testing.assert_allclose(np.linalg.norm(fixed[[0, 2]], axis=1), 1.0, atol=1e-6)
+
+
+def test_deocclude_bad_inputs_raise():
+    dirs = sg.fibonacci_sphere(64)
+    n = np.array([[0.0, 0.0, 1.0]])
+    ok = np.ones((1, 64), bool)
+    with pytest.raises(ValueError, match="measured"):
+        deocclude_normals(np.zeros((1, 2)), ok, dirs, n)
+    with pytest.raises(ValueError, match="visibility"):
+        deocclude_normals(n, np.ones((1, 63), bool), dirs, n)
+    with pytest.raises(ValueError, match="surface_normals"):
+        deocclude_normals(n, ok, dirs, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        deocclude_normals(np.array([[np.nan, 0.0, 1.0]]), ok, dirs, n)
+    with pytest.raises(ValueError, match="iterations"):
+        deocclude_normals(n, ok, dirs, n, iterations=0)
+    with pytest.raises(ValueError, match="min_visible"):
+        deocclude_normals(n, ok, dirs, n, min_visible=1.0)
