@@ -1026,7 +1026,8 @@ def fit_to_signed_distance(field_: SDFField, grid: HullGrid, signed_distance: np
 
 def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], bounds: np.ndarray | None = None,
               progress: Callable[[int, dict], None] | None = None,
-              checkpoint: Callable[[int, "SDFField"], None] | None = None) -> SDFResult:
+              checkpoint: Callable[[int, "SDFField"], None] | None = None,
+              init: "SDFField | None" = None) -> SDFResult:
     """Train a neural SDF of the subject from photometric normal maps and masks.
 
     Args:
@@ -1038,6 +1039,8 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
         checkpoint: called as ``checkpoint(iteration, field)`` every ``log_every`` steps with the field as
             training would return it at that step (the parameter average once it has started; on the training
             device: copy its ``state_dict`` to keep it), e.g. to measure error over time.
+        init: a trained field to continue from (a copy; its bounds are kept and the hull pre-fit is skipped).
+            Pair it with a schedule that starts sharp: ``inv_s_start = inv_s_end`` and ``coarse_to_fine = 0``.
 
     Returns:
         :class:`SDFResult`.
@@ -1047,12 +1050,15 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
     """
     _check_config(config)
     cams = _check_views(views, config.normal_supervision)
+    if init is not None and (to_dict(init.encoding_config) != to_dict(config.encoding)
+                             or (init.hidden_width, init.hidden_layers) != (config.hidden_width, config.hidden_layers)):
+        raise ValueError("init was trained with another encoding or network than config's")
     device = resolve_device(config.device)
     with torch_threads(config.threads):
-        return _train(views, cams, config, bounds, progress, checkpoint, device)
+        return _train(views, cams, config, bounds, progress, checkpoint, device, init)
 
 
-def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device) -> SDFResult:
+def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device, init=None) -> SDFResult:
     t_start = time.perf_counter()
     stats: dict[str, Any] = {"device": str(device)}
     torch.manual_seed(config.seed)
@@ -1063,6 +1069,8 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device)
     Ts = [T for _, T in cams]
 
     # 1. Bounds and the visual hull.
+    if init is not None:
+        bounds = np.asarray(init.bounds, np.float64)
     if bounds is None:
         stage_box = default_stage_box(cams)
         # 64^3 over the generous box (4 cm voxels) only has to find the subject's box.
@@ -1078,13 +1086,17 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device)
     sdf_bounds = hull.tight_bounds(config.hull_margin_m)
     if bounds is not None:  # never leave the box the caller vouched for
         sdf_bounds = np.stack([np.maximum(sdf_bounds[0], box[0]), np.minimum(sdf_bounds[1], box[1])])
+    if init is not None:  # the field's own bounds: its encoding is defined over them
+        sdf_bounds = np.asarray(init.bounds, np.float64)
     hull_sd = hull.signed_distance()
     stats["hull_time_s"] = time.perf_counter() - t_start
     stats["hull_occupied_fraction"] = hull.occupied_fraction
 
     # 2. The field, pre-fitted to the hull: the conservative one bounds samples and rays; the closer,
     # classic centre-test hull is the better starting surface (the mask loss alone carves slowly).
-    if config.hull_init_tight:
+    if init is not None:
+        init_hull, init_sd = hull, hull_sd
+    elif config.hull_init_tight:
         init_hull = visual_hull(masks, Ks, Ts, hull.bounds, config.hull_resolution, config.hull_max_misses,
                                 config.hull_init_dilate_px, conservative=False)
         if not init_hull.occupancy.any():
@@ -1093,11 +1105,15 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device)
     else:
         init_hull, init_sd = hull, hull_sd
     stats["hull_time_s"] = time.perf_counter() - t_start
-    field_ = SDFField(sdf_bounds, config.encoding, config.hidden_width, config.hidden_layers).to(device)
-    field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
     t0 = time.perf_counter()
-    prefit_losses = fit_to_signed_distance(field_, init_hull, init_sd, config.hull_init_steps, config.hull_init_points,
-                                           config.hull_init_lr, generator=generator)
+    if init is not None:
+        field_ = SDFField.from_state(init.to_state()).to(device)
+        prefit_losses: list[float] = []
+    else:
+        field_ = SDFField(sdf_bounds, config.encoding, config.hidden_width, config.hidden_layers).to(device)
+        field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
+        prefit_losses = fit_to_signed_distance(field_, init_hull, init_sd, config.hull_init_steps,
+                                               config.hull_init_points, config.hull_init_lr, generator=generator)
     stats["hull_init_time_s"] = time.perf_counter() - t0
     stats["hull_init_final_l1_m"] = prefit_losses[-1] if prefit_losses else None
 

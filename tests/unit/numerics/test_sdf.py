@@ -269,6 +269,25 @@ def test_checkpoints_show_the_returned_field_at_the_end():
     assert seen[-1][1] == result.field.sdf_numpy(np.zeros((1, 3)))[0]  # the parameter average, not the last step
 
 
+def test_init_continues_from_a_trained_field(trained):
+    config = dataclasses.replace(SDF_PRESETS["test"], device="cpu", iterations=20, inv_s_start=150.0,
+                                 coarse_to_fine=0.0, warmup_iterations=2)
+    before = trained.field.to_state()
+    result = train_sdf(sphere_views(), config, bounds=BOUNDS, init=trained.field)
+    # the field's own bounds and no hull pre-fit; the initial field is copied, not trained in place
+    np.testing.assert_array_equal(result.bounds, trained.bounds)
+    assert result.stats["hull_init_final_l1_m"] is None
+    assert all(torch.equal(before["tensors"][k], v) for k, v in trained.field.state_dict().items())
+    assert not all(torch.equal(before["tensors"][k], v) for k, v in result.field.state_dict().items())
+    # a short continuation keeps the surface, and starts where the trained field ended, not from the hull
+    mean, spread = surface_radius(result.field)
+    assert abs(mean - RADIUS) < 0.015 and spread < 0.01
+    scratch = train_sdf(sphere_views(), config, bounds=BOUNDS)
+    assert result.history["normal"][0] < 0.5 * scratch.history["normal"][0]
+    with pytest.raises(ValueError, match="another encoding"):
+        train_sdf(sphere_views(), dataclasses.replace(config, encoding=SMALL), bounds=BOUNDS, init=trained.field)
+
+
 def test_mask_only_ablation_runs_without_normal_loss():
     result = train_sdf(sphere_views(n=4, size=24), dataclasses.replace(TINY, normal_supervision=False),
                        bounds=BOUNDS)
