@@ -59,14 +59,15 @@ PRESETS: dict[str, PipelineConfig] = {
                                  relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128)),
     # Quick looks: cheapest demosaic, in-process execution, a short SDF schedule.
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
-                           geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000),
+                           geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000,
+                                                   deocclude_iterations=60),
                            textures=TexturesConfig(atlas_faces=10_000, texture_size=512),
                            materials=MaterialsConfig(max_views=8, occlusion_rays=32),
                            relight=RelightConfig(novel_views=2, sg_lobes=16, visibility_directions=128),
                            execution=ExecutionConfig(scheduler="sync")),
     # The test suite's tiny captures (a few cameras, ~100 px): every stage runs, in seconds.
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
-                                                   face_budget=20_000, previews=True),
+                                                   face_budget=20_000, previews=True, deocclude_iterations=60),
                            textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
                            materials=MaterialsConfig(texture_size=64, max_views=4, median_neighbours=16,
                                                      occlusion_rays=16, occlusion_size=64),
