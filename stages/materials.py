@@ -57,9 +57,11 @@ ILLUMINATION_DIRS = ("full_on", "pos", "neg")
 class MaterialsConfig(Documented):
     texture_size: int = 256
     """Width and height of the roughness texture (the atlas of the textures stage; roughness varies slowly)."""
-    max_views: int = 8
-    """Cameras used per texel (the best by angle, distance and support). On the simulator 8 and 16 are close
-    (MAE 0.061/0.067 vs 0.068/0.068 on A0000/A0001); 8 takes half the time."""
+    max_views: int = 16
+    """Cameras used per texel (the best by angle, distance and support). On the simulator with the mesh of the
+    one-pass SDF 8 and 16 were close (MAE 0.061/0.067 vs 0.068/0.068 on A0000/A0001); with the two-pass mesh
+    (geometry.deocclude) 8 views fit too smooth (0.067/0.082, bias -0.025/-0.040) and 16 views give
+    0.061/0.067 (bias +0.041/+0.015), for 2.5 s more per action (bench_materials)."""
     specular_model: str = "ggx_table"
     """"ggx_table" (exact GGX lobe moments under the linear gradients) or "sg" (the spherical-Gaussian lobes
     relighting uses). Measured on the simulator the table is the more accurate (see bench_materials)."""
