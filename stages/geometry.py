@@ -7,9 +7,10 @@ decimation, xatlas) and :mod:`stages.numerics.bake` (texel reprojection into the
 The SDF is trained twice (``deocclude``): eq. 1's normals lean away from whatever hides part of the LED
 sphere, so the first mesh bulges where the body occludes itself (inner thighs, armpits, neck); its
 visibility of the sphere divides that lean out of the normals (:func:`stages.numerics.shadowing.deocclude_view`)
-and a second training on them gives the published mesh. On the default capture (A0000 / A0001, one thread,
-scratch runs of the stage's code path) Chamfer went 2.30 / 2.27 -> 1.57 / 1.53 mm and the held-out albedo
-SSIM 0.9658 / 0.9603 -> 0.9672 / 0.9621; a third pass gave 1.67 mm / 0.9675 on A0000 (no better).
+and a second training on them gives the published mesh. On the default capture (`make dataset`, A0000 /
+A0001) Chamfer went 2.30 / 2.27 -> 1.41 / 1.47 mm and the held-out albedo SSIM 0.9658 / 0.9603 -> 0.9673 /
+0.9623; bench_geometry (A0000, one thread): 2.31 mm in 179 s -> 1.39 mm in 371 s. A third pass (scratch
+run) was no better (1.67 mm, 0.9675 on A0000).
 """
 from __future__ import annotations
 
@@ -76,8 +77,6 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     """The SDF views with their normals' occlusion by the mesh ``vertices``/``faces`` divided out (valid pixels
     only; the rest keep theirs) and the mean statistics of :func:`stages.numerics.shadowing.deocclude_view`
     over the views."""
-    import dataclasses
-
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import deocclude_view
 
@@ -246,7 +245,7 @@ class GeometryStage(Stage):
                                                           cfg.deocclude_min_visible)
             deocclusion["seconds"] = time.perf_counter() - tick
             ctx.log.info(f"second SDF pass on de-occluded normals (mean turn "
-                    f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s)")
+                         f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s)")
             first_pass = {"stats": result.stats, "history": result.history, "mesh_faces": int(len(faces))}
             result, vertices, faces, mesh_stats = fit(sdf_views, second,
                                                       result.field if cfg.deocclude_iterations > 0 else None)

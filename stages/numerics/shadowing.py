@@ -387,9 +387,11 @@ def deocclude_normals(measured, visibility, directions, surface_normals, iterati
         surface_normals: (N, 3) the normals ``visibility`` was traced with. Directions below their horizon
             count as unblocked: the surface's own tangent plane is no occluder, and the candidate normal's
             cosine already drops what lies below *its* horizon.
-        iterations: fixed-point steps ``n <- unit(n + m - unit(n + unit(b(n, V)) - unit(b(n, 1))))``, with
-            ``b(n, V) = sum_d V_d max(0, n.w_d) w_d``; the deflection changes slowly with ``n``, so a few
-            steps converge, linearly (a half-space wall: 4.1 deg off after 4 steps, 0.04 after 16; the residual angle is returned).
+        iterations: at most this many fixed-point steps ``n <- unit(n + a (m - p(n)))`` with the prediction
+            ``p(n) = unit(n + unit(b(n, V)) - unit(b(n, 1)))``, ``b(n, V) = sum_d V_d max(0, n.w_d) w_d``, and a
+            step ``a`` per point that is halved whenever it does not bring ``p(n)`` closer to ``m`` (strongly
+            occluded points otherwise oscillate). Convergence is linear: a half-space wall is 4.2 deg off after
+            4 steps, 0.15 after 12, 0.04 after 24; points stop once converged (the residual angle is returned).
         min_visible: points whose cosine-weighted visible fraction (around the measured normal) is below
             this keep the measured normal: almost nothing lights them, so the model has little to invert.
 

@@ -10,7 +10,7 @@ import torch
 
 from stages.numerics import sg
 from stages.numerics.raycast import mesh_scene
-from stages.numerics.shadowing import (ambient_occlusion, deocclude_normals, default_sharpness_cap,
+from stages.numerics.shadowing import (ambient_occlusion, deocclude_normals, deocclude_view, default_sharpness_cap,
                                        direction_visibility, shade_sg_visible)
 
 torch.set_num_threads(1)
@@ -364,3 +364,32 @@ def test_deocclude_bad_inputs_raise():
         deocclude_normals(n, ok, dirs, n, iterations=0)
     with pytest.raises(ValueError, match="min_visible"):
         deocclude_normals(n, ok, dirs, n, min_visible=1.0)
+
+
+def test_deocclude_view_of_a_floor_beside_a_tall_wall():
+    # A camera 2 m above a floor (y = 0, x < 0.1) that ends at a wall (x = 0.1, 1 km tall): every floor point
+    # loses the half of the sphere towards +x, so eq. 1 measures the floor's normal tilted 32.48 deg to -x.
+    wv, wf = wall(0.1)
+    floor_v = np.array([[-3.0, 0.0, -3.0], [0.1, 0.0, -3.0], [0.1, 0.0, 3.0], [-3.0, 0.0, 3.0]])
+    scene = mesh_scene(np.concatenate([wv, floor_v]), np.concatenate([wf, np.array([[4, 6, 5], [4, 7, 6]])]))
+    size, f, centre = 48, 60.0, np.array([-0.5, 2.0, 0.0])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # looking down -y, image rows along +z
+    K = np.array([[f, 0.0, (size - 1) / 2], [0.0, f, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    cam_from_world = np.concatenate([R, (-R @ centre)[:, None]], axis=1)
+    tilt = math.atan(2.0 / math.pi)
+    measured = np.tile(np.array([-math.sin(tilt), math.cos(tilt), 0.0], np.float32), (size, size, 1))
+    measured[:4] = 0.0  # undefined rows stay undefined
+    measured[4:8, :4] = np.nan  # NaN is treated as undefined
+    fixed, stats = deocclude_view(scene, K, cam_from_world, measured, directions=512)
+    assert fixed.shape == measured.shape and fixed.dtype == np.float32 and np.isfinite(fixed).all()
+    assert np.all(fixed[:4] == 0) and np.all(fixed[4:8, :4] == 0)
+    # floor pixels (x < 0: columns left of the wall's image) come back to the floor's normal
+    x_world = centre[0] + (np.arange(size) - (size - 1) / 2) / f * 2.0
+    floor = np.zeros((size, size), bool)
+    floor[8:, :] = (x_world < 0.0)[None, :]
+    error = np.degrees(np.arccos(np.clip(fixed[floor] @ np.array([0.0, 1.0, 0.0]), -1, 1)))
+    assert error.max() < 1.5, error.max()
+    assert stats["occlusion_pixels_fraction"] > 0.99 and 20.0 < stats["occlusion_correction_mean_deg"] < 40.0
+    assert stats["occlusion_residual_mean_deg"] < 0.1
+    with pytest.raises(ValueError, match="normals"):
+        deocclude_view(scene, K, cam_from_world, measured[..., :2])
