@@ -1,6 +1,8 @@
 """The released ``normal_diffuse`` maps: the specular fit with one roughness prior against the fit with the
 materials stage's roughness (what the ``diffuse_normals`` stage releases) and with the simulator's own
-roughness (an oracle), in the same process, on the same cameras.
+roughness (an oracle), in the same process, on the same cameras; every variant with the mesh's occlusion of
+the LED sphere divided out as the stage does (``diffuse_normals.occlusion``), and the released one also
+without it.
 
 Needs `make dataset` (the release and its work folder: decoded frames, photometric maps, the textured mesh,
 the roughness texture and the session's LED model) and the simulator's ground truth. For every action and
@@ -54,6 +56,8 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     from stages.numerics.specular_normals import view_directions
     from stages.photometric import DiffuseNormalsConfig, diffuse_albedo, materials_roughness, refit_diffuse_normals
 
+    from stages.numerics.shadowing import deocclude_view
+
     cfg = DiffuseNormalsConfig()
     decoded, photometric = _artifact(work, "decode", action), _artifact(work, "photometric", action)
     released_dir = _artifact(work, "diffuse_normals", action) / "normal_diffuse"
@@ -62,11 +66,11 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     scene = mesh_scene(vertices, faces)
     texture = _scalar(read_exr(_artifact(work, "materials", action) / "textures" / "roughness.exr"))
     cameras = load_cameras(decoded / "cameras.json")
-    variants = ("one prior", "materials", "simulator (oracle)")
+    variants = ("one prior", "materials, occlusion not divided out", "materials", "simulator (oracle)")
     errors = {v: [] for v in variants}
     shiny = []
     seconds = {v: 0.0 for v in variants}
-    lookup_s, reproduced, count = 0.0, 0.0, 0
+    lookup_s, reproduced, count, deocclusion_s = 0.0, 0.0, 0, 0.0
     albedo_dir = _artifact(work, "diffuse_normals", action) / "albedo_diffuse"
     f0 = fitted_f0(_artifact(work, "materials", action))
     albedo_rows: list[tuple[np.ndarray, ...]] = []
@@ -90,13 +94,27 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
         true_normals = read_exr(truth / action / "normal" / f"{cam_id}.exr")[..., :3]
         true_mask = _scalar(read_png(truth / action / "mask" / f"{cam_id}.png")) > 127
         roughness = {"one prior": cfg.fit.roughness,
-                     "materials": from_materials,
+                     "materials, occlusion not divided out": from_materials, "materials": from_materials,
                      "simulator (oracle)": np.where(true_mask & (true_rough > 0), true_rough, cfg.fit.roughness).astype(np.float32)}
         scored = valid & true_mask
+        fitted_materials = None
         for variant in variants:
             t0 = time.perf_counter()
-            normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo, model, cfg, roughness[variant])
-            seconds[variant] += time.perf_counter() - t0
+            if variant == "materials" and fitted_materials is not None:  # the same fit, then the occlusion
+                normals = fitted_materials
+                seconds[variant] += seconds_materials
+            else:
+                normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo, model, cfg,
+                                                roughness[variant])
+                seconds[variant] += time.perf_counter() - t0
+            if variant == "materials, occlusion not divided out":
+                fitted_materials, seconds_materials = normals, time.perf_counter() - t0
+            elif cfg.occlusion:
+                t1 = time.perf_counter()
+                normals, _ = deocclude_view(scene, cam["K"], cam["cam_from_world"], normals, cfg.occlusion_directions,
+                                            cfg.occlusion_min_visible)
+                if variant == "materials":
+                    deocclusion_s += time.perf_counter() - t1
             errors[variant].append(angular_error_deg(normals, true_normals)[scored])
             if variant == "materials" and (released_dir / f"{cam_id}.exr").exists():
                 released = read_exr(released_dir / f"{cam_id}.exr")[..., :3]
@@ -115,6 +133,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
         count += 1
     shiny_all = np.concatenate(shiny)
     out = {"cameras": count, "roughness_lookup_s_per_camera": round(lookup_s / max(count, 1), 3),
+           "deocclusion_s_per_camera": round(deocclusion_s / max(count, 1), 3),
            "materials_vs_released_max_abs": reproduced, "variants": {}}
     if albedo_rows:
         n_dot_v = np.concatenate([r[0] for r in albedo_rows])

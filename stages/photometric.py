@@ -241,10 +241,11 @@ class DiffuseNormalsConfig(Documented):
     """Divide the occlusion of the LED sphere out of the fitted normals: the mesh's visibility of each pixel's
     surface point over ``occlusion_directions`` directions, inverted by
     :func:`stages.numerics.shadowing.deocclude_normals` (eq. 1's ratio measures the cosine-weighted mean of the
-    *visible* directions, which leans away from an arm or the other leg). On the default capture (A0000, 8
-    cameras, the same mesh) 6.47 -> 4.77 deg against the simulator's normals, 15.7 -> 6.9 deg where less than
-    80% of the cosine-weighted sphere is visible; the released maps of both actions (valid pixels, with the
-    two-pass mesh and its roughness) 6.37 -> 4.99 deg, 54% -> 67% under 5 deg. About 1 s per camera."""
+    *visible* directions, which leans away from an arm or the other leg). On the default capture
+    (bench_diffuse_normals, 8 cameras per action, against the simulator's normals) 6.39 -> 4.64 deg on A0000
+    and 7.04 -> 5.72 on A0001 (56 -> 73% and 49 -> 60% under 5 deg); where less than 80% of the
+    cosine-weighted sphere is visible 15.7 -> 6.9 deg (A0000, one-off). The released maps of both actions
+    went 6.37 -> 4.99 deg (with the two-pass mesh and its roughness). About 1 s per camera."""
     occlusion_directions: int = 256
     """Directions (Fibonacci sphere) of the visibility."""
     occlusion_min_visible: float = 0.1
