@@ -9,8 +9,9 @@ pipeline published), on one CPU thread as ``make dataset`` runs it:
 2. the **second pass on de-occluded normals** as the geometry stage trains it (``geometry.deocclude``): the
    first field meshed as the stage meshes it, eq. 1's normals with that mesh's occlusion of the LED sphere
    divided out (:func:`stages.geometry.deoccluded_sdf_views`), a second training on them (its clock starts
-   where the first pass and the de-occlusion ended); the same for the **mask-only ablation** (``normal_supervision=False``) and the **visual hull alone**
-   (classic centre test at 256^3, no dilation, one miss allowed);
+   where the first pass and the de-occlusion ended); the same for the **mask-only ablation**
+   (``normal_supervision=False``) and the **visual hull alone** (classic centre test at 256^3, no dilation,
+   one miss allowed);
 3. **marching resolution**: mesh extraction time and Chamfer of the final field per grid resolution;
 4. **empty-space skipping**: share of the naive uniform samples (same spacing, every pixel's ray through the
    stage box) the hull and the cached SDF grid let the training skip;
@@ -275,7 +276,8 @@ def markdown(report: dict) -> str:
         for r in report["curves"]["deoccluded_second_pass"]:
             lines.append(f"| {r['iteration']} | {r['train_seconds']:.1f} | {fmt(r['chamfer_mm'])} | "
                          f"{fmt(r['normal_consistency'], 4)} |")
-    lines += ["", "Marching resolution (first pass's final field):", "", "| cells | seconds | Chamfer |", "|---|---|---|"]
+    lines += ["", "Marching resolution (first pass's final field):", "", "| cells | seconds | Chamfer |",
+              "|---|---|---|"]
     for r in report["marching"]:
         lines.append(f"| {r['resolution']} | {r['seconds']:.2f} | {fmt(r['chamfer_mm'])} |")
     lines += ["", f"Empty space: {100 * s['samples_skipped_fraction']:.2f}% of the naive uniform samples skipped "
