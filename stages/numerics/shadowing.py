@@ -72,6 +72,7 @@ import numpy as np
 import torch
 
 from stages.numerics import numeric_threads
+from stages.numerics.metrics import angular_error_deg
 from stages.numerics.sg import (SGLobes, _cosine_integral, _is_torch, _one_minus_exp_over, _t, _unit,
                                 check_lobes, ggx_sg_lobe, shade_sg)
 
@@ -454,7 +455,7 @@ def deocclude_normals(measured, visibility, directions, surface_normals, iterati
             nw[take], pred[take], miss[take] = trial[better], trial_pred[better], trial_miss[better]
             step[live] = np.where(better, np.minimum(step[live] * 1.5, 1.0), step[live] * 0.5)
         n[work] = nw
-        residual[work] = np.degrees(np.arccos(np.clip((pred * mw).sum(-1), -1.0, 1.0)))
+        residual[work] = angular_error_deg(pred, mw)
     n[~defined] = 0.0
     return n.astype(np.float32), residual.astype(np.float32)
 
@@ -495,7 +496,7 @@ def deocclude_view(scene, K: np.ndarray, cam_from_world: np.ndarray, normals: np
     before = _unit_rows(out[rows, cols].astype(np.float64))
     fixed, residual = deocclude_normals(before, visible, dirs, surface, min_visible=min_visible)
     out[rows, cols] = fixed
-    turned = np.degrees(np.arccos(np.clip((before * fixed).sum(-1), -1.0, 1.0)))
+    turned = angular_error_deg(before, fixed)
     stats["occlusion_correction_mean_deg"] = float(turned.mean())
     stats["occlusion_residual_mean_deg"] = float(residual.mean())
     return out, stats
