@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from stages.decode import scale_camera, transforms_json
 from stages.photometric import contact_sheet
@@ -50,3 +51,19 @@ def test_diffuse_normals_off_reads_and_writes_nothing(tmp_path):
     assert not (tmp_path / "out").exists()
     # the photometric stage leaves the specular fit to this stage
     assert "normal_diffuse" not in PhotometricStage.outputs and "normal_diffuse" in DiffuseNormalsStage.outputs
+
+
+def test_occlusion_configs_check_their_fields():
+    from stages.geometry import GeometryConfig
+    from stages.photometric import DiffuseNormalsConfig
+
+    assert GeometryConfig().deocclude and DiffuseNormalsConfig().occlusion  # on by default
+    for bad, match in (({"deocclude_iterations": -1}, "deocclude_iterations"),
+                       ({"deocclude_directions": 8}, "deocclude_directions"),
+                       ({"deocclude_min_visible": 1.0}, "deocclude_min_visible")):
+        with pytest.raises(ValueError, match=match):
+            GeometryConfig(**bad)
+    for bad, match in (({"occlusion_directions": 4}, "occlusion_directions"),
+                       ({"occlusion_min_visible": -0.1}, "occlusion_min_visible")):
+        with pytest.raises(ValueError, match=match):
+            DiffuseNormalsConfig(**bad)
