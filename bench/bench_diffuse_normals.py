@@ -94,22 +94,20 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
         true_normals = read_exr(truth / action / "normal" / f"{cam_id}.exr")[..., :3]
         true_mask = _scalar(read_png(truth / action / "mask" / f"{cam_id}.png")) > 127
         roughness = {"one prior": cfg.fit.roughness,
-                     "materials, occlusion not divided out": from_materials, "materials": from_materials,
+                     "materials": from_materials,
                      "simulator (oracle)": np.where(true_mask & (true_rough > 0), true_rough, cfg.fit.roughness).astype(np.float32)}
         scored = valid & true_mask
-        fitted_materials = None
+        fits: dict[str, tuple[np.ndarray, float]] = {}  # one fit per roughness source, with its seconds
         for variant in variants:
-            t0 = time.perf_counter()
-            if variant == "materials" and fitted_materials is not None:  # the same fit, then the occlusion
-                normals = fitted_materials
-                seconds[variant] += seconds_materials
-            else:
-                normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo, model, cfg,
-                                                roughness[variant])
-                seconds[variant] += time.perf_counter() - t0
-            if variant == "materials, occlusion not divided out":
-                fitted_materials, seconds_materials = normals, time.perf_counter() - t0
-            elif cfg.occlusion:
+            source = "materials" if variant.startswith("materials") else variant
+            if source not in fits:
+                t0 = time.perf_counter()
+                fitted = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo, model, cfg,
+                                               roughness[source])
+                fits[source] = (fitted, time.perf_counter() - t0)
+            normals, fit_s = fits[source]
+            seconds[variant] += fit_s
+            if cfg.occlusion and variant != "materials, occlusion not divided out":
                 t1 = time.perf_counter()
                 normals, _ = deocclude_view(scene, cam["K"], cam["cam_from_world"], normals, cfg.occlusion_directions,
                                             cfg.occlusion_min_visible)

@@ -1095,9 +1095,7 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
 
     # 2. The field, pre-fitted to the hull: the conservative one bounds samples and rays; the closer,
     # classic centre-test hull is the better starting surface (the mask loss alone carves slowly).
-    if init is not None:
-        init_hull, init_sd = hull, hull_sd
-    elif config.hull_init_tight:
+    if config.hull_init_tight and init is None:
         init_hull = visual_hull(masks, Ks, Ts, hull.bounds, config.hull_resolution, config.hull_max_misses,
                                 config.hull_init_dilate_px, conservative=False)
         if not init_hull.occupancy.any():
