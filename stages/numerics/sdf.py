@@ -136,6 +136,9 @@ class SDFConfig(Documented):
     noise and the surface's high frequencies; one extra gradient evaluation per ray."""
     curvature_step_m: float = 0.005
     """Offset of the smoothness term's second point, metres."""
+    importance_fraction: float = 0.0
+    """Share of each batch's rays drawn in proportion to the views' :attr:`SDFView.sample_weight` (the rest
+    uniformly from every ray worth drawing); 0 = uniform only. Views without weights count as weight 0."""
     weight_hull: float = 1.0
     """Weight of the hull prior ``relu(d_hull(x) - f(x))`` at sample and random points outside the hull: the
     subject lies inside its visual hull, so the SDF there is at least the distance to the hull. It keeps
@@ -220,12 +223,22 @@ SDF_PRESETS: dict[str, SDFConfig] = {
     # pixel-exact, so the mask loss earns a larger weight: Chamfer on the default capture (A0000 / A0001,
     # 256^3 marching) 2.79 / 2.85 mm at weight_mask 0.1, 2.20 / 2.27 at 0.5 (0.3: 2.29, 1.0: 2.60 on A0000),
     # against 2.52 mm for the visual hull alone (bench/bench_geometry.py). The geometry stage trains it twice
-    # (geometry.deocclude): about 190-210 s per pass, Chamfer 1.41 / 1.47 mm after the second.
+    # (geometry.deocclude): about 200-210 s per pass. The second pass draws a fifth of its rays where the
+    # first mesh missed the normals (geometry.second_pass_importance); with it a 2^18 table (fewer hash
+    # collisions on the fine levels), normals kept down to 3 deg from grazing and 2% outliers instead of 5% (the
+    # finger and contour pixels a first fit misses are those the larger settings dropped). Second pass alone on
+    # the same de-occluded normals, seeds 0 / 1: A0000 Chamfer 1.51 / 1.54 -> 1.29 / 1.36 mm, held-out SSIM
+    # 0.9680 / 0.9682 -> 0.9690 / 0.9692; A0001 (seed 0) 1.46 -> 1.36 mm, 0.9626 -> 0.9643. In `make dataset`:
+    # 1.41 / 1.47 -> 1.30 / 1.49 mm. The price: the body's front moves in (median depth offset -1.25 -> -1.08
+    # mm) and so do its silhouettes, by a fraction of a pixel (relit novel views 24.35 -> 24.13 dB, all of it
+    # at the silhouette). The same settings without the importance share: 1.52 mm, 0.9674 (A0000); the share
+    # with the former 0.15 / 5%: 1.54 / 1.55 mm.
     "cpu": SDFConfig(
-        encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=16,
+        encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
                                 base_resolution=16, finest_resolution=512),
         hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
         hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5,
+        grazing_cos_min=0.05, outlier_fraction=0.02,
     ),
     # Full-resolution captures on a GPU.
     "production": SDFConfig(
@@ -283,10 +296,12 @@ def _check_config(config: SDFConfig) -> None:
         value = getattr(config, name)
         if not (math.isfinite(value) and value > 0):
             problems.append(f"{name}={value} (must be > 0)")
-    for name in ("outlier_fraction", "coarse_to_fine", "final_lr_fraction", "inv_s_ramp", "ema_decay", "ema_start"):
+    for name in ("outlier_fraction", "importance_fraction", "coarse_to_fine", "final_lr_fraction", "inv_s_ramp", "ema_decay", "ema_start"):
         value = getattr(config, name)
         if not 0 <= value <= 1:
             problems.append(f"{name}={value} (must be in [0, 1])")
+    if not 0 <= config.importance_fraction < 1:
+        problems.append(f"importance_fraction={config.importance_fraction} (must be < 1)")
     if not 0 <= config.outlier_fraction < 1:
         problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
     if not 0 <= config.grazing_cos_min < 1:
@@ -622,6 +637,9 @@ class SDFView:
         mask: bool (H, W) foreground.
         K: (3, 3) intrinsics.
         cam_from_world: (3, 4) ``[R | t]`` (OpenCV).
+        sample_weight: float (H, W) >= 0, how often ``SDFConfig.importance_fraction``'s share of the rays is
+            drawn at each pixel, relative to the other pixels of every view (e.g. a first fit's error there);
+            None = 0.
     """
 
     normals_world: np.ndarray
@@ -629,6 +647,7 @@ class SDFView:
     mask: np.ndarray
     K: np.ndarray
     cam_from_world: np.ndarray
+    sample_weight: np.ndarray | None = None
 
 
 @dataclass
@@ -641,7 +660,8 @@ class SDFResult:
         hull: the visual hull over ``bounds``.
         history: lists keyed by ``iteration``, ``seconds``, ``loss``, ``normal``, ``mask``, ``eikonal``,
             ``normal_deg`` (mean angle of the kept valid rays), ``inv_s``, ``lr``.
-        stats: ``time_s``, ``device``, ``iterations``; ``samples_skipped_fraction``: the share of a naive
+        stats: ``time_s``, ``device``, ``iterations``, ``importance_rays_per_iteration`` (drawn by the views'
+            sample weights); ``samples_skipped_fraction``: the share of a naive
             uniform sampler's samples (every pixel's ray through the stage box, at the window's sample spacing)
             that the hull (rays worth drawing: ``candidate_ray_fraction``) and the cached SDF grid (window
             around the crossing) skipped, and ``samples_skipped_vs_neus_128`` against 128 samples on every
@@ -673,6 +693,12 @@ def _check_views(views: Sequence[SDFView], normal_supervision: bool) -> list[tup
             raise ValueError(f"views[{i}].normal_valid must be (H, W) = {(H, W)}, got {np.shape(v.normal_valid)}")
         if normal_supervision and not np.isfinite(n[np.asarray(v.normal_valid, bool)]).all():
             raise ValueError(f"views[{i}].normals_world holds NaN or Inf on valid pixels")
+        if v.sample_weight is not None:
+            sw = np.asarray(v.sample_weight)
+            if sw.shape != (H, W):
+                raise ValueError(f"views[{i}].sample_weight must be (H, W) = {(H, W)}, got {sw.shape}")
+            if not (np.isfinite(sw).all() and (sw >= 0).all()):
+                raise ValueError(f"views[{i}].sample_weight must be finite and >= 0")
         cams.append(check_camera(v.K, v.cam_from_world, f"views[{i}]"))
     if not any(np.asarray(v.mask).any() for v in views):
         raise ValueError("every mask is empty: nothing to reconstruct")
@@ -763,6 +789,7 @@ class _RayBank:
     normals: torch.Tensor  # (N, 3) photometric normal
     normal_ok: torch.Tensor  # (N,) bool: valid, not grazing, facing the camera
     mask: torch.Tensor  # (N,) float 0/1
+    sample_cdf: torch.Tensor | None  # (N,) float64 cumulative sample weights, normalised; None: all 0
     near: torch.Tensor  # (N,)
     far: torch.Tensor  # (N,)
     pixels_total: int
@@ -772,6 +799,7 @@ class _RayBank:
 def _build_ray_bank(views, cams, hull: HullGrid, bounds: np.ndarray, stage_box: np.ndarray,
                     grazing_cos_min: float, device: torch.device, rng: np.random.Generator) -> _RayBank:
     origins, view_ids, dirs, normals, ok, masks, nears, fars = [], [], [], [], [], [], [], []
+    weights = []
     pixels_total = 0
     chord_sum = 0.0
     chord_count = 0
@@ -795,6 +823,8 @@ def _build_ray_bank(views, cams, hull: HullGrid, bounds: np.ndarray, stage_box: 
         normals.append(n)
         ok.append(normal_ok)
         masks.append(mask[rows, cols].astype(np.float32))
+        weights.append(np.zeros(len(rows)) if v.sample_weight is None
+                       else np.asarray(v.sample_weight, np.float64)[rows, cols])
         nears.append(near.astype(np.float32))
         fars.append(far.astype(np.float32))
         # Naive sampler reference: chords of a random subset of all pixel rays through the stage box.
@@ -809,9 +839,12 @@ def _build_ray_bank(views, cams, hull: HullGrid, bounds: np.ndarray, stage_box: 
 
     if sum(len(x) for x in view_ids) == 0:
         raise ValueError("no pixel ray meets the SDF bounds: check the cameras and bounds")
+    cdf = np.cumsum(np.concatenate(weights))
+    sample_cdf = torch.from_numpy(cdf / cdf[-1]).to(device) if cdf[-1] > 0 else None
     return _RayBank(
         origins=torch.from_numpy(np.stack(origins).astype(np.float32)).to(device),
         view=cat(view_ids), dirs=cat(dirs), normals=cat(normals), normal_ok=cat(ok), mask=cat(masks),
+        sample_cdf=sample_cdf,
         near=cat(nears), far=cat(fars), pixels_total=pixels_total,
         mean_chord_all_m=chord_sum / max(chord_count, 1),
     )
@@ -919,6 +952,18 @@ def _neus_composite(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, d
 
 
 # ------------------------------------------------------------------------------------------------ training
+
+
+def _draw_rays(n_bank: int, count: int, sample_cdf: torch.Tensor | None, n_important: int,
+               generator: torch.Generator, device: torch.device) -> torch.Tensor:
+    """Indices (count,) into a bank of ``n_bank`` rays: the first ``n_important`` drawn with the probabilities
+    whose normalised cumulative sum is ``sample_cdf`` (n_bank,), the rest uniformly (all uniform when the cdf
+    is None or ``n_important`` is 0)."""
+    pick = torch.randint(0, n_bank, (count,), generator=generator).to(device)
+    if sample_cdf is not None and n_important > 0:
+        u = torch.rand(n_important, generator=generator, dtype=torch.float64).to(device)
+        pick[:n_important] = torch.searchsorted(sample_cdf, u, right=True).clamp_max(n_bank - 1)
+    return pick
 
 
 def _adam(params, lr: float) -> torch.optim.Adam:
@@ -1130,6 +1175,7 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
     keys = ("loss", "normal", "mask", "eikonal", "hull", "normal_deg", "crossed", "inv_s", "lr")
     history: dict[str, list] = {k: [] for k in ("iteration", "seconds") + keys}
     n_bank = int(bank.dirs.shape[0])
+    n_important = int(round(config.importance_fraction * config.rays_per_batch)) if bank.sample_cdf is not None else 0
     K = config.samples_per_ray
     blo = torch.tensor(sdf_bounds[0], dtype=torch.float32, device=device)
     bext = torch.tensor(sdf_bounds[1] - sdf_bounds[0], dtype=torch.float32, device=device)
@@ -1159,7 +1205,7 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
         window = max(config.window_min_m, min(config.window_m, config.window_sharpness / inv_s))
 
         tick = time.perf_counter()
-        pick = torch.randint(0, n_bank, (config.rays_per_batch,), generator=generator).to(device)
+        pick = _draw_rays(n_bank, config.rays_per_batch, bank.sample_cdf, n_important, generator, device)
         dirs = bank.dirs[pick]
         origins = bank.origins[bank.view[pick]]
         near, far = bank.near[pick], bank.far[pick]
@@ -1191,10 +1237,16 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
         unit = F.normalize(grad, dim=-1, eps=1e-8)
         rendered_normal = (weights.unsqueeze(-1) * unit).sum(1)
 
-        # Mask BCE over every ray drawn (rays not rendered have opacity 0 against a 0 mask: loss 0).
+        # Mask BCE over every uniformly drawn ray (rays not rendered have opacity 0 against a 0 mask: loss
+        # 0). The importance-drawn ones are chosen for their normals' error, mostly inside the mask: counted
+        # here they tip its balance of inside and outside rays and the surface swells (A0000: Chamfer 1.86 mm
+        # instead of 1.49 at a share of 0.2).
         m = target_mask[r_idx]
         op = opacity.clamp(1e-4, 1 - 1e-4)
-        mask_loss = -(m * torch.log(op) + (1 - m) * torch.log(1 - op)).sum() / config.rays_per_batch
+        bce = -(m * torch.log(op) + (1 - m) * torch.log(1 - op))
+        if n_important:
+            bce = bce[r_idx >= n_important]
+        mask_loss = bce.sum() / (config.rays_per_batch - n_important)
         eik = ((grad_all[:R * K + n_rand].norm(dim=-1) - 1.0) ** 2).mean()
         loss = config.weight_mask * mask_loss + config.weight_eikonal * eik
         hull_loss = torch.zeros((), device=device)
@@ -1290,6 +1342,7 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
         train_time_s=time.perf_counter() - t_train,
         iterations=config.iterations,
         rays_per_iteration=config.rays_per_batch,
+        importance_rays_per_iteration=n_important,
         candidate_ray_fraction=n_bank / bank.pixels_total,
         rendered_ray_fraction=rays_rendered / max(rays_drawn, 1),
         samples_evaluated=int(evaluated),

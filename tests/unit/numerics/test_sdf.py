@@ -17,6 +17,7 @@ from stages.numerics.sdf import (
     SDFConfig,
     SDFField,
     SDFView,
+    _draw_rays,
     _neus_composite,
     fit_to_signed_distance,
     render_view,
@@ -288,6 +289,35 @@ def test_init_continues_from_a_trained_field(trained):
         train_sdf(sphere_views(), dataclasses.replace(config, encoding=SMALL), bounds=BOUNDS, init=trained.field)
 
 
+def test_draw_rays_follows_the_sample_weights():
+    weights = torch.tensor([0.0, 1.0, 0.0, 3.0, 0.0], dtype=torch.float64)
+    cdf = torch.cumsum(weights, 0) / weights.sum()
+    generator = torch.Generator().manual_seed(0)
+    pick = _draw_rays(5, 4000, cdf, 3000, generator, torch.device("cpu"))
+    assert pick.shape == (4000,) and pick.dtype == torch.int64
+    important = torch.bincount(pick[:3000], minlength=5).double() / 3000
+    assert important[0] == important[2] == important[4] == 0  # weight 0 is never drawn
+    assert abs(important[3] - 0.75) < 0.03 and abs(important[1] - 0.25) < 0.03
+    uniform = torch.bincount(pick[3000:], minlength=5).double() / 1000
+    assert (uniform > 0.14).all() and (uniform < 0.26).all()
+    # no cdf or no importance share: uniform draws, the same as torch.randint with this generator
+    a = _draw_rays(5, 100, None, 50, torch.Generator().manual_seed(1), torch.device("cpu"))
+    b = _draw_rays(5, 100, cdf, 0, torch.Generator().manual_seed(1), torch.device("cpu"))
+    assert torch.equal(a, b) and torch.equal(a, torch.randint(0, 5, (100,), generator=torch.Generator().manual_seed(1)))
+
+
+def test_importance_sampling_needs_weights_and_changes_the_draws():
+    views = sphere_views(n=4, size=24)
+    uniform = train_sdf(views, TINY, bounds=BOUNDS)
+    share = dataclasses.replace(TINY, importance_fraction=0.5)
+    # without any view's weights the share is drawn uniformly: the very same training
+    assert train_sdf(views, share, bounds=BOUNDS).history["loss"] == uniform.history["loss"]
+    weighted = [dataclasses.replace(v, sample_weight=np.where(v.mask, 1.0, 0.0).astype(np.float32)) for v in views]
+    result = train_sdf(weighted, share, bounds=BOUNDS)
+    assert result.history["loss"] != uniform.history["loss"]
+    assert all(np.isfinite(v) for k in result.history for v in result.history[k])
+
+
 def test_mask_only_ablation_runs_without_normal_loss():
     result = train_sdf(sphere_views(n=4, size=24), dataclasses.replace(TINY, normal_supervision=False),
                        bounds=BOUNDS)
@@ -327,6 +357,12 @@ def test_input_checks():
         train_sdf([dataclasses.replace(views[0], normals_world=nan)] + views[1:], TINY)
     with pytest.raises(ValueError, match="iterations"):
         train_sdf(views, dataclasses.replace(TINY, iterations=0))
+    with pytest.raises(ValueError, match=r"sample_weight must be \(H, W\)"):
+        train_sdf([dataclasses.replace(views[0], sample_weight=np.ones((3, 3)))] + views[1:], TINY)
+    with pytest.raises(ValueError, match="sample_weight must be finite and >= 0"):
+        train_sdf([dataclasses.replace(views[0], sample_weight=-np.ones(views[0].mask.shape))] + views[1:], TINY)
+    with pytest.raises(ValueError, match="importance_fraction"):
+        train_sdf(views, dataclasses.replace(TINY, importance_fraction=1.0))
     with pytest.raises(ValueError, match="outlier_fraction"):
         train_sdf(views, dataclasses.replace(TINY, outlier_fraction=1.5))
     with pytest.raises(ValueError, match="bounds"):
