@@ -114,6 +114,10 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
         # the test preset continues the first field for 60 steps instead of training a second one
         assert training["first_pass"]["stats"]["iterations"] == PRESETS["test"].geometry.sdf.iterations
         assert training["stats"]["iterations"] == PRESETS["test"].geometry.deocclude_iterations == 60
+        # and draws a fifth of its rays where the first mesh missed the normals by more than 10 deg
+        assert training["first_pass"]["stats"]["importance_rays_per_iteration"] == 0
+        assert training["stats"]["importance_rays_per_iteration"] == round(0.2 * PRESETS["test"].geometry.sdf.rays_per_batch)
+        assert 0.0 < geometry["deocclusion"]["error_weighted_fraction"] < 1.0
         # the photometric stage no longer fits a first pass nobody reads
         photometric, decoded = artifact("photometric", action), artifact("decode", action)
         assert not (photometric / "normal_diffuse").exists()

@@ -67,3 +67,41 @@ def test_occlusion_configs_check_their_fields():
                        ({"occlusion_min_visible": -0.1}, "occlusion_min_visible")):
         with pytest.raises(ValueError, match=match):
             DiffuseNormalsConfig(**bad)
+
+
+def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
+    from stages.geometry import GeometryConfig, deoccluded_sdf_views
+    from stages.numerics.sdf import SDFView
+
+    # a camera 2 m above an open floor (y = 0): nothing occludes it, so the de-occlusion keeps every normal and
+    # the weight is the mesh's miss beyond the floor: 0 on the floor's normal, 30 - 10 = 20 on a tilted patch
+    floor_v = np.array([[-3.0, 0.0, -3.0], [3.0, 0.0, -3.0], [3.0, 0.0, 3.0], [-3.0, 0.0, 3.0]])
+    floor_f = np.array([[0, 2, 1], [0, 3, 2]])
+    size, f, centre = 32, 40.0, np.array([0.0, 2.0, 0.0])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    K = np.array([[f, 0.0, (size - 1) / 2], [0.0, f, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    normals = np.tile(np.array([0.0, 1.0, 0.0], np.float32), (size, size, 1))
+    tilt = np.radians(30.0)
+    normals[10:20, 10:20] = [np.sin(tilt), np.cos(tilt), 0.0]
+    valid = np.ones((size, size), bool)
+    valid[:, :4] = False
+    view = SDFView(normals_world=normals, normal_valid=valid, mask=np.ones((size, size), bool), K=K,
+                   cam_from_world=np.concatenate([R, (-R @ centre)[:, None]], axis=1))
+    plain, _ = deoccluded_sdf_views([view], floor_v, floor_f, directions=64)
+    assert plain[0].sample_weight is None
+    (out,), stats = deoccluded_sdf_views([view], floor_v, floor_f, directions=64, error_floor_deg=10.0)
+    weight = out.sample_weight
+    assert weight.shape == (size, size) and weight.dtype == np.float32 and np.isfinite(weight).all()
+    np.testing.assert_allclose(out.normals_world[valid], normals[valid], atol=1e-3)  # nothing occluded
+    np.testing.assert_allclose(weight[10:20, 10:20], 20.0, atol=0.5)
+    outside = valid.copy()
+    outside[10:20, 10:20] = False
+    assert np.all(weight[outside] == 0) and np.all(weight[~valid] == 0)
+    assert stats["error_weighted_fraction"] == pytest.approx(100 / valid.sum())
+    assert stats["error_mean_deg"] == pytest.approx(30.0 * 100 / valid.sum(), rel=0.02)
+    # the stage's settings are checked
+    assert GeometryConfig().second_pass_importance > 0
+    for bad, match in (({"second_pass_importance": 1.0}, "second_pass_importance"),
+                       ({"second_pass_error_floor_deg": -1.0}, "second_pass_error_floor_deg")):
+        with pytest.raises(ValueError, match=match):
+            GeometryConfig(**bad)
