@@ -106,12 +106,13 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     for view in views:
         valid = np.asarray(view.normal_valid, bool)
         normals = np.where(valid[..., None], view.normals_world, 0.0).astype(np.float32)
-        fixed, record = deocclude_view(scene, view.K, view.cam_from_world, normals, directions, min_visible)
+        render = None
+        if error_floor_deg is not None:
+            render = render_mesh(None, None, view.K, view.cam_from_world, *valid.shape, scene=scene)
+        fixed, record = deocclude_view(scene, view.K, view.cam_from_world, normals, directions, min_visible, render)
         fixed = np.where(valid[..., None], fixed, view.normals_world).astype(np.float32)
         changes: dict[str, Any] = {"normals_world": fixed}
-        if error_floor_deg is not None:
-            h, w = valid.shape
-            render = render_mesh(None, None, view.K, view.cam_from_world, h, w, scene=scene)
+        if render is not None:
             covered = valid & (render["depth_m"] > 0)
             miss = np.where(covered, angular_error_deg(render["normals_world"], fixed), 0.0)
             miss = np.nan_to_num(miss, nan=0.0, posinf=0.0, neginf=0.0)

@@ -461,7 +461,7 @@ def deocclude_normals(measured, visibility, directions, surface_normals, iterati
 
 
 def deocclude_view(scene, K: np.ndarray, cam_from_world: np.ndarray, normals: np.ndarray, directions: int = 256,
-                   min_visible: float = 0.1) -> tuple[np.ndarray, dict[str, float]]:
+                   min_visible: float = 0.1, seen: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, dict[str, float]]:
     """One camera's (H, W, 3) photometric ``normals`` with the occlusion by the mesh in ``scene`` divided out
     (:func:`deocclude_normals`) where the mesh covers a pixel whose normal is defined (non-zero); elsewhere
     unchanged. The visibility is traced from the mesh's surface point of each pixel along its face normal,
@@ -469,7 +469,8 @@ def deocclude_view(scene, K: np.ndarray, cam_from_world: np.ndarray, normals: np
 
     Returns the (H, W, 3) float32 normals and statistics: ``occlusion_pixels_fraction`` (share of the defined
     pixels the mesh covers), ``occlusion_correction_mean_deg`` (mean turn of those pixels' normals),
-    ``occlusion_residual_mean_deg`` (mean fixed-point residual).
+    ``occlusion_residual_mean_deg`` (mean fixed-point residual). ``seen``: the scene's
+    :func:`stages.numerics.raycast.render_mesh` from this camera at the normals' size, when the caller has it.
     """
     from stages.numerics.raycast import camera_rays, render_mesh
     from stages.numerics.sg import fibonacci_sphere
@@ -481,7 +482,10 @@ def deocclude_view(scene, K: np.ndarray, cam_from_world: np.ndarray, normals: np
     finite = np.isfinite(normals).all(axis=-1)
     out = np.where(finite[..., None], normals, 0.0).astype(np.float32)
     defined = np.any(out != 0, axis=-1)
-    seen = render_mesh(None, None, K, cam_from_world, h, w, scene=scene)
+    if seen is None:
+        seen = render_mesh(None, None, K, cam_from_world, h, w, scene=scene)
+    elif seen["depth_m"].shape != (h, w):
+        raise ValueError(f"seen was rendered at {seen['depth_m'].shape}, the normals are {(h, w)}")
     todo = defined & seen["hit"]
     stats = {"occlusion_pixels_fraction": float(todo.sum() / max(int(defined.sum()), 1)),
              "occlusion_correction_mean_deg": 0.0, "occlusion_residual_mean_deg": 0.0}

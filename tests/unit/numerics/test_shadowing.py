@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from stages.numerics import sg
-from stages.numerics.raycast import mesh_scene
+from stages.numerics.raycast import mesh_scene, render_mesh
 from stages.numerics.shadowing import (ambient_occlusion, deocclude_normals, deocclude_view, default_sharpness_cap,
                                        direction_visibility, shade_sg_visible)
 
@@ -391,5 +391,11 @@ def test_deocclude_view_of_a_floor_beside_a_tall_wall():
     assert error.max() < 1.5, error.max()
     assert stats["occlusion_pixels_fraction"] > 0.99 and 20.0 < stats["occlusion_correction_mean_deg"] < 40.0
     assert stats["occlusion_residual_mean_deg"] < 0.1
+    # a render the caller already has gives the same maps; one of another size is refused
+    seen = render_mesh(None, None, K, cam_from_world, size, size, scene=scene)
+    again, _ = deocclude_view(scene, K, cam_from_world, measured, directions=512, seen=seen)
+    np.testing.assert_array_equal(again, fixed)
+    with pytest.raises(ValueError, match="seen was rendered at"):
+        deocclude_view(scene, K, cam_from_world, measured[:-1], directions=512, seen=seen)
     with pytest.raises(ValueError, match="normals"):
         deocclude_view(scene, K, cam_from_world, measured[..., :2])
