@@ -8,8 +8,9 @@ pipeline published), on one CPU thread as ``make dataset`` runs it:
    x axis);
 2. the **second pass on de-occluded normals** as the geometry stage trains it (``geometry.deocclude``): the
    first field meshed as the stage meshes it, eq. 1's normals with that mesh's occlusion of the LED sphere
-   divided out (:func:`stages.geometry.deoccluded_sdf_views`), a second training on them (its clock starts
-   where the first pass and the de-occlusion ended); the same for the **mask-only ablation**
+   divided out (:func:`stages.geometry.deoccluded_sdf_views`), a second training on them that draws the
+   stage's share of its rays where the first mesh missed the normals (``geometry.second_pass_importance``; its
+   clock starts where the first pass and the de-occlusion ended); the same for the **mask-only ablation**
    (``normal_supervision=False``) and the **visual hull alone** (classic centre test at 256^3, no dilation,
    one miss allowed);
 3. **marching resolution**: mesh extraction time and Chamfer of the final field per grid resolution;
@@ -360,10 +361,12 @@ def main() -> int:
         v, f, _ = extract_mesh(result.field.sdf_numpy, bounds, stage.mesh_resolution)
         v, f = largest_component(v, f)
         v, f = decimate(v, f, stage.face_budget)
-        second_views, deocclusion = deoccluded_sdf_views(views, v, f, stage.deocclude_directions,
-                                                         stage.deocclude_min_visible)
+        second_views, deocclusion = deoccluded_sdf_views(
+            views, v, f, stage.deocclude_directions, stage.deocclude_min_visible,
+            stage.second_pass_error_floor_deg if stage.second_pass_importance > 0 else None)
         between = time.perf_counter() - start
-        result_2, fields_2 = train_with_checkpoints(second_views, config, args.checkpoints)
+        second = dataclasses.replace(config, importance_fraction=stage.second_pass_importance)
+        result_2, fields_2 = train_with_checkpoints(second_views, second, args.checkpoints)
         offset = float(result.stats["time_s"]) + between
         fields_2 = [(it, seconds + offset, field) for it, seconds, field in fields_2]
         print(f"  second pass on de-occluded normals: {between:.1f} + {result_2.stats['time_s']:.1f} s "
