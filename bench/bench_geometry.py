@@ -353,7 +353,7 @@ def main() -> int:
                                                         "hull_occupied_fraction", "samples_evaluated", "naive_samples")}
 
     if not args.no_deocclude:
-        from stages.geometry import GeometryConfig, deoccluded_sdf_views
+        from stages.geometry import GeometryConfig, second_pass_views
         from stages.numerics.mesh import decimate, extract_mesh, largest_component
 
         stage = GeometryConfig()
@@ -361,9 +361,7 @@ def main() -> int:
         v, f, _ = extract_mesh(result.field.sdf_numpy, bounds, stage.mesh_resolution)
         v, f = largest_component(v, f)
         v, f = decimate(v, f, stage.face_budget)
-        second_views, deocclusion = deoccluded_sdf_views(
-            views, v, f, stage.deocclude_directions, stage.deocclude_min_visible,
-            stage.second_pass_error_floor_deg if stage.second_pass_importance > 0 else None)
+        second_views, deocclusion = second_pass_views(stage, views, v, f)
         between = time.perf_counter() - start
         second = dataclasses.replace(config, importance_fraction=stage.second_pass_importance)
         result_2, fields_2 = train_with_checkpoints(second_views, second, args.checkpoints)

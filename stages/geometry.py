@@ -125,6 +125,14 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     return out, stats
 
 
+def second_pass_views(cfg: GeometryConfig, views: list[Any], vertices: np.ndarray,
+                      faces: np.ndarray) -> tuple[list[Any], dict[str, float]]:
+    """The second SDF pass's views as ``cfg`` asks for them: :func:`deoccluded_sdf_views` of the first mesh,
+    with sample weights when ``cfg.second_pass_importance`` draws a share of the rays by them."""
+    return deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions, cfg.deocclude_min_visible,
+                                cfg.second_pass_error_floor_deg if cfg.second_pass_importance > 0 else None)
+
+
 @dataclass(frozen=True)
 class TexturesConfig(Documented):
     atlas_faces: int = 40_000
@@ -274,9 +282,7 @@ class GeometryStage(Stage):
         deocclusion: dict[str, float] = {}
         if cfg.deocclude:
             tick = time.perf_counter()
-            sdf_views, deocclusion = deoccluded_sdf_views(
-                views, vertices, faces, cfg.deocclude_directions, cfg.deocclude_min_visible,
-                cfg.second_pass_error_floor_deg if cfg.second_pass_importance > 0 else None)
+            sdf_views, deocclusion = second_pass_views(cfg, views, vertices, faces)
             deocclusion["seconds"] = time.perf_counter() - tick
             weighted = (f"; {100 * deocclusion['error_weighted_fraction']:.1f}% of the pixels, where the first mesh "
                         f"misses the normals by > {cfg.second_pass_error_floor_deg:g} deg, draw "

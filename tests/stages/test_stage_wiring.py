@@ -70,7 +70,7 @@ def test_occlusion_configs_check_their_fields():
 
 
 def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
-    from stages.geometry import GeometryConfig, deoccluded_sdf_views
+    from stages.geometry import GeometryConfig, deoccluded_sdf_views, second_pass_views
     from stages.numerics.sdf import SDFView
 
     # a camera 2 m above an open floor (y = 0): nothing occludes it, so the de-occlusion keeps every normal and
@@ -99,6 +99,12 @@ def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
     assert np.all(weight[outside] == 0) and np.all(weight[~valid] == 0)
     assert stats["error_weighted_fraction"] == pytest.approx(100 / valid.sum())
     assert stats["error_mean_deg"] == pytest.approx(30.0 * 100 / valid.sum(), rel=0.02)
+    # the stage asks for the weights only when it draws a share of the rays by them
+    (staged,), _ = second_pass_views(GeometryConfig(deocclude_directions=64), [view], floor_v, floor_f)
+    np.testing.assert_array_equal(staged.sample_weight, weight)
+    (uniform,), _ = second_pass_views(GeometryConfig(deocclude_directions=64, second_pass_importance=0.0), [view],
+                                      floor_v, floor_f)
+    assert uniform.sample_weight is None
     # the stage's settings are checked
     assert GeometryConfig().second_pass_importance > 0
     for bad, match in (({"second_pass_importance": 1.0}, "second_pass_importance"),
