@@ -230,8 +230,8 @@ SDF_PRESETS: dict[str, SDFConfig] = {
     # the same de-occluded normals, seeds 0 / 1: A0000 Chamfer 1.51 / 1.54 -> 1.29 / 1.36 mm, held-out SSIM
     # 0.9680 / 0.9682 -> 0.9690 / 0.9692; A0001 (seed 0) 1.46 -> 1.36 mm, 0.9626 -> 0.9643. In `make dataset`:
     # 1.41 / 1.47 -> 1.30 / 1.49 mm. The price: the body's front moves in (median depth offset -1.25 -> -1.08
-    # mm) and so do its silhouettes, by a fraction of a pixel (relit novel views 24.35 -> 24.13 dB, all of it
-    # at the silhouette). The same settings without the importance share: 1.52 mm, 0.9674 (A0000); the share
+    # mm) and so do its silhouettes, by a fraction of a pixel (relit novel views 24.35 -> 24.13 dB; on A0000
+    # all of it at the silhouettes, on A0001 mixed). The same settings without the importance share: 1.52 mm, 0.9674 (A0000); the share
     # with the former 0.15 / 5%: 1.54 / 1.55 mm.
     "cpu": SDFConfig(
         encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
@@ -296,12 +296,12 @@ def _check_config(config: SDFConfig) -> None:
         value = getattr(config, name)
         if not (math.isfinite(value) and value > 0):
             problems.append(f"{name}={value} (must be > 0)")
-    for name in ("outlier_fraction", "importance_fraction", "coarse_to_fine", "final_lr_fraction", "inv_s_ramp", "ema_decay", "ema_start"):
+    for name in ("outlier_fraction", "coarse_to_fine", "final_lr_fraction", "inv_s_ramp", "ema_decay", "ema_start"):
         value = getattr(config, name)
         if not 0 <= value <= 1:
             problems.append(f"{name}={value} (must be in [0, 1])")
     if not 0 <= config.importance_fraction < 1:
-        problems.append(f"importance_fraction={config.importance_fraction} (must be < 1)")
+        problems.append(f"importance_fraction={config.importance_fraction} (must be in [0, 1))")
     if not 0 <= config.outlier_fraction < 1:
         problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
     if not 0 <= config.grazing_cos_min < 1:
