@@ -10,7 +10,8 @@ views, the materials textures through the atlas, ``fit_sg_environment``, ``direc
 rendering of the true subject (common exposure from the truth's 99th percentile, union of the masks).
 
 1. **Variants**, one change at a time from the stage's defaults (32 lobes, shadows with 256 visibility
-   directions, fused normals, the sources' ``albedo_diffuse`` when the release has it, de-occluded):
+   directions, fused normals, the sources' ``albedo_diffuse`` when the release has it, de-occluded, silhouettes
+   antialiased by the pixels' coverage): hard edges (``coverage_samples`` 1: alpha = the pixel centres' mask),
    ``sg_lobes`` 8/16/32/64 (with the SG fit time per environment), ``visibility_directions`` 64/128/256,
    shadows off (with the de-occluded and with the photometric albedo: the stage with ``shadows: false``
    shades the photometric albedo unshadowed), shadows with the photometric albedo (occlusion counted twice),
@@ -50,9 +51,10 @@ ENVIRONMENTS = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
 LOBES = (8, 16, 32, 64)
 DIRECTIONS = (64, 128, 256)
 DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "fused", "albedo": "deoccluded",
-           "diffuse_ratio": True, "sources": "stage"}
+           "diffuse_ratio": True, "sources": "stage", "edges": "coverage"}
 FUSION_WIDTHS_M = (0.008, 0.03)  # frequency splits of the fused normals besides the stage's (normal_fusion_m)
 VARIANTS = [("default", {}),
+            ("hard edges (coverage_samples 1)", {"edges": "centre"}),
             ("sg_lobes 8", {"lobes": 8}), ("sg_lobes 16", {"lobes": 16}), ("sg_lobes 64", {"lobes": 64}),
             ("visibility_directions 64", {"directions": 64}), ("visibility_directions 128", {"directions": 128}),
             ("shadows off, de-occluded albedo", {"shadows": False}),
@@ -144,12 +146,15 @@ class ActionScene:
         choice and both source albedos, per mask pixel, and the full maps for the decomposition;
         ``stage_seconds`` times the stage's G-buffer alone (not the variants' extra work)."""
         from stages.numerics.gbuffer import fuse_normals
-        from stages.relight import RelightConfig, novel_view_gbuffer
+        from stages.numerics.raycast import pixel_coverage
+        from stages.relight import RelightConfig, novel_view_gbuffer, silhouette_alpha
 
         h, w = int(cam["height"]), int(cam["width"])
         t0 = time.perf_counter()
         gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
                                 depth_tolerance_m=DEPTH_TOLERANCE_M)
+        alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
+            cam["K"], cam["cam_from_world"], h, w, RelightConfig().coverage_samples, self.asset.scene))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
             self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
@@ -159,7 +164,7 @@ class ActionScene:
         for width in FUSION_WIDTHS_M:
             full[f"fused_{width:g}"] = fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
                                                     gb["normal_fusion_px"] * width / RelightConfig().normal_fusion_m)
-        return {"mask": gb["mask"], "pix": pix, "points": gb["points"], "view_dirs": gb["view_dirs"], "shape": (h, w),
+        return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"], "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,
                 "normals": {k: n.reshape(-1, 3)[pix].astype(np.float64) for k, n in full.items()},
                 "normals_full": full,
@@ -192,7 +197,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
     from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.numerics.sg import fibonacci_sphere
     from stages.numerics.shadowing import direction_visibility
-    from stages.relight import _pixel_points, shading_albedo
+    from stages.relight import _pixel_points, premultiply_edges, shading_albedo
 
     gb = scene.gbuffer(cam)
     gbuffer_s = gb["stage_seconds"]
@@ -229,12 +234,16 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
                         fit[cfg["lobes"]], vis, directions[cfg["directions"]] if vis is not None else None)
             rows[label]["shade_s"][env_name] = time.perf_counter() - t0
             image = _image(gb["pix"], rgb, (h, w))
-            rows[label]["psnr_db"][env_name] = relit_psnr(image, gb["mask"], true["radiance"], true["mask"])["psnr_db"]
+            if cfg["edges"] == "coverage":  # the stage's antialiased silhouette (coverage_samples)
+                image, mask = premultiply_edges(image, gb["mask"], gb["alpha"]), gb["edge_mask"]
+            else:
+                mask = gb["mask"]
+            rows[label]["psnr_db"][env_name] = relit_psnr(image, mask, true["radiance"], true["mask"])["psnr_db"]
             if not change:
                 default_images[env_name] = image
         try:
             released = scene.view.relit(cam["camera_id"], env_name)
-            rows["released"]["psnr_db"][env_name] = relit_psnr(released[..., :3], released[..., 3] > 0.5,
+            rows["released"]["psnr_db"][env_name] = relit_psnr(released[..., :3], released[..., 3] >= 0.5,
                                                                true["radiance"], true["mask"])["psnr_db"]
         except (KeyError, FileNotFoundError):
             pass

@@ -320,8 +320,9 @@ class ActionView:
         return self._load("render_cameras", None)["cameras"]
 
     def relit(self, view: str, environment: str) -> np.ndarray:
-        """A relit novel view, (H, W, 4) float32: linear radiance in the environment map's units and the
-        mask as alpha. ``environment`` is the label in ``renders/environments.json`` (e.g.
+        """A relit novel view, (H, W, 4) float32: linear radiance in the environment map's units,
+        premultiplied by alpha, the share of each pixel the subject covers (alpha >= 0.5 is the mask,
+        as ``render_gbuffer``'s). ``environment`` is the label in ``renders/environments.json`` (e.g.
         ``studio_small_03_1k``)."""
         return self._load(f"relit_{environment}", view)
 

@@ -18,10 +18,16 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
    ``diffuse_albedo`` off or without those maps, the white-light albedo times the materials stage's diffuse
    ratio); it still holds the stage's ambient occlusion, so with shadows it is divided by the occlusion
    (else occlusion would count twice).
+4. edges: a camera pixel integrates the light over its square, so at a silhouette it is part subject, part
+   background. ``coverage_samples`` rays per pixel side measure the share the mesh covers
+   (:func:`stages.numerics.raycast.pixel_coverage`); it is the relit images' alpha and their radiance is
+   premultiplied by it. Covered pixels whose centre misses the mesh take the nearest shaded pixel's values
+   (:func:`stages.numerics.gbuffer.fill_nearest`). The masks are alpha >= 0.5.
 
 Outputs per action (release ``renders/``): ``cameras.json`` (the novel cameras, OpenCV, and the captured
 pair each lies between), ``<view>/normal.exr``, ``albedo.exr``, ``roughness.exr``, ``mask.png`` and
-``<view>/<environment>.exr`` (RGBA: linear radiance in the environment's units, alpha = mask),
+``<view>/<environment>.exr`` (RGBA: linear radiance in the environment's units premultiplied by alpha, the
+share of the pixel the subject covers; the G-buffer maps and ``mask.png`` cover alpha >= 0.5),
 ``environments.json`` (names, source files and the SG fit errors) and a preview sheet.
 """
 from __future__ import annotations
@@ -97,6 +103,13 @@ class RelightConfig(Documented):
     """Fresnel reflectance at normal incidence."""
     depth_tolerance_m: float = 0.01
     """A source pixel is visible when its mesh depth agrees with the point's within this."""
+    coverage_samples: int = 4
+    """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
+    whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
+    still sampled at pixel centres; a covered pixel whose centre misses the mesh takes its nearest neighbour's
+    values. 1 = hard edges (alpha = the centres' mask). On the default capture relit novel views 24.13 ->
+    24.80 dB against the simulator (2 rays per side: 24.83; the simulator's camera averages 2 x 2); 1.2 s of
+    ray casting per 320 x 480 view at 4."""
     min_alpha: float = 0.5
     """Source map pixels with a lower photometric validity alpha are not reprojected."""
     previews: bool = True
@@ -113,7 +126,7 @@ class RelightConfig(Documented):
             raise ValueError(f"relight.normals must be 'fused', 'reprojected' or 'mesh', got {self.normals!r}")
         if not (np.isfinite(self.normal_fusion_m) and self.normal_fusion_m > 0):
             raise ValueError(f"relight.normal_fusion_m must be positive, got {self.normal_fusion_m!r}")
-        for name in ("novel_views", "sources", "sg_lobes", "fit_height", "visibility_directions"):
+        for name in ("novel_views", "sources", "sg_lobes", "fit_height", "visibility_directions", "coverage_samples"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"relight.{name} must be >= 1")
 
@@ -269,6 +282,27 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
             "coverage": float(mask.sum() / max(seen["hit"].sum(), 1))}
 
 
+def silhouette_alpha(shaded: np.ndarray, coverage: np.ndarray, reach_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Alpha of a relit view and its mask: the pixels' coverage (H, W) in [0, 1] where a shaded pixel
+    (``shaded`` (H, W) bool, whose centre sees the subject) lies within ``reach_px`` to lend its values, 0
+    elsewhere; the mask is alpha >= 0.5 (as the simulator's: at least half of a pixel's rays hit)."""
+    from stages.numerics.gbuffer import fill_nearest
+
+    coverage = np.clip(np.nan_to_num(np.asarray(coverage, np.float32)), 0.0, 1.0)
+    _, reached = fill_nearest(coverage, shaded, coverage > 0, reach_px)
+    alpha = np.where(reached, coverage, 0.0).astype(np.float32)
+    return alpha, alpha >= 0.5
+
+
+def premultiply_edges(image: np.ndarray, shaded: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """A relit image (H, W, 3), shaded on ``shaded`` (H, W) bool, on every pixel with ``alpha`` > 0 (edge
+    pixels take the nearest shaded value, :func:`silhouette_alpha`'s reach) and premultiplied by it."""
+    from stages.numerics.gbuffer import fill_nearest
+
+    filled, _ = fill_nearest(image, shaded, alpha > 0, max_distance_px=np.inf)
+    return (filled * alpha[..., None]).astype(np.float32)
+
+
 def shading_albedo(white_light_albedo: np.ndarray, diffuse_ratio: np.ndarray, occlusion: np.ndarray | None,
                    min_occlusion: float = 0.2) -> np.ndarray:
     """The albedo to shade with, (N, 3) in [0, 1]: the white-light albedo holds specular light (the shading
@@ -285,7 +319,7 @@ class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
     name = "relight"
-    version = "5"  # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
+    version = "6"  # 6: antialiased silhouettes (alpha = pixel coverage); 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")
@@ -300,7 +334,8 @@ class RelightStage(Stage):
         from stages.materials import load_atlas_mesh
         from stages.numerics.gbuffer import SourceView
         from stages.numerics.mesh import vertex_normals
-        from stages.numerics.raycast import mesh_scene, render_mesh
+        from stages.numerics.gbuffer import fill_nearest
+        from stages.numerics.raycast import mesh_scene, pixel_coverage, render_mesh
         from stages.numerics.sg import fibonacci_sphere, fit_sg_environment, sg_fit_errors, shade_sg
         from stages.numerics.shadowing import direction_visibility, shade_sg_visible
 
@@ -397,12 +432,23 @@ class RelightStage(Stage):
             albedo = shading_albedo(gb["albedo"].reshape(-1, 3)[pix], gb["diffuse_ratio"].reshape(-1, 3)[pix],
                                     gb["occlusion"].reshape(-1)[pix] if visibility is not None else None)
             view_dirs = gb["view_dirs"]
+            alpha, out_mask = mask.astype(np.float32), mask
+            if cfg.coverage_samples > 1:
+                alpha, out_mask = silhouette_alpha(
+                    mask, pixel_coverage(view["K"], view["cam_from_world"], h, w, cfg.coverage_samples, scene))
+
+            def edged(image: np.ndarray) -> np.ndarray:
+                """A map sampled at the centres of ``mask`` on the output mask instead (edges filled inward)."""
+                filled, _ = fill_nearest(image, mask, out_mask)
+                keep = out_mask.reshape(out_mask.shape + (1,) * (image.ndim - 2))
+                return np.where(keep, filled, 0.0).astype(np.float32)
+
             folder = renders / view["camera_id"]
-            write_exr(folder / "normal.exr", shading_normals)
-            write_exr(folder / "albedo.exr", _image(pix, albedo, h, w))
-            write_exr(folder / "roughness.exr", gb["roughness"])
-            write_png(folder / "mask.png", (mask * 255).astype(np.uint8))
-            row = [preview_normals(shading_normals, mask.astype(np.float32))]
+            write_exr(folder / "normal.exr", edged(shading_normals))
+            write_exr(folder / "albedo.exr", edged(_image(pix, albedo, h, w)))
+            write_exr(folder / "roughness.exr", edged(gb["roughness"]))
+            write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
+            row = [preview_normals(edged(shading_normals), out_mask.astype(np.float32))]
             for env in environments:
                 if visibility is not None:
                     shaded = shade_sg_visible(normals, view_dirs, albedo, rough, env["lobes"], visibility,
@@ -410,13 +456,13 @@ class RelightStage(Stage):
                 else:
                     shaded = shade_sg(normals, view_dirs, albedo, rough, env["lobes"], f0=cfg.f0)
                 rgb = np.clip(np.nan_to_num(shaded["rgb"], nan=0.0, posinf=0.0, neginf=0.0), 0.0, _HALF_MAX)
-                image = _image(pix, rgb, h, w)
-                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, mask[..., None].astype(np.float32)],
-                                                                         axis=2))
-                row.append(preview_linear(image, exposure=_auto_exposure(image, mask)))
+                # premultiplied by the pixel's coverage, as a camera integrates a silhouette pixel
+                image = premultiply_edges(_image(pix, rgb, h, w), mask, alpha)
+                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2))
+                row.append(preview_linear(image, exposure=_auto_exposure(image, out_mask)))
             sheet_rows.append(np.concatenate(row, axis=1))
-            records.append({**view, "pixels": int(len(pix)), "coverage": gb["coverage"],
-                            "normal_fusion_px": gb["normal_fusion_px"],
+            records.append({**view, "pixels": int(len(pix)), "mask_pixels": int(out_mask.sum()),
+                            "coverage": gb["coverage"], "normal_fusion_px": gb["normal_fusion_px"],
                             "seconds": time.perf_counter() - t0})
             ctx.progress(index + 1, len(views), f"view {view['camera_id']} relit under {len(environments)} "
                                                 f"environment(s)")
@@ -426,7 +472,9 @@ class RelightStage(Stage):
             {"environments": [{k: v for k, v in e.items() if k != "lobes"} | {"lobes": e["lobes"].numpy().to_dict()}
                               for e in environments],
              "shading": {"sg_lobes": cfg.sg_lobes, "shadows": cfg.shadows, "f0": cfg.f0, "normals": cfg.normals,
-                         "radiance_units": "the environment map's"},
+                         "radiance_units": "the environment map's",
+                         "alpha": (f"pixel coverage of {cfg.coverage_samples} x {cfg.coverage_samples} rays, radiance "
+                                   "premultiplied" if cfg.coverage_samples > 1 else "mask (pixel centres)")},
              "blend": blend.record if blend is not None else "heuristic"}, indent=1, default=float))
         if cfg.previews and sheet_rows:
             write_png(out / "previews" / "relit.png", np.concatenate(sheet_rows, axis=0))

@@ -101,6 +101,46 @@ def render_mesh(vertices: np.ndarray | None, faces: np.ndarray | None, K: np.nda
             "face": face.reshape(height, width), "hit": hit.reshape(height, width)}
 
 
+def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, samples: int,
+                   scene, band_rows: int = 64) -> np.ndarray:
+    """Share of each pixel's square that a mesh covers, seen by a pinhole camera.
+
+    A camera pixel integrates the light over its square (the simulator's camera averages a grid of rays per
+    pixel): at a silhouette a pixel is partly subject, partly background. This casts a regular ``samples x
+    samples`` grid of rays through each pixel's square (pixel ``i`` spans ``[i - 1/2, i + 1/2]``; the rays sit
+    at the centres of the grid's cells) and counts the hits.
+
+    Args:
+        K, cam_from_world: the camera (:func:`camera_rays`). height, width: image size in pixels.
+        samples: rays per pixel side, >= 1 (1: the pixel centre's ray only, coverage 0 or 1).
+        scene: :func:`mesh_scene` of the mesh.
+        band_rows: image rows cast at once (bounds the memory: ``band_rows * width * samples^2`` rays).
+
+    Returns:
+        (H, W) float32 in [0, 1], multiples of ``1 / samples^2``.
+    """
+    K, P = _check_camera(K, cam_from_world, height, width)
+    if int(samples) != samples or samples < 1:
+        raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
+    if int(band_rows) < 1:
+        raise ValueError(f"band_rows must be >= 1, got {band_rows!r}")
+    s = int(samples)
+    # The fine grid's pixel j of pixel i sits at u = i + (j + 1/2) / s - 1/2: a camera with K scaled by s and
+    # its principal point moved by (s - 1) / 2 puts it at integer coordinate s i + j.
+    fine_K = K.copy()
+    fine_K[:2] *= s
+    fine_K[0, 2] += (s - 1) / 2
+    fine_K[1, 2] += (s - 1) / 2
+    coverage = np.zeros((height, width), np.float32)
+    for row0 in range(0, height, int(band_rows)):
+        rows = min(int(band_rows), height - row0)
+        band_K = fine_K.copy()
+        band_K[1, 2] -= row0 * s
+        hit = render_mesh(None, None, band_K, P, rows * s, width * s, scene=scene)["hit"]
+        coverage[row0:row0 + rows] = hit.reshape(rows, s, width, s).mean(axis=(1, 3), dtype=np.float64)
+    return coverage
+
+
 def render_attributes(scene, faces: np.ndarray, attributes: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
                       height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex attributes of a mesh seen by a pinhole camera, interpolated with the hits' barycentrics.

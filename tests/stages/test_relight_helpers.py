@@ -108,3 +108,22 @@ def test_config_checks():
             RelightConfig(normal_fusion_m=width)
     with pytest.raises(ValueError, match="sg_lobes"):
         RelightConfig(sg_lobes=0)
+    with pytest.raises(ValueError, match="coverage_samples"):
+        RelightConfig(coverage_samples=0)
+
+
+def test_silhouette_alpha_and_premultiplied_edges_by_hand():
+    from stages.relight import premultiply_edges, silhouette_alpha
+
+    shaded = np.zeros((1, 6), bool)
+    shaded[0, 1:3] = True  # two pixels whose centres see the subject
+    coverage = np.array([[0.75, 1.0, 0.25, 0.5, 0.0, 0.5]], np.float32)
+    alpha, mask = silhouette_alpha(shaded, coverage)
+    # column 3 (half covered, centre off the subject) borrows column 2; column 5 is 3 px from any shaded
+    # pixel: a sliver with nothing to lend it a value, alpha 0; column 2's centre hits but covers a quarter
+    np.testing.assert_array_equal(alpha, [[0.75, 1.0, 0.25, 0.5, 0.0, 0.0]])
+    np.testing.assert_array_equal(mask, [[True, True, False, True, False, False]])
+    image = np.zeros((1, 6, 3), np.float32)
+    image[0, 1], image[0, 2] = (2, 2, 2), (4, 4, 4)
+    out = premultiply_edges(image, shaded, alpha)
+    np.testing.assert_allclose(out[0, :, 0], [1.5, 2.0, 1.0, 2.0, 0.0, 0.0])

@@ -59,3 +59,50 @@ def test_render_mesh_rejects_bad_input():
         render_mesh(np.zeros((3, 3)), np.zeros((0, 3), int), K, P, 4, 4)
     with pytest.raises(ValueError, match="K must be"):
         camera_rays(np.eye(2), P, 4, 4)
+
+
+def _half_plane(edge_x: float):
+    """A large quad at z = 1 covering x >= edge_x, and a camera at the origin looking down +z (f = 10 px,
+    principal point (5, 4)): pixel column i looks at x = (i - 5) / 10 on the plane."""
+    from stages.numerics.raycast import mesh_scene
+
+    v = np.array([[edge_x, -10, 1], [10, -10, 1], [10, 10, 1], [edge_x, 10, 1]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    K = np.array([[10.0, 0, 5.0], [0, 10.0, 4.0], [0, 0, 1]])
+    return mesh_scene(v, f), K, np.hstack([np.eye(3), np.zeros((3, 1))])
+
+
+@pytest.mark.parametrize("samples", [2, 4])
+def test_pixel_coverage_of_a_half_covered_column(samples):
+    from stages.numerics.raycast import pixel_coverage
+
+    # the edge through column 5's centre: it is half covered, columns left of it empty, right of it full
+    scene, K, P = _half_plane(0.0)
+    cov = pixel_coverage(K, P, 8, 10, samples, scene)
+    assert cov.shape == (8, 10) and cov.dtype == np.float32
+    np.testing.assert_allclose(cov, np.broadcast_to([0, 0, 0, 0, 0, 0.5, 1, 1, 1, 1], (8, 10)))
+    # the edge a quarter pixel right of column 5's centre: a quarter of it is covered (4 x 4 rays at
+    # offsets -3/8, -1/8, 1/8, 3/8 px: one column of them lies beyond +1/4)
+    scene, K, P = _half_plane(0.025)
+    assert pixel_coverage(K, P, 8, 10, 4, scene)[0, 5] == pytest.approx(0.25)
+
+
+def test_pixel_coverage_bands_and_one_sample():
+    from stages.numerics.raycast import mesh_scene, pixel_coverage
+
+    v, f = _sphere(n=200)  # fine enough that the inscribed polygon's silhouette is the disc's within 0.1%
+    K, P = _camera(3.0)  # the whole disc inside the 64 x 48 image
+    scene = mesh_scene(v, f)
+    whole = pixel_coverage(K, P, 48, 64, 3, scene, band_rows=1000)
+    np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 3, scene, band_rows=7), whole)
+    edge = (whole > 0) & (whole < 1)
+    assert edge.sum() > 20 and np.all(np.isin(np.round(whole * 9), np.arange(10)))
+    hit = render_mesh(None, None, K, P, 48, 64, scene=scene)["hit"]
+    np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 1, scene), hit.astype(np.float32))
+    # the disc's area: pi r^2 with r the sphere's apparent radius (f r / sqrt(d^2 - r^2) px), within 1%
+    # (a 3 x 3 grid per pixel: the edge pixels' coverage errors, up to 1/18, average out along the rim)
+    radius_px = 100.0 * 0.5 / np.sqrt(3.0 ** 2 - 0.5 ** 2)
+    assert whole.sum() == pytest.approx(np.pi * radius_px ** 2, rel=0.01)
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="samples"):
+            pixel_coverage(K, P, 48, 64, bad, scene)
