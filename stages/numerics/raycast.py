@@ -102,42 +102,58 @@ def render_mesh(vertices: np.ndarray | None, faces: np.ndarray | None, K: np.nda
 
 
 def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, samples: int,
-                   scene, band_rows: int = 64) -> np.ndarray:
+                   scene, edges_only: bool = True, chunk_pixels: int = 1 << 16) -> np.ndarray:
     """Share of each pixel's square that a mesh covers, seen by a pinhole camera.
 
     A camera pixel integrates the light over its square (the simulator's camera averages a grid of rays per
     pixel): at a silhouette a pixel is partly subject, partly background. This casts a regular ``samples x
-    samples`` grid of rays through each pixel's square (pixel ``i`` spans ``[i - 1/2, i + 1/2]``; the rays sit
+    samples`` grid of rays through a pixel's square (pixel ``i`` spans ``[i - 1/2, i + 1/2]``; the rays sit
     at the centres of the grid's cells) and counts the hits.
+
+    With ``edges_only`` the grid is cast only where the pixel-centre rays of a 3 x 3 neighbourhood disagree
+    (some hit, some miss); elsewhere the coverage is the centre ray's 0 or 1. Cost: one ray per pixel plus
+    ``samples^2`` per edge pixel (a few percent of them) instead of ``samples^2`` per pixel; it misses
+    only features that lie wholly between pixel centres (a hole or a sliver narrower than a pixel).
 
     Args:
         K, cam_from_world: the camera (:func:`camera_rays`). height, width: image size in pixels.
         samples: rays per pixel side, >= 1 (1: the pixel centre's ray only, coverage 0 or 1).
         scene: :func:`mesh_scene` of the mesh.
-        band_rows: image rows cast at once (bounds the memory: ``band_rows * width * samples^2`` rays).
+        edges_only: cast the grid only at the silhouette (above); False: at every pixel.
+        chunk_pixels: pixels whose grids are cast at once (bounds the memory).
 
     Returns:
         (H, W) float32 in [0, 1], multiples of ``1 / samples^2``.
     """
+    import open3d as o3d
+
     K, P = _check_camera(K, cam_from_world, height, width)
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
-    if int(band_rows) < 1:
-        raise ValueError(f"band_rows must be >= 1, got {band_rows!r}")
+    if int(chunk_pixels) < 1:
+        raise ValueError(f"chunk_pixels must be >= 1, got {chunk_pixels!r}")
     s = int(samples)
-    # The fine grid's pixel j of pixel i sits at u = i + (j + 1/2) / s - 1/2: a camera with K scaled by s and
-    # its principal point moved by (s - 1) / 2 puts it at integer coordinate s i + j.
-    fine_K = K.copy()
-    fine_K[:2] *= s
-    fine_K[0, 2] += (s - 1) / 2
-    fine_K[1, 2] += (s - 1) / 2
-    coverage = np.zeros((height, width), np.float32)
-    for row0 in range(0, height, int(band_rows)):
-        rows = min(int(band_rows), height - row0)
-        band_K = fine_K.copy()
-        band_K[1, 2] -= row0 * s
-        hit = render_mesh(None, None, band_K, P, rows * s, width * s, scene=scene)["hit"]
-        coverage[row0:row0 + rows] = hit.reshape(rows, s, width, s).mean(axis=(1, 3), dtype=np.float64)
+    centre = render_mesh(None, None, K, P, height, width, scene=scene)["hit"]
+    coverage = centre.astype(np.float32)
+    if s == 1:
+        return coverage
+    if edges_only:
+        from scipy.ndimage import binary_dilation
+
+        around = np.ones((3, 3), bool)
+        cast = binary_dilation(centre, around) & binary_dilation(~centre, around)
+    else:
+        cast = np.ones_like(centre)
+    rows, cols = np.nonzero(cast)
+    offsets = (np.arange(s) + 0.5) / s - 0.5
+    du, dv = np.meshgrid(offsets, offsets)  # (s, s): row j of the grid is at v offset offsets[j]
+    for start in range(0, len(rows), int(chunk_pixels)):
+        r, c = rows[start:start + int(chunk_pixels)], cols[start:start + int(chunk_pixels)]
+        pixels = np.stack([(c[:, None, None] + du).ravel(), (r[:, None, None] + dv).ravel()], axis=-1)
+        origins, directions, _ = camera_rays(K, P, height, width, pixels=pixels)
+        rays = np.concatenate([origins, directions], axis=-1).astype(np.float32)
+        hit = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
+        coverage[r, c] = hit.reshape(len(r), s * s).mean(axis=1, dtype=np.float64)
     return coverage
 
 

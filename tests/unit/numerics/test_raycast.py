@@ -93,8 +93,11 @@ def test_pixel_coverage_bands_and_one_sample():
     v, f = _sphere(n=200)  # fine enough that the inscribed polygon's silhouette is the disc's within 0.1%
     K, P = _camera(3.0)  # the whole disc inside the 64 x 48 image
     scene = mesh_scene(v, f)
-    whole = pixel_coverage(K, P, 48, 64, 3, scene, band_rows=1000)
-    np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 3, scene, band_rows=7), whole)
+    whole = pixel_coverage(K, P, 48, 64, 3, scene, edges_only=False)
+    # a convex subject has no feature between pixel centres: the edge pixels' grids alone give the same,
+    # in chunks of any size
+    np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 3, scene), whole)
+    np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 3, scene, chunk_pixels=7), whole)
     edge = (whole > 0) & (whole < 1)
     assert edge.sum() > 20 and np.all(np.isin(np.round(whole * 9), np.arange(10)))
     hit = render_mesh(None, None, K, P, 48, 64, scene=scene)["hit"]
@@ -106,3 +109,17 @@ def test_pixel_coverage_bands_and_one_sample():
     for bad in (0, 1.5):
         with pytest.raises(ValueError, match="samples"):
             pixel_coverage(K, P, 48, 64, bad, scene)
+
+
+def test_pixel_coverage_edges_only_misses_a_sliver_between_pixel_centres():
+    from stages.numerics.raycast import mesh_scene, pixel_coverage
+
+    # a strip at x in [0.01, 0.04] on z = 1: inside column 5's square (x in [-0.05, 0.05]) but off every
+    # pixel centre (x = 0, 0.1): the full grid sees it (rays at x = 0.0125 and 0.0375), the edge test does not
+    v = np.array([[0.01, -10, 1], [0.04, -10, 1], [0.04, 10, 1], [0.01, 10, 1]], float)
+    scene = mesh_scene(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    K = np.array([[10.0, 0, 5.0], [0, 10.0, 4.0], [0, 0, 1]])
+    P = np.hstack([np.eye(3), np.zeros((3, 1))])
+    full = pixel_coverage(K, P, 8, 10, 4, scene, edges_only=False)
+    np.testing.assert_allclose(full, np.broadcast_to([0, 0, 0, 0, 0, 0.5, 0, 0, 0, 0], (8, 10)))
+    assert not pixel_coverage(K, P, 8, 10, 4, scene).any()
