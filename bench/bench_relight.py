@@ -154,7 +154,8 @@ class ActionScene:
         gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
                                 depth_tolerance_m=DEPTH_TOLERANCE_M)
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
-            cam["K"], cam["cam_from_world"], h, w, RelightConfig().coverage_samples, self.asset.scene))
+            cam["K"], cam["cam_from_world"], h, w, RelightConfig().coverage_samples, self.asset.scene,
+            centre_hit=gb["hit"]))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
             self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
@@ -164,7 +165,8 @@ class ActionScene:
         for width in FUSION_WIDTHS_M:
             full[f"fused_{width:g}"] = fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
                                                     gb["normal_fusion_px"] * width / RelightConfig().normal_fusion_m)
-        return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"], "view_dirs": gb["view_dirs"], "shape": (h, w),
+        return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"],
+                "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,
                 "normals": {k: n.reshape(-1, 3)[pix].astype(np.float64) for k, n in full.items()},
                 "normals_full": full,

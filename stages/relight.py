@@ -21,8 +21,8 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
 4. edges: a camera pixel integrates the light over its square, so at a silhouette it is part subject, part
    background. ``coverage_samples`` rays per pixel side measure the share the mesh covers
    (:func:`stages.numerics.raycast.pixel_coverage`); it is the relit images' alpha and their radiance is
-   premultiplied by it. Covered pixels whose centre misses the mesh take the nearest shaded pixel's values
-   (:func:`stages.numerics.gbuffer.fill_nearest`). The masks are alpha >= 0.5.
+   premultiplied by it. Covered pixels whose centre misses the mesh take the mean of their shaded neighbours
+   (:func:`grow_edges`). The masks are alpha >= 0.5.
 
 Outputs per action (release ``renders/``): ``cameras.json`` (the novel cameras, OpenCV, and the captured
 pair each lies between), ``<view>/normal.exr``, ``albedo.exr``, ``roughness.exr``, ``mask.png`` and
@@ -106,8 +106,8 @@ class RelightConfig(Documented):
     coverage_samples: int = 4
     """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
     whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
-    still sampled at pixel centres; a covered pixel whose centre misses the mesh takes its nearest neighbour's
-    values. 1 = hard edges (alpha = the centres' mask). On the default capture relit novel views 24.13 ->
+    still sampled at pixel centres; a covered pixel whose centre misses the mesh takes the mean of its shaded
+    neighbours'. 1 = hard edges (alpha = the centres' mask). On the default capture relit novel views 24.13 ->
     24.80 dB against the simulator (2 rays per side: 24.83; the simulator's camera averages 2 x 2). The grid is
     cast only at the silhouette (:func:`stages.numerics.raycast.pixel_coverage`, ``edges_only``): 0.1-0.7 s
     per 320 x 480 view instead of 0.9-2.0 s for every pixel's, 0-3 pixels' coverage different, the same masks."""
@@ -233,6 +233,7 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     at the mask's median depth).
 
     Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
+    ``hit`` (the pixel-centre rays that meet the mesh),
     ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
     ``normal_mesh``, ``normal_fused`` (:func:`stages.numerics.gbuffer.fuse_normals`: the reprojected normals'
     detail on the mesh normals' low frequencies), ``albedo`` (the sources', reprojected, the baked white-light
@@ -272,7 +273,7 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
     normal_reprojected = np.where(reprojected[..., None], gbuffer["normal"], mesh_normals).astype(np.float32)
     fusion_px = float(normal_fusion_m * K[0, 0] / np.median(depth[mask])) if mask.any() else 1.0
-    return {"mask": mask, "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
+    return {"mask": mask, "hit": seen["hit"], "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
             "normal_reprojected": normal_reprojected, "normal_mesh": mesh_normals.astype(np.float32),
             "normal_fused": fuse_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3)),
             "normal_fusion_px": fusion_px,
@@ -283,25 +284,32 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
             "coverage": float(mask.sum() / max(seen["hit"].sum(), 1))}
 
 
-def silhouette_alpha(shaded: np.ndarray, coverage: np.ndarray, reach_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
-    """Alpha of a relit view and its mask: the pixels' coverage (H, W) in [0, 1] where a shaded pixel
-    (``shaded`` (H, W) bool, whose centre sees the subject) lies within ``reach_px`` to lend its values, 0
-    elsewhere; the mask is alpha >= 0.5 (as the simulator's: at least half of a pixel's rays hit)."""
-    from stages.numerics.gbuffer import fill_nearest
+def silhouette_alpha(shaded: np.ndarray, coverage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Alpha of a relit view and its mask: the pixels' coverage (H, W) in [0, 1] on the ``shaded`` pixels
+    (H, W) bool (whose centre sees the subject) and on their 8-neighbours (which :func:`grow_edges` fills),
+    0 elsewhere; the mask is alpha >= 0.5 (as the simulator's: at least half of a pixel's rays hit)."""
+    from scipy.ndimage import binary_dilation
 
     coverage = np.clip(np.nan_to_num(np.asarray(coverage, np.float32)), 0.0, 1.0)
-    _, reached = fill_nearest(coverage, shaded, coverage > 0, reach_px)
+    reached = binary_dilation(np.asarray(shaded, bool), np.ones((3, 3), bool))
     alpha = np.where(reached, coverage, 0.0).astype(np.float32)
     return alpha, alpha >= 0.5
 
 
-def premultiply_edges(image: np.ndarray, shaded: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """A relit image (H, W, 3), shaded on ``shaded`` (H, W) bool, on every pixel with ``alpha`` > 0 (edge
-    pixels take the nearest shaded value, :func:`silhouette_alpha`'s reach) and premultiplied by it."""
-    from stages.numerics.gbuffer import fill_nearest
+def grow_edges(maps: dict[str, np.ndarray], shaded: np.ndarray) -> dict[str, np.ndarray]:
+    """Maps (H, W[, C]) sampled on the ``shaded`` pixels (H, W) bool, grown by one ring of pixels: the
+    silhouette pixels whose centre misses the mesh take the mean of their shaded 8-neighbours
+    (:func:`stages.numerics.bake.dilate_texture`, one pass); 0 farther out."""
+    from stages.numerics.bake import dilate_texture
 
-    filled, _ = fill_nearest(image, shaded, alpha > 0, max_distance_px=np.inf)
-    return (filled * alpha[..., None]).astype(np.float32)
+    grown, _ = dilate_texture(maps, shaded, 1)
+    return grown
+
+
+def premultiply_edges(image: np.ndarray, shaded: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """A relit image (H, W, 3) shaded on ``shaded`` (H, W) bool, grown to its silhouette pixels
+    (:func:`grow_edges`) and premultiplied by ``alpha`` (H, W) (:func:`silhouette_alpha`)."""
+    return (grow_edges({"rgb": image}, shaded)["rgb"] * alpha[..., None]).astype(np.float32)
 
 
 def shading_albedo(white_light_albedo: np.ndarray, diffuse_ratio: np.ndarray, occlusion: np.ndarray | None,
@@ -320,9 +328,10 @@ class RelightStage(Stage):
     """Relit novel views: reprojected G-buffers shaded under SG-fitted environments."""
 
     name = "relight"
+    # 8: edge pixels take the mean of their shaded neighbours (bake.dilate_texture), not the nearest one's;
     # 7: the coverage grid cast at the silhouette only; 6: antialiased silhouettes (alpha = pixel coverage);
     # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
-    version = "7"
+    version = "8"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")
@@ -337,7 +346,6 @@ class RelightStage(Stage):
         from stages.materials import load_atlas_mesh
         from stages.numerics.gbuffer import SourceView
         from stages.numerics.mesh import vertex_normals
-        from stages.numerics.gbuffer import fill_nearest
         from stages.numerics.raycast import mesh_scene, pixel_coverage, render_mesh
         from stages.numerics.sg import fibonacci_sphere, fit_sg_environment, sg_fit_errors, shade_sg
         from stages.numerics.shadowing import direction_visibility, shade_sg_visible
@@ -437,21 +445,20 @@ class RelightStage(Stage):
             view_dirs = gb["view_dirs"]
             alpha, out_mask = mask.astype(np.float32), mask
             if cfg.coverage_samples > 1:
-                alpha, out_mask = silhouette_alpha(
-                    mask, pixel_coverage(view["K"], view["cam_from_world"], h, w, cfg.coverage_samples, scene))
-
-            def edged(image: np.ndarray) -> np.ndarray:
-                """A map sampled at the centres of ``mask`` on the output mask instead (edges filled inward)."""
-                filled, _ = fill_nearest(image, mask, out_mask)
-                keep = out_mask.reshape(out_mask.shape + (1,) * (image.ndim - 2))
-                return np.where(keep, filled, 0.0).astype(np.float32)
-
+                alpha, out_mask = silhouette_alpha(mask, pixel_coverage(
+                    view["K"], view["cam_from_world"], h, w, cfg.coverage_samples, scene, centre_hit=gb["hit"]))
+            # the G-buffer maps on the output mask: edge pixels whose centre misses the mesh borrow their neighbours'
+            maps = grow_edges({"normal": shading_normals, "albedo": _image(pix, albedo, h, w),
+                               "roughness": gb["roughness"]}, mask)
+            length = np.linalg.norm(maps["normal"], axis=-1, keepdims=True)
+            maps["normal"] = np.divide(maps["normal"], length, out=np.zeros_like(maps["normal"]), where=length > 1e-6)
+            maps = {k: np.where(out_mask.reshape(out_mask.shape + (1,) * (v.ndim - 2)), v, 0.0).astype(np.float32)
+                    for k, v in maps.items()}
             folder = renders / view["camera_id"]
-            write_exr(folder / "normal.exr", edged(shading_normals))
-            write_exr(folder / "albedo.exr", edged(_image(pix, albedo, h, w)))
-            write_exr(folder / "roughness.exr", edged(gb["roughness"]))
+            for name, image in maps.items():
+                write_exr(folder / f"{name}.exr", image)
             write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
-            row = [preview_normals(edged(shading_normals), out_mask.astype(np.float32))]
+            row = [preview_normals(maps["normal"], out_mask.astype(np.float32))]
             for env in environments:
                 if visibility is not None:
                     shaded = shade_sg_visible(normals, view_dirs, albedo, rough, env["lobes"], visibility,

@@ -51,7 +51,7 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "source_candidates",
-           "reproject_gbuffer", "fuse_normals", "fill_nearest", "interpolate_camera", "novel_camera_pairs"]
+           "reproject_gbuffer", "fuse_normals", "interpolate_camera", "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")
@@ -487,40 +487,6 @@ def fuse_normals(normal_detail: np.ndarray, normal_base: np.ndarray, mask: np.nd
     fused = np.where(use[..., None], fused / np.maximum(norm, 1e-6)[..., None], base)
     out = np.where(use[..., None] | base_ok[..., None], fused, detail)
     return np.where(mask[..., None], out, 0.0).astype(np.float32)
-
-
-def fill_nearest(values: np.ndarray, known: np.ndarray, want: np.ndarray,
-                 max_distance_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels of ``want`` without a value take the value of the nearest pixel that has one.
-
-    At a silhouette, a pixel partly covered by the subject may have its centre off the subject, so the
-    G-buffer (sampled at pixel centres) holds nothing there; its neighbour inward sees the same surface.
-
-    Args:
-        values: (H, W) or (H, W, C) map, defined where ``known``.
-        known: (H, W) bool pixels with a value. want: (H, W) bool pixels that should have one.
-        max_distance_px: only pixels within this (Euclidean, pixels) of a known one are filled.
-
-    Returns:
-        ``filled`` (same shape and dtype as ``values``: the known pixels' values, the filled pixels'
-        nearest known value, 0 elsewhere) and ``defined`` (H, W) bool (known or filled).
-    """
-    from scipy.ndimage import distance_transform_edt
-
-    values = np.asarray(values)
-    known = np.asarray(known).astype(bool, copy=False)
-    want = np.asarray(want).astype(bool, copy=False)
-    if values.ndim not in (2, 3) or values.shape[:2] != known.shape or want.shape != known.shape:
-        raise ValueError(f"values {values.shape}, known {known.shape} and want {want.shape} must share (H, W)")
-    if not (max_distance_px >= 0):
-        raise ValueError(f"max_distance_px must be >= 0, got {max_distance_px}")
-    if not known.any():
-        return np.zeros_like(values), np.zeros_like(known)
-    distance, (rows, cols) = distance_transform_edt(~known, return_indices=True)
-    defined = known | (want & (distance <= max_distance_px))
-    filled = values[rows, cols]
-    shape = defined.shape + (1,) * (values.ndim - 2)
-    return np.where(defined.reshape(shape), filled, 0).astype(values.dtype), defined
 
 
 def interpolate_camera(K_a: np.ndarray, cam_from_world_a: np.ndarray, K_b: np.ndarray,

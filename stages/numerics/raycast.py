@@ -102,7 +102,8 @@ def render_mesh(vertices: np.ndarray | None, faces: np.ndarray | None, K: np.nda
 
 
 def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, samples: int,
-                   scene, edges_only: bool = True, chunk_pixels: int = 1 << 16) -> np.ndarray:
+                   scene, edges_only: bool = True, chunk_pixels: int = 1 << 16,
+                   centre_hit: np.ndarray | None = None) -> np.ndarray:
     """Share of each pixel's square that a mesh covers, seen by a pinhole camera.
 
     A camera pixel integrates the light over its square (the simulator's camera averages a grid of rays per
@@ -121,6 +122,8 @@ def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width
         scene: :func:`mesh_scene` of the mesh.
         edges_only: cast the grid only at the silhouette (above); False: at every pixel.
         chunk_pixels: pixels whose grids are cast at once (bounds the memory).
+        centre_hit: (H, W) bool, the pixel-centre rays' hits when the caller has rendered them already
+            (:func:`render_mesh`'s ``hit``); None casts them.
 
     Returns:
         (H, W) float32 in [0, 1], multiples of ``1 / samples^2``.
@@ -133,7 +136,12 @@ def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width
     if int(chunk_pixels) < 1:
         raise ValueError(f"chunk_pixels must be >= 1, got {chunk_pixels!r}")
     s = int(samples)
-    centre = render_mesh(None, None, K, P, height, width, scene=scene)["hit"]
+    if centre_hit is None:
+        centre = render_mesh(None, None, K, P, height, width, scene=scene)["hit"]
+    else:
+        centre = np.asarray(centre_hit).astype(bool, copy=False)
+        if centre.shape != (height, width):
+            raise ValueError(f"centre_hit must be ({height}, {width}), got {centre.shape}")
     coverage = centre.astype(np.float32)
     if s == 1:
         return coverage

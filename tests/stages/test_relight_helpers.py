@@ -120,10 +120,16 @@ def test_silhouette_alpha_and_premultiplied_edges_by_hand():
     coverage = np.array([[0.75, 1.0, 0.25, 0.5, 0.0, 0.5]], np.float32)
     alpha, mask = silhouette_alpha(shaded, coverage)
     # column 3 (half covered, centre off the subject) borrows column 2; column 5 is 3 px from any shaded
-    # pixel: a sliver with nothing to lend it a value, alpha 0; column 2's centre hits but covers a quarter
+    # pixel: a sliver with no neighbour to lend it a value, alpha 0; column 2's centre hits but covers a quarter
     np.testing.assert_array_equal(alpha, [[0.75, 1.0, 0.25, 0.5, 0.0, 0.0]])
     np.testing.assert_array_equal(mask, [[True, True, False, True, False, False]])
     image = np.zeros((1, 6, 3), np.float32)
     image[0, 1], image[0, 2] = (2, 2, 2), (4, 4, 4)
     out = premultiply_edges(image, shaded, alpha)
     np.testing.assert_allclose(out[0, :, 0], [1.5, 2.0, 1.0, 2.0, 0.0, 0.0])
+    # a pixel next to two shaded ones takes their mean
+    shaded = np.array([[True, False], [False, True]])
+    image = np.zeros((2, 2, 3), np.float32)
+    image[0, 0], image[1, 1] = 2.0, 4.0
+    out = premultiply_edges(image, shaded, np.full((2, 2), 0.5, np.float32))
+    np.testing.assert_allclose(out[..., 1], [[1.0, 1.5], [1.5, 2.0]])

@@ -354,31 +354,3 @@ def test_fuse_normals_input_checks():
         with pytest.raises(ValueError, match="sigma_px"):
             fuse_normals(n, n, m, sigma)
 
-
-def test_fill_nearest_by_hand():
-    from stages.numerics.gbuffer import fill_nearest
-
-    values = np.zeros((3, 5, 2), np.float32)
-    known = np.zeros((3, 5), bool)
-    known[1, 1], known[1, 3] = True, True
-    values[1, 1], values[1, 3] = (1, 10), (2, 20)
-    want = np.zeros((3, 5), bool)
-    want[0, 0] = True   # sqrt(2) from (1, 1): filled from it
-    want[1, 4] = True   # 1 from (1, 3)
-    want[2, 2] = True   # sqrt(2) from both: one of them
-    filled, defined = fill_nearest(values, known, want, max_distance_px=1.5)
-    assert filled.dtype == np.float32 and filled.shape == values.shape
-    np.testing.assert_array_equal(defined, known | want)
-    np.testing.assert_array_equal(filled[0, 0], (1, 10))
-    np.testing.assert_array_equal(filled[1, 4], (2, 20))
-    assert tuple(filled[2, 2]) in ((1, 10), (2, 20))
-    np.testing.assert_array_equal(filled[1, 1], (1, 10))  # known pixels keep their value
-    assert not filled[~defined].any()
-    # out of reach: (0, 0) is sqrt(2) away, not filled at 1.0
-    filled, defined = fill_nearest(values, known, want, max_distance_px=1.0)
-    assert not defined[0, 0] and defined[1, 4] and not filled[0, 0].any()
-    # a 2-D map, nothing known, bad shapes
-    filled, defined = fill_nearest(values[..., 0], np.zeros((3, 5), bool), want)
-    assert not defined.any() and not filled.any()
-    with pytest.raises(ValueError, match="share"):
-        fill_nearest(values, known[:2], want)

@@ -102,6 +102,10 @@ def test_pixel_coverage_bands_and_one_sample():
     assert edge.sum() > 20 and np.all(np.isin(np.round(whole * 9), np.arange(10)))
     hit = render_mesh(None, None, K, P, 48, 64, scene=scene)["hit"]
     np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 1, scene), hit.astype(np.float32))
+    # the caller's own centre render gives the same
+    np.testing.assert_array_equal(pixel_coverage(K, P, 48, 64, 3, scene, centre_hit=hit), whole)
+    with pytest.raises(ValueError, match="centre_hit"):
+        pixel_coverage(K, P, 48, 64, 3, scene, centre_hit=hit[1:])
     # the disc's area: pi r^2 with r the sphere's apparent radius (f r / sqrt(d^2 - r^2) px), within 1%
     # (a 3 x 3 grid per pixel: the edge pixels' coverage errors, up to 1/18, average out along the rim)
     radius_px = 100.0 * 0.5 / np.sqrt(3.0 ** 2 - 0.5 ** 2)
