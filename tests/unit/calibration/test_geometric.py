@@ -189,7 +189,9 @@ def _temple_truth():
     return K, P
 
 
-TEMPLE_CONFIG = GeometricConfig(max_image_size=-1, camera_model="PINHOLE", refine_focal_length=False, num_threads=2)
+# One thread: COLMAP's matching and mapping are seeded, but with 2 threads their order follows the thread
+# scheduling, and one clean-clone CI run (under load) registered only 9 of the 16 views.
+TEMPLE_CONFIG = GeometricConfig(max_image_size=-1, camera_model="PINHOLE", refine_focal_length=False, num_threads=1)
 
 
 @pytest.mark.shared
