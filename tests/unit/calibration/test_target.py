@@ -72,7 +72,7 @@ def test_calibrate_images_on_target_registers_all(capture, tmp_path):
     centres = {f"{c['camera_id']}.png": camera_centre(np.asarray(c["cam_from_world"], float)) for c in rig}
     truth = {f"{c['camera_id']}.png": np.asarray(c["cam_from_world"], float) for c in true}
     config = GeometricConfig(camera_model="PINHOLE", refine_focal_length=True, refine_principal_point=False,
-                             refine_extra_params=False, num_threads=2)
+                             refine_extra_params=False, num_threads=1)  # one thread: reproducible (see test_geometric)
     res = calibrate_images(images, tmp_path / "work", config, intrinsics_prior=K, known_centres=centres)
     assert len(res.cameras) == N_CAMERAS and res.aligned
     assert res.reprojection_error_px < 0.6
