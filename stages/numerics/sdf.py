@@ -230,9 +230,10 @@ SDF_PRESETS: dict[str, SDFConfig] = {
     # the same de-occluded normals, seeds 0 / 1: A0000 Chamfer 1.51 / 1.54 -> 1.29 / 1.36 mm, held-out SSIM
     # 0.9680 / 0.9682 -> 0.9690 / 0.9692; A0001 (seed 0) 1.46 -> 1.36 mm, 0.9626 -> 0.9643. In `make dataset`:
     # 1.41 / 1.47 -> 1.30 / 1.49 mm. The price: the body's front moves in (median depth offset -1.25 -> -1.08
-    # mm) and so do its silhouettes, by a fraction of a pixel (relit novel views 24.35 -> 24.13 dB; on A0000
-    # all of it at the silhouettes, on A0001 mixed). The same settings without the importance share: 1.52 mm, 0.9674 (A0000); the share
-    # with the former 0.15 / 5%: 1.54 / 1.55 mm.
+    # mm) and so do its silhouettes, by a fraction of a pixel (relit novel views, then hard-edged, 24.35 ->
+    # 24.13 dB; on A0000 all of it at the silhouettes, on A0001 mixed; relight v6's antialiased edges since:
+    # 24.80). The same settings without the importance share: 1.52 mm, 0.9674 (A0000); the share with the
+    # former 0.15 / 5%: 1.54 / 1.55 mm.
     "cpu": SDFConfig(
         encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
                                 base_resolution=16, finest_resolution=512),
