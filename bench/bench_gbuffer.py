@@ -11,7 +11,8 @@ normal and albedo reprojected from the other 30 cameras) this reports
    training cameras; its fit time) beside the heuristic weights; metrics against K (1, 2, 4, 6, 8), against
    the weighting (uniform, angle, angle+distance,
    angle+distance+grazing) and against the source lookup (bilinear, cubic: metrics, time per view and the
-   cubic/bilinear time ratio, same process, source renders cached);
+   cubic/bilinear time ratio, same process, source renders cached) and against the rays per side at the
+   mesh's depth edges (1 = pixel centres; the sub-pixel rays' casting included in the time);
 4. a baseline in the spirit of the paper's Instant-NGP comparison: the **mesh's own normals** (smooth,
    interpolated vertex normals of the release mesh) as the held-out normal map;
 5. a figure (bench_gbuffer.png): photometric vs synthesised vs truth normals and albedo of one held-out
@@ -138,6 +139,10 @@ def data_variant(data, maps=None, depth_of=None):
             if depth_of is not None and cam not in self._render:
                 self._render[cam] = {"depth_m": depth_of(cam)}
             return super().render(cam)
+
+        def edge_subpixel(self, cam: str, samples: int, jump_m: float):
+            # a given depth map has no sub-pixel rays: its edge pixels keep their centre's sample
+            return None if depth_of is not None else super().edge_subpixel(cam, samples, jump_m)
 
     other = data.with_normals(data.diffuse_normals)
     if depth_of is not None:
@@ -408,6 +413,14 @@ def main() -> int:
         vi = entry["vs_interpolation"]
         vi["cubic_time_ratio"] = round(vi["cubic"]["seconds_per_view"] / max(vi["bilinear"]["seconds_per_view"], 1e-9), 2)
         print(action, "interpolation", json.dumps(vi), flush=True)
+        # pixels at the mesh's depth edges from 1 (centres only), 2, 3 or 4 rays per side (the sub-pixel rays
+        # are cast on the first call per camera: that call's time includes them, a repeat's does not)
+        entry["vs_edge_samples"] = {}
+        for samples in (1, 2, 3, 4):
+            r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, edge_samples=samples)
+            entry["vs_edge_samples"][str(samples)] = _short(r) | {
+                "seconds_per_view": round(r["heldout_seconds_per_view"], 4)}
+        print(action, "edge samples", json.dumps(entry["vs_edge_samples"]), flush=True)
         # the learned blend (trained leave one out on the 30 training cameras) against the heuristic weights
         learned = heldout_metrics(release, action, truth_dir=truth_dir, data=data,
                                   learned_blend=LearnedBlendConfig(enabled=True))

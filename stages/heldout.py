@@ -15,6 +15,16 @@ compared with: no gain is fitted. That photometric albedo still holds the ambien
 hemisphere (the paper says so); the simulator's albedo does not, so the ``_truth`` albedo scores include
 that bias (the bench reports the held-out photometric map's own score against the truth beside it).
 
+**Depth edges.** A camera pixel integrates the light over its square: where an arm passes in front of the
+torso, or at the silhouette, the held-out photometric pixel mixes both sides, while a G-buffer sampled at
+the pixel centre takes one side wholly. The pixels next to a depth edge of the mesh (a jump of more than
+``edge_jump_m`` in their 3 x 3 neighbourhood, or a silhouette; about 3% of the subject's pixels) are
+synthesised from ``edge_samples`` x ``edge_samples`` sub-pixel rays and averaged over those that hit
+(:func:`stages.numerics.gbuffer.reproject_gbuffer`'s ``subpixel``). Default capture, both actions, the
+protocol's numbers: albedo SSIM 0.9662 -> 0.9676, PSNR 32.82 -> 33.18 dB, normals 6.85 -> 6.74 deg (2 rays per
+side or 4: within 0.0004 of 3; every pixel from 3 x 3 rays: SSIM 0.9675, the extra low-pass of the interior
+costs what the edges gain).
+
 **Blend.** With an enabled ``learned_blend`` the sources are blended by a network trained leave one out
 on the action's other cameras (:mod:`stages.numerics.learned_blend`; the held-out cameras are neither targets nor
 sources of that training), else by the heuristic weights of ``reproject_gbuffer``.
@@ -33,6 +43,8 @@ from stages.numerics.gbuffer import SourceView, camera_centre, reproject_gbuffer
 from stages.numerics.metrics import angular_error_deg, downsample_to, ssim
 
 DEFAULT_HELDOUT = ("00005", "00021")
+EDGE_SAMPLES = 3
+EDGE_JUMP_M = 0.01
 PAPER_TABLE1 = {"heldout_albedo_psnr_db": 30.87, "heldout_albedo_ssim": 0.972, "heldout_albedo_rmse": 0.029,
                 "heldout_normal_mean_deg": 4.30, "heldout_normal_under5_pct": 80.8,
                 "heldout_normal_under25_pct": 96.3}
@@ -77,6 +89,7 @@ class ActionGBuffers:
         self.vertices, self.faces = self.view.mesh()
         self._scene = None  # one ray-casting scene of the mesh for every camera, built on first use
         self._render: dict[str, dict[str, np.ndarray]] = {}
+        self._subpixel: dict[tuple, dict[str, np.ndarray]] = {}
         self._sources: dict[str, SourceView] = {}
 
     def with_normals(self, diffuse: bool) -> ActionGBuffers:
@@ -106,6 +119,26 @@ class ActionGBuffers:
             self._render[cam] = render_mesh(None, None, c["K"], c["cam_from_world"], c["height"], c["width"],
                                             scene=self._scene)
         return self._render[cam]
+
+    def edge_subpixel(self, cam: str, samples: int, jump_m: float) -> dict[str, np.ndarray] | None:
+        """Sub-pixel ray depths (``samples`` x ``samples`` per pixel) at camera ``cam``'s pixels near a depth
+        edge of the mesh (:func:`stages.numerics.raycast.depth_edges`), with their ``rows`` and ``cols``: the
+        ``subpixel`` input of :func:`reproject_gbuffer`. None for ``samples`` <= 1."""
+        from stages.numerics.raycast import depth_edges, mesh_scene, subpixel_depths
+
+        if samples <= 1:
+            return None
+        key = (cam, int(samples), float(jump_m))
+        if key not in self._subpixel:
+            depth = self.render(cam)["depth_m"]
+            if self._scene is None:
+                self._scene = mesh_scene(self.vertices, self.faces)
+            rows, cols = np.nonzero(depth_edges(depth, jump_m))
+            c = self.cameras[cam]
+            sub = subpixel_depths(c["K"], c["cam_from_world"], c["height"], c["width"], rows, cols, int(samples),
+                                  self._scene)
+            self._subpixel[key] = sub | {"rows": rows, "cols": cols}
+        return self._subpixel[key]
 
     def photometric(self, cam: str) -> dict[str, np.ndarray]:
         """Photometric maps of ``cam``: normal (H, W, 3), albedo (H, W, 3), alpha (H, W), mask (H, W) bool."""
@@ -192,15 +225,20 @@ def _load_truth(truth_dir: Path, action_id: str, cam: str, shape: tuple[int, int
 
 
 def synthesise_heldout(data: ActionGBuffers, cam: str, heldout: Sequence[str], k: int = 6,
+                       edge_samples: int = EDGE_SAMPLES, edge_jump_m: float = EDGE_JUMP_M,
                        **reproject_kwargs) -> dict[str, np.ndarray]:
-    """Reproject camera ``cam``'s G-buffer from every camera not in ``heldout``; adds ``depth_m`` and
-    ``seconds`` (reprojection time, source depth renders included on first use) to the result."""
+    """Reproject camera ``cam``'s G-buffer from every camera not in ``heldout``, pixels at a depth edge of the
+    mesh from ``edge_samples`` x ``edge_samples`` sub-pixel rays (1 = pixel centres only; module docstring);
+    adds ``depth_m`` and ``seconds`` (reprojection time, source depth renders and sub-pixel rays included on
+    first use) to the result."""
     source_ids = [c for c in sorted(data.cameras) if c not in set(heldout) and c != cam]
     sources = [data.source(c) for c in source_ids]
     c = data.cameras[cam]
     depth = data.render(cam)["depth_m"]
     start = time.perf_counter()
-    out = reproject_gbuffer(depth, c["K"], c["cam_from_world"], sources, k=k, **reproject_kwargs)
+    subpixel = data.edge_subpixel(cam, edge_samples, edge_jump_m)
+    out = reproject_gbuffer(depth, c["K"], c["cam_from_world"], sources, k=k, subpixel=subpixel,
+                            **reproject_kwargs)
     out["seconds"] = np.float64(time.perf_counter() - start)
     out["depth_m"] = depth
     out["source_ids"] = np.asarray([source_ids[i] for i in out["sources"]])

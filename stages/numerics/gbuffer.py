@@ -247,10 +247,16 @@ def _lift(depth: np.ndarray, K: np.ndarray, P: np.ndarray):
     """World points of the pixels with a depth: rows, cols (N,), points (N, 3), unit directions to the
     camera (N, 3) and the camera's sampling density ``(f / distance)^2`` (N,)."""
     rows, cols = np.nonzero(depth > 0)
-    z = depth[rows, cols].astype(np.float64)
+    return (rows, cols) + _lift_points(cols.astype(np.float64), rows.astype(np.float64),
+                                       depth[rows, cols].astype(np.float64), K, P)
+
+
+def _lift_points(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, P: np.ndarray):
+    """World points (N, 3) at pixel coordinates ``u``, ``v`` and camera depth ``z`` (N,), their unit directions
+    to the camera (N, 3) and the camera's sampling density ``(f / distance)^2`` (N,)."""
     # lift: x_cam = z K^-1 [u, v, 1], x_world = R^T (x_cam - t)
-    y_cam = (rows - K[1, 2]) / K[1, 1]
-    x_cam = (cols - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
+    y_cam = (v - K[1, 2]) / K[1, 1]
+    x_cam = (u - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
     pts_cam = np.stack([x_cam * z, y_cam * z, z], axis=-1)
     R, t = P[:, :3], P[:, 3]
     pts = (pts_cam - t) @ R  # rows of R^T (x - t)
@@ -258,7 +264,7 @@ def _lift(depth: np.ndarray, K: np.ndarray, P: np.ndarray):
     dist_target = np.linalg.norm(to_target, axis=-1)
     to_target /= np.maximum(dist_target, 1e-12)[:, None]
     density_target = (K[0, 0] / np.maximum(dist_target, 1e-12)) ** 2
-    return rows, cols, pts, to_target, density_target
+    return pts, to_target, density_target
 
 
 def _source_terms(sources: Sequence[SourceView], i: int, pts: np.ndarray, to_target: np.ndarray,
@@ -357,7 +363,8 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
                       weighting: str = "angle_distance_grazing", angle_sigma_deg: float = 20.0,
                       subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
                       source_indices: Sequence[int] | None = None,
-                      interpolation: str = "cubic", blend=None) -> dict[str, np.ndarray]:
+                      interpolation: str = "cubic", blend=None,
+                      subpixel: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Normal and albedo maps of a target camera blended from the ``k`` nearest visible source views.
 
     Args:
@@ -377,35 +384,66 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
         blend: a trained :class:`stages.numerics.learned_blend.LearnedBlend`: its per-pixel weights over the
             ``k`` sources replace the ``weighting``'s (which stays its prior and its input); None = the
             heuristic weights.
+        subpixel: depths of sub-pixel rays at some pixels (:func:`stages.numerics.raycast.subpixel_depths`
+            plus its pixels' ``rows`` and ``cols`` (M,)): those pixels get the mean of their rays' blended
+            albedo and normal over the rays that hit and were seen by a source, as a camera pixel
+            integrates its square, instead of their centre's. Meant for the pixels at a depth edge
+            (:func:`stages.numerics.raycast.depth_edges`), where the centre sample takes one side wholly.
 
     Returns:
         ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,
         ``weight`` (H, W) float32 total blend weight (relative units: 1 = one fully visible source seen
-        head-on from the target's direction and distance), ``valid`` (H, W) bool (a surface and at
-        least one visible source), ``view_count`` (H, W) int32 sources that contributed, ``sources``
-        (k,) int64 indices of the sources used.
+        head-on from the target's direction and distance; at sub-sampled pixels the mean over the rays
+        used), ``valid`` (H, W) bool (a surface and at least one visible source), ``view_count`` (H, W)
+        int32 sources that contributed (the most of any ray at sub-sampled pixels), ``sources`` (k,) int64
+        indices of the sources used.
     """
     depth, K, P, chosen = _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, weighting,
                                    angle_sigma_deg, subject_centre, source_indices, interpolation)
     h, w = depth.shape
+    terms_kw = dict(depth_tolerance_m=depth_tolerance_m, weighting=weighting, angle_sigma_deg=angle_sigma_deg,
+                    interpolation=interpolation)
     rows, cols, pts, to_target, density_target = _lift(depth, K, P)
-    n = len(rows)
+    normal_px, albedo_px, weight_px, count, ok = _blend_points(sources, chosen, blend, pts, to_target,
+                                                               density_target, terms_kw)
+    out_normal = np.zeros((h, w, 3), np.float32)
+    out_albedo = np.zeros((h, w, 3), np.float32)
+    out_weight = np.zeros((h, w), np.float32)
+    out_count = np.zeros((h, w), np.int32)
+    out_valid = np.zeros((h, w), bool)
+    out_normal[rows, cols] = np.where(ok[:, None], normal_px, 0.0)
+    out_albedo[rows, cols] = np.where(ok[:, None], albedo_px, 0.0)
+    out_weight[rows, cols] = np.where(ok, weight_px, 0.0)
+    out_count[rows, cols] = np.where(ok, count, 0)
+    out_valid[rows, cols] = ok
+    if subpixel is not None:
+        r, c, sub = _blend_subpixel(subpixel, (h, w), K, P, sources, chosen, blend, terms_kw)
+        out_normal[r, c], out_albedo[r, c] = sub["normal"], sub["albedo"]
+        out_weight[r, c], out_count[r, c], out_valid[r, c] = sub["weight"], sub["count"], sub["valid"]
+    return {"normal": out_normal, "albedo": out_albedo, "weight": out_weight, "valid": out_valid,
+            "view_count": out_count, "sources": chosen}
+
+
+def _blend_points(sources: Sequence[SourceView], chosen: np.ndarray, blend, pts: np.ndarray, to_target: np.ndarray,
+                  density_target: np.ndarray, terms_kw: dict) -> tuple[np.ndarray, ...]:
+    """Blend of the chosen sources at world points (N, 3): unit normal (N, 3), albedo (N, 3), total weight
+    (N,), contributing sources (N,) int32 and ok (N,) bool (some weight and a defined normal)."""
+    n = len(pts)
     normal_acc = np.zeros((n, 3), np.float64)
     albedo_acc = np.zeros((n, 3), np.float64)
     weight_acc = np.zeros(n, np.float64)
     count = np.zeros(n, np.int32)
     if blend is None:  # one source at a time: no (pixels, k) arrays at full resolution
         for i in chosen:
-            terms = _source_terms(sources, int(i), pts, to_target, density_target, depth_tolerance_m, weighting,
-                                  angle_sigma_deg, interpolation)
+            terms = _source_terms(sources, int(i), pts, to_target, density_target, **terms_kw)
             wgt = terms["weight"]
             normal_acc += wgt[:, None] * terms["normal"]
             albedo_acc += wgt[:, None] * terms["albedo"]
             weight_acc += wgt
             count += (wgt > 0).astype(np.int32)
-    else:
-        cand = _stack_terms([_source_terms(sources, int(i), pts, to_target, density_target, depth_tolerance_m,
-                                           weighting, angle_sigma_deg, interpolation) for i in chosen])
+    elif n:
+        cand = _stack_terms([_source_terms(sources, int(i), pts, to_target, density_target, **terms_kw)
+                             for i in chosen])
         # the learned weights are a softmax: scale them by the heuristic total so ``weight`` keeps its units
         wgt = blend.weights(cand) * cand["weight"].sum(axis=1, keepdims=True)
         normal_acc = np.einsum("nk,nkc->nc", wgt, cand["normal"].astype(np.float64))
@@ -419,19 +457,56 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
     norm = np.linalg.norm(normal_acc, axis=-1)
     ok &= norm > 1e-9  # opposite normals that cancel carry no direction
     normal_px = np.divide(normal_acc, norm[:, None], out=np.zeros_like(normal_acc), where=ok[:, None])
+    return normal_px, albedo_px, weight_acc, count, ok
 
-    out_normal = np.zeros((h, w, 3), np.float32)
-    out_albedo = np.zeros((h, w, 3), np.float32)
-    out_weight = np.zeros((h, w), np.float32)
-    out_count = np.zeros((h, w), np.int32)
-    out_valid = np.zeros((h, w), bool)
-    out_normal[rows, cols] = np.where(ok[:, None], normal_px, 0.0)
-    out_albedo[rows, cols] = np.where(ok[:, None], albedo_px, 0.0)
-    out_weight[rows, cols] = np.where(ok, weight_acc, 0.0)
-    out_count[rows, cols] = np.where(ok, count, 0)
-    out_valid[rows, cols] = ok
-    return {"normal": out_normal, "albedo": out_albedo, "weight": out_weight, "valid": out_valid,
-            "view_count": out_count, "sources": chosen}
+
+def _blend_subpixel(subpixel: dict[str, np.ndarray], shape: tuple[int, int], K: np.ndarray, P: np.ndarray,
+                    sources: Sequence[SourceView], chosen: np.ndarray, blend,
+                    terms_kw: dict) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The pixels of ``subpixel`` (see :func:`reproject_gbuffer`): rows, cols (M,) and their maps, each the
+    mean of the blends at the pixel's rays that hit and were blended."""
+    try:
+        r = np.asarray(subpixel["rows"], np.int64).reshape(-1)
+        c = np.asarray(subpixel["cols"], np.int64).reshape(-1)
+        z = np.asarray(subpixel["depth_m"], np.float64)
+        u = np.asarray(subpixel["u"], np.float64)
+        v = np.asarray(subpixel["v"], np.float64)
+    except KeyError as err:
+        raise ValueError(f"subpixel needs rows, cols, depth_m, u and v; {err} is missing") from None
+    m = len(r)
+    if c.shape != (m,) or z.ndim != 2 or z.shape[0] != m or u.shape != z.shape or v.shape != z.shape:
+        raise ValueError(f"subpixel: rows {r.shape}, cols {c.shape}, depth_m/u/v {z.shape}/{u.shape}/{v.shape} "
+                         "must be (M,), (M,) and (M, S)")
+    if m and (r.min() < 0 or r.max() >= shape[0] or c.min() < 0 or c.max() >= shape[1]):
+        raise ValueError(f"subpixel pixels fall outside the {shape[0]} x {shape[1]} target")
+    if not np.all(np.isfinite(z)) or np.any(z < 0):
+        raise ValueError("subpixel depth_m must be finite and >= 0 (0 = the ray missed)")
+    hit = z > 0
+    pts, to_target, density_target = _lift_points(u[hit], v[hit], z[hit], K, P)
+    normal_h, albedo_h, weight_h, count_h, ok_h = _blend_points(sources, chosen, blend, pts, to_target,
+                                                                density_target, terms_kw)
+    shape_ms = z.shape
+    ok = np.zeros(shape_ms, bool)
+    ok[hit] = ok_h
+    normal = np.zeros(shape_ms + (3,), np.float64)
+    albedo = np.zeros(shape_ms + (3,), np.float64)
+    weight = np.zeros(shape_ms, np.float64)
+    count = np.zeros(shape_ms, np.int32)
+    normal[hit], albedo[hit], weight[hit], count[hit] = normal_h, albedo_h, weight_h, count_h
+    used = ok.sum(axis=1)
+    valid = used > 0
+    inv = np.divide(1.0, used, out=np.zeros(m, np.float64), where=valid)
+    albedo_px = (albedo * ok[..., None]).sum(axis=1) * inv[:, None]
+    normal_sum = (normal * ok[..., None]).sum(axis=1)
+    norm = np.linalg.norm(normal_sum, axis=-1)
+    valid &= norm > 1e-9
+    normal_px = np.divide(normal_sum, norm[:, None], out=np.zeros_like(normal_sum), where=valid[:, None])
+    weight_px = (weight * ok).sum(axis=1) * inv
+    keep = valid[:, None]
+    return r, c, {"normal": np.where(keep, normal_px, 0.0).astype(np.float32),
+                  "albedo": np.where(keep, albedo_px, 0.0).astype(np.float32),
+                  "weight": np.where(valid, weight_px, 0.0).astype(np.float32),
+                  "count": np.where(valid, count.max(axis=1), 0).astype(np.int32), "valid": valid}
 
 
 def fuse_normals(normal_detail: np.ndarray, normal_base: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:

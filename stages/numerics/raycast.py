@@ -153,16 +153,81 @@ def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width
     else:
         cast = np.ones_like(centre)
     rows, cols = np.nonzero(cast)
+    if len(rows):
+        depth = subpixel_depths(K, P, height, width, rows, cols, s, scene, chunk_pixels)["depth_m"]
+        coverage[rows, cols] = (depth > 0).mean(axis=1, dtype=np.float64)
+    return coverage
+
+
+def subpixel_depths(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int, rows: np.ndarray,
+                    cols: np.ndarray, samples: int, scene, chunk_pixels: int = 1 << 16) -> dict[str, np.ndarray]:
+    """Camera depth of a mesh along a regular ``samples x samples`` grid of rays through each given pixel's
+    square (pixel ``i`` spans ``[i - 1/2, i + 1/2]``; the rays sit at the centres of the grid's cells).
+
+    Args:
+        K, cam_from_world: the camera (:func:`camera_rays`). height, width: image size in pixels.
+        rows, cols: (M,) int indices of the pixels.
+        samples: rays per pixel side, >= 1 (1: the pixel centre).
+        scene: :func:`mesh_scene` of the mesh.
+        chunk_pixels: pixels whose grids are cast at once (bounds the memory).
+
+    Returns:
+        ``depth_m`` (M, S) float32 camera z of each ray's hit (0 = miss), ``u``, ``v`` (M, S) float64 the
+        rays' pixel coordinates, with ``S = samples^2`` (grid row-major: the first ``samples`` rays share the
+        smallest ``v``).
+    """
+    import open3d as o3d
+
+    K, P = _check_camera(K, cam_from_world, height, width)
+    if int(samples) != samples or samples < 1:
+        raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
+    if int(chunk_pixels) < 1:
+        raise ValueError(f"chunk_pixels must be >= 1, got {chunk_pixels!r}")
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    cols = np.asarray(cols, np.int64).reshape(-1)
+    if rows.shape != cols.shape:
+        raise ValueError(f"rows and cols differ in length: {rows.shape} vs {cols.shape}")
+    s = int(samples)
     offsets = (np.arange(s) + 0.5) / s - 0.5
     du, dv = np.meshgrid(offsets, offsets)  # (s, s): row j of the grid is at v offset offsets[j]
-    for start in range(0, len(rows), int(chunk_pixels)):
-        r, c = rows[start:start + int(chunk_pixels)], cols[start:start + int(chunk_pixels)]
-        pixels = np.stack([(c[:, None, None] + du).ravel(), (r[:, None, None] + dv).ravel()], axis=-1)
-        origins, directions, _ = camera_rays(K, P, height, width, pixels=pixels)
+    u = (cols[:, None] + du.reshape(1, -1)).astype(np.float64)
+    v = (rows[:, None] + dv.reshape(1, -1)).astype(np.float64)
+    depth = np.zeros(u.shape, np.float32)
+    step = int(chunk_pixels)
+    for start in range(0, len(rows), step):
+        uu, vv = u[start:start + step], v[start:start + step]
+        origins, directions, z_per_t = camera_rays(K, P, height, width, pixels=np.stack([uu.ravel(), vv.ravel()], -1))
         rays = np.concatenate([origins, directions], axis=-1).astype(np.float32)
-        hit = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
-        coverage[r, c] = hit.reshape(len(r), s * s).mean(axis=1, dtype=np.float64)
-    return coverage
+        t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        hit = np.isfinite(t_hit)
+        depth[start:start + step] = np.where(hit, np.where(hit, t_hit, 0.0) * z_per_t, 0.0).reshape(uu.shape)
+    return {"depth_m": depth, "u": u, "v": v}
+
+
+def depth_edges(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
+    """Pixels near a depth edge: where the pixel-centre depths of the 3 x 3 neighbourhood hold both a surface
+    and no surface (a silhouette), or surfaces more than ``jump_m`` apart (an occlusion edge).
+
+    Args:
+        depth_m: (H, W) camera z, 0 = no surface. jump_m: > 0, metres.
+
+    Returns:
+        (H, W) bool.
+    """
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    depth = np.asarray(depth_m, np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got {depth.shape}")
+    if not (np.isfinite(jump_m) and jump_m > 0):
+        raise ValueError(f"jump_m must be positive, got {jump_m!r}")
+    surface = depth > 0
+    near = maximum_filter(np.where(surface, -depth, -np.inf), size=3, mode="nearest")  # -(nearest depth)
+    far = maximum_filter(np.where(surface, depth, -np.inf), size=3, mode="nearest")
+    some = maximum_filter(surface.astype(np.uint8), size=3, mode="nearest") > 0
+    missing = minimum_filter(surface.astype(np.uint8), size=3, mode="nearest") == 0
+    jump = np.where(some, far + near, 0.0) > jump_m
+    return (some & missing) | jump
 
 
 def render_attributes(scene, faces: np.ndarray, attributes: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,

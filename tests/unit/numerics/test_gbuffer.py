@@ -257,6 +257,66 @@ def test_reproject_input_checks(sphere_scene):
         reproject_gbuffer(d, K, target_P, [wrong], source_indices=[0])
 
 
+def _subpixel_at(target, pixel, rays):
+    """A subpixel input for one target ``pixel`` (row, col) whose rays are the pixel centres ``rays`` [(row,
+    col), ...] of the target with their depths (a miss where there is no surface)."""
+    r = np.array([pixel[0]])
+    c = np.array([pixel[1]])
+    v = np.array([[float(a) for a, _ in rays]])
+    u = np.array([[float(b) for _, b in rays]])
+    z = np.array([[target["depth_m"][a, b] for a, b in rays]], np.float64)
+    return {"rows": r, "cols": c, "u": u, "v": v, "depth_m": z}
+
+
+def test_subpixel_pixel_is_the_mean_of_its_rays(sphere_scene):
+    sources, target_P, target = sphere_scene
+    kw = dict(k=5, depth_tolerance_m=0.05)
+    base = reproject_gbuffer(target["depth_m"], K, target_P, sources, **kw)
+    a, b = (30, 30), (34, 36)
+    assert base["valid"][a] and base["valid"][b]
+    # rays at a's centre give back a's own maps exactly
+    same = reproject_gbuffer(target["depth_m"], K, target_P, sources, subpixel=_subpixel_at(target, a, [a, a, a, a]), **kw)
+    for key in ("normal", "albedo", "weight", "valid", "view_count"):
+        np.testing.assert_allclose(same[key], base[key], rtol=1e-6, atol=1e-7)
+    # rays at a's and b's centres, 3 to 1: a's albedo becomes their 3:1 mean, its normal the renormalised sum
+    mixed = reproject_gbuffer(target["depth_m"], K, target_P, sources,
+                              subpixel=_subpixel_at(target, a, [a, a, a, b]), **kw)
+    np.testing.assert_allclose(mixed["albedo"][a], 0.75 * base["albedo"][a] + 0.25 * base["albedo"][b], atol=1e-6)
+    n = 3 * base["normal"][a] + base["normal"][b]
+    np.testing.assert_allclose(mixed["normal"][a], n / np.linalg.norm(n), atol=1e-6)
+    np.testing.assert_allclose(mixed["weight"][a], 0.75 * base["weight"][a] + 0.25 * base["weight"][b], rtol=1e-5)
+    assert mixed["view_count"][a] == max(base["view_count"][a], base["view_count"][b])
+    other = np.ones((H, W), bool)
+    other[a] = False
+    np.testing.assert_array_equal(mixed["albedo"][other], base["albedo"][other])  # no other pixel changes
+    # rays that miss (background pixel (0, 0)) do not count: one hit ray is the pixel's value
+    assert not target["hit"][0, 0]
+    missed = reproject_gbuffer(target["depth_m"], K, target_P, sources,
+                               subpixel=_subpixel_at(target, a, [(0, 0), b, (0, 0), (0, 0)]), **kw)
+    np.testing.assert_allclose(missed["albedo"][a], base["albedo"][b], atol=1e-6)
+    # a background pixel whose rays partly hit becomes valid; one whose rays all miss is invalid and zero
+    grown = reproject_gbuffer(target["depth_m"], K, target_P, sources,
+                              subpixel=_subpixel_at(target, (0, 0), [(0, 0), b]), **kw)
+    assert grown["valid"][0, 0] and np.allclose(grown["albedo"][0, 0], base["albedo"][b], atol=1e-6)
+    gone = reproject_gbuffer(target["depth_m"], K, target_P, sources,
+                             subpixel=_subpixel_at(target, a, [(0, 0), (0, 1)]), **kw)
+    assert not gone["valid"][a] and not gone["albedo"][a].any() and gone["weight"][a] == 0
+
+
+def test_subpixel_input_checks(sphere_scene):
+    sources, target_P, target = sphere_scene
+    d = target["depth_m"]
+    good = _subpixel_at(target, (30, 30), [(30, 30), (31, 31)])
+    with pytest.raises(ValueError, match="'u' is missing"):
+        reproject_gbuffer(d, K, target_P, sources, subpixel={k: v for k, v in good.items() if k != "u"})
+    with pytest.raises(ValueError, match=r"\(M, S\)"):
+        reproject_gbuffer(d, K, target_P, sources, subpixel=good | {"u": good["u"][:, :1]})
+    with pytest.raises(ValueError, match="outside"):
+        reproject_gbuffer(d, K, target_P, sources, subpixel=good | {"rows": np.array([H])})
+    with pytest.raises(ValueError, match="finite"):
+        reproject_gbuffer(d, K, target_P, sources, subpixel=good | {"depth_m": -good["depth_m"]})
+
+
 # ------------------------------------------------------------------------------------------------ held-out helpers
 
 

@@ -127,3 +127,54 @@ def test_pixel_coverage_edges_only_misses_a_sliver_between_pixel_centres():
     full = pixel_coverage(K, P, 8, 10, 4, scene, edges_only=False)
     np.testing.assert_allclose(full, np.broadcast_to([0, 0, 0, 0, 0, 0.5, 0, 0, 0, 0], (8, 10)))
     assert not pixel_coverage(K, P, 8, 10, 4, scene).any()
+
+
+def test_subpixel_depths_grid_on_a_half_plane():
+    from stages.numerics.raycast import pixel_coverage, subpixel_depths
+
+    # plane z = 1 for x >= 0.025: column 5 (x in [-0.05, 0.05]) is hit by the rays right of x = 0.025 only
+    scene, K, P = _half_plane(0.025)
+    rows, cols = np.array([0, 3, 7]), np.array([5, 6, 1])
+    out = subpixel_depths(K, P, 8, 10, rows, cols, 4, scene)
+    assert out["depth_m"].shape == (3, 16) and out["depth_m"].dtype == np.float32
+    offsets = np.array([-3, -1, 1, 3]) / 8
+    # row-major grid: the first 4 rays share the smallest v offset and run through the u offsets
+    np.testing.assert_allclose(out["u"][0, :4], 5 + offsets)
+    np.testing.assert_allclose(out["v"][0, ::4], 0 + offsets)
+    np.testing.assert_allclose(out["v"][1, :4], 3 - 3 / 8)
+    # column 5: the rays at u offset +3/8 (x = 0.0375) hit the plane at z = 1; the others miss
+    expected = np.tile([0.0, 0.0, 0.0, 1.0], 4)
+    np.testing.assert_allclose(out["depth_m"][0], expected, atol=1e-6)
+    np.testing.assert_allclose(out["depth_m"][1], 1.0, atol=1e-6)  # column 6: wholly on the plane
+    assert not out["depth_m"][2].any()  # column 1: wholly off it
+    # chunking changes nothing, and pixel_coverage is the share of hits
+    np.testing.assert_array_equal(subpixel_depths(K, P, 8, 10, rows, cols, 4, scene, chunk_pixels=2)["depth_m"],
+                                  out["depth_m"])
+    assert pixel_coverage(K, P, 8, 10, 4, scene)[0, 5] == pytest.approx(0.25)
+    empty = subpixel_depths(K, P, 8, 10, np.zeros(0, int), np.zeros(0, int), 3, scene)
+    assert empty["depth_m"].shape == (0, 9)
+    with pytest.raises(ValueError, match="samples"):
+        subpixel_depths(K, P, 8, 10, rows, cols, 0, scene)
+    with pytest.raises(ValueError, match="differ in length"):
+        subpixel_depths(K, P, 8, 10, rows, cols[:2], 2, scene)
+
+
+def test_depth_edges_hand_case():
+    from stages.numerics.raycast import depth_edges
+
+    depth = np.zeros((5, 8), np.float32)
+    depth[:, 1:4] = 2.0   # a surface at 2 m ...
+    depth[:, 4:7] = 2.03  # ... next to one 3 cm behind it; column 0 and 7 hold no surface
+    edges = depth_edges(depth, 0.01)
+    assert edges.dtype == bool and edges.shape == depth.shape
+    # the silhouettes: columns 0-1 and 6-7 (a neighbourhood with and without a surface); the jump: columns 3-4
+    np.testing.assert_array_equal(edges[2], [1, 1, 0, 1, 1, 0, 1, 1])
+    np.testing.assert_array_equal(edges, np.broadcast_to(edges[2], edges.shape))
+    # a jump smaller than the threshold is no edge
+    np.testing.assert_array_equal(depth_edges(depth, 0.05)[2], [1, 1, 0, 0, 0, 0, 1, 1])
+    assert not depth_edges(np.zeros((4, 4)), 0.01).any()  # no surface anywhere
+    assert not depth_edges(np.ones((4, 4)), 0.01).any()  # one flat surface
+    with pytest.raises(ValueError, match="jump_m"):
+        depth_edges(depth, 0.0)
+    with pytest.raises(ValueError, match=r"\(H, W\)"):
+        depth_edges(depth[..., None], 0.01)
