@@ -12,7 +12,7 @@ normal and albedo reprojected from the other 30 cameras) this reports
    the weighting (uniform, angle, angle+distance,
    angle+distance+grazing) and against the source lookup (bilinear, cubic: metrics, time per view and the
    cubic/bilinear time ratio, same process, source renders cached) and against the rays per side at the
-   mesh's depth edges (1 = pixel centres; the sub-pixel rays' casting included in the time);
+   mesh's occlusion edges (1 = pixel centres; the sub-pixel rays' casting included in the time);
 4. a baseline in the spirit of the paper's Instant-NGP comparison: the **mesh's own normals** (smooth,
    interpolated vertex normals of the release mesh) as the held-out normal map;
 5. a figure (bench_gbuffer.png): photometric vs synthesised vs truth normals and albedo of one held-out
@@ -413,7 +413,7 @@ def main() -> int:
         vi = entry["vs_interpolation"]
         vi["cubic_time_ratio"] = round(vi["cubic"]["seconds_per_view"] / max(vi["bilinear"]["seconds_per_view"], 1e-9), 2)
         print(action, "interpolation", json.dumps(vi), flush=True)
-        # pixels at the mesh's depth edges from 1 (centres only), 2, 3 or 4 rays per side (the sub-pixel rays
+        # pixels at the mesh's occlusion edges from 1 (centres only), 2, 3 or 4 rays per side (the sub-pixel rays
         # are cast on the first call per camera: that call's time includes them, a repeat's does not)
         entry["vs_edge_samples"] = {}
         for samples in (1, 2, 3, 4):

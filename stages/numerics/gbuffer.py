@@ -387,8 +387,8 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
         subpixel: depths of sub-pixel rays at some pixels (:func:`stages.numerics.raycast.subpixel_depths`
             plus its pixels' ``rows`` and ``cols`` (M,)): those pixels get the mean of their rays' blended
             albedo and normal over the rays that hit and were seen by a source, as a camera pixel
-            integrates its square, instead of their centre's. Meant for the pixels at a depth edge
-            (:func:`stages.numerics.raycast.depth_edges`), where the centre sample takes one side wholly.
+            integrates its square, instead of their centre's. Meant for the pixels at an occlusion edge
+            (:func:`stages.numerics.raycast.occlusion_edges`), where the centre sample takes one side wholly.
 
     Returns:
         ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,

@@ -204,9 +204,11 @@ def subpixel_depths(K: np.ndarray, cam_from_world: np.ndarray, height: int, widt
     return {"depth_m": depth, "u": u, "v": v}
 
 
-def depth_edges(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
-    """Pixels near a depth edge: where the pixel-centre depths of the 3 x 3 neighbourhood hold both a surface
-    and no surface (a silhouette), or surfaces more than ``jump_m`` apart (an occlusion edge).
+def occlusion_edges(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
+    """Pixels at an occlusion edge inside a silhouette: the pixel-centre depths of the 3 x 3 neighbourhood are
+    all on a surface and more than ``jump_m`` apart (an arm in front of the torso; also a surface so oblique
+    that its depth changes by ``jump_m`` over two pixels). Pixels whose neighbourhood reaches the background
+    are not: a silhouette is the coverage's business (:func:`pixel_coverage`).
 
     Args:
         depth_m: (H, W) camera z, 0 = no surface. jump_m: > 0, metres.
@@ -222,12 +224,9 @@ def depth_edges(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
     if not (np.isfinite(jump_m) and jump_m > 0):
         raise ValueError(f"jump_m must be positive, got {jump_m!r}")
     surface = depth > 0
-    near = maximum_filter(np.where(surface, -depth, -np.inf), size=3, mode="nearest")  # -(nearest depth)
-    far = maximum_filter(np.where(surface, depth, -np.inf), size=3, mode="nearest")
-    some = maximum_filter(surface.astype(np.uint8), size=3, mode="nearest") > 0
-    missing = minimum_filter(surface.astype(np.uint8), size=3, mode="nearest") == 0
-    jump = np.where(some, far + near, 0.0) > jump_m
-    return (some & missing) | jump
+    inside = minimum_filter(surface.astype(np.uint8), size=3, mode="nearest") > 0
+    span = maximum_filter(depth, size=3, mode="nearest") + maximum_filter(-depth, size=3, mode="nearest")
+    return inside & (span > jump_m)
 
 
 def render_attributes(scene, faces: np.ndarray, attributes: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,

@@ -159,22 +159,26 @@ def test_subpixel_depths_grid_on_a_half_plane():
         subpixel_depths(K, P, 8, 10, rows, cols[:2], 2, scene)
 
 
-def test_depth_edges_hand_case():
-    from stages.numerics.raycast import depth_edges
+def test_occlusion_edges_hand_case():
+    from stages.numerics.raycast import occlusion_edges
 
-    depth = np.zeros((5, 8), np.float32)
-    depth[:, 1:4] = 2.0   # a surface at 2 m ...
-    depth[:, 4:7] = 2.03  # ... next to one 3 cm behind it; column 0 and 7 hold no surface
-    edges = depth_edges(depth, 0.01)
+    depth = np.zeros((5, 9), np.float32)
+    depth[:, 1:5] = 2.0   # a surface at 2 m ...
+    depth[:, 5:8] = 2.03  # ... next to one 3 cm behind it; columns 0 and 8 hold no surface
+    edges = occlusion_edges(depth, 0.01)
     assert edges.dtype == bool and edges.shape == depth.shape
-    # the silhouettes: columns 0-1 and 6-7 (a neighbourhood with and without a surface); the jump: columns 3-4
-    np.testing.assert_array_equal(edges[2], [1, 1, 0, 1, 1, 0, 1, 1])
+    # the jump between columns 4 and 5: both sides' pixels; columns 1 and 7 touch the background: not edges
+    np.testing.assert_array_equal(edges[2], [0, 0, 0, 0, 1, 1, 0, 0, 0])
     np.testing.assert_array_equal(edges, np.broadcast_to(edges[2], edges.shape))
-    # a jump smaller than the threshold is no edge
-    np.testing.assert_array_equal(depth_edges(depth, 0.05)[2], [1, 1, 0, 0, 0, 0, 1, 1])
-    assert not depth_edges(np.zeros((4, 4)), 0.01).any()  # no surface anywhere
-    assert not depth_edges(np.ones((4, 4)), 0.01).any()  # one flat surface
+    assert not occlusion_edges(depth, 0.05).any()  # a jump smaller than the threshold is no edge
+    assert not occlusion_edges(np.zeros((4, 4)), 0.01).any()  # no surface anywhere
+    assert not occlusion_edges(np.ones((4, 4)), 0.01).any()  # one flat surface
+    # a plane tilted so that its depth grows 6 mm per pixel: spans 12 mm over a 3 x 3 neighbourhood (6 mm at
+    # the image's first and last columns, whose neighbourhood is padded with their own values)
+    ramp = 2.0 + 0.006 * np.arange(8)[None, :].repeat(4, 0)
+    np.testing.assert_array_equal(occlusion_edges(ramp, 0.01)[0], [0, 1, 1, 1, 1, 1, 1, 0])
+    assert not occlusion_edges(ramp, 0.015).any()
     with pytest.raises(ValueError, match="jump_m"):
-        depth_edges(depth, 0.0)
+        occlusion_edges(depth, 0.0)
     with pytest.raises(ValueError, match=r"\(H, W\)"):
-        depth_edges(depth[..., None], 0.01)
+        occlusion_edges(depth[..., None], 0.01)
