@@ -287,6 +287,9 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
         truth = truth_dir if (truth_dir / action_id).is_dir() else None
         data = ActionGBuffers(release, action_id)
         metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data)
+        # 1 where the white-light albedo was predicted per view (stages.heldout), 0 where blended as it is
+        values.setdefault("heldout_albedo_view_dependent", []).append(
+            float(metrics.get("heldout_albedo_model") == "view_dependent"))
         for base in HELDOUT_METRICS:
             for key, region in ((base, "heldout"), (f"{base}_truth", "heldout_truth")):
                 value = metrics.get(key)
@@ -598,10 +601,12 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"{o.get('normal_consistency', float('nan')):.3f}, F-score {100 * o.get('fscore_1mm', float('nan')):.1f}% @1mm "
               f"{100 * o.get('fscore_5mm', float('nan')):.1f}% @5mm, {o.get('mesh_faces', 0):.0f} faces")
     if "heldout_normal_mean_deg" in o:
-        print(f"  held-out views        : albedo {o['heldout_albedo_psnr_db']:.2f} dB, SSIM {o.get('heldout_albedo_ssim', float('nan')):.3f}, "
+        model = {1.0: "view-dependent white-light albedo", 0.0: "white-light albedo blended as it is"}.get(
+            o.get("heldout_albedo_view_dependent"), "white-light albedo view-dependent for some actions")
+        print(f"  held-out views        : albedo {o['heldout_albedo_psnr_db']:.2f} dB, SSIM {o.get('heldout_albedo_ssim', float('nan')):.4f}, "
               f"RMSE {o.get('heldout_albedo_rmse', float('nan')):.3f}; normals {o['heldout_normal_mean_deg']:.2f} deg, "
               f"{o.get('heldout_normal_under5_pct', float('nan')):.1f}% < 5, {o.get('heldout_normal_under25_pct', float('nan')):.1f}% < 25 "
-              "(vs the held-out photometric maps)")
+              f"(vs the held-out photometric maps; {model})")
         if "heldout_normal_mean_deg_diffuse" in o:
             print(f"  held-out, specular out: normals {o['heldout_normal_mean_deg_diffuse']:.2f} deg, "
                   f"{o.get('heldout_normal_under5_pct_diffuse', float('nan')):.1f}% < 5, "

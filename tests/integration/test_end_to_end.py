@@ -238,6 +238,47 @@ def test_relit_view_matches_the_truth_under_its_own_environment(first_run, captu
     assert score_same > score_turned + 1.0, (score_same, score_turned)
 
 
+def test_heldout_white_albedo_is_predicted_view_dependent(first_run):
+    """The held-out white-light albedo: the other cameras' albedo_diffuse blended plus the held-out view's own
+    white-light specular from the materials' roughness and F0; the plain blend and the diffuse maps on
+    request; a release without the inputs falls back to the plain blend."""
+    from stages.heldout import ActionGBuffers, heldout_metrics, predict_white_albedo, synthesise_heldout
+    from stages.numerics.specular_normals import view_directions
+
+    out, _ = first_run
+    release = out / "release"
+    data = ActionGBuffers(release, "A0000")
+    assert data.predicts_specular() and data.materials_f0() == PRESETS["test"].materials.f0
+    held = ("00001", "00004")
+    pred = predict_white_albedo(data, "00001", held)
+    diffuse = synthesise_heldout(data.variant(True, True), "00001", held)
+    valid = pred["valid"]
+    assert valid.sum() > 100 and np.array_equal(valid, diffuse["valid"])
+    spec = pred["specular"]
+    assert np.isfinite(spec).all() and spec.min() >= 0.0 and not spec[~valid].any()
+    np.testing.assert_allclose(pred["albedo"][valid], diffuse["albedo"][valid] + spec[valid], atol=1e-6)
+    # the specular light of a white sphere of light grows toward grazing views (Fresnel): it is the view's own
+    c = data.cameras["00001"]
+    n_dot_v = np.einsum("hwc,hwc->hw", diffuse["normal"], view_directions(c["K"], c["cam_from_world"], c["height"], c["width"]))
+    grazing, head_on = valid & (n_dot_v < 0.4), valid & (n_dot_v > 0.8)
+    assert grazing.sum() > 10 and head_on.sum() > 10
+    assert spec[grazing].mean() > 1.5 * spec[head_on].mean() > 0.0
+    models = {m: heldout_metrics(release, "A0000", heldout=held, data=data, albedo_model=m)
+              for m in ("view_dependent", "white")}
+    assert {m: r["heldout_albedo_model"] for m, r in models.items()} == {"view_dependent": "view_dependent", "white": "white"}
+    # the normals are the same synthesis either way; only the albedo differs
+    assert models["view_dependent"]["heldout_normal_mean_deg"] == models["white"]["heldout_normal_mean_deg"]
+    assert models["view_dependent"]["heldout_albedo_psnr_db"] != models["white"]["heldout_albedo_psnr_db"]
+    assert heldout_metrics(release, "A0000", heldout=held, data=data.with_albedo(True))["heldout_albedo_model"] == "diffuse"
+    with pytest.raises(ValueError, match="albedo_model"):
+        heldout_metrics(release, "A0000", heldout=held, data=data, albedo_model="specular")
+    without = ActionGBuffers(release, "A0000")
+    without.view = type("NoRoughness", (), {"__getattr__": lambda self, name: getattr(data.view, name),
+                                            "kinds": [k for k in data.view.kinds if k != "texture_roughness"]})()
+    assert not without.predicts_specular()
+    assert heldout_metrics(release, "A0000", heldout=held, data=without)["heldout_albedo_model"] == "white"
+
+
 def test_outputs_are_finite_and_normals_unit(first_run):
     from pipeline.codecs.exr import read_exr
 
