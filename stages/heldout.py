@@ -41,11 +41,12 @@ takes one side wholly. The pixels at an occlusion edge of the mesh (their 3 x 3 
 surface and more than ``edge_jump_m`` deep; :func:`stages.numerics.raycast.occlusion_edges`, which also
 takes in surfaces seen obliquely enough) are synthesised from ``edge_samples`` x ``edge_samples`` sub-pixel
 rays, averaged over those that hit (:func:`stages.numerics.gbuffer.reproject_gbuffer`'s ``subpixel``).
-Default capture, mean of both actions (6,404 of 17,732 subject pixels per view): albedo SSIM 0.9662 ->
-0.9680, PSNR 32.82 -> 33.26 dB, normals 6.85 -> 6.71 deg (``normal_diffuse`` 3.90 -> 3.77 deg). 2 rays per side:
-0.9679; 4: 0.9680; a 2 cm jump (2,470 pixels): 0.9680, normals 6.74 deg. Silhouette pixels are left at their
-centre: sub-sampled too, their rays graze the surface where the photometric maps are worst (SSIM 0.9676);
-so is the interior (every pixel from 3 x 3 rays: 0.9675, one more low-pass of the texture).
+Default capture, mean of both actions, the plain white-light blend (``albedo_model="white"``; 6,404 of
+17,732 subject pixels per view at an edge): albedo SSIM 0.9662 -> 0.9680, PSNR 32.82 -> 33.26 dB, normals
+6.85 -> 6.71 deg (``normal_diffuse`` 3.90 -> 3.77 deg). 2 rays per side: 0.9679; 4: 0.9680; a 2 cm jump
+(2,470 pixels): 0.9680, normals 6.74 deg. Silhouette pixels are left at their centre: sub-sampled too, their
+rays graze the surface where the photometric maps are worst (SSIM 0.9676); so is the interior (every pixel
+from 3 x 3 rays: 0.9675, one more low-pass of the texture).
 
 **Blend.** With an enabled ``learned_blend`` the sources are blended by a network trained leave one out
 on the action's other cameras (:mod:`stages.numerics.learned_blend`; the held-out cameras are neither targets nor
