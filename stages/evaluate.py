@@ -301,8 +301,7 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                              "value": float(value), "source": "evaluate", "run_id": run_id})
         if "normal_diffuse" in data.view.kinds:  # the same with the specular-fitted maps
             diffuse_albedo = "albedo_diffuse" in data.view.kinds
-            metrics = heldout_metrics(release, action_id, truth_dir=truth,
-                                      data=data.with_normals(diffuse=True).with_albedo(diffuse_albedo))
+            metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data.variant(True, diffuse_albedo))
             for base in HELDOUT_METRICS:
                 if not (base.startswith("heldout_normal") or (diffuse_albedo and base.startswith("heldout_albedo"))):
                     continue  # the white-light albedo: the same as above

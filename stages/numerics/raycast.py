@@ -128,8 +128,6 @@ def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width
     Returns:
         (H, W) float32 in [0, 1], multiples of ``1 / samples^2``.
     """
-    import open3d as o3d
-
     K, P = _check_camera(K, cam_from_world, height, width)
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
@@ -153,9 +151,8 @@ def pixel_coverage(K: np.ndarray, cam_from_world: np.ndarray, height: int, width
     else:
         cast = np.ones_like(centre)
     rows, cols = np.nonzero(cast)
-    if len(rows):
-        depth = subpixel_depths(K, P, height, width, rows, cols, s, scene, chunk_pixels)["depth_m"]
-        coverage[rows, cols] = (depth > 0).mean(axis=1, dtype=np.float64)
+    for sl, depth, _, _ in _subpixel_chunks(K, P, height, width, rows, cols, s, scene, int(chunk_pixels)):
+        coverage[rows[sl], cols[sl]] = (depth > 0).mean(axis=1, dtype=np.float64)
     return coverage
 
 
@@ -176,8 +173,6 @@ def subpixel_depths(K: np.ndarray, cam_from_world: np.ndarray, height: int, widt
         rays' pixel coordinates, with ``S = samples^2`` (grid row-major: the first ``samples`` rays share the
         smallest ``v``).
     """
-    import open3d as o3d
-
     K, P = _check_camera(K, cam_from_world, height, width)
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
@@ -188,20 +183,31 @@ def subpixel_depths(K: np.ndarray, cam_from_world: np.ndarray, height: int, widt
     if rows.shape != cols.shape:
         raise ValueError(f"rows and cols differ in length: {rows.shape} vs {cols.shape}")
     s = int(samples)
+    out = {"depth_m": np.zeros((len(rows), s * s), np.float32), "u": np.zeros((len(rows), s * s)),
+           "v": np.zeros((len(rows), s * s))}
+    for sl, depth, u, v in _subpixel_chunks(K, P, height, width, rows, cols, s, scene, int(chunk_pixels)):
+        out["depth_m"][sl], out["u"][sl], out["v"][sl] = depth, u, v
+    return out
+
+
+def _subpixel_chunks(K: np.ndarray, P: np.ndarray, height: int, width: int, rows: np.ndarray, cols: np.ndarray,
+                     s: int, scene, chunk_pixels: int):
+    """The rays of :func:`subpixel_depths`, cast ``chunk_pixels`` pixels at a time: yields the chunk's slice of
+    the pixels, and its depth_m (m, s*s) float32, u and v (m, s*s) float64."""
+    import open3d as o3d
+
     offsets = (np.arange(s) + 0.5) / s - 0.5
     du, dv = np.meshgrid(offsets, offsets)  # (s, s): row j of the grid is at v offset offsets[j]
-    u = (cols[:, None] + du.reshape(1, -1)).astype(np.float64)
-    v = (rows[:, None] + dv.reshape(1, -1)).astype(np.float64)
-    depth = np.zeros(u.shape, np.float32)
-    step = int(chunk_pixels)
-    for start in range(0, len(rows), step):
-        uu, vv = u[start:start + step], v[start:start + step]
-        origins, directions, z_per_t = camera_rays(K, P, height, width, pixels=np.stack([uu.ravel(), vv.ravel()], -1))
+    for start in range(0, len(rows), chunk_pixels):
+        sl = slice(start, start + chunk_pixels)
+        u = cols[sl, None] + du.reshape(1, -1)
+        v = rows[sl, None] + dv.reshape(1, -1)
+        origins, directions, z_per_t = camera_rays(K, P, height, width, pixels=np.stack([u.ravel(), v.ravel()], -1))
         rays = np.concatenate([origins, directions], axis=-1).astype(np.float32)
         t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
         hit = np.isfinite(t_hit)
-        depth[start:start + step] = np.where(hit, np.where(hit, t_hit, 0.0) * z_per_t, 0.0).reshape(uu.shape)
-    return {"depth_m": depth, "u": u, "v": v}
+        depth = np.where(hit, np.where(hit, t_hit, 0.0) * z_per_t, 0.0).reshape(u.shape).astype(np.float32)
+        yield sl, depth, u, v
 
 
 def occlusion_edges(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
