@@ -180,6 +180,45 @@ class Release:
                            f"(actions: {', '.join(self.action_ids[:10]) or 'none'})")
         return ActionView(self, action_id)
 
+    # -- the relighting set --------------------------------------------------------------------------
+
+    @property
+    def relight_examples(self) -> pd.DataFrame:
+        """The single-image relighting set: one row per example (see manifests.schemas.RELIGHT_EXAMPLES)."""
+        return self.dataframe("relight_examples")
+
+    def relight_split(self, split: str) -> pd.DataFrame:
+        """The examples of one split ('train', 'validation', 'test'), sorted by example id.
+
+        Raises:
+            ValueError: an unknown split name.
+        """
+        from manifests.schemas import SPLITS
+
+        if split not in SPLITS:
+            raise ValueError(f"unknown split {split!r}; splits are {', '.join(SPLITS)}")
+        frame = self.relight_examples
+        return frame[frame["split"] == split].sort_values("example_id").reset_index(drop=True)
+
+    def relight_example(self, example) -> dict:
+        """Load one example's maps now: ``image`` (H, W, 3) linear, premultiplied by ``alpha`` (H, W),
+        ``albedo`` (H, W, 3) linear, ``normal`` (H, W, 3) camera frame (OpenCV axes), ``mask`` (H, W) bool.
+
+        Args:
+            example: a row of :attr:`relight_examples` (dict or pandas Series) or an example id.
+        """
+        if isinstance(example, str):
+            frame = self.relight_examples
+            rows = frame[frame["example_id"] == example]
+            if rows.empty:
+                raise KeyError(f"no relighting example {example!r} in {self.root}")
+            example = rows.iloc[0]
+        image = self.load(example["image_exr"])
+        return {"image": image[..., :3], "alpha": image[..., 3] if image.shape[-1] > 3 else None,
+                "albedo": self.load(example["albedo_exr"])[..., :3],
+                "normal": self.load(example["normal_exr"])[..., :3],
+                "mask": self.load(example["mask_png"]) > 127}
+
     def _assets_mention(self, action_id: str) -> bool:
         return bool(pc.any(pc.equal(self.table("assets").column("action_id"), action_id)).as_py())
 

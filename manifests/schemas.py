@@ -230,7 +230,69 @@ STAGE_RUNS = TableSpec(
     ),
 )
 
-TABLE_SPECS: dict[str, TableSpec] = {t.name: t for t in (ACTIONS, FRAMES, ASSETS, METRICS, STAGE_RUNS)}
+
+SPLITS = ("train", "validation", "test")
+EXAMPLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+def _release_file(name: str, what: str, nullable: bool = False) -> Column:
+    return Column(name, _STR, f"Path relative to the release root of {what}.", nullable=nullable, relative_path=True)
+
+
+RELIGHT_EXAMPLES = TableSpec(
+    name="relight_examples",
+    description="The single-image relighting set: one row per example (one view of one action's relightable "
+                "asset under one rotated environment map), with its files, camera, lighting and split. "
+                "See CONVENTIONS.md, section 'Relighting set'.",
+    primary_key=("example_id",),
+    columns=(
+        Column("example_id", _STR, "Example id, '<action_id>_<view index, 2+ digits>' (also its folder "
+               "relight/<example_id>/).", pattern=EXAMPLE_ID_PATTERN),
+        _action_id(),
+        Column("subject", _STR, "Subject of the action (capture.json); splits never share a subject."),
+        Column("session_id", _STR, "Capture session of the action."),
+        Column("split", _STR, "'train', 'validation' or 'test', drawn per subject from the seed and the split "
+               "ratios (a subject's examples are all in one split).", choices=SPLITS),
+        Column("view_index", _I32, "Index of the view among the action's examples.", min_value=0),
+        Column("width", _I32, "Image width in pixels.", min_value=1),
+        Column("height", _I32, "Image height in pixels.", min_value=1),
+        Column("fx", _F64, "Focal length along x in pixels (OpenCV pinhole, no distortion).", min_value=0.0),
+        Column("fy", _F64, "Focal length along y in pixels.", min_value=0.0),
+        Column("cx", _F64, "Principal point x in pixels (pixel centres at integer coordinates).", min_value=0.0),
+        Column("cy", _F64, "Principal point y in pixels.", min_value=0.0),
+        Column("cam_from_world_json", _STR, "The camera pose as a JSON 3 x 4 [R | t], OpenCV axes (x right, y down, "
+               "z forward), metres: x_cam = R x_world + t. World normals are R^T n_cam.", json=True),
+        Column("environment_name", _STR, "Name (file stem) of the environment map, or 'procedural:<kind>'."),
+        Column("environment_file", _STR, "File name of the environment map as found (no folder); "
+               "'' for a procedural one."),
+        Column("environment_sha256", _STR, "SHA-256 of the environment map file (of the procedural map's float32 "
+               "bytes for a procedural one).", pattern=SHA256_PATTERN),
+        Column("environment_rotation_deg", _F64, "Rotation of the environment about the world's +y axis, degrees, "
+               "counter-clockwise seen from above: world direction = R_y(angle) x map direction."),
+        Column("sh_camera_json", _STR, "Order-2 real spherical harmonics of the rotated environment's radiance in the "
+               "CAMERA frame (OpenCV axes), JSON 9 x 3 (rows l,m = 00, 1-1, 10, 11, 2-2, 2-1, 20, 21, 22; columns "
+               "R, G, B), the Ramamoorthi-Hanrahan basis without the cosine-lobe factors: L(w) ~ sum c_i Y_i(w).",
+               json=True),
+        Column("sh_world_json", _STR, "The same 9 x 3 coefficients in the world frame (+y up).", json=True),
+        _release_file("image_exr", "the relit image, linear RGBA half-float EXR, radiance in the environment map's "
+                      "units premultiplied by alpha"),
+        _release_file("image_png", "the relit image tone-mapped to 8-bit sRGB (x png_exposure, clipped, sRGB curve)"),
+        _release_file("albedo_exr", "the albedo, linear RGB half-float EXR"),
+        _release_file("albedo_png", "the albedo as 8-bit sRGB PNG"),
+        _release_file("normal_exr", "the camera-frame normals (OpenCV axes), float RGB EXR, 0 off the mask"),
+        _release_file("normal_png", "the camera-frame normals as 8-bit PNG, (n + 1) / 2, 0 off the mask"),
+        _release_file("mask_png", "the mask, 8-bit PNG 0/255 (alpha >= 0.5)"),
+        Column("png_exposure", _F64, "Factor applied to the linear image before the sRGB curve of image_png.",
+               min_value=0.0),
+        Column("mask_pixels", _I64, "Pixels in the mask.", min_value=0),
+        Column("seed", _I64, "Seed of the set's draws (views, environments, rotations, splits).", min_value=0),
+        Column("example_key", _STR, "Hash of everything the example is rendered from (asset keys, camera, environment "
+               "digest, rotation, render settings): equal keys, equal files."),
+    ),
+)
+
+TABLE_SPECS: dict[str, TableSpec] = {t.name: t for t in (ACTIONS, FRAMES, ASSETS, METRICS, STAGE_RUNS,
+                                                            RELIGHT_EXAMPLES)}
 """Every manifest table by name."""
 
 SCHEMAS: dict[str, pa.Schema] = {name: spec.schema() for name, spec in TABLE_SPECS.items()}

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.cli import main as cli
+from stages.cli import main as cli
 from pipeline.runner import ExecutionConfig, run_pipeline
 from stages.registry import PRESETS, build_stages
 from synthetic import SimConfig, simulate
