@@ -150,6 +150,8 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     tasks: list[Task] = []
     index: dict[tuple[str, str], Task] = {}
     emit = echo or (lambda line: log.info(line))
+    for stage in ordered:
+        stage.preflight(capture, emit)
 
     def plan_one(stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
         upstream = {}
@@ -208,10 +210,15 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
 
 def _context(task: Task, store: ArtifactStore, capture: Capture) -> StageContext:
     upstream_dirs = {n: store.final_dir(n, t.scope_id, t.key) for n, t in task.upstream.items()}
+    previous = store.latest_dir(task.stage.name, task.scope_id)
     return StageContext(stage=task.stage.name, scope_id=task.scope_id, session_id=task.session_id,
                         action_id=task.action_id, out_dir=store.tmp_dir(task.stage.name, task.scope_id, task.key),
                         upstream=upstream_dirs, raw_inputs=task.raw_inputs,
-                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=task.views)
+                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=task.views,
+                        subject=capture.action(task.action_id).subject if task.action_id else None,
+                        upstream_keys={n: t.key for n, t in sorted(task.upstream.items())},
+                        previous=previous if previous != store.final_dir(task.stage.name, task.scope_id, task.key)
+                        else None)
 
 
 def _failure(exc: BaseException) -> str:

@@ -73,53 +73,90 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
+def _root_units(entries: list[tuple[Path, str, str]]) -> list[str]:
+    """The folders (first two path parts, e.g. ``relight/A0000_00``) that release-root files are published in."""
+    return sorted({"/".join(rel.split("/")[:2]) for _, rel, _ in entries})
+
+
 def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task],
-                   echo: Callable[[str], None]) -> list[dict[str, Any]]:
-    """Hard-link an action's release files from the store into ``release/actions/<id>`` atomically.
+                   echo: Callable[[str], None]) -> tuple[list[dict[str, Any]], dict[str, list[dict[str, Any]]]]:
+    """Hard-link an action's release files from the store into ``release/actions/<id>`` atomically, and the
+    files its stages publish at the release root (``release_root_files``, e.g. ``relight/<example>/``), each
+    folder swapped into place whole.
 
     Skipped when the same stage keys were already published (one log line says so). Returns the asset
-    rows (path, bytes, sha256) of the action, hashed once at publish time.
+    rows (path, bytes, sha256) of the action, hashed once at publish time, and the rows its stages add to
+    other manifest tables (``manifest_rows``).
     """
     from manifests import asset_row
 
     keys = {t.stage.name: t.key for t in tasks}
     record_path = work / "published" / f"{action_id}.json"
     final = release / "actions" / action_id
-    if record_path.exists() and final.is_dir():
-        record = json.loads(record_path.read_text())
-        if record.get("keys") == keys:
-            echo(f"{'release':<12} {action_id:<8} cached  same stage keys already published")
-            return record["assets"]
+    old_record = json.loads(record_path.read_text()) if record_path.exists() else {}
+    if old_record and final.is_dir() and old_record.get("keys") == keys and \
+            all((release / unit).is_dir() for unit in old_record.get("root_units", [])):
+        echo(f"{'release':<12} {action_id:<8} cached  same stage keys already published")
+        return old_record["assets"], old_record.get("tables", {})
     tmp = release / "actions" / f".tmp-{action_id}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    entries = []
+    entries, root_entries, tables = [], [], {}
     for task in tasks:
-        if not hasattr(task.stage, "release_files"):
-            continue
         artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
-        for src, rel, kind, camera in task.stage.release_files(artifact):
+        for src, rel, kind, camera in (task.stage.release_files(artifact) if hasattr(task.stage, "release_files")
+                                       else []):
             _link_or_copy(src, tmp / rel)
             entries.append((rel, kind, camera))
+        if hasattr(task.stage, "release_root_files"):
+            root_entries += task.stage.release_root_files(artifact)
+        if hasattr(task.stage, "manifest_rows"):
+            for table, rows in task.stage.manifest_rows(artifact).items():
+                tables.setdefault(table, []).extend(rows)
     rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera) for rel, kind, camera in entries]
     prefix = f"actions/.tmp-{action_id}/"
     for row in rows:  # rows were hashed in the temporary folder; record their final paths
         row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
+    units = _root_units(root_entries)
+    staging = release / f".tmp-root-{action_id}"
+    shutil.rmtree(staging, ignore_errors=True)
+    for src, rel, kind in root_entries:
+        _link_or_copy(src, staging / rel)
+        row = asset_row(release, staging / rel, kind, action_id=action_id)
+        row["path"] = rel
+        rows.append(row)
     swap_into_place(tmp, final)
+    for unit in units:
+        (release / unit).parent.mkdir(parents=True, exist_ok=True)
+        swap_into_place(staging / unit, release / unit)
+    for unit in set(old_record.get("root_units", [])) - set(units):  # folders the action no longer has
+        shutil.rmtree(release / unit, ignore_errors=True)
+    shutil.rmtree(staging, ignore_errors=True)
     record_path.parent.mkdir(parents=True, exist_ok=True)
-    record_path.write_text(json.dumps({"keys": keys, "assets": rows}))
+    record_path.write_text(json.dumps({"keys": keys, "assets": rows, "root_units": units, "tables": tables}))
     echo(f"{'release':<12} {action_id:<8} written {len(rows)} files")
-    return rows
+    return rows, tables
 
 
 def unpublish_action(release: Path, work: Path, action_id: str) -> bool:
     """Remove a failed action from the release (nothing of a failed action may appear there)."""
-    (work / "published" / f"{action_id}.json").unlink(missing_ok=True)
+    record_path = work / "published" / f"{action_id}.json"
+    removed = False
+    if record_path.exists():
+        try:
+            units = json.loads(record_path.read_text()).get("root_units", [])
+        except (OSError, json.JSONDecodeError):
+            units = []
+        for unit in units:
+            if (release / unit).exists():
+                shutil.rmtree(release / unit)
+                removed = True
+    record_path.unlink(missing_ok=True)
     final = release / "actions" / action_id
     if final.exists():
         shutil.rmtree(final)
         return True
-    return False
+    return removed
 
 
 def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
@@ -161,6 +198,7 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
 
     action_status, action_errors, published = {}, {}, []
     asset_rows: list[dict[str, Any]] = []
+    table_rows: dict[str, list[dict[str, Any]]] = {}
     wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
     for action_id in wanted:
         session_id = capture.action(action_id).session_id
@@ -174,11 +212,14 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                 echo(f"{'release':<12} {action_id:<8} removed (action failed)")
             continue
         action_status[action_id] = "ok"
-        asset_rows += publish_action(release, work, store, action_id, tasks, echo)
+        assets, tables = publish_action(release, work, store, action_id, tasks, echo)
+        asset_rows += assets
+        for table, rows in tables.items():
+            table_rows.setdefault(table, []).extend(rows)
         published.append(action_id)
 
     _write_release_docs(release, config, capture)
-    _write_manifests(release, capture, plan, digests, run_id, action_status, action_errors, asset_rows)
+    _write_manifests(release, capture, plan, digests, run_id, action_status, action_errors, asset_rows, table_rows)
     (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
     (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
     return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
@@ -223,7 +264,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
 
 def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,
                      action_status: dict[str, str],
-                     action_errors: dict[str, str], asset_rows: list[dict[str, Any]]) -> None:
+                     action_errors: dict[str, str], asset_rows: list[dict[str, Any]],
+                     table_rows: dict[str, list[dict[str, Any]]] | None = None) -> None:
     from manifests import append_rows, asset_row
     from manifests.writer import write_table_keeping
 
@@ -283,9 +325,41 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
     # A run over some actions (--actions) leaves the other published actions' rows in place.
     keep = [a.action_id for a in capture.actions
             if a.action_id not in action_status and (release / "actions" / a.action_id).is_dir()]
+    from manifests.writer import manifest_path
+
+    table_rows = dict(table_rows or {})
+    if manifest_path(release, "relight_examples").exists():  # rewritten even when no action added rows
+        table_rows.setdefault("relight_examples", [])
+    for table, rows in sorted(table_rows.items()):
+        write_table_keeping(release, table, rows, keep)
+    asset_rows += _write_split_lists(release)
     write_table_keeping(release, "actions", action_rows, keep)
     write_table_keeping(release, "frames", frame_rows, keep)
     write_table_keeping(release, "assets", asset_rows, keep)
     append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
     if metric_rows:
         append_rows(release, "metrics", metric_rows, ["action_id", "camera_id", "metric", "region", "source"])
+
+
+def _write_split_lists(release: Path) -> list[dict[str, Any]]:
+    """``relight/splits/<split>.txt``: the relighting set's example ids per split, one a line (for the codes that
+    read list files), rewritten from the whole relight_examples table; their asset rows."""
+    from manifests import asset_row, read_manifest
+    from manifests.schemas import SPLITS
+
+    table = read_manifest(release, "relight_examples")
+    folder = release / "relight" / "splits"
+    if table is None or table.num_rows == 0:
+        shutil.rmtree(folder, ignore_errors=True)
+        return []
+    ids, splits = table.column("example_id").to_pylist(), table.column("split").to_pylist()
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for split in SPLITS:
+        path = folder / f"{split}.txt"
+        chosen = sorted(i for i, s in zip(ids, splits) if s == split)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text("".join(f"{i}\n" for i in chosen))
+        os.replace(tmp, path)
+        rows.append(asset_row(release, path, "relight_split"))
+    return rows

@@ -58,6 +58,13 @@ class StageContext:
     rig: dict[str, Any]
     capture_root: Path
     views: list[str] = field(default_factory=list)
+    subject: str | None = None
+    """The action's subject (capture.json); None for session-scoped tasks."""
+    upstream_keys: dict[str, str] = field(default_factory=dict)
+    """Upstream stage name -> its cache key."""
+    previous: Path | None = None
+    """This stage's last committed result for the same scope under another key, if any: a stage may reuse
+    the parts of it whose own inputs did not change (it must check that itself)."""
 
     @property
     def log(self) -> logging.Logger:
@@ -86,6 +93,9 @@ class Stage:
         self.config = config
 
     # --- planning ---------------------------------------------------------------------------------
+    def preflight(self, capture: Any, echo: Callable[[str], None]) -> None:
+        """Checks of the stage's own inputs before any task is planned; an InputError stops the run."""
+
     def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
         """The raw files this stage reads for a scope, by name; their digests enter the cache key."""
         return {}

@@ -55,6 +55,13 @@ class ArtifactStore:
         except (OSError, json.JSONDecodeError):
             return None
 
+    def latest_dir(self, stage: str, scope_id: str) -> Path | None:
+        """The folder of the last committed result of a (stage, scope), if it is still complete."""
+        record = self.latest_record(stage, scope_id)
+        if record is None or not self.is_complete(stage, scope_id, record.get("key", "")):
+            return None
+        return self.final_dir(stage, scope_id, record["key"])
+
     def begin(self, stage: str, scope_id: str, key: str) -> Path:
         """A fresh, empty temporary folder for this key (a leftover from a crashed run is removed)."""
         tmp = self.tmp_dir(stage, scope_id, key)

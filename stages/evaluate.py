@@ -229,6 +229,7 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
     overall |= _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache)
+    overall |= _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache)
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     for metric, value in overall.items():
         rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
@@ -447,7 +448,10 @@ class RelitTruthCache:
             return None
         try:
             with np.load(path) as data:
-                return {"radiance": data["radiance"], "mask": data["mask"], "normals_world": data["normals_world"]}
+                out = {"radiance": data["radiance"], "mask": data["mask"], "normals_world": data["normals_world"]}
+                if "albedo" in data.files:
+                    out["albedo"] = data["albedo"]
+                return out
         except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # unreadable: render it again
             return None
 
@@ -456,8 +460,9 @@ class RelitTruthCache:
 
         self.folder.mkdir(parents=True, exist_ok=True)
         tmp = self.folder / f".{key[:32]}.{os.getpid()}.tmp.npz"
+        extra = {"albedo": np.asarray(render["albedo"], np.float32)} if "albedo" in render else {}
         np.savez_compressed(tmp, radiance=np.asarray(render["radiance"]), mask=np.asarray(render["mask"], bool),
-                            normals_world=np.asarray(render["normals_world"], np.float32))
+                            normals_world=np.asarray(render["normals_world"], np.float32), **extra)
         os.replace(tmp, self.folder / f"{key[:32]}.npz")
 
 
@@ -526,6 +531,88 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     out = {"relit_psnr_db": float(np.mean(values))} if values else {}
     if normal_values:
         out["relit_normal_mean_deg"] = float(np.mean(normal_values))
+    return out
+
+
+def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str],
+                        per_action: dict[str, dict[str, float]], rows: list[dict[str, Any]], run_id: str,
+                        cache_dir: Path | None = None) -> dict[str, float]:
+    """How faithful the relighting set is: each example against the simulator's subject rendered from the same
+    camera under the same rotated map (:class:`synthetic.relight.TruthRelighter`): image PSNR after a common
+    exposure (:func:`stages.numerics.metrics.relit_psnr`), camera-frame normals' mean angle and albedo PSNR
+    (clipped to [0, 1]) over the pixels both masks cover. Per action and over the set."""
+    import json as _json
+    import math
+
+    import yaml
+
+    from stages.numerics.metrics import angular_error_deg, relit_psnr
+    from stages.numerics.sg import rotate_environment
+    from stages.relightset import _environment, resolve_pool
+
+    capture_root = Path(truth_dir).parent
+    examples = rel.relight_examples
+    if not (capture_root / "capture.json").exists() or examples.empty:
+        return {}
+    from synthetic.relight import TruthRelighter
+
+    config = yaml.safe_load((release / "config.yaml").read_text()) if (release / "config.yaml").exists() else {}
+    entries = tuple((config.get("relightset") or {}).get("environments") or ("hdri-folders",))
+    maps, _ = resolve_pool(entries, capture_root)
+    environments = {m.name: m for m in maps}
+    scores: dict[str, dict[str, list[float]]] = {}
+    for action_id in ok_ids:
+        chosen = examples[examples["action_id"] == action_id]
+        if chosen.empty:
+            continue
+        lights = relit_truth_lights([{"width": w, "height": h} for w, h in zip(chosen["width"], chosen["height"])])
+        cache = RelitTruthCache(cache_dir, truth_dir, action_id, lights) if cache_dir is not None else None
+        truth = None
+        for _, example in chosen.iterrows():
+            pool_map = environments.get(example["environment_name"])
+            if pool_map is None:
+                continue
+            env, sha = _environment(pool_map, pool_map.path)
+            if sha != example["environment_sha256"]:
+                continue  # the map changed since the set was rendered: not the same lighting
+            env = rotate_environment(env, math.radians(float(example["environment_rotation_deg"])))
+            pose = np.asarray(_json.loads(example["cam_from_world_json"]), np.float64)
+            K = np.array([[example["fx"], 0, example["cx"]], [0, example["fy"], example["cy"]], [0, 0, 1.0]])
+            args = (K, pose, int(example["height"]), int(example["width"]), env)
+            key = cache.key(*args) if cache is not None else None
+            true = cache.load(key) if cache is not None else None
+            if true is None or "albedo" not in true:
+                if truth is None:
+                    truth = TruthRelighter(capture_root, action_id, lights=lights)
+                true = truth.render(*args)
+                if cache is not None:
+                    cache.save(key, true)
+            maps_ = rel.relight_example(example)
+            mask = maps_["mask"]
+            true_mask = np.asarray(true["mask"], bool)
+            both = mask & true_mask
+            action_scores = scores.setdefault(action_id, {"image": [], "normal": [], "albedo": []})
+            if not true_mask.any() or not both.any():
+                continue
+            action_scores["image"].append(relit_psnr(maps_["image"], mask, true["radiance"], true_mask)["psnr_db"])
+            true_normals_cam = np.asarray(true["normals_world"], np.float64) @ pose[:, :3].T
+            action_scores["normal"].append(float(angular_error_deg(maps_["normal"][both], true_normals_cam[both]).mean()))
+            diff = np.clip(maps_["albedo"][both], 0, 1) - np.clip(np.asarray(true["albedo"])[both], 0, 1)
+            action_scores["albedo"].append(_psnr_from_mse(float(np.mean(diff ** 2))))
+    out: dict[str, float] = {}
+    names = {"image": "relightset_image_psnr_db", "normal": "relightset_normal_mean_deg",
+             "albedo": "relightset_albedo_psnr_db"}
+    for kind, metric in names.items():
+        values = []
+        for action_id, action_scores in scores.items():
+            if action_scores[kind]:
+                value = float(np.mean(action_scores[kind]))
+                values.append(value)
+                per_action.setdefault(action_id, {})[metric] = value
+                rows.append({"action_id": action_id, "camera_id": None, "metric": metric, "region": "all",
+                             "value": value, "source": "evaluate", "run_id": run_id})
+        if values:
+            out[metric] = float(np.mean(values))
     return out
 
 
@@ -625,4 +712,8 @@ def print_overall(summary: EvaluationSummary) -> None:
         print(f"  relit novel views     : PSNR {o['relit_psnr_db']:.2f} dB against the true subject under the same environments")
     if "relit_normal_mean_deg" in o:
         print(f"  relit shading normals : {o['relit_normal_mean_deg']:.2f} deg mean against the true subject's")
+    if "relightset_image_psnr_db" in o:
+        print(f"  relighting set        : image PSNR {o['relightset_image_psnr_db']:.2f} dB, normals (camera frame) "
+              f"{o.get('relightset_normal_mean_deg', float('nan')):.2f} deg, albedo PSNR "
+              f"{o.get('relightset_albedo_psnr_db', float('nan')):.2f} dB against the true subject")
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

@@ -13,11 +13,13 @@ from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsSt
 from stages.materials import MaterialsConfig, MaterialsStage
 from stages.numerics.sdf import SDF_PRESETS
 from stages.photometric import DiffuseNormalsConfig, DiffuseNormalsStage, PhotometricConfig, PhotometricStage
+from stages.numerics.novel_view import ViewShading
 from stages.relight import RelightConfig, RelightStage
+from stages.relightset import RelightSetConfig, RelightSetStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
                                           PhotometricStage, GeometryStage, TexturesStage,
-                                          MaterialsStage, DiffuseNormalsStage, RelightStage)
+                                          MaterialsStage, DiffuseNormalsStage, RelightStage, RelightSetStage)
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,8 @@ class PipelineConfig:
     per pixel, and the white-light albedo less the specular light it predicts."""
     relight: RelightConfig = field(default_factory=RelightConfig)
     """Novel views under HDR environments (renders/)."""
+    relightset: RelightSetConfig = field(default_factory=RelightSetConfig)
+    """The single-image relighting set (relight/ at the release root, manifests/relight_examples.parquet)."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     """Where and how tasks run; never part of a cache key."""
 
@@ -56,7 +60,8 @@ PRESETS: dict[str, PipelineConfig] = {
                                                          face_budget=500_000),
                                  textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4),
                                  materials=MaterialsConfig(texture_size=1024, occlusion_size=2048),
-                                 relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128)),
+                                 relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128),
+                                 relightset=RelightSetConfig(size=512, sg_lobes=64, fit_height=128)),
     # Quick looks: cheapest demosaic, in-process execution, a short SDF schedule.
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
                            geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000,
@@ -64,6 +69,8 @@ PRESETS: dict[str, PipelineConfig] = {
                            textures=TexturesConfig(atlas_faces=10_000, texture_size=512),
                            materials=MaterialsConfig(max_views=8, occlusion_rays=32),
                            relight=RelightConfig(novel_views=2, sg_lobes=16, visibility_directions=128),
+                           relightset=RelightSetConfig(examples_per_action=2, size=128, sg_lobes=16,
+                                                       shading=ViewShading(visibility_directions=128)),
                            execution=ExecutionConfig(scheduler="sync")),
     # The test suite's tiny captures (a few cameras, ~100 px): every stage runs, in seconds.
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
@@ -73,6 +80,11 @@ PRESETS: dict[str, PipelineConfig] = {
                                                      occlusion_rays=16, occlusion_size=64),
                            relight=RelightConfig(environments=("procedural:sky", "procedural:studio"), novel_views=1,
                                                  sg_lobes=8, fit_height=16, visibility_directions=64),
+                           relightset=RelightSetConfig(examples_per_action=2, size=48, sg_lobes=8, fit_height=16,
+                                                       environments=("procedural:sky", "procedural:studio"),
+                                                       split_ratios=(0.5, 0.0, 0.5),
+                                                       shading=ViewShading(visibility_directions=64,
+                                                                           coverage_samples=2)),
                            execution=ExecutionConfig(scheduler="sync")),
 }
 

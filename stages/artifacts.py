@@ -1,0 +1,140 @@
+"""Typed readers of the stages' artifacts: one place that knows where each product lives.
+
+A stage's upstream artifacts are folders of the work store (``ctx.upstream[name]``); :class:`ActionArtifacts`
+wraps them and reads each product by what it is (cameras, normal maps, mesh, atlas, textures) instead of by
+path, so the stages that consume a product do not repeat its layout. :func:`load_relightable_asset` builds
+the :class:`stages.numerics.novel_view.ActionAsset` that the ``relight`` and ``relightset`` stages render from.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.exr import read_exr
+from pipeline.errors import InputError
+
+#: Where each product lives inside its stage's artifact folder: (stage, relative path).
+PRODUCTS: dict[str, tuple[str, str]] = {
+    "cameras": ("decode", "cameras.json"),
+    "normal_alpha": ("photometric", "normal_alpha/{camera}.exr"),
+    "albedo": ("photometric", "albedo/{camera}.exr"),
+    "mask": ("photometric", "mask/{camera}.png"),
+    "normal_diffuse": ("diffuse_normals", "normal_diffuse/{camera}.exr"),
+    "albedo_diffuse": ("diffuse_normals", "albedo_diffuse/{camera}.exr"),
+    "mesh": ("geometry", "mesh/mesh.ply"),
+    "textured_mesh": ("textures", "mesh/textured.obj"),
+    "albedo_texture": ("textures", "textures/albedo.exr"),
+    "roughness_texture": ("materials", "textures/roughness.exr"),
+    "occlusion_texture": ("materials", "textures/occlusion.exr"),
+    "diffuse_ratio_texture": ("materials", "textures/diffuse_ratio.exr"),
+}
+
+
+class ActionArtifacts:
+    """The upstream artifacts of one action's stage task (the work store's folders by stage name)."""
+
+    def __init__(self, upstream: Mapping[str, Path]):
+        self.upstream = {name: Path(path) for name, path in upstream.items()}
+
+    def path(self, product: str, camera: str | None = None) -> Path:
+        """Where a product is (it may not exist); KeyError for an unknown product or a stage not upstream."""
+        if product not in PRODUCTS:
+            raise KeyError(f"unknown product {product!r}; products are {sorted(PRODUCTS)}")
+        stage, rel = PRODUCTS[product]
+        if stage not in self.upstream:
+            raise KeyError(f"product {product!r} comes from stage {stage!r}, which is not upstream "
+                           f"(upstream: {sorted(self.upstream)})")
+        return self.upstream[stage] / rel.format(camera=camera)
+
+    def has(self, product: str, camera: str | None = None) -> bool:
+        try:
+            return self.path(product, camera).exists()
+        except KeyError:
+            return False
+
+    def cameras(self) -> dict[str, dict[str, Any]]:
+        """camera_id -> camera (K, cam_from_world, width, height, ...) of the calibrated cameras that have a
+        photometric normal map, sorted by id."""
+        from stages.geometry import mapped_cameras
+
+        return mapped_cameras(self.upstream["decode"], self.upstream["photometric"])
+
+    def camera_maps(self, min_alpha: float) -> Iterator[tuple[str, dict[str, Any], np.ndarray, np.ndarray,
+                                                              np.ndarray]]:
+        """``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W), valid (H, W))`` per mapped camera."""
+        from stages.geometry import camera_maps
+
+        return camera_maps(self.upstream["decode"], self.upstream["photometric"], min_alpha)
+
+    def map(self, product: str, camera: str, channels: int = 3) -> np.ndarray:
+        """A per-camera float map (H, W, channels) read from its EXR."""
+        return read_exr(self.path(product, camera))[..., :channels]
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The action's mesh: vertices (V, 3) float64 metres, world frame; faces (F, 3)."""
+        from pipeline.codecs.mesh import read_ply
+
+        return read_ply(self.path("mesh"))
+
+    def atlas_mesh(self) -> tuple[np.ndarray, np.ndarray, Any]:
+        """The textured mesh welded (vertices, faces, :class:`stages.numerics.mesh.Atlas`)."""
+        from stages.materials import load_atlas_mesh
+
+        return load_atlas_mesh(self.path("textured_mesh"))
+
+    def texture(self, product: str, channels: int = 3) -> np.ndarray:
+        """A texture of the atlas: (T, T, 3) for ``channels`` 3, (T, T) for 1."""
+        texture = read_exr(self.path(product))
+        if channels == 1:
+            return texture[..., 0] if texture.ndim == 3 else texture
+        return texture[..., :channels]
+
+
+def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, diffuse_normals: bool = True,
+                           diffuse_albedo: bool = True) -> tuple[Any, dict[str, dict[str, Any]]]:
+    """The action's relightable asset and its mapped cameras (with ``width``, ``height``).
+
+    The captured views become reprojection sources with their mesh depth; their normals are
+    ``normal_diffuse`` when ``diffuse_normals`` and present (else eq. 1's), their albedo ``albedo_diffuse``
+    when ``diffuse_albedo`` and every camera has one (the shading treats the reprojected albedo as one kind),
+    else the white-light albedo (times the materials' diffuse ratio at shading time).
+
+    Raises:
+        InputError: fewer than 2 cameras have maps.
+    """
+    from stages.numerics.gbuffer import SourceView
+    from stages.numerics.mesh import vertex_normals
+    from stages.numerics.novel_view import ActionAsset
+    from stages.numerics.raycast import mesh_scene, render_mesh
+
+    vertices, faces = artifacts.mesh()
+    scene = mesh_scene(vertices, faces)
+    mapped = artifacts.cameras()
+    use_diffuse_albedo = diffuse_albedo and bool(mapped) and all(artifacts.has("albedo_diffuse", c) for c in mapped)
+    sources, cameras = [], {}
+    for cam_id, cam, normal_alpha, _, valid in artifacts.camera_maps(min_alpha):
+        h, w = valid.shape
+        depth = render_mesh(None, None, cam["K"], cam["cam_from_world"], h, w, scene=scene)["depth_m"]
+        albedo = artifacts.map("albedo_diffuse" if use_diffuse_albedo else "albedo", cam_id)
+        normals = normal_alpha[..., :3]
+        if diffuse_normals and artifacts.has("normal_diffuse", cam_id):
+            normals = artifacts.map("normal_diffuse", cam_id)
+        sources.append(SourceView(normal=np.ascontiguousarray(normals), albedo=albedo, valid=valid,
+                                  K=np.asarray(cam["K"], np.float64),
+                                  cam_from_world=np.asarray(cam["cam_from_world"], np.float64), depth_m=depth))
+        cameras[cam_id] = {**cam, "width": w, "height": h}
+    if len(sources) < 2:
+        raise InputError(artifacts.path("normal_alpha", "00000").parent,
+                         f"{len(sources)} camera(s) have maps; novel views need at least 2")
+    atlas_vertices, atlas_faces, atlas = artifacts.atlas_mesh()
+    asset = ActionAsset(scene=scene, faces=faces, smooth_normals=vertex_normals(vertices, faces), sources=sources,
+                        atlas_scene=mesh_scene(atlas_vertices, atlas_faces), atlas=atlas,
+                        albedo_tex=artifacts.texture("albedo_texture"),
+                        roughness_tex=artifacts.texture("roughness_texture", 1),
+                        occlusion_tex=artifacts.texture("occlusion_texture", 1),
+                        diffuse_ratio_tex=artifacts.texture("diffuse_ratio_texture"),
+                        sources_diffuse_albedo=use_diffuse_albedo)
+    return asset, cameras

@@ -1,0 +1,259 @@
+"""A novel view of an action's relightable asset: its G-buffer reprojected from the captured views, and the
+view shaded under spherical-Gaussian environments (the math of the ``relight`` and ``relightset`` stages;
+nothing here reads or writes files).
+
+- :class:`ActionAsset`: the mesh, the captured views as reprojection sources, the atlas and its textures.
+- :func:`novel_view_gbuffer`: depth from the mesh, normal and albedo reprojected from the nearest sources
+  (the paper's depth-guided reprojection), materials through the atlas.
+- :class:`ViewShading` and :func:`relight_view`: one view's released maps (normal, albedo, roughness on the
+  antialiased mask) and its images under any number of SG environments, premultiplied by the pixel coverage.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+HALF_MAX = 60000.0
+"""Radiance is clipped here before it is written as half float (max 65504)."""
+
+
+@dataclass(eq=False)
+class ActionAsset:
+    """What a novel view of an action is made from: the mesh (ray-casting scene, faces, smooth vertex
+    normals), the captured views as reprojection sources, and the atlas (scene of the textured mesh, its UVs)
+    with the white-light albedo, roughness, occlusion and diffuse-ratio textures."""
+
+    scene: Any
+    faces: np.ndarray
+    smooth_normals: np.ndarray
+    sources: list[Any]
+    atlas_scene: Any
+    atlas: Any
+    albedo_tex: np.ndarray
+    roughness_tex: np.ndarray
+    occlusion_tex: np.ndarray
+    diffuse_ratio_tex: np.ndarray
+    sources_diffuse_albedo: bool = False
+    """The sources' albedo is ``albedo_diffuse`` (specular light already out): no diffuse ratio where they
+    give the albedo."""
+
+
+def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
+                       sources: int = 6, depth_tolerance_m: float = 0.01, blend: Any = None,
+                       normal_fusion_m: float = 0.015) -> dict[str, np.ndarray]:
+    """The G-buffer of one novel camera (step 1 of the module docstring); ``blend`` a trained
+    :class:`stages.numerics.learned_blend.LearnedBlend` or None (the heuristic weights); ``normal_fusion_m``
+    the frequency split of ``normal_fused`` on the surface (metres; the Gaussian's sigma, turned into pixels
+    at the mask's median depth).
+
+    Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
+    ``hit`` (the pixel-centre rays that meet the mesh),
+    ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
+    ``normal_mesh``, ``normal_fused`` (:func:`stages.numerics.gbuffer.fuse_normals`: the reprojected normals'
+    detail on the mesh normals' low frequencies), ``albedo`` (the sources', reprojected, the baked white-light
+    texture where no source sees the pixel), ``roughness``, ``occlusion``, ``diffuse_ratio`` (1 where the
+    sources' albedo is already ``albedo_diffuse``); per mask pixel ``pix`` (flat indices), ``points`` (P, 3)
+    and ``view_dirs`` (P, 3, towards the camera); 0 outside the mask. Also the floats ``coverage`` (share
+    of the mesh's silhouette in the mask) and ``normal_fusion_px`` (the split in pixels).
+    """
+    from stages.numerics.bake import sample_texture
+    from stages.numerics.gbuffer import fuse_normals, reproject_gbuffer
+    from stages.numerics.raycast import render_attributes, render_mesh, render_uvs
+
+    K, pose = np.asarray(K, np.float64), np.asarray(cam_from_world, np.float64)
+    h, w = int(height), int(width)
+    seen = render_mesh(None, None, K, pose, h, w, scene=asset.scene)
+    depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
+    gbuffer = reproject_gbuffer(depth, K, pose, asset.sources, k=sources, depth_tolerance_m=depth_tolerance_m,
+                                blend=blend)
+    reprojected = gbuffer["valid"]
+    # Pixels the mesh covers but no source sees (about 1%) take the baked albedo and the mesh's normal.
+    uv, on_atlas = render_uvs(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, K, pose, h, w)
+    mask = seen["hit"] & (reprojected | on_atlas)
+    uv = uv.reshape(-1, 2)
+
+    def texture(tex: np.ndarray, fill: float) -> np.ndarray:
+        values = sample_texture(tex, uv).reshape((h, w) + tex.shape[2:])
+        return np.where(mask.reshape((h, w) + (1,) * (tex.ndim - 2)), values, fill).astype(np.float32)
+
+    mesh_normals, _ = render_attributes(asset.scene, asset.faces, asset.smooth_normals, K, pose, h, w)
+    norm = np.linalg.norm(mesh_normals, axis=2, keepdims=True)
+    mesh_normals = np.where(mask[..., None] & (norm > 1e-8), mesh_normals / np.maximum(norm, 1e-8), 0.0)
+    albedo = np.where(reprojected[..., None], gbuffer["albedo"], texture(asset.albedo_tex, 0.0))
+    pix = np.flatnonzero(mask.reshape(-1))
+    centre = -pose[:, :3].T @ pose[:, 3]
+    points = pixel_points(K, pose, depth).reshape(-1, 3)[pix]
+    view_dirs = centre[None] - points
+    view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+    normal_reprojected = np.where(reprojected[..., None], gbuffer["normal"], mesh_normals).astype(np.float32)
+    fusion_px = float(normal_fusion_m * K[0, 0] / np.median(depth[mask])) if mask.any() else 1.0
+    return {"mask": mask, "hit": seen["hit"], "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
+            "normal_reprojected": normal_reprojected, "normal_mesh": mesh_normals.astype(np.float32),
+            "normal_fused": fuse_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3)),
+            "normal_fusion_px": fusion_px,
+            "albedo": np.where(mask[..., None], albedo, 0.0).astype(np.float32),
+            "roughness": texture(asset.roughness_tex, 0.0), "occlusion": texture(asset.occlusion_tex, 1.0),
+            "diffuse_ratio": np.where((reprojected & asset.sources_diffuse_albedo)[..., None], 1.0,
+                                      texture(asset.diffuse_ratio_tex, 1.0)).astype(np.float32),
+            "coverage": float(mask.sum() / max(seen["hit"].sum(), 1))}
+
+
+def silhouette_alpha(shaded: np.ndarray, coverage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Alpha of a relit view and its mask: the pixels' coverage (H, W) in [0, 1] on the ``shaded`` pixels
+    (H, W) bool (whose centre sees the subject) and on their 8-neighbours (which :func:`grow_edges` fills),
+    0 elsewhere; the mask is alpha >= 0.5 (as the simulator's: at least half of a pixel's rays hit)."""
+    from scipy.ndimage import binary_dilation
+
+    coverage = np.clip(np.nan_to_num(np.asarray(coverage, np.float32)), 0.0, 1.0)
+    reached = binary_dilation(np.asarray(shaded, bool), np.ones((3, 3), bool))
+    alpha = np.where(reached, coverage, 0.0).astype(np.float32)
+    return alpha, alpha >= 0.5
+
+
+def grow_edges(maps: dict[str, np.ndarray], shaded: np.ndarray) -> dict[str, np.ndarray]:
+    """Maps (H, W[, C]) sampled on the ``shaded`` pixels (H, W) bool, grown by one ring of pixels: the
+    silhouette pixels whose centre misses the mesh take the mean of their shaded 8-neighbours
+    (:func:`stages.numerics.bake.dilate_texture`, one pass); 0 farther out."""
+    from stages.numerics.bake import dilate_texture
+
+    grown, _ = dilate_texture(maps, shaded, 1)
+    return grown
+
+
+def premultiply_edges(image: np.ndarray, shaded: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """A relit image (H, W, 3) shaded on ``shaded`` (H, W) bool, grown to its silhouette pixels
+    (:func:`grow_edges`) and premultiplied by ``alpha`` (H, W) (:func:`silhouette_alpha`)."""
+    return (grow_edges({"rgb": image}, shaded)["rgb"] * alpha[..., None]).astype(np.float32)
+
+
+def shading_albedo(white_light_albedo: np.ndarray, diffuse_ratio: np.ndarray, occlusion: np.ndarray | None,
+                   min_occlusion: float = 0.2) -> np.ndarray:
+    """The albedo to shade with, (N, 3) in [0, 1]: the white-light albedo holds specular light (the shading
+    adds it back) and, when the shading occludes, the stage's ambient occlusion (else it would count twice).
+
+    white_light_albedo, diffuse_ratio: (N, 3); occlusion: (N,) visible fraction, or None without shadows."""
+    albedo = white_light_albedo * diffuse_ratio
+    if occlusion is not None:
+        albedo = albedo / np.maximum(occlusion, min_occlusion)[:, None]
+    return np.clip(np.nan_to_num(albedo, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+
+
+def scatter_pixels(pixels: np.ndarray, values: np.ndarray, h: int, w: int) -> np.ndarray:
+    """An (H, W, C) float32 image, 0 except at the flat pixel indices ``pixels`` (P,), which get ``values`` (P, C)."""
+    out = np.zeros((h * w, values.shape[1]), np.float32)
+    out[pixels] = values
+    return out.reshape(h, w, values.shape[1])
+
+
+def pixel_points(K: np.ndarray, cam_from_world: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) of a depth map (camera z)."""
+    h, w = depth_m.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    x_cam = np.stack([(u - K[0, 2]) / K[0, 0] * depth_m, (v - K[1, 2]) / K[1, 1] * depth_m, depth_m], axis=-1)
+    R, t = cam_from_world[:, :3], cam_from_world[:, 3]
+    return (x_cam - t) @ R
+
+
+def auto_exposure(image: np.ndarray, mask: np.ndarray, level: float = 0.8) -> float:
+    """The factor that maps the 99th percentile of an image's (H, W, 3) mean radiance on ``mask`` (H, W) to
+    ``level`` (1 for an empty or black image)."""
+    values = image[mask].mean(axis=1) if mask.any() else np.zeros(1)
+    peak = float(np.percentile(values, 99)) if len(values) else 0.0
+    return level / peak if peak > 0 else 1.0
+
+
+@dataclass(frozen=True)
+class ViewShading:
+    """How a novel view is reprojected and shaded (the fields of the relight stage's config that say so)."""
+
+    sources: int = 6
+    """Nearest captured views the G-buffer is reprojected from."""
+    depth_tolerance_m: float = 0.01
+    """A source pixel is visible when its mesh depth agrees with the point's within this."""
+    normal_fusion_m: float = 0.015
+    """Frequency split of the fused normals on the surface, metres."""
+    normals: str = "fused"
+    """Shading normals: "fused", "reprojected" or "mesh" (:func:`novel_view_gbuffer`'s ``normal_<kind>``)."""
+    shadows: bool = True
+    """Occlude the environment by the mesh itself."""
+    visibility_directions: int = 256
+    """Directions per pixel for the self-occlusion."""
+    f0: float = 0.02
+    """Fresnel reflectance at normal incidence."""
+    coverage_samples: int = 4
+    """Rays per pixel side measuring the mesh's coverage of each pixel (the images' alpha); 1 = hard edges."""
+
+    def __post_init__(self) -> None:
+        if self.normals not in ("mesh", "reprojected", "fused"):
+            raise ValueError(f"normals must be 'fused', 'reprojected' or 'mesh', got {self.normals!r}")
+        for name in ("sources", "visibility_directions", "coverage_samples"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
+
+
+def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
+                 environments: Sequence[Any], shading: ViewShading = ViewShading(), blend: Any = None,
+                 directions: np.ndarray | None = None) -> dict[str, Any]:
+    """One novel view of ``asset`` shaded under each of ``environments`` (a sequence of
+    :class:`stages.numerics.sg.SGLobes`, world frame).
+
+    Args:
+        K: (3, 3) OpenCV intrinsics; cam_from_world: (3, 4) [R | t]; height, width: image size.
+        blend: a trained :class:`stages.numerics.learned_blend.LearnedBlend` or None (heuristic weights).
+        directions: (D, 3) visibility directions (default: ``shading.visibility_directions`` on a Fibonacci
+            sphere); pass them to share one set between views.
+
+    Returns:
+        ``maps``: ``normal`` (H, W, 3) world-frame shading normals, unit on the mask, ``albedo`` (H, W, 3) the
+        albedo the view is shaded with (ambient occlusion divided out when shadowed), ``roughness`` (H, W);
+        all grown to the silhouette pixels and 0 off ``mask``. ``mask`` (H, W) bool (alpha >= 0.5), ``alpha``
+        (H, W) float32 pixel coverage, ``images`` a list of (H, W, 3) float32 linear radiance premultiplied by
+        alpha, one per environment, finite and below :data:`HALF_MAX`; ``pixels`` (shaded pixel count),
+        ``coverage`` and ``normal_fusion_px`` (of the G-buffer).
+    """
+    from stages.numerics.raycast import pixel_coverage
+    from stages.numerics.sg import fibonacci_sphere, shade_sg
+    from stages.numerics.shadowing import direction_visibility, shade_sg_visible
+
+    h, w = int(height), int(width)
+    if h < 1 or w < 1:
+        raise ValueError(f"image size must be positive, got {height} x {width}")
+    gb = novel_view_gbuffer(asset, K, cam_from_world, h, w, sources=shading.sources,
+                            depth_tolerance_m=shading.depth_tolerance_m, blend=blend,
+                            normal_fusion_m=shading.normal_fusion_m)
+    mask, pix = gb["mask"], gb["pix"]
+    shading_normals = gb[f"normal_{shading.normals}"]
+    normals = shading_normals.reshape(-1, 3)[pix]
+    rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
+    visibility = None
+    if shading.shadows:
+        directions = fibonacci_sphere(shading.visibility_directions) if directions is None else directions
+        if len(pix):
+            visibility = direction_visibility(gb["points"], normals, asset.scene, directions)
+    albedo = shading_albedo(gb["albedo"].reshape(-1, 3)[pix], gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                            gb["occlusion"].reshape(-1)[pix] if visibility is not None else None)
+    alpha, out_mask = mask.astype(np.float32), mask
+    if shading.coverage_samples > 1:
+        alpha, out_mask = silhouette_alpha(mask, pixel_coverage(
+            K, cam_from_world, h, w, shading.coverage_samples, asset.scene, centre_hit=gb["hit"]))
+    # the G-buffer maps on the output mask: edge pixels whose centre misses the mesh borrow their neighbours'
+    maps = grow_edges({"normal": shading_normals, "albedo": scatter_pixels(pix, albedo, h, w),
+                       "roughness": gb["roughness"]}, mask)
+    length = np.linalg.norm(maps["normal"], axis=-1, keepdims=True)
+    maps["normal"] = np.divide(maps["normal"], length, out=np.zeros_like(maps["normal"]), where=length > 1e-6)
+    maps = {k: np.where(out_mask.reshape(out_mask.shape + (1,) * (v.ndim - 2)), v, 0.0).astype(np.float32)
+            for k, v in maps.items()}
+    images = []
+    for lobes in environments:
+        if visibility is not None:
+            shaded = shade_sg_visible(normals, gb["view_dirs"], albedo, rough, lobes, visibility, directions,
+                                      f0=shading.f0)
+        else:
+            shaded = shade_sg(normals, gb["view_dirs"], albedo, rough, lobes, f0=shading.f0)
+        rgb = np.clip(np.nan_to_num(shaded["rgb"], nan=0.0, posinf=0.0, neginf=0.0), 0.0, HALF_MAX)
+        # premultiplied by the pixel's coverage, as a camera integrates a silhouette pixel
+        images.append(premultiply_edges(scatter_pixels(pix, rgb, h, w), mask, alpha))
+    return {"maps": maps, "mask": out_mask, "alpha": alpha, "images": images, "pixels": int(len(pix)),
+            "coverage": gb["coverage"], "normal_fusion_px": gb["normal_fusion_px"]}

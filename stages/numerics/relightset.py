@@ -1,0 +1,111 @@
+"""The draws and conversions of the single-image relighting set (pure functions; no files).
+
+Every random choice of the set is a function of the seed and a name, never of a running random stream, so
+that adding an action, an example or an environment map leaves every other example's draws unchanged:
+
+- :func:`unit_draw`: a uniform number in [0, 1) from sha256 of (seed, purpose, key).
+- :func:`choose_environment`: rendezvous hashing over the pool's digests: each example takes the map with
+  the highest draw, so a map added to a pool of N takes over about 1 / (N + 1) of the examples and the rest
+  keep theirs.
+- :func:`split_of`: a subject's split from one draw and the split ratios.
+- :func:`orbit_camera`: a pinhole camera on a sphere around the subject looking at its centre, the subject's
+  bounding sphere filling the square image less a margin.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+SPLIT_NAMES = ("train", "validation", "test")
+
+
+def unit_draw(seed: int, purpose: str, key: str) -> float:
+    """A number uniform in [0, 1) determined by (seed, purpose, key) alone (sha256, 53 bits)."""
+    digest = hashlib.sha256(f"{int(seed)}\0{purpose}\0{key}".encode()).digest()
+    return (int.from_bytes(digest[:8], "big") >> 11) / float(1 << 53)
+
+
+def choose_environment(seed: int, example_id: str, pool_digests: Sequence[str]) -> int:
+    """Index into the pool of the map example ``example_id`` is lit by (rendezvous hashing over the maps'
+    sha256 digests, so the choice does not depend on the pool's order or on the other maps)."""
+    if len(pool_digests) == 0:
+        raise ValueError("the environment pool is empty")
+    scores = [unit_draw(seed, f"environment:{digest}", example_id) for digest in pool_digests]
+    return int(np.argmax(scores))
+
+
+def split_of(seed: int, subject: str, ratios: Sequence[float]) -> str:
+    """'train', 'validation' or 'test' for a subject: one draw against the cumulative ``ratios`` (3,),
+    non-negative and summing to 1 (checked)."""
+    ratios = np.asarray(ratios, np.float64)
+    if ratios.shape != (3,) or np.any(~np.isfinite(ratios)) or np.any(ratios < 0) or abs(ratios.sum() - 1) > 1e-6:
+        raise ValueError(f"split ratios must be 3 non-negative numbers summing to 1, got {ratios.tolist()}")
+    u = unit_draw(seed, "split", subject)
+    edges = np.cumsum(ratios)
+    for name, edge in zip(SPLIT_NAMES, edges):
+        if u < edge:
+            return name
+    return SPLIT_NAMES[int(np.flatnonzero(ratios > 0)[-1])]
+
+
+def look_at(position: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 1.0, 0.0])) -> np.ndarray:
+    """cam_from_world (3, 4) of an OpenCV camera (x right, y down, z forward) at ``position`` (3,) looking at
+    ``target`` (3,), with the world's ``up`` (3,) pointing up in the image."""
+    position, target, up = (np.asarray(v, np.float64) for v in (position, target, up))
+    forward = target - position
+    if np.linalg.norm(forward) < 1e-12:
+        raise ValueError("look_at: position and target coincide")
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-9:
+        raise ValueError("look_at: the view direction is parallel to up")
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    return np.concatenate([rotation, (-rotation @ position)[:, None]], axis=1)
+
+
+def orbit_camera(centre: np.ndarray, radius_m: float, distance_m: float, azimuth_deg: float, elevation_deg: float,
+                 size: int, margin: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """(K (3, 3), cam_from_world (3, 4)) of a square ``size`` x ``size`` camera at ``distance_m`` from
+    ``centre`` (3,), at ``azimuth_deg`` about +y (0 = on +z, 90 = on +x) and ``elevation_deg`` above the
+    horizontal plane, looking at the centre; the focal length makes the subject's bounding sphere of
+    ``radius_m`` fill the image's width less ``margin`` on each side. Pixel centres at integer coordinates."""
+    if not (radius_m > 0 and distance_m > radius_m):
+        raise ValueError(f"need 0 < radius_m < distance_m, got {radius_m} and {distance_m}")
+    if size < 2 or not (0 <= margin < 0.5):
+        raise ValueError(f"need size >= 2 and margin in [0, 0.5), got {size} and {margin}")
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    direction = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+    position = np.asarray(centre, np.float64) + distance_m * direction
+    half_angle = math.asin(radius_m / distance_m)
+    focal = (size / 2.0) * (1.0 - 2.0 * margin) / math.tan(half_angle)
+    c = (size - 1) / 2.0
+    K = np.array([[focal, 0.0, c], [0.0, focal, c], [0.0, 0.0, 1.0]])
+    return K, look_at(position, centre)
+
+
+def normals_to_camera(normals_world: np.ndarray, cam_from_world: np.ndarray) -> np.ndarray:
+    """Normals (H, W, 3) rotated into the camera frame (OpenCV axes); zero vectors stay zero."""
+    rotation = np.asarray(cam_from_world, np.float64)[:, :3]
+    return (np.asarray(normals_world, np.float64) @ rotation.T).astype(np.float32)
+
+
+def tone_map(image: np.ndarray, exposure: float) -> np.ndarray:
+    """uint8 sRGB picture (H, W, 3) of a linear image: ``image * exposure`` clipped to [0, 1], sRGB curve."""
+    from pipeline.codecs.image import srgb_encode
+
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise ValueError(f"exposure must be positive and finite, got {exposure}")
+    scaled = np.nan_to_num(np.asarray(image, np.float32) * float(exposure), nan=0.0, posinf=0.0, neginf=0.0)
+    return (srgb_encode(scaled) * 255.0 + 0.5).astype(np.uint8)
+
+
+def encode_normals(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """uint8 picture (H, W, 3) of unit normals as (n + 1) / 2, 0 off ``mask`` (H, W)."""
+    picture = (np.clip((np.asarray(normals, np.float32) + 1.0) * 0.5, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    picture[~np.asarray(mask, bool)] = 0
+    return picture

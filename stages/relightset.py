@@ -1,0 +1,359 @@
+"""Action stage ``relightset``: the single-image relighting set (the paper's section 5).
+
+For each action, ``examples_per_action`` examples, each one view of the action's relightable asset under one
+environment map of the pool turned about +y; all draws are functions of (seed, example id) alone
+(:mod:`stages.numerics.relightset`), so adding actions or maps leaves the other examples' draws unchanged:
+
+1. the camera: on a sphere around the subject (azimuth uniform, elevation uniform in ``elevation_deg``, at the
+   captured cameras' median distance), looking at the subject's centre, the subject's bounding sphere filling
+   a square image of ``size`` pixels (:func:`stages.numerics.relightset.orbit_camera`);
+2. the environment: a map of the pool by rendezvous hashing over the maps' sha256, and a rotation uniform in
+   [0, 360) degrees;
+3. the render (:func:`stages.numerics.novel_view.relight_view`, the ``relight`` stage's shading): G-buffer
+   reprojected from the 6 nearest captured views, shaded under the map's spherical-Gaussian fit turned by
+   the rotation, antialiased silhouettes.
+
+Files per example (published as ``RELEASE/relight/<example_id>/``): ``image.exr`` (RGBA half float, linear
+radiance in the map's units premultiplied by alpha), ``image.png`` (8-bit sRGB of ``image x png_exposure``),
+``albedo.exr`` / ``albedo.png`` (linear / sRGB), ``normal.exr`` / ``normal.png`` (camera-frame normals,
+OpenCV axes; (n + 1) / 2), ``mask.png`` and ``example.json`` (its row of ``manifests/relight_examples.parquet``).
+
+An example whose ``example_key`` (everything it is rendered from) equals one in the stage's previous result
+for the action is linked from there instead of rendered again: a new map in the pool re-renders only the
+examples it takes over.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.exr import write_exr
+from pipeline.codecs.image import write_png
+from pipeline.config import Documented
+from pipeline.errors import InputError
+from pipeline.stage import Stage, StageContext
+from stages.numerics import numeric_threads
+from stages.numerics.novel_view import ViewShading
+from stages.relight import DEFAULT_HDRI_DIRS, PROCEDURAL_PREFIX, find_environment
+
+HDRI_FOLDERS = "hdri-folders"
+"""Pool entry: every map in the folders environment names are looked up in ($ULTRASTAGE_HDRI, the capture's
+``environments/``, ../shared/data/hdri); the procedural sky and studio when they hold none."""
+_HDR_SUFFIXES = (".hdr", ".exr")
+EXAMPLE_FILES = ("image.exr", "image.png", "albedo.exr", "albedo.png", "normal.exr", "normal.png", "mask.png")
+#: Bumped when the files of an example change for the same inputs (enters every example key).
+RENDER_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class RelightSetConfig(Documented):
+    examples_per_action: int = 3
+    """Examples (views) per action; the paper's set has 3 per model."""
+    size: int = 256
+    """Width and height of each example's images, pixels."""
+    environments: tuple[str, ...] = (HDRI_FOLDERS,)
+    """The environment pool: folders (every .hdr / .exr in them), files, names looked up as the relight
+    stage's, ``procedural:sky`` / ``procedural:studio``, or ``hdri-folders``. A map that cannot be read is
+    named in the log and the stage's stats and left out; an empty pool or a name found nowhere is an error."""
+    seed: int = 0
+    """Seed of every draw: views, environments, rotations and splits."""
+    split_ratios: tuple[float, ...] = (0.8, 0.1, 0.1)
+    """Shares of subjects in train, validation and test (each subject's examples are in one split)."""
+    elevation_deg: tuple[float, ...] = (-10.0, 30.0)
+    """Range of the cameras' elevation above the horizontal plane through the subject's centre, degrees."""
+    margin: float = 0.05
+    """Share of the image width left free on each side of the subject's bounding sphere."""
+    sg_lobes: int = 32
+    """Spherical Gaussians fitted to each environment map."""
+    fit_height: int = 64
+    """Rows of the downsampled map the SG fit works on."""
+    png_level: float = 0.8
+    """The tone-mapped PNG puts the 99th percentile of the subject's radiance at this linear level."""
+    shading: ViewShading = field(default_factory=ViewShading)
+    """Reprojection and shading of each view (the relight stage's)."""
+
+    def __post_init__(self) -> None:
+        if self.examples_per_action < 1 or self.size < 16:
+            raise ValueError("relightset: examples_per_action must be >= 1 and size >= 16")
+        if not self.environments:
+            raise ValueError("relightset.environments must name at least one map, folder or 'hdri-folders'")
+        ratios = np.asarray(self.split_ratios, np.float64)
+        if ratios.shape != (3,) or np.any(ratios < 0) or abs(ratios.sum() - 1.0) > 1e-6:
+            raise ValueError(f"relightset.split_ratios must be 3 non-negative shares summing to 1, "
+                             f"got {list(self.split_ratios)}")
+        low, high = (self.elevation_deg + (None, None))[:2]
+        if len(self.elevation_deg) != 2 or not (-80.0 <= low <= high <= 80.0):
+            raise ValueError(f"relightset.elevation_deg must be [low, high] within [-80, 80], "
+                             f"got {list(self.elevation_deg)}")
+        if not (0.0 <= self.margin < 0.5) or not (self.png_level > 0) or self.seed < 0:
+            raise ValueError("relightset: margin must be in [0, 0.5), png_level > 0 and seed >= 0")
+        if self.sg_lobes < 1 or self.fit_height < 4:
+            raise ValueError("relightset: sg_lobes must be >= 1 and fit_height >= 4")
+
+
+@dataclass(frozen=True)
+class PoolMap:
+    """One environment map of the pool."""
+
+    name: str
+    """File stem, or 'procedural:<kind>'."""
+    path: Path | None
+    """The file (None for a procedural map)."""
+
+    @property
+    def label(self) -> str:
+        return self.name.replace(":", "_")
+
+
+def _search_folders(capture_root: Path | None) -> list[Path]:
+    folders = [Path(d) for d in os.environ.get("ULTRASTAGE_HDRI", "").split(os.pathsep) if d]
+    if capture_root is not None:
+        folders.append(Path(capture_root) / "environments")
+    return folders + list(DEFAULT_HDRI_DIRS)
+
+
+def _maps_in(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _HDR_SUFFIXES)
+
+
+def resolve_pool(entries: tuple[str, ...], capture_root: Path | None) -> tuple[list[PoolMap], list[dict[str, str]]]:
+    """The environment pool a config names: (readable maps, sorted by name, duplicates of a stem once;
+    ``[{"path", "reason"}]`` of the files left out because they cannot be read).
+
+    Raises:
+        InputError: a folder with no maps, a name found nowhere, or no readable map at all.
+    """
+    from pipeline.codecs.hdr import read_environment
+
+    files: list[Path] = []
+    procedural: list[str] = []
+    for entry in entries:
+        if entry.startswith(PROCEDURAL_PREFIX):
+            procedural.append(entry)
+        elif entry == HDRI_FOLDERS:
+            found = [p for folder in _search_folders(capture_root) if folder.is_dir() for p in _maps_in(folder)]
+            if found:
+                files += found
+            else:
+                procedural += [f"{PROCEDURAL_PREFIX}sky", f"{PROCEDURAL_PREFIX}studio"]
+        elif Path(entry).expanduser().is_dir():
+            found = _maps_in(Path(entry).expanduser())
+            if not found:
+                raise InputError(Path(entry), "no .hdr or .exr environment maps in this folder")
+            files += found
+        else:
+            path = find_environment(entry, capture_root)
+            if path is None:
+                raise InputError(Path(entry), "environment map not found (not a file, a folder, or a name in "
+                                              f"{[str(f) for f in _search_folders(capture_root)]})")
+            files.append(path)
+    pool: dict[str, PoolMap] = {}
+    skipped: list[dict[str, str]] = []
+    for path in files:
+        if path.stem in pool:
+            continue
+        try:
+            env = read_environment(path)
+            if env.ndim != 3 or env.shape[1] != 2 * env.shape[0] or not np.all(np.isfinite(env)):
+                raise ValueError(f"not a finite equirectangular (H, 2H, 3) map: shape {env.shape}")
+        except (InputError, ValueError, OSError) as exc:
+            skipped.append({"path": path.name, "reason": str(exc).replace(str(path), path.name)})
+            continue
+        pool[path.stem] = PoolMap(path.stem, path)
+    for name in procedural:
+        pool.setdefault(name, PoolMap(name, None))
+    if not pool:
+        raise InputError(Path(entries[0]), "no readable environment map in the pool (left out: "
+                                           f"{'; '.join(s['path'] + ': ' + s['reason'] for s in skipped)})")
+    return [pool[k] for k in sorted(pool)], skipped
+
+
+def _environment(pool_map: PoolMap, path: Path | None) -> tuple[np.ndarray, str]:
+    """(map (H, 2H, 3) float32, sha256) of a pool map (of the file's bytes; of the float32 map for procedural)."""
+    from stages.relight import load_environment
+
+    env, _ = load_environment(pool_map.name, path)
+    if path is not None:
+        sha = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    else:
+        sha = hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()
+    return env, sha
+
+
+def _digest(record: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(record, sort_keys=True, default=float).encode()).hexdigest()
+
+
+class RelightSetStage(Stage):
+    """Examples of the single-image relighting set rendered from the action's relightable asset."""
+
+    name = "relightset"
+    version = "1"
+    scope = "action"
+    requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
+    outputs = ("relight",)
+
+    def __init__(self, config: Any):
+        super().__init__(config)
+        self._pools: dict[str, tuple[list[PoolMap], list[dict[str, str]]]] = {}
+
+    def pool(self, capture_root: Path | None) -> tuple[list[PoolMap], list[dict[str, str]]]:
+        key = str(capture_root)
+        if key not in self._pools:
+            self._pools[key] = resolve_pool(self.config.environments, capture_root)
+        return self._pools[key]
+
+    def preflight(self, capture: Any, echo: Any) -> None:
+        """Resolve the environment pool once before planning: an empty or unreadable pool stops the run."""
+        maps, skipped = self.pool(getattr(capture, "root", None))
+        for item in skipped:
+            echo(f"{self.name:<12} {'pool':<8} skipped environment {item['path']}: {item['reason']}")
+
+    def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
+        maps, _ = self.pool(getattr(capture, "root", None))
+        return {f"environment/{m.label}": m.path for m in maps if m.path is not None}
+
+    def run(self, ctx: StageContext) -> dict[str, Any]:
+        import torch
+
+        from stages.artifacts import ActionArtifacts, load_relightable_asset
+        from stages.numerics.novel_view import auto_exposure, relight_view
+        from stages.numerics.relightset import (choose_environment, encode_normals, normals_to_camera,
+                                                orbit_camera, split_of, tone_map, unit_draw)
+        from stages.numerics.sg import fibonacci_sphere, fit_sg_environment, rotate_sg, rotation_y
+        from stages.numerics.sh import project_environment
+
+        torch.set_num_threads(numeric_threads())
+        cfg: RelightSetConfig = self.config
+        started = time.perf_counter()
+        maps, skipped = self.pool(ctx.capture_root)
+        loaded = [_environment(m, ctx.raw_inputs.get(f"environment/{m.label}")) for m in maps]
+        digests = [sha for _, sha in loaded]
+        subject = ctx.subject or ctx.action_id
+        split = split_of(cfg.seed, subject, cfg.split_ratios)
+        artifacts = ActionArtifacts(ctx.upstream)
+        asset, cameras = load_relightable_asset(artifacts)
+        vertices, _ = artifacts.mesh()
+        centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+        radius = float(np.linalg.norm(vertices - centre, axis=1).max())
+        distances = [np.linalg.norm(-np.asarray(c["cam_from_world"])[:, :3].T @ np.asarray(c["cam_from_world"])[:, 3]
+                                    - centre) for c in cameras.values()]
+        distance = max(float(np.median(distances)), 1.5 * radius)
+        directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
+        render_record = {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
+                         "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
+                         "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
+        previous = self._previous_examples(ctx)
+        out = ctx.out_dir / "relight"
+        out.mkdir(parents=True, exist_ok=True)
+        fits: dict[int, Any] = {}
+        rows, reused, seconds = [], 0, []
+        for index in range(cfg.examples_per_action):
+            example_id = f"{ctx.action_id}_{index:02d}"
+            env_index = choose_environment(cfg.seed, example_id, digests)
+            rotation_deg = 360.0 * unit_draw(cfg.seed, "rotation", example_id)
+            azimuth = 360.0 * unit_draw(cfg.seed, "azimuth", example_id)
+            low, high = cfg.elevation_deg
+            elevation = low + (high - low) * unit_draw(cfg.seed, "elevation", example_id)
+            K, cam_from_world = orbit_camera(centre, radius, distance, azimuth, elevation, cfg.size, cfg.margin)
+            key = _digest(render_record | {"example_id": example_id, "environment": digests[env_index],
+                                           "rotation_deg": rotation_deg, "K": K.round(9).tolist(),
+                                           "cam_from_world": cam_from_world.round(9).tolist()})
+            folder = out / example_id
+            env, _ = loaded[env_index]
+            world_from_map = rotation_y(math.radians(rotation_deg))
+            row = {"example_id": example_id, "action_id": ctx.action_id, "subject": subject,
+                   "session_id": ctx.session_id, "split": split, "view_index": index, "width": cfg.size,
+                   "height": cfg.size, "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
+                   "cy": float(K[1, 2]), "cam_from_world_json": json.dumps(cam_from_world.round(9).tolist()),
+                   "environment_name": maps[env_index].name,
+                   "environment_file": maps[env_index].path.name if maps[env_index].path else "",
+                   "environment_sha256": digests[env_index], "environment_rotation_deg": rotation_deg,
+                   "sh_world_json": json.dumps(project_environment(env, world_from_map).round(6).tolist()),
+                   "sh_camera_json": json.dumps(project_environment(
+                       env, cam_from_world[:, :3] @ world_from_map).round(6).tolist()),
+                   "seed": cfg.seed, "example_key": key}
+            row |= {f"{name.replace('.', '_')}": f"relight/{example_id}/{name}" for name in EXAMPLE_FILES}
+            old = previous.get(example_id)
+            if old is not None and old[0].get("example_key") == key:
+                for name in EXAMPLE_FILES:
+                    _link(old[1] / name, folder / name)
+                row |= {"png_exposure": old[0]["png_exposure"], "mask_pixels": old[0]["mask_pixels"]}
+                reused += 1
+            else:
+                t0 = time.perf_counter()
+                if env_index not in fits:
+                    fits[env_index] = fit_sg_environment(env, cfg.sg_lobes, fit_height=cfg.fit_height)
+                lobes = rotate_sg(fits[env_index], math.radians(rotation_deg))
+                view = relight_view(asset, K, cam_from_world, cfg.size, cfg.size, [lobes], cfg.shading,
+                                    directions=directions)
+                image, mask, alpha = view["images"][0], view["mask"], view["alpha"]
+                normals_cam = normals_to_camera(view["maps"]["normal"], cam_from_world)
+                exposure = auto_exposure(image, mask, cfg.png_level)
+                write_exr(folder / "image.exr", np.concatenate([image, alpha[..., None]], axis=2))
+                write_png(folder / "image.png", tone_map(image, exposure))
+                albedo = np.clip(view["maps"]["albedo"], 0.0, 1.0)
+                write_exr(folder / "albedo.exr", albedo)
+                write_png(folder / "albedo.png", tone_map(albedo, 1.0))
+                write_exr(folder / "normal.exr", normals_cam, half=False)
+                write_png(folder / "normal.png", encode_normals(normals_cam, mask))
+                write_png(folder / "mask.png", mask)
+                row |= {"png_exposure": float(exposure), "mask_pixels": int(mask.sum())}
+                seconds.append(time.perf_counter() - t0)
+            (folder / "example.json").write_text(json.dumps(row, indent=1, sort_keys=True))
+            rows.append(row)
+            ctx.progress(index + 1, cfg.examples_per_action, f"example {example_id}")
+        (ctx.out_dir / "relight" / "examples.json").write_text(json.dumps(rows, indent=1, sort_keys=True))
+        return {"examples": len(rows), "rendered": len(seconds), "reused": reused, "split": split,
+                "pool": [m.name for m in maps], "skipped_environments": skipped,
+                "seconds_per_example": float(np.mean(seconds)) if seconds else 0.0,
+                "seconds": time.perf_counter() - started}
+
+    @staticmethod
+    def _previous_examples(ctx: StageContext) -> dict[str, tuple[dict[str, Any], Path]]:
+        """The examples of this action's previous result (example id -> (row, folder))."""
+        previous = ctx.previous
+        if previous is None or not (previous / "relight" / "examples.json").is_file():
+            return {}
+        try:
+            rows = json.loads((previous / "relight" / "examples.json").read_text())
+        except (OSError, json.JSONDecodeError):
+            return {}
+        return {r["example_id"]: (r, previous / "relight" / r["example_id"]) for r in rows
+                if all((previous / "relight" / r["example_id"] / n).is_file() for n in EXAMPLE_FILES)}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        """Nothing under ``actions/<id>/``: the examples are published at the release root."""
+        return []
+
+    def release_root_files(self, artifact: Path) -> list[tuple[Path, str, str]]:
+        """(file, path under the release root, kind) of every example file."""
+        files = []
+        for row in self.manifest_rows(artifact).get("relight_examples", []):
+            folder = artifact / "relight" / row["example_id"]
+            for name in EXAMPLE_FILES + ("example.json",):
+                files.append((folder / name, f"relight/{row['example_id']}/{name}",
+                              f"relight_{Path(name).stem}" + ("_png" if name.endswith(".png") and
+                                                              Path(name).stem != "mask" else "")))
+        return files
+
+    def manifest_rows(self, artifact: Path) -> dict[str, list[dict[str, Any]]]:
+        path = artifact / "relight" / "examples.json"
+        return {"relight_examples": json.loads(path.read_text())} if path.is_file() else {}
+
+
+def _link(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
