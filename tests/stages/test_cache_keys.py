@@ -116,3 +116,20 @@ def test_geometry_sdf_log_every_leaves_the_geometry_key_record_alone():
     more_steps = dataclasses.replace(base, sdf=dataclasses.replace(base.sdf, iterations=base.sdf.iterations + 1))
     assert key_fields(more_steps)["sdf"]["iterations"] == base.sdf.iterations + 1
     assert key_fields(more_steps) != key_fields(base)
+
+
+def test_each_stage_key_holds_the_code_it_runs_and_not_the_engine():
+    from pipeline.hashing import code_digests
+    from stages.registry import CODE_PACKAGES, PRESETS, build_stages
+
+    stages = {s.name: s for s in build_stages(PRESETS["test"])}
+    assert all(s.code_packages == CODE_PACKAGES for s in stages.values())
+    code = {name: code_digests(s.code_module, s.code_packages) for name, s in stages.items()}
+    assert {"stages.geometry", "stages.numerics.sdf", "stages.numerics.mesh",
+            "pipeline.codecs.mesh"} <= set(code["geometry"])
+    assert {"stages.cameras", "calibration.geometric", "pipeline.codecs.raw"} <= set(code["cameras"])
+    assert {"stages.materials", "stages.numerics.materials"} <= set(code["materials"])
+    for name, modules in code.items():
+        engine = {m for m in modules if m.startswith(("pipeline.", "manifests")) and not m.startswith("pipeline.codecs")}
+        assert not engine, name
+        assert not {"stages.cli", "stages.registry"} & set(modules), name
