@@ -15,9 +15,9 @@ files and the rig. It writes into ``ctx.out_dir`` (a temporary folder the engine
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Any, Callable, ClassVar
 
 PROGRESS_TOPIC = "ultrastage-progress"
@@ -88,9 +88,12 @@ class Stage:
     """The section of the pipeline config this stage reads (defaults to its name)."""
 
     def __init__(self, config: Any, code_packages: Sequence[str] | None = None):
+        packages = tuple(code_packages) if code_packages is not None else (type(self).__module__.split(".")[0],)
+        bad = [p for p in packages if not isinstance(p, str) or not all(part.isidentifier() for part in p.split("."))]
+        if bad:
+            raise ValueError(f"stage {type(self).__name__}: code_packages must be dotted module names, got {bad}")
         self.config = config
-        self.code_packages: tuple[str, ...] = (tuple(code_packages) if code_packages is not None
-                                               else (type(self).__module__.split(".")[0],))
+        self.code_packages: tuple[str, ...] = packages
         """Dotted module prefixes whose code can change this stage's output: the code of the stage's module and
         of every module under these prefixes that it imports, transitively, enters its cache key
         (:func:`pipeline.hashing.code_digests`). Default: the top-level package of the stage's module."""

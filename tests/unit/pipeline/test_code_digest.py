@@ -82,6 +82,8 @@ def test_digests_cover_the_module_and_its_counted_imports_transitively(code_tree
     assert {"ustest_otherpkg", "ustest_otherpkg.thing"} <= set(with_other)
     with pytest.raises(ValueError, match="no Python source file"):
         code_digests(f"{PACKAGE}.missing", [PACKAGE])
+    with pytest.raises(ValueError, match="dotted module names"):
+        importlib.import_module(f"{PACKAGE}.stage_mod").FitStage(ToyConfig(), code_packages=["stages/numerics"])
 
 
 def test_a_numerics_edit_changes_the_digest_and_comments_or_docstrings_do_not(code_tree):
