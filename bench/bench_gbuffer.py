@@ -183,13 +183,13 @@ def silhouette_ring(mask: np.ndarray) -> np.ndarray:
 
 def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int = 6) -> dict:
     """The error budget of the held-out protocol for one action (module docstring, item 7)."""
-    from stages.heldout import _load_truth, heldout_metrics
+    from stages.heldout import heldout_metrics, load_truth
     from stages.numerics.metrics import angular_error_deg
 
     diffuse = data.with_normals(True)
 
     def truth_maps(maps: dict, cam: str) -> dict:
-        t = _load_truth(truth_dir, action, cam, maps["mask"].shape)
+        t = load_truth(truth_dir, action, cam, maps["mask"].shape)
         return maps | {"normal": t["normal"], "albedo": t["albedo"]}
 
     def without_rings(px: int):
@@ -206,7 +206,7 @@ def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int =
     acc = {r: {"eq1": [], "diffuse": [], "albedo_sq": []} for r in range(1, rings + 1)}
     for cam in sorted(data.cameras):
         maps = data.photometric(cam)
-        t = _load_truth(truth_dir, action, cam, maps["mask"].shape)
+        t = load_truth(truth_dir, action, cam, maps["mask"].shape)
         if t is None:
             continue
         ring = np.minimum(silhouette_ring(maps["mask"]), rings)

@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-HELDOUT = ("00005", "00021")
+from stages.heldout import DEFAULT_HELDOUT as HELDOUT  # noqa: E402  (the held-out cameras evaluate uses)
 KEYS = ("heldout_albedo_psnr_db", "heldout_albedo_ssim", "heldout_albedo_rmse", "heldout_normal_mean_deg",
         "heldout_normal_under5_pct", "heldout_normal_under25_pct")
 HEADERS = ("PSNR dB", "SSIM", "RMSE", "mean deg", "<5 deg %", "<25 deg %")

@@ -1,27 +1,29 @@
 """Materials stage: the roughness texture and the de-occluded albedo against the simulator, with their times.
 
-For each action of a release (default A0000 and A0001) this rebuilds the materials stage's steps outside the
-stage, from the release's own files, with the numerics the stage calls (``stages.numerics.bake``
-``rasterize_atlas`` / ``gather_observations``, ``stages.numerics.materials.fit_roughness``,
-``stages.materials.roughness_median``, ``stages.numerics.shadowing.ambient_occlusion``), and scores every
+For each action of a release (default A0000 and A0001) this runs the materials stage's steps on the release's
+own files, calling the functions the stage calls (``stages.materials`` ``texel_samples``, ``fit_texel_roughness``,
+``published_roughness``, ``texel_texture``, ``albedo_without_occlusion``, and
+``stages.numerics.shadowing.ambient_occlusion``) with configs derived from the stage's defaults
+(:func:`default_config`, one field changed per variant: :func:`variant_configs`), and scores every
 variant like ``ultrastage evaluate`` does (``stages.evaluate._materials_overall``): the textures are seen
 through the textured mesh from every **true** camera (pixels where the truth has the subject and the mesh
 is hit) and compared with the simulator's roughness and albedo maps.
 
-1. **Roughness** (texture 256): mean absolute error and bias against the truth for ``specular_model``
-   ggx_table vs sg, ``fit_albedo`` on/off, ``max_views`` 8/16 (the 8 best views are the first 8 of the 16
-   gathered: same ranking), ``median_min_visibility`` 0/0.85/0.95 (which texels vote in the surface median: those
-   whose ambient visibility on the mesh reaches it) and ``median_neighbours`` 1/25/100/200, one change at a
-   time from the stage's defaults, with the fit time (``fit_roughness``, ``--threads`` torch threads) and the
-   smoothing time.
+1. **Roughness** (the stage's texture size): mean absolute error and bias against the truth for ``specular_model``
+   sg, ``fit_albedo`` off, ``max_views`` 8 (the 8 best views are the first 8 of those gathered: same ranking),
+   ``median_min_visibility`` 0/0.85 (which texels vote in the surface median: those whose ambient visibility on
+   the mesh reaches it) and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's defaults
+   (a change equal to the default is left out), with the fit time (``fit_roughness``, ``--threads`` torch
+   threads) and the smoothing time.
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
    variation gives) and, as oracles, the truth's own mean and median over the compared pixels (the median
    is the constant with the least absolute error).
    The default row must match the released texture's score (``released`` row) when the release was made
    with the stage's defaults.
 2. **Albedo**: PSNR against the truth of the baked white-light albedo texture and of the de-occluded one
-   (ambient occlusion on the mesh with ``occlusion_rays`` 16/64/128, divided out with a floor
-   ``min_occlusion`` 0.1/0.2/0.4), with the occlusion time and each texture's median ratio to the truth
+   (ambient occlusion on the mesh at the stage's ``occlusion_size`` with ``occlusion_rays`` 16/64/128, divided
+   out with a floor ``min_occlusion`` 0.1/0.2/0.4, the stage's defaults included), with the occlusion time and
+   each texture's median ratio to the truth
    (its gain); and the baked albedo divided by the simulator's per-pixel visibility map. That is no upper
    bound: in creases the blurred texture and the true pixel disagree and the division blows the error up.
 
@@ -32,6 +34,7 @@ runs/default/capture; without them (or without ground truth) it prints why and e
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -42,21 +45,42 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-ILLUMINATIONS = ("full_on", "pos", "neg")
-DEFAULTS = {"specular_model": "ggx_table", "fit_albedo": True, "max_views": 8, "median_neighbours": 100,
-            "median_min_visibility": 0.95}
-VARIANTS = [("default (ggx_table, fit_albedo, 8 views, voters >= 0.95 visible)", {}),
-            ("specular_model sg", {"specular_model": "sg"}),
-            ("fit_albedo off", {"fit_albedo": False}),
-            ("max_views 16", {"max_views": 16}),
-            ("median_min_visibility 0 (every fitted texel votes)", {"median_min_visibility": 0.0}),
-            ("median_min_visibility 0.85", {"median_min_visibility": 0.85})]
-NEIGHBOURS = (1, 25, 100, 200)
-OCCLUSION_RAYS = (16, 64, 128)
-MIN_OCCLUSION = (0.1, 0.2, 0.4)
-TEXTURE_SIZE = 256
-OCCLUSION_SIZE = 512
-MIN_ALPHA = 0.5
+from stages.materials import ILLUMINATION_DIRS, MaterialsConfig  # noqa: E402
+
+# One change at a time from the stage's defaults; the sweeps' values besides the defaults (which every sweep
+# includes). The bench declares no setting of its own: everything else is the stage's config.
+VARIANT_CHANGES = [("specular_model sg", {"specular_model": "sg"}),
+                   ("fit_albedo off", {"fit_albedo": False}),
+                   ("max_views 8", {"max_views": 8}),
+                   ("max_views 16", {"max_views": 16}),
+                   ("median_min_visibility 0 (every fitted texel votes)", {"median_min_visibility": 0.0}),
+                   ("median_min_visibility 0.85", {"median_min_visibility": 0.85})]
+MEDIAN_NEIGHBOURS_SWEEP = (1, 25, 100, 200)
+OCCLUSION_RAYS_SWEEP = (16, 64, 128)
+MIN_OCCLUSION_SWEEP = (0.1, 0.2, 0.4)
+
+
+def default_config() -> MaterialsConfig:
+    """The configuration of the bench's default row: the materials stage's own defaults."""
+    return MaterialsConfig()
+
+
+def variant_configs(base: MaterialsConfig | None = None) -> list[tuple[str, MaterialsConfig]]:
+    """(label, config) of every roughness variant: ``base`` (default :func:`default_config`) first, then each
+    of ``VARIANT_CHANGES`` applied to it alone, leaving out those that equal ``base``."""
+    base = default_config() if base is None else base
+    rows = [(f"default ({base.specular_model}, fit_albedo {base.fit_albedo}, {base.max_views} views, "
+             f"voters >= {base.median_min_visibility:g} visible)", base)]
+    for label, change in VARIANT_CHANGES:
+        config = dataclasses.replace(base, **change)
+        if config != base:
+            rows.append((label, config))
+    return rows
+
+
+def sweep(values: tuple, default) -> list:
+    """A sweep's values with the stage's default among them, sorted."""
+    return sorted(set(values) | {default})
 
 
 def white_references(release: Path, capture: Path, action: str, session: str) -> dict[str, np.ndarray]:
@@ -74,10 +98,10 @@ def white_references(release: Path, capture: Path, action: str, session: str) ->
             for c in json.loads(path.read_text())["cameras"]}
 
 
-def load_action(release: Path, capture: Path, action: str) -> dict:
+def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig) -> dict:
     """The release's inputs of the materials stage for one action: the welded textured mesh and its atlas,
-    the baked albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha > 0.5
-    inside the mask), with the cameras' white references."""
+    the baked albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
+    ``cfg.min_alpha`` inside the mask, as the stage's), with the cameras' white references."""
     from manifests import open_release
     from stages.heldout import release_cameras
     from stages.materials import load_atlas_mesh
@@ -89,8 +113,8 @@ def load_action(release: Path, capture: Path, action: str) -> dict:
     vertices, faces, atlas = load_atlas_mesh(view.path("mesh_textured"))
     views, whites = [], []
     for cam_id in sorted(cameras):
-        images = np.concatenate([view.image(ill, cam_id) for ill in ILLUMINATIONS], axis=2)
-        valid = (view.normal_alpha(cam_id) > MIN_ALPHA) & view.mask(cam_id)
+        images = np.concatenate([view.image(ill, cam_id) for ill in ILLUMINATION_DIRS], axis=2)
+        valid = (view.normal_alpha(cam_id) > cfg.min_alpha) & view.mask(cam_id)
         views.append(BakeView(images={"obs": images}, valid=valid, K=cameras[cam_id]["K"],
                               cam_from_world=cameras[cam_id]["cam_from_world"]))
         whites.append(white[cam_id])
@@ -169,73 +193,72 @@ class TruthProbe:
         return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
-def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
-    """Per-texel fits for every variant, smoothed and scored; times of the gather, fits and medians."""
-    from stages.materials import _dilate, roughness_median, texel_uvs
+def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, progress) -> dict:
+    """Per-texel fits for every variant (:func:`variant_configs`), smoothed and scored; times of the gather,
+    fits and medians. Observations are gathered once, for the most views any variant uses."""
+    from stages.materials import (fit_texel_roughness, published_roughness, roughness_median, texel_samples,
+                                  texel_texture)
+    from stages.numerics.bake import sample_texture
+    from stages.numerics.materials import NO_VIEWS_RESIDUAL
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import ambient_occlusion
-    from stages.numerics.bake import gather_observations, rasterize_atlas, sample_texture
-    from stages.numerics.materials import NO_VIEWS_RESIDUAL, fit_roughness
 
+    variants = variant_configs(base)
+    max_k = max(cfg.max_views for _, cfg in variants)
     t0 = time.perf_counter()
-    raster = rasterize_atlas(data["vertices"], data["faces"], data["atlas"], TEXTURE_SIZE)
-    covered = raster["covered"]
-    points = raster["position"][covered].astype(np.float64)
-    normals = raster["normal"][covered].astype(np.float64)
-    albedo = sample_texture(data["released"]["albedo"], texel_uvs(covered))
-    max_k = max(DEFAULTS["max_views"], *(v.get("max_views", 0) for _, v in VARIANTS))
-    obs = gather_observations(data["vertices"], data["faces"], points, normals, data["views"], max_k)
+    texels = texel_samples(data["vertices"], data["faces"], data["atlas"], data["released"]["albedo"], data["views"],
+                           dataclasses.replace(base, max_views=max_k))
+    covered, points, normals, albedo, obs = (texels[k] for k in ("covered", "points", "normals", "albedo", "obs"))
     gather_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    visibility = ambient_occlusion(points, normals, mesh_scene(data["vertices"], data["faces"]), rays=64)
+    visibility = ambient_occlusion(points, normals, mesh_scene(data["vertices"], data["faces"]),
+                                   rays=base.occlusion_rays)
     visibility_s = time.perf_counter() - t0
-    out = {"texels": int(len(points)), "gather_s_16_views": round(gather_s, 2),
+    out = {"texels": int(len(points)), "gathered_views": max_k, "gather_s": round(gather_s, 2),
            "texel_visibility_s": round(visibility_s, 2),
            "mean_valid_views": round(float(obs["valid"].sum(axis=1).mean()), 2), "variants": [], "neighbours": []}
 
-    def texture_of(values: np.ndarray) -> np.ndarray:
-        tex = np.zeros((TEXTURE_SIZE, TEXTURE_SIZE), np.float32)
-        tex[covered] = values
-        return _dilate(tex, covered)
+    def fit(cfg: MaterialsConfig, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """The stage's fit of the texels ``rows`` on the first ``cfg.max_views`` gathered views (best first)."""
+        k = cfg.max_views
+        observed = obs["values"]["obs"][rows, :k]
+        observed = observed.reshape(len(observed), -1, 3, 3)  # fewer than k when fewer cameras see the mesh
+        white = data["white"][np.maximum(obs["view_index"][rows, :k], 0)]
+        rough, rms, _ = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], obs["valid"][rows, :k],
+                                            normals[rows], albedo[rows], white, cfg)
+        return rough, rms
 
     # Warm up: the first fit of a process builds the specular moment tables (about a second); not timed.
-    for model in sorted({(DEFAULTS | change)["specular_model"] for _, change in VARIANTS}):
-        fit_roughness(obs["values"]["obs"][:64].reshape(-1, max_k, 3, 3), obs["view_dirs"][:64], obs["valid"][:64],
-                      normals[:64], albedo[:64], white_scale=data["white"][np.maximum(obs["view_index"][:64], 0)],
-                      specular_model=model)
+    for _, cfg in variants:
+        fit(cfg, slice(0, 64))
     default_fit = None
-    for label, change in VARIANTS:
-        cfg = DEFAULTS | change
-        k = cfg["max_views"]
-        observed = obs["values"]["obs"][:, :k].reshape(len(points), k, 3, 3)
-        white = data["white"][np.maximum(obs["view_index"][:, :k], 0)]
+    for label, cfg in variants:
         t0 = time.perf_counter()
-        rough, rms = fit_roughness(observed, obs["view_dirs"][:, :k], obs["valid"][:, :k], normals, albedo,
-                                   white_scale=white, specular_model=cfg["specular_model"],
-                                   fit_albedo=cfg["fit_albedo"])
+        rough, rms = fit(cfg)
         fit_s = time.perf_counter() - t0
         fitted = rms != NO_VIEWS_RESIDUAL
         t0 = time.perf_counter()
-        smooth, _ = roughness_median(points, rough, fitted, visibility, cfg["median_min_visibility"],
-                                     cfg["median_neighbours"])
+        smooth, _ = published_roughness(points, rough, fitted, visibility, cfg)
         median_s = time.perf_counter() - t0
-        smooth = np.clip(np.nan_to_num(smooth, nan=0.5), 0.05, 1.0)
-        score = probe.roughness_errors(texture_of(smooth))
-        raw = probe.roughness_errors(texture_of(rough))
-        out["variants"].append({"variant": label, **cfg, "fit_s": round(fit_s, 2), "median_s": round(median_s, 2),
+        score = probe.roughness_errors(texel_texture(smooth, covered))
+        raw = probe.roughness_errors(texel_texture(rough, covered))
+        settings = {name: getattr(cfg, name) for name in
+                    ("specular_model", "fit_albedo", "max_views", "median_neighbours", "median_min_visibility")}
+        out["variants"].append({"variant": label, **settings, "fit_s": round(fit_s, 2),
+                                "median_s": round(median_s, 2),
                                 "mae": round(score["mae"], 4), "bias": round(score["bias"], 4),
                                 "mae_unsmoothed": round(raw["mae"], 4),
                                 "fit_rms_median": round(float(np.median(rms[fitted])), 5) if fitted.any() else 0.0})
         progress(f"  {label}: MAE {score['mae']:.4f} bias {score['bias']:+.4f} fit {fit_s:.1f} s")
-        if not change:
+        if cfg == base:
             default_fit = (rough, fitted)
     rough, fitted = default_fit
-    for neighbours in NEIGHBOURS:
+    for neighbours in sweep(MEDIAN_NEIGHBOURS_SWEEP, base.median_neighbours):
         t0 = time.perf_counter()
-        smooth, _ = roughness_median(points, rough, fitted, visibility, DEFAULTS["median_min_visibility"], neighbours)
-        smooth = np.clip(np.nan_to_num(smooth, nan=0.5), 0.05, 1.0)
+        smooth, _ = published_roughness(points, rough, fitted, visibility,
+                                        dataclasses.replace(base, median_neighbours=neighbours))
         median_s = time.perf_counter() - t0
-        score = probe.roughness_errors(texture_of(smooth))
+        score = probe.roughness_errors(texel_texture(smooth, covered))
         out["neighbours"].append({"median_neighbours": neighbours, "median_s": round(median_s, 2),
                                   "mae": round(score["mae"], 4), "bias": round(score["bias"], 4)})
     median_fit = float(np.median(rough[fitted])) if fitted.any() else 0.5
@@ -247,9 +270,7 @@ def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
                                             ("constant_truth_median_oracle", truth_median))}
     out["baselines"]["released_texture"] = _round(probe.roughness_errors(data["released"]["roughness"]))
     levels = np.round(probe.roughness, 2)
-    smooth_default = texture_of(np.clip(np.nan_to_num(roughness_median(
-        points, rough, fitted, visibility, DEFAULTS["median_min_visibility"], DEFAULTS["median_neighbours"])[0],
-        nan=0.5), 0.05, 1))
+    smooth_default = texel_texture(published_roughness(points, rough, fitted, visibility, base)[0], covered)
     seen = sample_texture(smooth_default, probe.uv)
     out["default_by_true_level"] = [
         {"true_roughness": float(v), "share": round(float(np.mean(levels == v)), 4),
@@ -259,18 +280,18 @@ def roughness_section(data: dict, probe: TruthProbe, progress) -> dict:
     return out
 
 
-def albedo_section(data: dict, probe: TruthProbe, threads: int, progress) -> dict:
+def albedo_section(data: dict, probe: TruthProbe, base: MaterialsConfig, threads: int, progress) -> dict:
     """Baked vs de-occluded albedo (the stage's occlusion at several ray counts and floors) vs the truth."""
-    from stages.materials import _dilate
-    from stages.numerics.bake import rasterize_atlas, sample_texture
+    from stages.materials import albedo_without_occlusion, texel_texture
+    from stages.numerics.bake import rasterize_atlas
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import ambient_occlusion
 
+    floors = sweep(MIN_OCCLUSION_SWEEP, base.min_occlusion)
     baked = data["released"]["albedo"]
     out = {"baked_psnr_db": round(probe.albedo_psnr(baked), 3), "baked_gain": round(probe.albedo_gain(baked), 4),
-           "occlusion": [],
-           "baked_over_truth_visibility_psnr_db": {str(f): round(probe.albedo_psnr(baked, f), 3)
-                                                   for f in MIN_OCCLUSION}}
+           "occlusion_size": base.occlusion_size, "default_min_occlusion": base.min_occlusion, "occlusion": [],
+           "baked_over_truth_visibility_psnr_db": {str(f): round(probe.albedo_psnr(baked, f), 3) for f in floors}}
     if "albedo_deoccluded" in data["released"]:
         out["released_deoccluded_psnr_db"] = round(probe.albedo_psnr(data["released"]["albedo_deoccluded"]), 3)
         out["released_deoccluded_gain"] = round(probe.albedo_gain(data["released"]["albedo_deoccluded"]), 4)
@@ -278,30 +299,26 @@ def albedo_section(data: dict, probe: TruthProbe, threads: int, progress) -> dic
         out["released_intrinsic_psnr_db"] = round(probe.albedo_psnr(data["released"]["albedo_intrinsic"]), 3)
         out["released_intrinsic_gain"] = round(probe.albedo_gain(data["released"]["albedo_intrinsic"]), 4)
     t0 = time.perf_counter()
-    raster = rasterize_atlas(data["vertices"], data["faces"], data["atlas"], OCCLUSION_SIZE)
+    raster = rasterize_atlas(data["vertices"], data["faces"], data["atlas"], int(base.occlusion_size))
     covered = raster["covered"]
     points = raster["position"][covered].astype(np.float64)
     normals = raster["normal"][covered].astype(np.float64)
     scene = mesh_scene(data["vertices"], data["faces"])
     out["raster_s"] = round(time.perf_counter() - t0, 2)
-    h, w = baked.shape[:2]
-    rows, cols = np.mgrid[0:h, 0:w]
-    uv_full = np.stack([(cols + 0.5) / w, 1.0 - (rows + 0.5) / h], axis=-1)
-    for rays in OCCLUSION_RAYS:
+    for rays in sweep(OCCLUSION_RAYS_SWEEP, base.occlusion_rays):
         t0 = time.perf_counter()
         visible = ambient_occlusion(points, normals, scene, rays=rays, threads=threads)
         occ_s = time.perf_counter() - t0
-        occlusion = np.ones((OCCLUSION_SIZE, OCCLUSION_SIZE), np.float32)
-        occlusion[covered] = visible
-        occlusion_full = sample_texture(_dilate(occlusion, covered, fill=1.0), uv_full)
+        occlusion = texel_texture(visible, covered, fill=1.0)
         row = {"occlusion_rays": rays, "occlusion_s": round(occ_s, 2), "mean_visible": round(float(visible.mean()), 4)}
-        for floor in MIN_OCCLUSION:
-            deoccluded = np.clip(np.nan_to_num(baked / np.maximum(occlusion_full, floor)[..., None]), 0.0, 1.0)
+        for floor in floors:
+            deoccluded = albedo_without_occlusion(baked, occlusion, floor)
             row[f"psnr_db_min_occlusion_{floor}"] = round(probe.albedo_psnr(deoccluded), 3)
-            if floor == 0.2:
-                row["gain_min_occlusion_0.2"] = round(probe.albedo_gain(deoccluded), 4)
+            if floor == base.min_occlusion:
+                row["gain_default_min_occlusion"] = round(probe.albedo_gain(deoccluded), 4)
         out["occlusion"].append(row)
-        progress(f"  occlusion {rays} rays: {occ_s:.1f} s, PSNR at floor 0.2 {row['psnr_db_min_occlusion_0.2']:.2f} dB")
+        progress(f"  occlusion {rays} rays: {occ_s:.1f} s, PSNR at floor {base.min_occlusion:g} "
+                 f"{row[f'psnr_db_min_occlusion_{base.min_occlusion}']:.2f} dB")
     return out
 
 
@@ -310,12 +327,13 @@ def _round(d: dict, digits: int = 4) -> dict:
 
 
 def markdown(report: dict) -> str:
-    lines = ["# bench_materials", "", f"torch threads {report['threads']}; texture {TEXTURE_SIZE}; roughness "
-             "MAE / bias against the simulator over every true camera's view of the textured mesh.", ""]
+    lines = ["# bench_materials", "", f"torch threads {report['threads']}; texture {report['texture_size']}; "
+             "roughness MAE / bias against the simulator over every true camera's view of the textured mesh; "
+             "every other setting the materials stage's default (``defaults``).", ""]
     for action, entry in report["actions"].items():
         r = entry["roughness"]
-        lines += [f"## {action} ({r['texels']} texels, {r['mean_valid_views']} valid views each of 16, gather "
-                  f"{r['gather_s_16_views']} s, {entry['true_cameras']} true cameras)", "",
+        lines += [f"## {action} ({r['texels']} texels, {r['mean_valid_views']} valid views each of "
+                  f"{r['gathered_views']}, gather {r['gather_s']} s, {entry['true_cameras']} true cameras)", "",
                   "| roughness variant | MAE | bias | MAE per texel (no median) | fit s | median s |",
                   "|---|---|---|---|---|---|"]
         for v in r["variants"]:
@@ -331,6 +349,7 @@ def markdown(report: dict) -> str:
         lines += [f"| {x['true_roughness']:.2f} | {x['share']:.3f} | {x['pred_mean']:.3f} | {x['mae']:.3f} |"
                   for x in r["default_by_true_level"]]
         a = entry["albedo"]
+        floors = [float(f) for f in a["baked_over_truth_visibility_psnr_db"]]
         lines += ["", f"Albedo PSNR vs truth: baked (white-light) texture **{a['baked_psnr_db']:.2f} dB** (median "
                   f"ratio to the truth {a['baked_gain']:.3f})"
                   + (f", released de-occluded {a['released_deoccluded_psnr_db']:.2f} dB (ratio "
@@ -341,11 +360,11 @@ def markdown(report: dict) -> str:
                   + ", ".join(f"{k}: {v:.2f}" for k, v in a["baked_over_truth_visibility_psnr_db"].items())
                   + " dB.", "",
                   "| occlusion rays | AO s | mean visible | "
-                  + " | ".join(f"PSNR floor {f}" for f in MIN_OCCLUSION) + " |",
-                  "|---" * (3 + len(MIN_OCCLUSION)) + "|"]
+                  + " | ".join(f"PSNR floor {f}" for f in floors) + " |",
+                  "|---" * (3 + len(floors)) + "|"]
         for o in a["occlusion"]:
             lines.append(f"| {o['occlusion_rays']} | {o['occlusion_s']:.1f} | {o['mean_visible']:.3f} | "
-                         + " | ".join(f"{o[f'psnr_db_min_occlusion_{f}']:.2f}" for f in MIN_OCCLUSION) + " |")
+                         + " | ".join(f"{o[f'psnr_db_min_occlusion_{f}']:.2f}" for f in floors) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -371,14 +390,15 @@ def figure(report: dict, path: Path) -> None:
         axes[0].axhline(r["baselines"]["constant_truth_median_oracle"]["mae"], color=c, ls=":", lw=1,
                         label=f"{action}: constant = truth median (oracle)")
         a = entry["albedo"]
-        for floor, marker in zip(MIN_OCCLUSION, "os^"):
+        floors = [float(f) for f in a["baked_over_truth_visibility_psnr_db"]]
+        for floor, marker in zip(floors, "os^v<>"):
             axes[1].plot([o["occlusion_s"] for o in a["occlusion"]],
                          [o[f"psnr_db_min_occlusion_{floor}"] for o in a["occlusion"]], marker=marker, color=c,
                          label=f"{action} de-occluded, floor {floor}")
         axes[1].axhline(a["baked_psnr_db"], color=c, ls="--", lw=1, label=f"{action} baked")
     axes[0].set_xlabel("fit seconds (fit_roughness)")
     axes[0].set_ylabel("roughness MAE vs truth")
-    axes[0].set_title("roughness: variants (dots), median_neighbours 1/25/100/200 (+)")
+    axes[0].set_title("roughness: variants (dots), median_neighbours sweep (+)")
     axes[0].legend(fontsize=7)
     axes[1].set_xlabel("ambient occlusion seconds (16 / 64 / 128 rays)")
     axes[1].set_ylabel("albedo PSNR vs truth (dB)")
@@ -409,16 +429,18 @@ def main() -> int:
         print(f"bench_materials: no action of {release} has a roughness texture and ground truth; skipped")
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    report = {"threads": args.threads, "texture_size": TEXTURE_SIZE, "defaults": DEFAULTS, "actions": {}}
+    base = default_config()
+    report = {"threads": args.threads, "texture_size": base.texture_size, "defaults": dataclasses.asdict(base),
+              "actions": {}}
     started = time.perf_counter()
     for action in actions:
         t0 = time.perf_counter()
-        data = load_action(release, capture, action)
+        data = load_action(release, capture, action, base)
         probe = TruthProbe(data, truth_dir, action)
         print(f"{action}: loaded in {time.perf_counter() - t0:.1f} s ({probe.cameras} true cameras)", flush=True)
         entry = {"true_cameras": probe.cameras, "load_s": round(time.perf_counter() - t0, 2)}
-        entry["roughness"] = roughness_section(data, probe, lambda m: print(m, flush=True))
-        entry["albedo"] = albedo_section(data, probe, args.threads, lambda m: print(m, flush=True))
+        entry["roughness"] = roughness_section(data, probe, base, lambda m: print(m, flush=True))
+        entry["albedo"] = albedo_section(data, probe, base, args.threads, lambda m: print(m, flush=True))
         report["actions"][action] = entry
     report["total_s"] = round(time.perf_counter() - started, 1)
     (out / "bench_materials.json").write_text(json.dumps(report, indent=1))

@@ -28,9 +28,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stages.numerics import numeric_threads  # noqa: E402
 from stages.numerics.photometric import (  # noqa: E402
     PhotometricParams,
-    _default_threads,
     foreground_mask,
     photometric_maps,
 )
@@ -95,7 +95,7 @@ def main() -> int:
     mp = h * w / 1e6
     full, pos, neg, clipped, mask, plate = make_frames(h, w)
     params = PhotometricParams()
-    threads = _default_threads()
+    threads = numeric_threads()  # what photometric_maps uses when given no thread count
 
     maps = photometric_maps(full, pos, neg, clipped, WHITE, params=params, mask=mask)
     nbytes = sum(a.nbytes for a in (full, pos, neg, clipped, mask, maps.normals, maps.ratio_norm, maps.albedo,

@@ -1,21 +1,24 @@
 """Relight stage: relit novel views against the simulator's subject under the same environments, with times.
 
 For each action of a release (default A0000 and A0001), each novel camera of its ``renders/cameras.json``
-(3) and each environment (``studio_small_03_1k``, ``kiara_1_dawn_1k``, ``forest_slope_1k`` from
-../shared/data/hdri), the relight stage's per-view steps are rebuilt outside the stage from the release's
-files with the numerics the stage calls (mesh depth, ``reproject_gbuffer`` from the 6 nearest captured
-views, the materials textures through the atlas, ``fit_sg_environment``, ``direction_visibility``,
-``shade_sg`` / ``shade_sg_visible``), and every variant's image is scored like ``ultrastage evaluate``
+and each of the stage's environments (``RelightConfig.environments``, from ../shared/data/hdri), the relight
+stage's per-view steps run on the release's files through the functions the stage calls
+(``stages.relight`` ``novel_view_gbuffer``, ``silhouette_alpha``, ``premultiply_edges``, ``shading_albedo``;
+``fit_sg_environment``, ``direction_visibility``, ``shade_sg`` / ``shade_sg_visible``) with the stage's
+config (:func:`default_config`: sources, depth tolerance, fusion width, coverage samples, F0, SG fit height,
+lobes, visibility directions; the heuristic source weights), and every variant's image is scored like
+``ultrastage evaluate``
 (``stages.evaluate._relit_overall``): ``relit_psnr`` against ``synthetic.relight.TruthRelighter``'s
 rendering of the true subject (common exposure from the truth's 99th percentile, union of the masks).
 
-1. **Variants**, one change at a time from the stage's defaults (32 lobes, shadows with 256 visibility
-   directions, fused normals, the sources' ``albedo_diffuse`` when the release has it, de-occluded, silhouettes
-   antialiased by the pixels' coverage): hard edges (``coverage_samples`` 1: alpha = the pixel centres' mask),
-   ``sg_lobes`` 8/16/32/64 (with the SG fit time per environment), ``visibility_directions`` 64/128/256,
+1. **Variants**, one change at a time from the stage's defaults (:func:`default_row`: its lobes, shadows with
+   its visibility directions, its normals, the sources' ``albedo_diffuse`` when the release has it, de-occluded,
+   silhouettes antialiased by the pixels' coverage): hard edges (``coverage_samples`` 1: alpha = the pixel
+   centres' mask), ``sg_lobes`` 8/16/32/64 (with the SG fit time per environment), ``visibility_directions``
+   64/128/256 (each sweep with the stage's default in it),
    shadows off (with the de-occluded and with the photometric albedo: the stage with ``shadows: false``
    shades the photometric albedo unshadowed), shadows with the photometric albedo (occlusion counted twice),
-   ``normals`` reprojected, mesh, fused at 8 and 30 mm (the stage's ``normal_fusion_m`` is 15 mm), the
+   ``normals`` reprojected, mesh, fused at 8 and 30 mm besides the stage's ``normal_fusion_m``, the
    white-light albedo as the sources (times the diffuse-ratio texture, as before ``albedo_diffuse``, and
    without it). The shading normals' mean angle to the simulator's is reported per kind. Time per view: the G-buffer
    (mesh depth, reprojection, atlas lookups; the first view also renders the sources' depth), the
@@ -23,7 +26,8 @@ rendering of the true subject (common exposure from the truth's 99th percentile,
    variant's (no shadows, photometric albedo) in the same process. The ``released`` row scores the
    release's own relit images (equal to the default row when the release used the defaults).
 2. **Decomposition** on the pixels both the truth and our mask cover, at the true surface points with the
-   true mesh's visibility (256 directions), 32 lobes, F0 0.02 (the simulator's skin has 0.028, cloth 0.04):
+   true mesh's visibility (the stage's visibility directions), its lobe count and F0 (the simulator's skin has
+   0.028, cloth 0.04):
    the true G-buffers (normal, albedo, roughness) shaded with SG = the shading model's floor (also without
    shadows); then our normal (also the reprojected one), our (de-occluded, and not de-occluded) albedo or our
    roughness swapped in one at a time, all three together, and our default render itself (our geometry,
@@ -47,35 +51,52 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-ENVIRONMENTS = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
-LOBES = (8, 16, 32, 64)
-DIRECTIONS = (64, 128, 256)
-DEFAULT = {"lobes": 32, "shadows": True, "directions": 256, "normals": "fused", "albedo": "deoccluded",
-           "diffuse_ratio": True, "sources": "stage", "edges": "coverage"}
+from stages.relight import RelightConfig  # noqa: E402
+
+
+def default_config() -> RelightConfig:
+    """The configuration of the bench's default row: the relight stage's own defaults."""
+    return RelightConfig()
+
+
+def default_row(cfg: RelightConfig) -> dict:
+    """The shading choices of the stage with config ``cfg``, in the terms of the bench's variants."""
+    return {"lobes": cfg.sg_lobes, "shadows": cfg.shadows, "directions": cfg.visibility_directions,
+            "normals": cfg.normals,
+            # the stage divides the ambient occlusion out of the albedo when it shades with shadows
+            "albedo": "deoccluded" if cfg.shadows else "photometric",
+            "diffuse_ratio": True, "sources": "stage", "edges": "coverage" if cfg.coverage_samples > 1 else "centre"}
+
+
+def sweep(values: tuple, default) -> tuple:
+    """A sweep's values with the stage's default among them, sorted."""
+    return tuple(sorted(set(values) | {default}))
+
+
+CONFIG = default_config()
+DEFAULT = default_row(CONFIG)
+LOBES_SWEEP = sweep((8, 16, 32, 64), CONFIG.sg_lobes)
+DIRECTIONS_SWEEP = sweep((64, 128, 256), CONFIG.visibility_directions)
 FUSION_WIDTHS_M = (0.008, 0.03)  # frequency splits of the fused normals besides the stage's (normal_fusion_m)
-VARIANTS = [("default", {}),
-            ("hard edges (coverage_samples 1)", {"edges": "centre"}),
-            ("sg_lobes 8", {"lobes": 8}), ("sg_lobes 16", {"lobes": 16}), ("sg_lobes 64", {"lobes": 64}),
-            ("visibility_directions 64", {"directions": 64}), ("visibility_directions 128", {"directions": 128}),
-            ("shadows off, de-occluded albedo", {"shadows": False}),
-            ("shadows off, photometric albedo (baseline)", {"shadows": False, "albedo": "photometric"}),
-            ("shadows on, photometric albedo", {"albedo": "photometric"}),
-            ("normals reprojected", {"normals": "reprojected"}),
-            ("normals mesh", {"normals": "mesh"}),
-            ("normals fused 8 mm", {"normals": "fused_0.008"}),
-            ("normals fused 30 mm", {"normals": "fused_0.03"}),
-            ("white-light sources x diffuse ratio", {"sources": "white"}),
-            ("white-light sources, no diffuse ratio", {"sources": "white", "diffuse_ratio": False})]
 BASELINE = "shadows off, photometric albedo (baseline)"
+VARIANTS = ([("default", {})]
+            + ([("hard edges (coverage_samples 1)", {"edges": "centre"})] if DEFAULT["edges"] == "coverage" else [])
+            + [(f"sg_lobes {n}", {"lobes": n}) for n in LOBES_SWEEP if n != DEFAULT["lobes"]]
+            + [(f"visibility_directions {n}", {"directions": n}) for n in DIRECTIONS_SWEEP
+               if n != DEFAULT["directions"]]
+            + [("shadows off, de-occluded albedo", {"shadows": False, "albedo": "deoccluded"}),
+               (BASELINE, {"shadows": False, "albedo": "photometric"}),
+               ("shadows on, photometric albedo", {"shadows": True, "albedo": "photometric"})]
+            + [(f"normals {kind}", {"normals": kind}) for kind in ("reprojected", "mesh", "fused")
+               if kind != DEFAULT["normals"]]
+            + [(f"normals fused {width * 1000:g} mm", {"normals": f"fused_{width:g}"}) for width in FUSION_WIDTHS_M]
+            + [("white-light sources x diffuse ratio", {"sources": "white"}),
+               ("white-light sources, no diffuse ratio", {"sources": "white", "diffuse_ratio": False})])
 DECOMPOSITION = ("truth G-buffers (SG floor)", "truth G-buffers, no shadows", "truth + our normal",
                  "truth + our reprojected normal", "truth + our albedo", "truth + our albedo, not de-occluded",
                  "truth + our roughness",
                  "our normal+albedo+roughness",
                  "our default render")
-F0 = 0.02
-SOURCES = 6
-DEPTH_TOLERANCE_M = 0.01
-FIT_HEIGHT = 64
 
 
 def fit_environments(names: list[str], capture: Path, progress) -> tuple[dict, list]:
@@ -91,9 +112,9 @@ def fit_environments(names: list[str], capture: Path, progress) -> tuple[dict, l
             continue
         env, _ = load_environment(name, path)
         fits[name] = {"env": env}
-        for count in LOBES:
+        for count in LOBES_SWEEP:
             t0 = time.perf_counter()
-            lobes = fit_sg_environment(env, count, fit_height=FIT_HEIGHT)
+            lobes = fit_sg_environment(env, count, fit_height=CONFIG.fit_height)
             fit_s = time.perf_counter() - t0
             errors = sg_fit_errors(env, lobes)
             fits[name][count] = lobes
@@ -115,12 +136,12 @@ class ActionScene:
         from stages.numerics.mesh import vertex_normals
         from stages.numerics.raycast import mesh_scene
         from manifests import open_release
-        from stages.relight import ActionAsset, RelightConfig
+        from stages.relight import ActionAsset
 
         # the stage's sources: the specular-fitted normal maps and albedo_diffuse when the release has them
         kinds = open_release(release).action(action).kinds
-        diffuse = RelightConfig().diffuse_normals and "normal_diffuse" in kinds
-        self.diffuse_albedo = RelightConfig().diffuse_albedo and "albedo_diffuse" in kinds
+        diffuse = CONFIG.diffuse_normals and "normal_diffuse" in kinds
+        self.diffuse_albedo = CONFIG.diffuse_albedo and "albedo_diffuse" in kinds
         self.data = ActionGBuffers(release, action, diffuse_normals=diffuse)
         stage_data = self.data.with_albedo(self.diffuse_albedo)
         self.view = self.data.view
@@ -147,24 +168,24 @@ class ActionScene:
         ``stage_seconds`` times the stage's G-buffer alone (not the variants' extra work)."""
         from stages.numerics.gbuffer import fuse_normals
         from stages.numerics.raycast import pixel_coverage
-        from stages.relight import RelightConfig, novel_view_gbuffer, silhouette_alpha
+        from stages.relight import novel_view_gbuffer, silhouette_alpha
 
         h, w = int(cam["height"]), int(cam["width"])
         t0 = time.perf_counter()
-        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
-                                depth_tolerance_m=DEPTH_TOLERANCE_M)
+        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.sources,
+                                depth_tolerance_m=CONFIG.depth_tolerance_m, normal_fusion_m=CONFIG.normal_fusion_m)
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
-            cam["K"], cam["cam_from_world"], h, w, RelightConfig().coverage_samples, self.asset.scene,
+            cam["K"], cam["cam_from_world"], h, w, CONFIG.coverage_samples, self.asset.scene,
             centre_hit=gb["hit"]))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
-            self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=SOURCES,
-            depth_tolerance_m=DEPTH_TOLERANCE_M)
+            self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.sources,
+            depth_tolerance_m=CONFIG.depth_tolerance_m, normal_fusion_m=CONFIG.normal_fusion_m)
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
         for width in FUSION_WIDTHS_M:
             full[f"fused_{width:g}"] = fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
-                                                    gb["normal_fusion_px"] * width / RelightConfig().normal_fusion_m)
+                                                    gb["normal_fusion_px"] * width / CONFIG.normal_fusion_m)
         return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"],
                 "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,
@@ -190,23 +211,24 @@ def shade(normals, view_dirs, albedo, roughness, lobes, visibility=None, directi
     from stages.numerics.shadowing import shade_sg_visible
 
     if visibility is None:
-        return shade_sg(normals, view_dirs, albedo, roughness, lobes, f0=F0)["rgb"]
-    return shade_sg_visible(normals, view_dirs, albedo, roughness, lobes, visibility, directions, f0=F0)["rgb"]
+        return shade_sg(normals, view_dirs, albedo, roughness, lobes, f0=CONFIG.f0)["rgb"]
+    return shade_sg_visible(normals, view_dirs, albedo, roughness, lobes, visibility, directions, f0=CONFIG.f0)["rgb"]
 
 
 def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, threads: int, progress) -> dict:
     """Every variant and the decomposition for one novel camera under every environment."""
     from stages.numerics.metrics import angular_error_deg, relit_psnr
+    from stages.numerics.raycast import camera_rays
     from stages.numerics.sg import fibonacci_sphere
     from stages.numerics.shadowing import direction_visibility
-    from stages.relight import _pixel_points, premultiply_edges, shading_albedo
+    from stages.relight import premultiply_edges, shading_albedo
 
     gb = scene.gbuffer(cam)
     gbuffer_s = gb["stage_seconds"]
-    directions = {d: fibonacci_sphere(d) for d in DIRECTIONS}
+    directions = {d: fibonacci_sphere(d) for d in DIRECTIONS_SWEEP}
     visibility, vis_s = {}, {}
     for normals_kind in gb["normals"]:
-        for d in (DIRECTIONS if normals_kind == DEFAULT["normals"] else (DEFAULT["directions"],)):
+        for d in (DIRECTIONS_SWEEP if normals_kind == DEFAULT["normals"] else (DEFAULT["directions"],)):
             t0 = time.perf_counter()
             visibility[(normals_kind, d)] = direction_visibility(gb["points"], gb["normals"][normals_kind],
                                                                  scene.scene, directions[d], threads=threads)
@@ -255,11 +277,13 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
         bp = np.flatnonzero(both.reshape(-1))
         if true_geometry is None:
             centre = -pose[:, :3].T @ pose[:, 3]
-            points = _pixel_points(K, pose, true["depth_m"]).reshape(-1, 3)[bp]
+            origins, rays, z_per_t = camera_rays(K, pose, h, w)  # the truth's depth is camera z, not ray length
+            points = (origins + rays * (true["depth_m"].reshape(-1).astype(np.float64) / z_per_t)[:, None])[bp]
             view_dirs = centre[None] - points
             view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
             true_normals = true["normals_world"].reshape(-1, 3)[bp].astype(np.float64)
-            true_vis = direction_visibility(points, true_normals, true_scene, directions[256], threads=threads)
+            true_vis = direction_visibility(points, true_normals, true_scene, directions[DEFAULT["directions"]],
+                                            threads=threads)
             ours = {"normal": gb["normals_full"][DEFAULT["normals"]].reshape(-1, 3)[bp].astype(np.float64),
                     "reprojected normal": gb["normals_full"]["reprojected"].reshape(-1, 3)[bp].astype(np.float64),
                     "albedo": shading_albedo(gb["albedo_full"].reshape(-1, 3)[bp],
@@ -279,7 +303,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
 
         def score(buffers: dict, shadows: bool = True) -> float:
             rgb = shade(buffers["normal"], view_dirs, buffers["albedo"], buffers["roughness"], lobes,
-                        true_vis if shadows else None, directions[256] if shadows else None)
+                        true_vis if shadows else None, directions[DEFAULT["directions"]] if shadows else None)
             return relit_psnr(_image(bp, rgb, (h, w)), both, target, both)["psnr_db"]
 
         decomposition["truth G-buffers (SG floor)"][env_name] = score(t_buf)
@@ -340,7 +364,7 @@ def summarise(report: dict) -> dict:
     out["normal_error_deg"] = {kind: round(float(np.mean([v["normal_error_deg"][kind] for v in views])), 3)
                                for kind in views[0]["normal_error_deg"]}
     lobes_psnr = {}
-    for count in LOBES:
+    for count in LOBES_SWEEP:
         label = "default" if count == DEFAULT["lobes"] else f"sg_lobes {count}"
         lobes_psnr[str(count)] = out["variants"][label]["per_environment"]
     out["psnr_by_lobes"] = lobes_psnr
@@ -367,14 +391,15 @@ def markdown(report: dict) -> str:
     lines += ["", f"`released` scores the release's own images, made with: {json.dumps(shading)}."]
     lines += ["", "Per action: " + "; ".join(f"{a} default {s['variants']['default']['per_action'][a]:.2f} dB"
                                            for a in report["actions"]), "",
-              "Decomposition (pixels in both masks, true surface points and true-mesh visibility, 32 lobes, F0 0.02):",
+              f"Decomposition (pixels in both masks, true surface points and true-mesh visibility, "
+              f"{report['defaults']['lobes']} lobes, F0 {report['f0']:g}):",
               "", "| G-buffers | PSNR | " + " | ".join(short) + " |", "|---" * (2 + len(envs)) + "|"]
     for label, row in s["decomposition"].items():
         lines.append(f"| {label} | {row['psnr_db']:.2f} | "
                      + " | ".join(f"{row['per_environment'][e]:.2f}" for e in envs) + " |")
     lines += ["", "Shading normals against the simulator's (mean angle, degrees, pixels in both masks): "
               + ", ".join(f"{kind} {err:.2f}" for kind, err in s["normal_error_deg"].items()) + "."]
-    lines += ["", "SG fits (fit_height 64, torch threads as above):", "",
+    lines += ["", f"SG fits (fit_height {report['fit_height']}, torch threads as above):", "",
               "| environment | lobes | fit s | irradiance rel L2 | map rel L2 (64 rows) | relit PSNR |",
               "|---" * 6 + "|"]
     for r in report["sg_fits"]:
@@ -399,7 +424,7 @@ def figure(report: dict, path: Path) -> None:
         axes[0].scatter(row["seconds_per_view"], row["psnr_db"])
         axes[0].annotate(label, (row["seconds_per_view"], row["psnr_db"]), fontsize=7)
     floor = s["decomposition"]["truth G-buffers (SG floor)"]["psnr_db"]
-    axes[0].set_xlabel("seconds per view (G-buffer + visibility + 3 environments)")
+    axes[0].set_xlabel(f"seconds per view (G-buffer + visibility + {len(report['environments'])} environments)")
     axes[0].set_ylabel("relit PSNR vs truth (dB), mean")
     axes[0].set_title(f"relight variants (truth G-buffers + SG shading: {floor:.2f} dB)")
     ax2 = axes[1].twinx()
@@ -445,13 +470,18 @@ def main() -> int:
     def progress(message: str) -> None:
         print(message, flush=True)
 
+    if CONFIG.learned_blend.enabled:
+        print("bench_relight: the stage's default blend is learned (relight.learned_blend); this bench reproduces "
+              "the heuristic source weights only")
+        return 1
     started = time.perf_counter()
-    fits, fit_rows = fit_environments(list(ENVIRONMENTS), capture, progress)
+    fits, fit_rows = fit_environments(list(CONFIG.environments), capture, progress)
     if not fits:
         print("bench_relight: none of the environments was found (../shared/data/hdri); skipped")
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    report = {"threads": args.threads, "defaults": DEFAULT, "f0": F0, "environments": list(fits),
+    report = {"threads": args.threads, "defaults": DEFAULT, "f0": CONFIG.f0, "fit_height": CONFIG.fit_height,
+              "stage_config": dataclasses.asdict(CONFIG), "environments": list(fits),
               "sg_fits": fit_rows, "actions": {}}
     for action in actions:
         t0 = time.perf_counter()

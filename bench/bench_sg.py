@@ -262,12 +262,15 @@ def previews(maps: list[Path], fits: dict, counts: list[int], path: Path) -> Non
 
 
 def main() -> int:
+    from stages.relight import RelightConfig
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     parser.add_argument("--lobes", default="8,16,32,64,128")
     parser.add_argument("--maps", help="comma-separated map stems (default: every *.hdr)")
     parser.add_argument("--iterations", type=int, default=300)
-    parser.add_argument("--fit-height", type=int, default=64)
+    parser.add_argument("--fit-height", type=int, default=RelightConfig().fit_height,
+                        help="rows of the map the fit works on (default: the relight stage's)")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     out = Path(args.out)

@@ -2,7 +2,7 @@
 
 Every stage has a ``<Name>Config`` dataclass beside it. Fields that do not change a stage's output
 (worker counts, progress display) are listed in the class attribute ``not_in_key`` and left out of the
-cache key. YAML overrides are merged onto a preset and reject unknown keys, naming the key and the file.
+cache key, at whatever depth the class is nested. YAML overrides are merged onto a preset and reject unknown keys, naming the key and the file.
 """
 from __future__ import annotations
 
@@ -37,9 +37,23 @@ def to_dict(config: Any) -> dict[str, Any]:
 
 
 def key_fields(config: Any) -> dict[str, Any]:
-    """The fields of a stage config that change its output (everything but ``not_in_key``)."""
+    """The fields of a (nested) stage config that change its output: ``to_dict`` less every field that its
+    own dataclass lists in ``not_in_key``, at every level (``geometry.sdf.log_every`` is left out by
+    ``SDFConfig.not_in_key``, not only the stage config's top-level exclusions)."""
+    if not dataclasses.is_dataclass(config) or isinstance(config, type):
+        raise TypeError(f"key_fields expects a config dataclass instance, got {type(config).__name__}")
     skip = set(getattr(config, "not_in_key", ()))
-    return {k: v for k, v in to_dict(config).items() if k not in skip}
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(config):
+        if f.name in skip:
+            continue
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            value = key_fields(value)
+        elif isinstance(value, tuple):
+            value = list(value)
+        out[f.name] = value
+    return out
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:

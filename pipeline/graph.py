@@ -1,9 +1,9 @@
 """Planning and executing the stage graph.
 
-Planning computes every task's cache key from an explicit record (stage, version, scope, the config
-fields that change output, upstream keys, raw-input digests). A task whose key is already committed in
-the store is resolved while planning and never reaches the scheduler; each decision is logged as one
-line with its reason. Execution submits the remaining tasks to an executor (in-process, or
+Planning computes every task's cache key from an explicit record (stage, version, the digests of the
+stage's code, scope, the config fields that change output, upstream keys, raw-input digests). A task whose
+key is already committed in the store is resolved while planning and never reaches the scheduler; each
+decision is logged as one line with its reason. Execution submits the remaining tasks to an executor (in-process, or
 dask.distributed), one task per (stage, scope) or per (stage, action, camera) for per-view stages.
 
 A task never raises into the scheduler: it returns a result record, and a failed upstream turns its
@@ -22,7 +22,7 @@ from typing import Any
 from pipeline.capture import Capture
 from pipeline.config import key_fields
 from pipeline.errors import InputError
-from pipeline.hashing import DigestCache, record_key
+from pipeline.hashing import DigestCache, code_digests, record_key
 from pipeline.stage import PROGRESS_TOPIC, Stage, StageContext, set_local_progress
 from pipeline.store import ArtifactStore, short
 
@@ -123,6 +123,14 @@ def _why(record: dict[str, Any], previous: dict[str, Any] | None) -> str:
     changes = []
     if old.get("version") != record.get("version"):
         changes.append(f"version {old.get('version')} -> {record.get('version')}")
+    if "code" not in old:
+        changes.append("the earlier key had no code digest")
+    else:
+        code_old, code_new = old["code"], record["code"]
+        changed_code = [m for m in sorted(set(code_old) | set(code_new)) if code_old.get(m) != code_new.get(m)]
+        if changed_code:
+            more = f" and {len(changed_code) - 3} more module(s)" if len(changed_code) > 3 else ""
+            changes.append(f"code of {', '.join(changed_code[:3])}{more} changed")
     changes += [f"config.{path} {a!r} -> {b!r}" for path, a, b in _changed_leaves(old.get("config", {}), record["config"])]
     for k in sorted(set(old.get("upstream", {})) | set(record["upstream"])):
         if old.get("upstream", {}).get(k) != record["upstream"].get(k):
@@ -147,6 +155,12 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     unknown = [a for a in wanted if a not in {x.action_id for x in capture.actions}]
     if unknown:
         raise InputError(capture.root / "capture.json", f"unknown action(s) {unknown}")
+    stage_code: dict[str, dict[str, str]] = {}
+    for stage in ordered:
+        try:
+            stage_code[stage.name] = code_digests(stage.code_module, stage.code_packages)
+        except ValueError as exc:
+            raise ValueError(f"stage {stage.name}: {exc}") from exc
     tasks: list[Task] = []
     index: dict[tuple[str, str], Task] = {}
     emit = echo or (lambda line: log.info(line))
@@ -170,7 +184,7 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
         except FileNotFoundError as exc:
             error = f"{exc.filename}: file disappeared while planning"
         views = list(capture.sessions[session_id].camera_ids)
-        record = {"stage": stage.name, "version": stage.version, "scope": scope_id,
+        record = {"stage": stage.name, "version": stage.version, "code": stage_code[stage.name], "scope": scope_id,
                   "config": key_fields(stage.config), "upstream": {n: t.key for n, t in sorted(upstream.items())},
                   "inputs": inputs}
         key = record_key(record)

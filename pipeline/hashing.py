@@ -1,10 +1,25 @@
-"""Content hashing: canonical records for cache keys and file digests computed once at ingest."""
+"""Content hashing: canonical records for cache keys, file digests computed once at ingest, and digests of the
+code a stage runs.
+
+A stage's code digest covers its module and every module of the counted packages that it imports,
+transitively, found by an AST scan of its ``import`` and ``from ... import`` statements (those inside
+functions included), as DVC hashes a stage's code dependencies. Each module is hashed from its syntax tree
+less docstrings: comments, blank lines, formatting and docstrings do not change a key; any change to what the
+code does (a statement, a constant, a default) does. The tree is written out by Python's own ``ast.dump``, so
+a new Python version may change every key once. The scan imports nothing, so the engine can hash the code of
+packages it must not import; imports made by name at run time (``importlib.import_module``) are not seen.
+"""
 from __future__ import annotations
 
+import ast
+import functools
 import hashlib
+import importlib.util
 import json
 import os
+import sys
 import threading
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -73,3 +88,151 @@ class DigestCache:
         tmp.write_text(json.dumps(self._entries, sort_keys=True))
         os.replace(tmp, self.path)
         self._dirty = False
+
+
+# --- code digests -----------------------------------------------------------------------------------
+
+def _counts(module: str, packages: Iterable[str]) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def module_file(module: str) -> tuple[Path, bool] | None:
+    """(source file, is a package) of a module, found without importing it; None when there is none.
+
+    A module already imported is taken from ``sys.modules`` (the code this process runs); otherwise its
+    top-level package is looked up on ``sys.path`` and the dotted path followed through its folders.
+    """
+    loaded = sys.modules.get(module)
+    source = getattr(loaded, "__file__", None) if loaded is not None else None
+    if source and source.endswith(".py"):
+        return Path(source), Path(source).name == "__init__.py"
+    top, *rest = module.split(".")
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        return None
+    if spec is None:
+        return None
+    if not rest:
+        if spec.submodule_search_locations:
+            for folder in spec.submodule_search_locations:
+                if (Path(folder) / "__init__.py").is_file():
+                    return Path(folder) / "__init__.py", True
+            return None
+        return (Path(spec.origin), False) if spec.origin and spec.origin.endswith(".py") else None
+    for folder in spec.submodule_search_locations or ():
+        base = Path(folder).joinpath(*rest)
+        if (base / "__init__.py").is_file():
+            return base / "__init__.py", True
+        if base.with_suffix(".py").is_file():
+            return base.with_suffix(".py"), False
+    return None
+
+
+def _imported_modules(tree: ast.AST, module: str, is_package: bool) -> set[str]:
+    """Every module name an import statement anywhere in ``tree`` may load, with the parent packages that
+    importing it runs; ``from a import b`` yields ``a.b`` as well (b may be a submodule)."""
+    package = module if is_package else module.rpartition(".")[0]
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".") if package else []
+                if node.level - 1 > len(parts):
+                    continue  # beyond the top-level package: an ImportError at run time, nothing to hash
+                base = ".".join(parts[:len(parts) - (node.level - 1)])
+                base = f"{base}.{node.module}" if node.module and base else (node.module or base)
+            else:
+                base = node.module or ""
+            if not base:
+                continue
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
+    with_parents = set()
+    for name in names:
+        parts = name.split(".")
+        with_parents.update(".".join(parts[:i]) for i in range(1, len(parts) + 1))
+    return with_parents
+
+
+def _without_docstrings(tree: ast.AST) -> ast.AST:
+    """``tree`` with every bare string statement (module, class, function and attribute docstrings) removed."""
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(body, list):
+            node.body = [stmt for stmt in body if not (isinstance(stmt, ast.Expr)
+                                                        and isinstance(stmt.value, ast.Constant)
+                                                        and isinstance(stmt.value.value, str))]
+    return tree
+
+
+def _parse(path: Path) -> ast.Module:
+    try:
+        return ast.parse(path.read_bytes(), filename=str(path))
+    except SyntaxError as exc:
+        reason = f"cannot hash its code, Python cannot parse it ({exc.msg}, line {exc.lineno})"
+        raise ValueError(f"{path}: {reason}") from exc
+
+
+def _tree_digest(tree: ast.AST) -> str:
+    return hashlib.sha256(ast.dump(_without_docstrings(tree)).encode()).hexdigest()
+
+
+def source_digest(path: Path) -> str:
+    """sha256 hex of a Python file's syntax tree less docstrings (comments and layout do not count)."""
+    return _tree_digest(_parse(path))
+
+
+@functools.lru_cache(maxsize=None)
+def _module_code(module: str) -> tuple[str, frozenset[str]] | None:
+    """(source digest, modules its imports may load) of one module, parsed once per process."""
+    found = module_file(module)
+    if found is None:
+        return None
+    path, is_package = found
+    tree = _parse(path)
+    imported = _imported_modules(tree, module, is_package)
+    return _tree_digest(tree), frozenset(imported)
+
+
+@functools.lru_cache(maxsize=None)
+def _code_digests(module: str, packages: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    if _module_code(module) is None:
+        raise ValueError(f"module {module}: no Python source file found to hash its code")
+    parts = module.split(".")
+    # importing the module runs its parent packages' __init__ first
+    todo = [module] + [p for p in (".".join(parts[:i]) for i in range(1, len(parts))) if _counts(p, packages)]
+    digests: dict[str, str] = {}
+    while todo:
+        name = todo.pop()
+        code = _module_code(name)
+        if name in digests or code is None:  # None: an attribute (from a import b) or an absent optional import
+            continue
+        digests[name] = code[0]
+        todo += sorted(m for m in code[1] if m not in digests and _counts(m, packages))
+    return tuple(sorted(digests.items()))
+
+
+def clear_code_cache() -> None:
+    """Forget every code digest of this process (for tests that edit source files)."""
+    _module_code.cache_clear()
+    _code_digests.cache_clear()
+
+
+def code_digests(module: str, packages: Iterable[str]) -> dict[str, str]:
+    """Module name -> :func:`source_digest` for ``module`` and every module under ``packages`` (dotted
+    prefixes, e.g. ``{"stages", "pipeline.codecs"}``) that it imports, transitively.
+
+    Cached per process: the code a process runs does not change while it runs, whatever happens to the files
+    (:func:`clear_code_cache` starts over).
+    """
+    if not module:
+        raise ValueError("code_digests needs a module name")
+    return dict(_code_digests(module, tuple(sorted(set(packages)))))
+
+
+def code_digest(module: str, packages: Iterable[str]) -> str:
+    """One sha256 hex over :func:`code_digests` in sorted module order."""
+    return record_key({"code": code_digests(module, packages)})

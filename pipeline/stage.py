@@ -5,12 +5,17 @@ names), ``outputs`` (named slots, each a folder in its artifact) and ``resources
 (``per_view = True``) is run as one task per camera plus a ``finalize`` task, so full-resolution frames
 never leave the process that decodes them; every other stage runs as one task.
 
+Its cache key holds, besides its config, upstream keys and inputs, a digest of its code: its module and the
+modules of ``code_packages`` it imports (:func:`pipeline.hashing.code_digests`), so editing a numerics
+function reruns the stages that call it whether or not anyone bumps ``version``.
+
 A stage sees only its :class:`StageContext`: its config, its upstream artifact folders, its raw input
 files and the rig. It writes into ``ctx.out_dir`` (a temporary folder the engine renames into place).
 """
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, ClassVar
@@ -89,8 +94,21 @@ class Stage:
     config_section: ClassVar[str | None] = None
     """The section of the pipeline config this stage reads (defaults to its name)."""
 
-    def __init__(self, config: Any):
+    def __init__(self, config: Any, code_packages: Sequence[str] | None = None):
+        packages = tuple(code_packages) if code_packages is not None else (type(self).__module__.split(".")[0],)
+        bad = [p for p in packages if not isinstance(p, str) or not all(part.isidentifier() for part in p.split("."))]
+        if bad:
+            raise ValueError(f"stage {type(self).__name__}: code_packages must be dotted module names, got {bad}")
         self.config = config
+        self.code_packages: tuple[str, ...] = packages
+        """Dotted module prefixes whose code can change this stage's output: the code of the stage's module and
+        of every module under these prefixes that it imports, transitively, enters its cache key
+        (:func:`pipeline.hashing.code_digests`). Default: the top-level package of the stage's module."""
+
+    @property
+    def code_module(self) -> str:
+        """The module that defines this stage (where the scan for its code starts)."""
+        return type(self).__module__
 
     # --- planning ---------------------------------------------------------------------------------
     def preflight(self, capture: Any, echo: Callable[[str], None]) -> None:

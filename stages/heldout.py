@@ -286,7 +286,9 @@ def summarise(parts: list[dict[str, Any]], suffix: str = "") -> dict[str, float]
     return out
 
 
-def _load_truth(truth_dir: Path, action_id: str, cam: str, shape: tuple[int, int]) -> dict[str, np.ndarray] | None:
+def load_truth(truth_dir: Path, action_id: str, cam: str, shape: tuple[int, int]) -> dict[str, np.ndarray] | None:
+    """The simulator's normal, albedo and mask of camera ``cam`` resampled to ``shape`` (H, W), or None when the
+    ground truth has no normal map for it."""
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
 
@@ -424,7 +426,7 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
                                             "seconds": float(synth["seconds"])}
         truth = None
         if truth_dir is not None:
-            truth = _load_truth(Path(truth_dir), action_id, cam, synth["depth_m"].shape)
+            truth = load_truth(Path(truth_dir), action_id, cam, synth["depth_m"].shape)
             if truth is not None:
                 tmask = synth["valid"] & truth["mask"]
                 tpart = compare_maps(synth["normal"], synth["albedo"], truth["normal"], truth["albedo"], tmask)

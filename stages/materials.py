@@ -177,6 +177,70 @@ def roughness_median(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarr
     return surface_median(points, roughness, voters, neighbours), voters
 
 
+def texel_samples(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_texture: np.ndarray,
+                  views: list[Any], cfg: MaterialsConfig) -> dict[str, Any]:
+    """Step 1 of the roughness: the texels of a ``cfg.texture_size`` atlas and their observations.
+
+    vertices (V, 3), faces (F, 3) and atlas: :func:`load_atlas_mesh`; albedo_texture (T', T', 3): the baked
+    white-light albedo; views: :class:`stages.numerics.bake.BakeView` with ``images["obs"]`` (H, W, 9) =
+    full_on | pos | neg. Returns ``covered`` (T, T) bool, per covered texel in row-major order ``points`` and
+    ``normals`` (N, 3) float64 and ``albedo`` (N, 3), and ``obs``: :func:`stages.numerics.bake.gather_observations`
+    of the ``cfg.max_views`` best views (best first), with the config's depth tolerance and grazing limit."""
+    from stages.numerics.bake import gather_observations, rasterize_atlas, sample_texture
+
+    raster = rasterize_atlas(vertices, faces, atlas, int(cfg.texture_size))
+    covered = raster["covered"]
+    points = raster["position"][covered].astype(np.float64)
+    normals = raster["normal"][covered].astype(np.float64)
+    albedo = sample_texture(albedo_texture, texel_uvs(covered))
+    obs = gather_observations(vertices, faces, points, normals, views, cfg.max_views,
+                              depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
+    return {"covered": covered, "points": points, "normals": normals, "albedo": albedo, "obs": obs}
+
+
+def fit_texel_roughness(observed: np.ndarray, view_dirs: np.ndarray, valid: np.ndarray, normals: np.ndarray,
+                        albedo: np.ndarray, white_scale: np.ndarray,
+                        cfg: MaterialsConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2: the per-texel fit with the config's model, F0, bounds and albedo solve (arrays as
+    :func:`stages.numerics.materials.fit_roughness`, whose ``(roughness, rms, diffuse albedo)`` it returns;
+    texels without views have rms ``NO_VIEWS_RESIDUAL``)."""
+    from stages.numerics.materials import fit_roughness
+
+    return fit_roughness(observed, view_dirs, valid, normals, albedo, white_scale=white_scale,
+                         r_min=cfg.roughness_min, r_max=cfg.roughness_max, f0=cfg.f0,
+                         specular_model=cfg.specular_model, fit_albedo=cfg.fit_albedo, return_albedo=True)
+
+
+def published_roughness(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
+                        cfg: MaterialsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3: :func:`roughness_median` with the config's voters and neighbours, within the config's bounds
+    (0.5 where no texel voted). Returns the (N,) float32 roughness and the (N,) bool voters."""
+    smooth, voters = roughness_median(points, roughness, fitted, visibility, cfg.median_min_visibility,
+                                      cfg.median_neighbours)
+    return np.clip(np.nan_to_num(smooth, nan=0.5), cfg.roughness_min, cfg.roughness_max), voters
+
+
+def texel_texture(values: np.ndarray, covered: np.ndarray, fill: float | None = None) -> np.ndarray:
+    """A (T, T[, C]) float32 texture holding ``values`` (N[, C]) at the ``covered`` (T, T) texels in row-major
+    order, grown past the charts' borders (:func:`dilate_covered`, ``fill`` beyond)."""
+    texture = np.zeros(covered.shape + np.shape(values)[1:], np.float32)
+    texture[covered] = values
+    return dilate_covered(texture, covered, fill=fill)
+
+
+def albedo_without_occlusion(albedo_texture: np.ndarray, occlusion_texture: np.ndarray, min_occlusion: float,
+                             diffuse_ratio_texture: np.ndarray | None = None) -> np.ndarray:
+    """The baked albedo (T, T, 3) divided by the occlusion texture (sampled at its texels, floored at
+    ``min_occlusion``), times the diffuse-ratio texture when given (``albedo_intrinsic``), in [0, 1]."""
+    from stages.numerics.bake import sample_texture
+
+    uv_full = texel_uvs(np.ones(albedo_texture.shape[:2], bool)).reshape(albedo_texture.shape[:2] + (2,))
+    occlusion_full = np.maximum(sample_texture(occlusion_texture, uv_full), min_occlusion)[..., None]
+    albedo = (albedo_texture if diffuse_ratio_texture is None
+              else albedo_texture * sample_texture(diffuse_ratio_texture, uv_full))
+    return np.clip(np.nan_to_num(albedo / occlusion_full, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+
+
 class MaterialsStage(Stage):
     """Roughness texture (inverse rendering under full_on/pos/neg), occlusion, and albedos without occlusion
     and without specular light."""
@@ -190,8 +254,8 @@ class MaterialsStage(Stage):
     def run(self, ctx: StageContext) -> dict[str, Any]:
         import torch
 
-        from stages.numerics.bake import BakeView, gather_observations, rasterize_atlas, sample_texture
-        from stages.numerics.materials import NO_VIEWS_RESIDUAL, fit_roughness
+        from stages.numerics.bake import BakeView, rasterize_atlas
+        from stages.numerics.materials import NO_VIEWS_RESIDUAL
         from stages.numerics.raycast import mesh_scene
         from stages.numerics.shadowing import ambient_occlusion
 
@@ -218,22 +282,15 @@ class MaterialsStage(Stage):
         # Roughness: observations per texel, a per-texel fit, then a median over surface neighbours.
         t0 = time.perf_counter()
         size = int(cfg.texture_size)
-        raster = rasterize_atlas(vertices, faces, atlas, size)
-        covered = raster["covered"]
-        points = raster["position"][covered].astype(np.float64)
-        normals = raster["normal"][covered].astype(np.float64)
-        albedo = sample_texture(albedo_texture, texel_uvs(covered))
-        obs = gather_observations(vertices, faces, points, normals, views, cfg.max_views,
-                                  depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
+        texels = texel_samples(vertices, faces, atlas, albedo_texture, views, cfg)
+        covered, points, normals, albedo, obs = (texels[k] for k in ("covered", "points", "normals", "albedo", "obs"))
         ctx.progress(1, 3, f"{len(points)} texels, {obs['valid'].sum(axis=1).mean():.1f} views each")
         timings["observations_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         white_per_obs = np.stack([white[c] for c in ids])[np.maximum(obs["view_index"], 0)]
         observed = obs["values"]["obs"].reshape(len(points), -1, 3, 3)
-        roughness, fit_rms, diffuse_albedo = fit_roughness(
-            observed, obs["view_dirs"], obs["valid"], normals, albedo, white_scale=white_per_obs,
-            r_min=cfg.roughness_min, r_max=cfg.roughness_max, f0=cfg.f0, specular_model=cfg.specular_model,
-            fit_albedo=cfg.fit_albedo, return_albedo=True)
+        roughness, fit_rms, diffuse_albedo = fit_texel_roughness(observed, obs["view_dirs"], obs["valid"], normals,
+                                                                 albedo, white_per_obs, cfg)
         fitted = fit_rms != NO_VIEWS_RESIDUAL
         mesh = mesh_scene(vertices, faces)
         # The share of the white-light albedo that the fit explains as diffuse (the rest is specular light).
@@ -241,20 +298,14 @@ class MaterialsStage(Stage):
         diffuse_ratio = np.clip(np.nan_to_num(diffuse_ratio, nan=1.0), 0.5, 1.5).astype(np.float32)
         # texels the body shadows from part of the stage fit too rough: they take their unshadowed neighbours'
         texel_visibility = ambient_occlusion(points, normals, mesh, rays=cfg.occlusion_rays)
-        smooth, voters = roughness_median(points, roughness, fitted, texel_visibility, cfg.median_min_visibility,
-                                          cfg.median_neighbours)
-        smooth = np.clip(np.nan_to_num(smooth, nan=0.5), cfg.roughness_min, cfg.roughness_max)
+        smooth, voters = published_roughness(points, roughness, fitted, texel_visibility, cfg)
         timings["fit_s"] = time.perf_counter() - t0
         ctx.progress(2, 3, f"roughness fitted in {timings['fit_s']:.1f} s")
 
-        roughness_tex = np.zeros((size, size), np.float32)
-        roughness_tex[covered] = smooth
+        roughness_tex = texel_texture(smooth, covered)
         rms_tex = np.zeros((size, size), np.float32)
         rms_tex[covered] = np.where(fitted, fit_rms, 0.0)
-        roughness_tex = _dilate(roughness_tex, covered)
-        ratio_tex = np.ones((size, size, 3), np.float32)
-        ratio_tex[covered] = diffuse_ratio
-        ratio_tex = _dilate(ratio_tex, covered, fill=1.0)
+        ratio_tex = texel_texture(diffuse_ratio, covered, fill=1.0)
 
         # Ambient occlusion on the mesh, divided out of the baked albedo.
         t0 = time.perf_counter()
@@ -264,14 +315,9 @@ class MaterialsStage(Stage):
         visible = ambient_occlusion(occ_raster["position"][occ_covered].astype(np.float64),
                                     occ_raster["normal"][occ_covered].astype(np.float64),
                                     mesh, rays=cfg.occlusion_rays)
-        occlusion_tex = np.ones((occ_size, occ_size), np.float32)
-        occlusion_tex[occ_covered] = visible
-        occlusion_tex = _dilate(occlusion_tex, occ_covered, fill=1.0)
-        uv_full = texel_uvs(np.ones(albedo_texture.shape[:2], bool)).reshape(albedo_texture.shape[:2] + (2,))
-        occlusion_full = np.maximum(sample_texture(occlusion_tex, uv_full), cfg.min_occlusion)[..., None]
-        deoccluded = np.clip(np.nan_to_num(albedo_texture / occlusion_full, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
-        intrinsic = albedo_texture * sample_texture(ratio_tex, uv_full) / occlusion_full
-        intrinsic = np.clip(np.nan_to_num(intrinsic, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+        occlusion_tex = texel_texture(visible, occ_covered, fill=1.0)
+        deoccluded = albedo_without_occlusion(albedo_texture, occlusion_tex, cfg.min_occlusion)
+        intrinsic = albedo_without_occlusion(albedo_texture, occlusion_tex, cfg.min_occlusion, ratio_tex)
         timings["occlusion_s"] = time.perf_counter() - t0
 
         out = ctx.out_dir
@@ -305,7 +351,7 @@ class MaterialsStage(Stage):
         return files
 
 
-def _dilate(texture: np.ndarray, covered: np.ndarray, fill: float | None = None, px: int = 4) -> np.ndarray:
+def dilate_covered(texture: np.ndarray, covered: np.ndarray, fill: float | None = None, px: int = 4) -> np.ndarray:
     """Grow the covered texels of a (T, T) or (T, T, C) texture ``px`` texels (bilinear lookups at chart
     borders must not pull the empty value); texels still empty get ``fill`` (default: the covered texels'
     median)."""

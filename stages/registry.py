@@ -21,6 +21,11 @@ STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage
                                           PhotometricStage, GeometryStage, TexturesStage,
                                           MaterialsStage, DiffuseNormalsStage, RelightStage, RelightSetStage)
 
+CODE_PACKAGES: tuple[str, ...] = ("stages", "calibration", "synthetic", "pipeline.codecs")
+"""The project's packages whose code can change a stage's output: a stage's cache key holds the digests of its
+module and of the modules under these that it imports. The engine (pipeline.stage, graph, store, config, runner),
+the command line and manifests/ are left out: they decide what runs and where, not what a stage computes."""
+
 
 @dataclass(frozen=True)
 class PipelineConfig:
@@ -107,7 +112,7 @@ def build_stages(config: PipelineConfig, through: str | None = None) -> list[Sta
     stages = []
     for cls in classes:
         section = cls.config_section or cls.name
-        stages.append(cls(getattr(config, section)))
+        stages.append(cls(getattr(config, section), code_packages=CODE_PACKAGES))
     return stages
 
 

@@ -50,6 +50,36 @@ def test_key_fields_exclude_not_in_key():
     assert key_fields(Outer())["inner"] == {"threshold": 0.5, "name": "a"}
 
 
+@dataclass(frozen=True)
+class Leaf(Documented):
+    steps: int = 10
+    """In the key."""
+    log_every: int = 5
+    """Progress display only."""
+    not_in_key = ("log_every",)
+
+
+@dataclass(frozen=True)
+class Middle(Documented):
+    leaf: Leaf = field(default_factory=Leaf)
+    """Two levels below the stage config."""
+
+
+@dataclass(frozen=True)
+class Top(Documented):
+    middle: Middle = field(default_factory=Middle)
+    """One level below."""
+
+
+def test_key_fields_apply_not_in_key_at_every_depth():
+    assert key_fields(Top()) == {"middle": {"leaf": {"steps": 10}}}
+    quiet = Top(Middle(Leaf(log_every=500)))
+    assert key_fields(quiet) == key_fields(Top())
+    assert key_fields(Top(Middle(Leaf(steps=11)))) != key_fields(Top())
+    with pytest.raises(TypeError, match="config dataclass instance"):
+        key_fields({"steps": 10})
+
+
 def test_round_trip_through_dict():
     cfg = Outer(inner=Inner(0.25, "b"), count=7)
     assert from_dict(Outer, to_dict(cfg)) == cfg
