@@ -202,8 +202,8 @@ class RelightSetStage(Stage):
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("relight",)
 
-    def __init__(self, config: Any):
-        super().__init__(config)
+    def __init__(self, config: Any, **kwargs: Any):
+        super().__init__(config, **kwargs)
         self._pools: dict[str, tuple[list[PoolMap], list[dict[str, str]]]] = {}
 
     def pool(self, capture_root: Path | None) -> tuple[list[PoolMap], list[dict[str, str]]]:
