@@ -39,6 +39,22 @@ class ActionArtifacts:
     def __init__(self, upstream: Mapping[str, Path]):
         self.upstream = {name: Path(path) for name, path in upstream.items()}
 
+    @classmethod
+    def from_store(cls, store_root: Path, action_id: str, session_id: str,
+                   stages: tuple[str, ...]) -> "ActionArtifacts | None":
+        """The last committed results of ``stages`` for an action in a work store (``<work>/artifacts``), as a
+        stage task would see them (session-scoped stages by ``session_id``); None when one is missing."""
+        from pipeline.store import ArtifactStore
+
+        store = ArtifactStore(store_root)
+        upstream = {}
+        for stage in stages:
+            folder = store.latest_dir(stage, action_id) or store.latest_dir(stage, session_id)
+            if folder is None:
+                return None
+            upstream[stage] = folder
+        return cls(upstream)
+
     def path(self, product: str, camera: str | None = None) -> Path:
         """Where a product is (it may not exist); KeyError for an unknown product or a stage not upstream."""
         if product not in PRODUCTS:

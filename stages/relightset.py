@@ -227,8 +227,8 @@ class RelightSetStage(Stage):
 
         from stages.artifacts import ActionArtifacts, load_relightable_asset
         from stages.numerics.novel_view import auto_exposure, relight_view
-        from stages.numerics.relightset import (choose_environment, encode_normals, normals_to_camera,
-                                                orbit_camera, split_of, tone_map, unit_draw)
+        from stages.numerics.relightset import (draw_example, encode_normals, normals_to_camera, split_of,
+                                                subject_frame, tone_map)
         from stages.numerics.sg import fibonacci_sphere, fit_sg_environment, rotate_sg, rotation_y
         from stages.numerics.sh import project_environment
 
@@ -242,12 +242,7 @@ class RelightSetStage(Stage):
         split = split_of(cfg.seed, subject, cfg.split_ratios)
         artifacts = ActionArtifacts(ctx.upstream)
         asset, cameras = load_relightable_asset(artifacts)
-        vertices, _ = artifacts.mesh()
-        centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-        radius = float(np.linalg.norm(vertices - centre, axis=1).max())
-        distances = [np.linalg.norm(-np.asarray(c["cam_from_world"])[:, :3].T @ np.asarray(c["cam_from_world"])[:, 3]
-                                    - centre) for c in cameras.values()]
-        distance = max(float(np.median(distances)), 1.5 * radius)
+        centre, radius, distance = subject_frame(artifacts.mesh()[0], camera_centres(cameras))
         directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
         render_record = {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
                          "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
@@ -258,13 +253,11 @@ class RelightSetStage(Stage):
         fits: dict[int, Any] = {}
         rows, reused, seconds = [], 0, []
         for index in range(cfg.examples_per_action):
-            example_id = f"{ctx.action_id}_{index:02d}"
-            env_index = choose_environment(cfg.seed, example_id, digests)
-            rotation_deg = 360.0 * unit_draw(cfg.seed, "rotation", example_id)
-            azimuth = 360.0 * unit_draw(cfg.seed, "azimuth", example_id)
-            low, high = cfg.elevation_deg
-            elevation = low + (high - low) * unit_draw(cfg.seed, "elevation", example_id)
-            K, cam_from_world = orbit_camera(centre, radius, distance, azimuth, elevation, cfg.size, cfg.margin)
+            example_id = example_name(ctx.action_id, index)
+            draw = draw_example(cfg.seed, example_id, digests, centre, radius, distance, cfg.size, cfg.elevation_deg,
+                                cfg.margin)
+            env_index, rotation_deg = draw["environment_index"], draw["rotation_deg"]
+            K, cam_from_world = draw["K"], draw["cam_from_world"]
             key = _digest(render_record | {"example_id": example_id, "environment": digests[env_index],
                                            "rotation_deg": rotation_deg, "K": K.round(9).tolist(),
                                            "cam_from_world": cam_from_world.round(9).tolist()})
@@ -349,6 +342,17 @@ class RelightSetStage(Stage):
     def manifest_rows(self, artifact: Path) -> dict[str, list[dict[str, Any]]]:
         path = artifact / "relight" / "examples.json"
         return {"relight_examples": json.loads(path.read_text())} if path.is_file() else {}
+
+
+def example_name(action_id: str, index: int) -> str:
+    """The id (and folder name) of an action's example ``index``."""
+    return f"{action_id}_{index:02d}"
+
+
+def camera_centres(cameras: dict[str, dict[str, Any]]) -> np.ndarray:
+    """World centres (C, 3) of camera records with ``cam_from_world``."""
+    poses = [np.asarray(c["cam_from_world"], np.float64) for c in cameras.values()]
+    return np.array([-p[:, :3].T @ p[:, 3] for p in poses]).reshape(-1, 3)
 
 
 def _link(src: Path, dst: Path) -> None:

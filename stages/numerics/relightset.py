@@ -109,3 +109,31 @@ def encode_normals(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     picture = (np.clip((np.asarray(normals, np.float32) + 1.0) * 0.5, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     picture[~np.asarray(mask, bool)] = 0
     return picture
+
+
+def subject_frame(vertices: np.ndarray, camera_centres: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """(centre (3,), bounding radius, camera distance) of a subject: the centre of the vertices' (V, 3) box, the
+    largest distance of a vertex from it, and the median distance of the captured cameras' centres (C, 3)
+    from it (at least 1.5 radii)."""
+    vertices = np.asarray(vertices, np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0 or not np.all(np.isfinite(vertices)):
+        raise ValueError(f"vertices must be a finite non-empty (V, 3) array, got shape {vertices.shape}")
+    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    radius = float(np.linalg.norm(vertices - centre, axis=1).max())
+    distances = np.linalg.norm(np.asarray(camera_centres, np.float64).reshape(-1, 3) - centre, axis=1)
+    distance = max(float(np.median(distances)) if len(distances) else 0.0, 1.5 * radius)
+    return centre, radius, distance
+
+
+def draw_example(seed: int, example_id: str, pool_digests: Sequence[str], centre: np.ndarray, radius_m: float,
+                 distance_m: float, size: int, elevation_deg: Sequence[float], margin: float) -> dict:
+    """The draws of one example: ``environment_index`` (into ``pool_digests``), ``rotation_deg`` in [0, 360),
+    ``azimuth_deg``, ``elevation_deg`` (uniform in the range), and its camera ``K`` (3, 3) and
+    ``cam_from_world`` (3, 4) (:func:`orbit_camera`)."""
+    low, high = elevation_deg
+    azimuth = 360.0 * unit_draw(seed, "azimuth", example_id)
+    elevation = low + (high - low) * unit_draw(seed, "elevation", example_id)
+    K, cam_from_world = orbit_camera(centre, radius_m, distance_m, azimuth, elevation, size, margin)
+    return {"environment_index": choose_environment(seed, example_id, pool_digests),
+            "rotation_deg": 360.0 * unit_draw(seed, "rotation", example_id), "azimuth_deg": azimuth,
+            "elevation_deg": elevation, "K": K, "cam_from_world": cam_from_world}
