@@ -291,6 +291,38 @@ RELIGHT_EXAMPLES = TableSpec(
     ),
 )
 
+BASELINE_METRICS = TableSpec(
+    name="baseline_metrics",
+    description="Test metrics of a single-image baseline (AlbedoNet or NormalNet, stages.baselines) on a split of "
+                "the relighting set, beside its checkpoint (not a release manifest): one value per row, per example "
+                "and over the whole split, for the trained network and the trivial baselines on the same examples. "
+                "All metrics are taken on the examples' masked pixels.",
+    primary_key=("method", "split", "example_id", "metric"),
+    columns=(
+        Column("network", _STR, "The network the checkpoint trains: 'albedonet' or 'normalnet'.",
+               choices=("albedonet", "normalnet")),
+        Column("method", _STR, "What made the prediction: the network's name (the checkpoint), 'input_image' (the "
+               "linearised sRGB input photo taken as the albedo) or 'constant_normal' (every normal (0, 0, -1), "
+               "facing the camera)."),
+        Column("split", _STR, "Split of the relighting set the metrics are taken on.", choices=SPLITS),
+        Column("example_id", _STR, "Example the row is about; '*' for the value over the whole split (albedo: "
+               "the mean of the examples' values; normals: over all the split's masked pixels pooled).",
+               pattern=re.compile(r"^(\*|[A-Za-z0-9][A-Za-z0-9._-]*)$")),
+        Column("metric", _STR, "Metric name. Albedo (linear, [0, 1]): 'albedo_psnr_raw_db', 'albedo_ssim_raw', "
+               "'albedo_rmse_raw' compare the prediction as it is; 'albedo_psnr_scaled_db', 'albedo_ssim_scaled', "
+               "'albedo_rmse_scaled' first multiply each channel by its least-squares scale against the truth "
+               "(the field disagrees on scale alignment). Normals (camera frame): 'normal_mean_deg', "
+               "'normal_median_deg', 'normal_under_11_25_pct', 'normal_under_22_5_pct', 'normal_under_30_pct'; "
+               "'pixels' is the masked pixel count."),
+        Column("value", _F64, "The value (finite)."),
+        Column("step", _I64, "Training step of the checkpoint evaluated (0 for the trivial baselines).", min_value=0),
+    ),
+)
+
+STANDALONE_SPECS: dict[str, TableSpec] = {t.name: t for t in (BASELINE_METRICS,)}
+"""Tables written as single Parquet files outside a release's manifests/ folder (never looked for by
+:class:`manifests.Release`), by name."""
+
 TABLE_SPECS: dict[str, TableSpec] = {t.name: t for t in (ACTIONS, FRAMES, ASSETS, METRICS, STAGE_RUNS,
                                                             RELIGHT_EXAMPLES)}
 """Every manifest table by name."""
@@ -331,8 +363,10 @@ def media_type(path: str) -> str:
 
 
 def spec(name: str) -> TableSpec:
-    """The spec of a manifest table; ValueError naming the known tables for an unknown name."""
-    try:
-        return TABLE_SPECS[name]
-    except KeyError:
-        raise ValueError(f"unknown manifest table {name!r}; known tables: {', '.join(TABLE_SPECS)}") from None
+    """The spec of a manifest table or a standalone table (:data:`STANDALONE_SPECS`); ValueError naming the
+    known tables for an unknown name."""
+    found = TABLE_SPECS.get(name) or STANDALONE_SPECS.get(name)
+    if found is None:
+        raise ValueError(f"unknown manifest table {name!r}; known tables: "
+                         f"{', '.join([*TABLE_SPECS, *STANDALONE_SPECS])}")
+    return found

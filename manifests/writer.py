@@ -42,8 +42,12 @@ _STATUS_RULES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 
 
 def manifest_path(release_dir: str | Path, name: str) -> Path:
-    """Path of a table's Parquet file: ``RELEASE/manifests/<name>.parquet``."""
-    spec(name)
+    """Path of a table's Parquet file: ``RELEASE/manifests/<name>.parquet`` (release tables only)."""
+    from manifests.schemas import TABLE_SPECS
+
+    if name not in TABLE_SPECS:
+        spec(name)  # the message naming the known tables for an unknown name
+        raise ValueError(f"{name!r} is a standalone table, not a release manifest (write_standalone_table)")
     return Path(release_dir) / MANIFEST_DIR / f"{name}.parquet"
 
 
@@ -273,6 +277,7 @@ def write_table_keeping(release_dir: str | Path, name: str, rows: Iterable[Mappi
     Raises:
         ValueError: see :func:`validate_rows`, or a kept row sharing the primary key with a new one.
     """
+    manifest_path(release_dir, name)  # a release table (not a standalone one)
     ts = spec(name)
     table = validate_rows(name, rows)
     keep = set(keep_actions)
@@ -287,6 +292,40 @@ def write_table_keeping(release_dir: str | Path, name: str, rows: Iterable[Mappi
                 table = _sorted(pa.concat_tables([kept, table]), ts)
                 _duplicates(name, ts.primary_key, {k: table.column(k).to_pylist() for k in ts.primary_key})
         return _write_atomic(directory, name, table)
+
+
+def write_standalone_table(path: str | Path, name: str, rows: Iterable[Mapping]) -> Path:
+    """Validate ``rows`` against a standalone table's schema (:data:`manifests.schemas.STANDALONE_SPECS`, e.g.
+    ``baseline_metrics``) and write them as the single Parquet file ``path`` (outside any release), replacing
+    it atomically (temporary file in the same folder, then rename).
+
+    Raises:
+        ValueError: a name that is not a standalone table, or see :func:`validate_rows`; nothing is written then.
+    """
+    from manifests.schemas import STANDALONE_SPECS
+
+    if name not in STANDALONE_SPECS:
+        raise ValueError(f"{name!r} is not a standalone table; standalone tables: {', '.join(STANDALONE_SPECS)}")
+    path = Path(path)
+    table = validate_rows(name, rows)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stem = path.name[: -len(".parquet")] if path.name.endswith(".parquet") else path.name
+    written = _write_atomic(path.parent, stem, table)
+    if written != path:  # _write_atomic names the file <stem>.parquet
+        os.replace(written, path)
+    return path
+
+
+def read_standalone_table(path: str | Path, name: str) -> pa.Table:
+    """A standalone table's Parquet file read in the current schema of ``name``.
+
+    Raises:
+        FileNotFoundError: no such file. ValueError: a required column missing or of the wrong type.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    return conform(pq.read_table(path), name, path)
 
 
 def append_rows(release_dir: str | Path, name: str, rows: Iterable[Mapping],

@@ -237,6 +237,37 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 0 if report.ok else 1
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from pipeline.config import load_overrides, merge
+    from stages.baselines.config import preset
+    from stages.baselines.train import CHECKPOINT_NAME, METRICS_NAME, default_out_dir, evaluate, select_device, train
+
+    config = preset(args.preset, args.network)
+    if args.config:
+        config = merge(config, load_overrides(args.config), where=str(args.config))
+        if config.network != args.network:
+            raise ConfigError(f"{args.config}: network {config.network!r} contradicts the command's {args.network!r}")
+    out = Path(args.out) if args.out else default_out_dir(Path(args.set), args.network)
+    if args.evaluate_only:
+        evaluate(Path(args.set), out / CHECKPOINT_NAME, out / METRICS_NAME, device=select_device(config.device))
+        print(f"wrote {out / METRICS_NAME}")
+        return 0
+    result = train(Path(args.set), config, out)
+    print(f"{args.network}: {result.step} steps ({result.steps_run} now, {result.seconds:.1f}s); "
+          f"wrote {result.checkpoint}, {out / 'config.yaml'}, {out / 'loss.png'}, {out / METRICS_NAME}")
+    return 0
+
+
+def cmd_predict(args: argparse.Namespace) -> int:
+    from stages.baselines.predict import predict_folder
+
+    result = predict_folder([Path(c) for c in args.checkpoint], Path(args.images), Path(args.out),
+                            Path(args.environment) if args.environment else None, args.environment_rotation,
+                            device=args.device)
+    print(f"{len(result.photos)} photo(s), {len(result.files)} file(s) written to {args.out}")
+    return 0
+
+
 def _add_run_args(p: argparse.ArgumentParser, capture_required: bool = True) -> None:
     p.add_argument("--capture", required=capture_required, help="capture folder (capture.json inside)")
     p.add_argument("--release", required=True, help="release folder to write")
@@ -299,6 +330,27 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("verify", help="re-check every asset of a release against its sha256")
     p.add_argument("release")
     p.set_defaults(fn=cmd_verify)
+
+    p = sub.add_parser("train", help="train the AlbedoNet or NormalNet baseline on a release's relighting set")
+    p.add_argument("network", choices=("albedonet", "normalnet"))
+    p.add_argument("--set", required=True, help="release folder with the relighting set (relight_examples)")
+    p.add_argument("--preset", default="cpu", help="config preset: tiny (tests), cpu (default), gpu")
+    p.add_argument("--config", help="YAML overrides of TrainConfig, e.g. {steps: 500, lr: 0.001}")
+    p.add_argument("--out", help="folder of the checkpoint, config, loss curve and test metrics "
+                                 "(default: <release>.baselines/<network>/ beside the release); resumes from it")
+    p.add_argument("--evaluate-only", action="store_true", help="only measure the test split with OUT's checkpoint")
+    p.set_defaults(fn=cmd_train)
+
+    p = sub.add_parser("predict", help="albedo and normal maps of photos (and relit images under an HDR map)")
+    p.add_argument("--checkpoint", action="append", required=True,
+                   help="a checkpoint of `ultrastage train` (give one per network; both for relighting)")
+    p.add_argument("--images", required=True, help="folder of PNG/JPEG photos (alpha, when present, is the mask)")
+    p.add_argument("--out", required=True, help="folder to write OUT/<photo>/{albedo,normal,relit_<env>}.{exr,png}")
+    p.add_argument("--environment", help="HDR environment map (.hdr/.exr) or a folder of them: relight under each")
+    p.add_argument("--environment-rotation", type=float, default=0.0,
+                   help="degrees about +y (world = R_y(deg) map); the camera looks along the map's -z")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
+    p.set_defaults(fn=cmd_predict)
     return parser
 
 
