@@ -19,6 +19,11 @@ EXPECTED_COLUMNS = {
     "metrics": ["action_id", "camera_id", "metric", "region", "value", "source", "run_id"],
     "stage_runs": ["run_id", "stage", "version", "scope", "scope_id", "cache_key", "status", "seconds",
                    "error", "started_at", "config_json"],
+    "relight_examples": ["example_id", "action_id", "subject", "session_id", "split", "view_index", "width", "height",
+                         "fx", "fy", "cx", "cy", "cam_from_world_json", "environment_name", "environment_file",
+                         "environment_sha256", "environment_rotation_deg", "sh_camera_json", "sh_world_json",
+                         "image_exr", "image_png", "albedo_exr", "albedo_png", "normal_exr", "normal_png", "mask_png",
+                         "png_exposure", "mask_pixels", "seed", "example_key"],
 }
 
 SHA = "ab" * 32
