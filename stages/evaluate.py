@@ -228,8 +228,9 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
     overall |= _mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id)
     overall |= _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
-    overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache)
-    overall |= _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache)
+    relighters: dict[tuple[str, int], Any] = {}  # the simulator's subjects, traced once per action and light count
+    overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters)
+    overall |= _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters)
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     for metric, value in overall.items():
         rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
@@ -467,7 +468,8 @@ class RelitTruthCache:
 
 
 def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
-                   rows: list[dict[str, Any]], run_id: str, cache_dir: Path | None = None) -> dict[str, float]:
+                   rows: list[dict[str, Any]], run_id: str, cache_dir: Path | None = None,
+                   relighters: dict[tuple[str, int], Any] | None = None) -> dict[str, float]:
     """Relit novel views against the simulator's subject rendered under the same environment from the same
     camera (:class:`synthetic.relight.TruthRelighter`, kept in ``cache_dir`` by :class:`RelitTruthCache`
     when given): PSNR after a common exposure (:func:`stages.numerics.metrics.relit_psnr`), per view and
@@ -480,7 +482,6 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     capture_root = Path(truth_dir).parent
     if not (capture_root / "capture.json").exists():
         return {}
-    from synthetic.relight import TruthRelighter
 
     values: list[float] = []
     normal_values: list[float] = []
@@ -504,7 +505,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                 true = cache.load(key) if cache is not None else None
                 if true is None:
                     if truth is None:
-                        truth = TruthRelighter(capture_root, action_id, lights=lights)
+                        truth = _relighter(relighters, capture_root, action_id, lights)
                     true = truth.render(*args)
                     if cache is not None:
                         cache.save(key, true)
@@ -534,9 +535,21 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     return out
 
 
+def _relighter(relighters: dict[tuple[str, int], Any] | None, capture_root: Path, action_id: str, lights: int) -> Any:
+    """The simulator's subject of an action for ground-truth relighting, built once per (action, lights)."""
+    from synthetic.relight import TruthRelighter
+
+    if relighters is None:
+        return TruthRelighter(capture_root, action_id, lights=lights)
+    if (action_id, lights) not in relighters:
+        relighters[(action_id, lights)] = TruthRelighter(capture_root, action_id, lights=lights)
+    return relighters[(action_id, lights)]
+
+
 def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str],
                         per_action: dict[str, dict[str, float]], rows: list[dict[str, Any]], run_id: str,
-                        cache_dir: Path | None = None) -> dict[str, float]:
+                        cache_dir: Path | None = None,
+                        relighters: dict[tuple[str, int], Any] | None = None) -> dict[str, float]:
     """How faithful the relighting set is: each example against the simulator's subject rendered from the same
     camera under the same rotated map (:class:`synthetic.relight.TruthRelighter`): image PSNR after a common
     exposure (:func:`stages.numerics.metrics.relit_psnr`), camera-frame normals' mean angle and albedo PSNR
@@ -554,7 +567,6 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
     examples = rel.relight_examples
     if not (capture_root / "capture.json").exists() or examples.empty:
         return {}
-    from synthetic.relight import TruthRelighter
 
     config = yaml.safe_load((release / "config.yaml").read_text()) if (release / "config.yaml").exists() else {}
     entries = tuple((config.get("relightset") or {}).get("environments") or ("hdri-folders",))
@@ -583,7 +595,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             true = cache.load(key) if cache is not None else None
             if true is None or "albedo" not in true:
                 if truth is None:
-                    truth = TruthRelighter(capture_root, action_id, lights=lights)
+                    truth = _relighter(relighters, capture_root, action_id, lights)
                 true = truth.render(*args)
                 if cache is not None:
                     cache.save(key, true)

@@ -328,6 +328,11 @@ def test_accuracy_against_ground_truth(first_run, capture):
     # the released shading normals of the novel views against the true subject's (random normals: ~90 deg)
     assert 0.0 < overall["relit_normal_mean_deg"] < 40.0
     assert overall["albedo_deoccluded_psnr_db"] > 15.0
+    # The relighting set against the simulator's subject from the same cameras under the same turned maps (a
+    # mirrored or wrongly rotated environment, or world normals in the camera column, fail these).
+    assert overall["relightset_image_psnr_db"] > 10.0
+    assert 0.0 < overall["relightset_normal_mean_deg"] < 40.0
+    assert overall["relightset_albedo_psnr_db"] > 12.0
 
 
 def test_second_run_is_all_cached_and_config_change_reruns_photometric_and_downstream(first_run, capture):
@@ -445,3 +450,107 @@ def test_missing_environments_fall_back_to_one_procedural_sky(first_run, capture
     assert sorted(p.name for p in (renders / "N000").glob("procedural_*.exr")) == ["procedural_sky.exr",
                                                                                   "procedural_studio.exr"]
     assert not list((renders / "N000").glob("no_such_map*"))
+
+
+def test_relighting_set_is_indexed_split_by_subject_and_consistent(first_run):
+    from manifests import open_release, verify_release
+    from pipeline.codecs.image import read_png
+
+    out, result = first_run
+    release = out / "release"
+    rel = open_release(release)
+    examples = rel.relight_examples
+    cfg = PRESETS["test"].relightset
+    assert sorted(examples.example_id) == [f"{a}_{k:02d}" for a in ("A0000", "A0001")
+                                           for k in range(cfg.examples_per_action)]
+    assert (examples.groupby("subject").split.nunique() == 1).all()  # a subject is in one split
+    for split in ("train", "validation", "test"):
+        listed = (release / "relight" / "splits" / f"{split}.txt").read_text().split()
+        assert listed == sorted(examples.example_id[examples.split == split])
+    assets = set(rel.assets.path)
+    for _, row in examples.iterrows():
+        for column in ("image_exr", "image_png", "albedo_exr", "albedo_png", "normal_exr", "normal_png", "mask_png"):
+            assert (release / row[column]).is_file() and row[column] in assets
+        maps = rel.relight_example(row)
+        mask = maps["mask"]
+        assert mask.sum() == row.mask_pixels > 0.05 * row.width * row.height
+        assert maps["image"].shape == (row.height, row.width, 3) and np.isfinite(maps["image"]).all()
+        assert 0.0 <= maps["alpha"].min() and maps["alpha"].max() <= 1.0
+        assert np.all(maps["image"][maps["alpha"] == 0] == 0)  # premultiplied: nothing off the subject
+        normals = maps["normal"]
+        np.testing.assert_allclose(np.linalg.norm(normals[mask], axis=1), 1.0, atol=1e-3)
+        assert np.all(normals[~mask] == 0)
+        # camera frame, OpenCV axes: the visible surface faces the camera (n_z < 0) almost everywhere
+        assert np.mean(normals[mask][:, 2] < 0) > 0.95
+        # and the world normals it came from are the published shading normals turned by the camera
+        R = np.asarray(json.loads(row.cam_from_world_json))[:, :3]
+        np.testing.assert_allclose(np.linalg.norm(normals[mask] @ R, axis=1), 1.0, atol=1e-3)
+        png = read_png(release / row.normal_png)
+        np.testing.assert_allclose(png[mask] / 255.0 * 2 - 1, normals[mask], atol=1.5 / 255 * 2)
+        assert 0.0 <= maps["albedo"].min() and maps["albedo"].max() <= 1.0
+        sh_camera, sh_world = np.asarray(json.loads(row.sh_camera_json)), np.asarray(json.loads(row.sh_world_json))
+        assert sh_camera.shape == sh_world.shape == (9, 3) and sh_world[0].min() > 0
+        # the DC term does not depend on the frame, the linear ones turn with the camera
+        np.testing.assert_allclose(sh_camera[0], sh_world[0], rtol=1e-4)
+        np.testing.assert_allclose(sh_camera[[3, 1, 2]][:, 0], R @ sh_world[[3, 1, 2]][:, 0], atol=1e-4)
+        assert row.png_exposure > 0 and row.environment_name in ("procedural:sky", "procedural:studio")
+    assert verify_release(release).ok
+
+
+def test_relighting_set_renders_only_the_examples_a_pool_change_touches(first_run, capture, tmp_path):
+    import dataclasses
+    import shutil
+
+    from manifests import open_release
+
+    out, _ = first_run
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, symlinks=True)
+    before = open_release(copy / "release").relight_examples.set_index("example_id")
+    base = PRESETS["test"]
+    config = dataclasses.replace(base, relightset=dataclasses.replace(base.relightset,
+                                                                      environments=("procedural:sky",)))
+    result, lines = _run(capture, copy, config)
+    after = open_release(copy / "release").relight_examples.set_index("example_id")
+    kept = before.index[before.environment_name == "procedural:sky"]
+    stats = {t.scope_id: t.stats for t in result.plan.tasks if t.stage.name == "relightset"}
+    assert sum(s["reused"] for s in stats.values()) == len(kept)
+    assert sum(s["rendered"] for s in stats.values()) == len(before) - len(kept)
+    assert set(after.environment_name) == {"procedural:sky"}
+    # the examples the change did not touch keep their draws and their files
+    for example_id in kept:
+        for column in ("cam_from_world_json", "environment_rotation_deg", "example_key", "split"):
+            assert after.loc[example_id, column] == before.loc[example_id, column]
+        assert (copy / "release" / after.loc[example_id, "image_exr"]).read_bytes() == \
+               (out / "release" / before.loc[example_id, "image_exr"]).read_bytes()
+    # every other stage stayed cached
+    assert {t.stage.name for t in result.plan.tasks if t.status == "ran"} == {"relightset"}
+
+
+def test_relighting_set_environment_pool_errors(capture, tmp_path, capsys):
+    from pipeline.codecs.exr import write_exr
+    from pipeline.errors import InputError
+    from stages.relightset import resolve_pool
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no .hdr or .exr"):
+        resolve_pool((str(empty),), None)
+    with pytest.raises(InputError, match="not found"):
+        resolve_pool(("no_such_map_anywhere",), None)
+    mixed = tmp_path / "mixed"
+    write_exr(mixed / "good.exr", np.full((8, 16, 3), 0.5, np.float32))
+    (mixed / "broken.hdr").write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8 +X 16\n\x02\x02")
+    maps, skipped = resolve_pool((str(mixed),), None)
+    assert [m.name for m in maps] == ["good"]
+    assert [s["path"] for s in skipped] == ["broken.hdr"] and skipped[0]["reason"]
+    (mixed / "good.exr").unlink()
+    with pytest.raises(InputError, match="no readable environment map"):
+        resolve_pool((str(mixed),), None)
+    # the command line: an empty pool folder is a usage error (exit 2) before any work, naming the folder
+    override = tmp_path / "o.yaml"
+    override.write_text(f"relightset: {{environments: [{empty}]}}\n")
+    code = cli(["plan", "--capture", str(capture), "--release", str(tmp_path / "rel"), "--preset", "test",
+                "--config", str(override)])
+    assert code == 2 and str(empty) in capsys.readouterr().err
+    assert not (tmp_path / "rel").exists()
