@@ -264,6 +264,13 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                             "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
                             "error": error if failed_here else (f"camera {cam['camera_id']}: {left_out}" if left_out else None)}
                 frame_rows.append(row)
+        # Calibration frames a session stage left out (its stats' "calibration_left_out": camera -> file and
+        # reason, also logged): one row per camera and stage for every action the calibration feeds.
+        for task in plan.tasks:
+            if task.scope_id == info.session_id:
+                for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
+                    metric_rows.append({"action_id": action_id, "camera_id": cam, "metric": "calibration_frame_left_out",
+                                        "region": "", "value": 1.0, "source": task.stage.name, "run_id": run_id})
         for task in tasks:
             if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
                 continue
