@@ -21,6 +21,7 @@ from pipeline.capture import Capture, open_capture
 from pipeline.config import Documented, dump_yaml
 from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of, execute, make_plan
 from pipeline.hashing import DigestCache
+from pipeline.runlock import hold_run_lock
 from pipeline.stage import Stage
 from pipeline.store import ArtifactStore, swap_into_place
 
@@ -128,7 +129,22 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                  progress: Callable[[Task, dict, int, int], None] | None = None,
                  view_progress: Callable[[Task, dict, int, int], None] | None = None,
                  stage_progress: Callable[[dict], None] | None = None) -> RunResult:
-    """Run the DAG over a capture and publish the release. ``config`` is saved beside the run."""
+    """Run the DAG over a capture and publish the release. ``config`` is saved beside the run.
+
+    The run holds ``<work>/run.lock`` throughout (:mod:`pipeline.runlock`): a second run on the same work
+    folder is refused with :class:`pipeline.runlock.RunLockedError` before it reads or writes anything.
+    """
+    with hold_run_lock(work, echo=echo):
+        return _run_pipeline_locked(capture_dir, release, work, stages, config, execution, only, from_stage,
+                                    actions, echo, progress, view_progress, stage_progress)
+
+
+def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
+                         execution: ExecutionConfig, only: str | None, from_stage: str | None,
+                         actions: Sequence[str] | None, echo: Callable[[str], None],
+                         progress: Callable[[Task, dict, int, int], None] | None,
+                         view_progress: Callable[[Task, dict, int, int], None] | None,
+                         stage_progress: Callable[[dict], None] | None) -> RunResult:
     start = time.perf_counter()
     capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
     capture = open_capture(capture_dir)
