@@ -245,6 +245,8 @@ def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
             np.divide(m, t1, out=t1)
         else:
             np.divide(1.0, t1, out=t1)
+        # |d| under _TINY (e.g. denormal inputs, whose squares underflow to 0) is undefined, not a tiny normal
+        np.copyto(t1, 0.0, where=R < _TINY)
         for c in range(3):
             np.multiply(D[..., c], t1, out=D[..., c])
         R_in = R
