@@ -41,6 +41,10 @@ class ExecutionConfig(Documented):
 
     not_in_key = ("scheduler", "workers", "memory_limit")
 
+    def __post_init__(self) -> None:
+        if self.workers < 0 or not self.scheduler:
+            raise ValueError(f"execution: need workers >= 0 and a scheduler, got {self.workers!r}, {self.scheduler!r}")
+
 
 @dataclass
 class RunResult:

@@ -44,6 +44,10 @@ class ColourConfig(Documented):
     erode_px: int = 2
     """Pixels trimmed from each patch box (demosaicing blur at patch edges)."""
 
+    def __post_init__(self) -> None:
+        if self.erode_px < 0:
+            raise ValueError(f"colour.erode_px must be >= 0, got {self.erode_px!r}")
+
 
 @dataclass(frozen=True)
 class LightsConfig(Documented):
@@ -57,6 +61,11 @@ class LightsConfig(Documented):
     """Pixels trimmed from the sphere's silhouette (demosaicing blur, grazing angles)."""
     min_gain: float = 0.05
     """Use the fitted model only if it lowers the held-out sphere error by at least this fraction."""
+
+    def __post_init__(self) -> None:
+        if self.degree not in (1, 2, 3) or self.iterations < 0 or self.erode_px < 0 or not 0.0 <= self.min_gain < 1.0:
+            raise ValueError(f"lights: need degree 1, 2 or 3, iterations >= 0, erode_px >= 0 and 0 <= min_gain < 1; "
+                             f"got {self.degree!r}, {self.iterations!r}, {self.erode_px!r}, {self.min_gain!r}")
 
 
 def colour_matrix(colour_dir: Path, camera_id: str) -> np.ndarray | None:
