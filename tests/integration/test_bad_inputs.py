@@ -44,17 +44,14 @@ import pytest
 from pipeline.errors import ConfigError
 from pipeline.runner import ExecutionConfig, run_pipeline
 from stages.registry import PRESETS, build_stages
-from synthetic import SimConfig, simulate
+from tests.integration.conftest import TINY_CAMERAS as CAMERAS
 
 SYNC = ExecutionConfig(scheduler="sync")
-CAMERAS = ("00000", "00001", "00002")
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("badin") / "capture"
-    simulate(root, SimConfig(actions=2, width=48, n_cameras=len(CAMERAS), n_leds=64))
-    return root
+def clean(tiny_capture: Path) -> Path:
+    return tiny_capture
 
 
 @pytest.fixture(scope="module")
