@@ -3,6 +3,7 @@ worker`` processes on 127.0.0.1, as a user starts them) gives the release a loca
 (issue 23): the same asset digests."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -52,15 +53,12 @@ def cluster(tmp_path):
             pids = set(client.run(os.getpid).values())
         assert len(pids) == 2 and os.getpid() not in pids  # two worker processes, not this one
         yield address
-    finally:
+    finally:  # each was started as its own process group (a worker's nanny and its worker process): end both
         for proc in reversed(procs):
-            proc.send_signal(signal.SIGTERM)
-        for proc in reversed(procs):
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+        for proc in procs:
+            proc.wait(timeout=30)
 
 
 def test_a_cluster_of_processes_gives_the_local_release(tiny_capture, cluster, tmp_path):
