@@ -73,8 +73,9 @@ class Capture:
         return _find_raw(self.root / "sessions" / session_id / "background", camera_id)
 
     def action_frames(self, action_id: str) -> tuple[dict[tuple[str, str], Path], list[InputError]]:
-        """All raw frames of an action keyed by (illumination, camera), and one error per missing frame
-        or per unexpected extra file (a wrong count)."""
+        """All raw frames of an action keyed by (illumination, camera), and one error per missing frame,
+        per camera with more than one raw file for an illumination (a duplicate frame) or per unexpected extra
+        raw file (a wrong count). Files that are not raw (sidecars, notes, thumbnails) are ignored."""
         info = self.action(action_id)
         session = self.sessions[info.session_id]
         frames: dict[tuple[str, str], Path] = {}
@@ -89,11 +90,14 @@ class Capture:
                 continue
             expected = set(session.camera_ids)
             for cam in session.camera_ids:
-                path = self.raw_path(action_id, illum, cam)
-                if path is None:
+                found = _raw_files(folder, cam)
+                if not found:
                     errors.append(InputError(folder / f"{cam}.*", f"camera {cam} has no raw file for '{illum}'"))
+                elif len(found) > 1:  # e.g. 00002.dng beside 00002.DNG: which one is the frame is anyone's guess
+                    errors.append(InputError(found[1], f"camera {cam} has {len(found)} raw files for '{illum}' "
+                                                       f"({[p.name for p in found]}): a duplicate frame"))
                 else:
-                    frames[(illum, cam)] = path
+                    frames[(illum, cam)] = found[0]
             extra = sorted(p.name for p in folder.iterdir()
                            if p.suffix.lower() in RAW_EXTENSIONS and p.stem not in expected)
             if extra:
@@ -102,10 +106,15 @@ class Capture:
         return frames, errors
 
 
-def _find_raw(folder: Path, camera_id: str) -> Path | None:
+def _raw_files(folder: Path, camera_id: str) -> list[Path]:
+    """The raw files of one camera in a folder (``<camera_id>.<raw extension>``), sorted by name."""
     if not folder.is_dir():
-        return None
-    matches = sorted(p for p in folder.glob(f"{camera_id}.*") if p.suffix.lower() in RAW_EXTENSIONS)
+        return []
+    return sorted(p for p in folder.glob(f"{camera_id}.*") if p.suffix.lower() in RAW_EXTENSIONS)
+
+
+def _find_raw(folder: Path, camera_id: str) -> Path | None:
+    matches = _raw_files(folder, camera_id)
     return matches[0] if matches else None
 
 

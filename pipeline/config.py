@@ -7,6 +7,7 @@ cache key, at whatever depth the class is nested. YAML overrides are merged onto
 from __future__ import annotations
 
 import dataclasses
+import math
 import json
 import types
 import typing
@@ -95,6 +96,8 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
     if annotation is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):  # YAML reads .nan and .inf; no threshold or size means anything as those
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if annotation is str:
         if not isinstance(value, str):
@@ -110,7 +113,18 @@ def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; {cls.__name__} has {sorted(types_by_name)}")
     kwargs = {k: _coerce(v, types_by_name[k], f"{where}.{k}") for k, v in data.items()}
-    return cls(**kwargs)
+    return _checked(lambda: cls(**kwargs), where)
+
+
+def _checked(build: Any, where: str) -> Any:
+    """``build()``, with the ValueError a config's own checks (``__post_init__``) raise turned into a
+    ConfigError naming where the value came from (file and section)."""
+    try:
+        return build()
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
 
 
 def merge(config: Any, overrides: dict[str, Any], where: str = "config") -> Any:
@@ -128,7 +142,7 @@ def merge(config: Any, overrides: dict[str, Any], where: str = "config") -> Any:
             changes[name] = merge(current, value, f"{where}.{name}")
         else:
             changes[name] = _coerce(value, types_by_name[name], f"{where}.{name}")
-    return dataclasses.replace(config, **changes)
+    return _checked(lambda: dataclasses.replace(config, **changes), where)
 
 
 def load_overrides(path: str | Path) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from pipeline.capture import Capture, open_capture
 from pipeline.config import Documented, dump_yaml
 from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of, execute, make_plan
 from pipeline.hashing import DigestCache
+from pipeline.runlock import hold_run_lock
 from pipeline.stage import Stage
 from pipeline.store import ArtifactStore, swap_into_place
 
@@ -39,6 +40,10 @@ class ExecutionConfig(Documented):
     """Memory limit per local worker (dask syntax, e.g. "4GiB")."""
 
     not_in_key = ("scheduler", "workers", "memory_limit")
+
+    def __post_init__(self) -> None:
+        if self.workers < 0 or not self.scheduler:
+            raise ValueError(f"execution: need workers >= 0 and a scheduler, got {self.workers!r}, {self.scheduler!r}")
 
 
 @dataclass
@@ -165,7 +170,22 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                  progress: Callable[[Task, dict, int, int], None] | None = None,
                  view_progress: Callable[[Task, dict, int, int], None] | None = None,
                  stage_progress: Callable[[dict], None] | None = None) -> RunResult:
-    """Run the DAG over a capture and publish the release. ``config`` is saved beside the run."""
+    """Run the DAG over a capture and publish the release. ``config`` is saved beside the run.
+
+    The run holds ``<work>/run.lock`` throughout (:mod:`pipeline.runlock`): a second run on the same work
+    folder is refused with :class:`pipeline.runlock.RunLockedError` before it reads or writes anything.
+    """
+    with hold_run_lock(work, echo=echo):
+        return _run_pipeline_locked(capture_dir, release, work, stages, config, execution, only, from_stage,
+                                    actions, echo, progress, view_progress, stage_progress)
+
+
+def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
+                         execution: ExecutionConfig, only: str | None, from_stage: str | None,
+                         actions: Sequence[str] | None, echo: Callable[[str], None],
+                         progress: Callable[[Task, dict, int, int], None] | None,
+                         view_progress: Callable[[Task, dict, int, int], None] | None,
+                         stage_progress: Callable[[dict], None] | None) -> RunResult:
     start = time.perf_counter()
     capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
     capture = open_capture(capture_dir)
@@ -306,6 +326,13 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                             "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
                             "error": error if failed_here else (f"camera {cam['camera_id']}: {left_out}" if left_out else None)}
                 frame_rows.append(row)
+        # Calibration frames a session stage left out (its stats' "calibration_left_out": camera -> file and
+        # reason, also logged): one row per camera and stage for every action the calibration feeds.
+        for task in plan.tasks:
+            if task.scope_id == info.session_id:
+                for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
+                    metric_rows.append({"action_id": action_id, "camera_id": cam, "metric": "calibration_frame_left_out",
+                                        "region": "", "value": 1.0, "source": task.stage.name, "run_id": run_id})
         for task in tasks:
             if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
                 continue

@@ -22,7 +22,10 @@ session never changes its key: the calibration is computed once per session.
 
 Downstream stages read cameras only from this stage's ``cameras.json``. A camera the calibration could
 not register is absent there and listed under ``unregistered`` with the reason; actions treat it as
-missing.
+missing. A calibration frame that cannot be decoded (truncated, corrupt, black, wrong size) or is absent
+costs only that camera: it is left out of the calibration, logged, listed with the file and reason under
+``calibration_left_out`` in the stage's stats (``metrics.parquet`` rows ``calibration_frame_left_out``) and,
+being unregistered, its frames of every action of the session are marked failed in ``frames.parquet``.
 """
 from __future__ import annotations
 
@@ -60,6 +63,15 @@ class CamerasConfig(Documented):
     min_registered_fraction: float = 0.5
     """Fail the session's calibration (naming the cameras) when fewer of its cameras register: a
     similarity fitted to a handful of centres is not a calibration of the rig."""
+
+
+class _MarkerCalibrationFailed(InputError):
+    """The marker calibration failed for the session as a whole; ``left_out`` names the cameras whose marker
+    frames could not be decoded (camera id -> "<path>: <reason>"), which "auto" records with its fallback."""
+
+    def __init__(self, path: Path, reason: str, left_out: dict[str, str]):
+        super().__init__(path, reason)
+        self.left_out = dict(left_out)
 
 
 def _centre(cam_from_world: Any) -> np.ndarray:
@@ -109,11 +121,14 @@ class CamerasStage(Stage):
                 if self.config.source != "auto":
                     raise
                 ctx.log.warning("session %s: %s; keeping the rig spec's cameras", ctx.scope_id, exc.reason)
+                left_out = getattr(exc, "left_out", {})
                 (ctx.out_dir / "calibration.json").write_text(json.dumps(
-                    {"source": "rig", "fallback_from": "markers", "reason": exc.reason}, indent=1))
+                    {"source": "rig", "fallback_from": "markers", "reason": exc.reason}
+                    | ({"left_out": left_out} if left_out else {}), indent=1))
                 source = "rig"
                 cameras, stats = _rig_cameras(rig_cams)
                 stats["fallback_from_markers"] = exc.reason
+                stats["calibration_left_out"] = left_out
         elif source == "rig":
             cameras, stats = _rig_cameras(rig_cams)
         else:
@@ -134,20 +149,35 @@ class CamerasStage(Stage):
         if not spec or "positions" not in spec or "radius_m" not in spec:
             raise InputError(where, "marker frames but no calibration_objects.markers (positions, radius_m) in the rig spec")
         t0 = time.perf_counter()
-        images = {}
+        images, broken = {}, {}
         for name, raw in sorted(ctx.raw_inputs.items()):
             if name.startswith("markers/") and name.split("/", 1)[1] in rig_cams:
                 cam = name.split("/", 1)[1]
-                rgb = decode_raw(raw, demosaic=self.config.demosaic).rgb
+                try:
+                    rgb = decode_raw(raw, demosaic=self.config.demosaic,
+                                     expected_size=(int(rig_cams[cam]["height"]), int(rig_cams[cam]["width"]))).rgb
+                except InputError as exc:  # a broken marker frame costs that camera's pose, not the session's
+                    broken[cam] = str(exc)
+                    continue
                 # grey in albedo units: a white surface under full_on is ~1, the balls ~0.9
                 images[cam] = rgb.mean(axis=-1) / float(np.mean(rig_cams[cam]["white_reference"]))
         decode_s = time.perf_counter() - t0
+        for cam, why in sorted(broken.items()):
+            ctx.log.warning("session %s: camera %s left out of the marker calibration: %s", ctx.scope_id, cam, why)
+        folder = ctx.capture_root / "sessions" / ctx.scope_id / "calibration" / "markers"
+        left_out = broken | {c: f"{folder}/{c}.*: no marker-frame frame for camera {c}"
+                             for c in rig_cams if c not in images and c not in broken}
+        if len(images) < 3:
+            raise _MarkerCalibrationFailed(
+                where, f"marker calibration of session {ctx.scope_id}: only {len(images)} usable marker-frame "
+                       f"frames" + "".join(f"; {why}" for why in list(broken.values())[:3]), left_out)
         result = calibrate_markers(images, {c: np.asarray(rig_cams[c]["K"], float) for c in images},
                                    {c: np.asarray(rig_cams[c]["cam_from_world"], float) for c in images},
                                    np.asarray(spec["positions"], float), float(spec["radius_m"]), self.config.markers)
         if len(result.cameras) < max(3, self.config.min_registered_fraction * len(rig_cams)):
-            raise InputError(where, f"marker calibration of session {ctx.scope_id} registered only {len(result.cameras)} "
-                                    f"of {len(rig_cams)} cameras: " + "; ".join(result.notes[:6]))
+            raise _MarkerCalibrationFailed(where, f"marker calibration of session {ctx.scope_id} registered only "
+                                                  f"{len(result.cameras)} of {len(rig_cams)} cameras: "
+                                                  + "; ".join(result.notes[:6]), left_out)
         if result.reconstruction is not None:
             write_colmap_text(result, ctx.out_dir / "colmap")
         cameras = [_record(rig_cams[c], cal.K.tolist(), cal.dist.tolist(), cal.cam_from_world.tolist())
@@ -155,7 +185,8 @@ class CamerasStage(Stage):
         missing = {c: "marker calibration failed: " + next((n.split(": ", 1)[1] for n in result.notes
                                                             if n.startswith(f"{c}: ")), "not registered")
                    for c in result.unregistered}
-        missing |= {c: "no marker-frame frame to calibrate from" for c in rig_cams if c not in images}
+        missing |= {c: "marker frame unusable: " + why for c, why in broken.items()}
+        missing |= {c: "no marker-frame frame to calibrate from" for c in rig_cams if c not in images and c not in broken}
         timings = dict(result.timings) | {"decode": decode_s}
         summary = result.summary() | {"source": "markers", "unregistered": missing, "timings": timings,
                                       "frame": self.config.markers.frame,
@@ -163,7 +194,7 @@ class CamerasStage(Stage):
         (ctx.out_dir / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))
         for cam, why in sorted(missing.items()):
             ctx.log.warning("session %s: camera %s %s", ctx.scope_id, cam, why)
-        return cameras, {"n_cameras": len(cameras), "missing_views": missing,
+        return cameras, {"n_cameras": len(cameras), "missing_views": missing, "calibration_left_out": left_out,
                          "reprojection_error_px": float(result.reprojection_error_px),
                          "nominal_offset_mm": list(result.alignment_residual_mm or []),
                          "balls_seen": result.n_points3d, "seconds": decode_s + timings["total"]}
@@ -174,12 +205,17 @@ class CamerasStage(Stage):
         from pipeline.codecs.raw import decode_raw
 
         image_dir = ctx.out_dir / "images"
-        paths = []
+        paths, broken = [], {}
         for name, raw in sorted(ctx.raw_inputs.items()):
             if not name.startswith("calibration/"):
                 continue
             cam = name.split("/", 1)[1]
-            frame = decode_raw(raw, demosaic=self.config.demosaic)
+            try:
+                frame = decode_raw(raw, demosaic=self.config.demosaic)
+            except InputError as exc:  # a broken frame costs that camera's registration, not the session's
+                broken[cam] = str(exc)
+                ctx.log.warning("session %s: camera %s left out of the calibration: %s", ctx.scope_id, cam, exc)
+                continue
             white = np.asarray(rig_cams[cam]["white_reference"], np.float32)
             # Expose so a white surface sits at 0.8: SIFT wants contrast, not absolute radiance.
             pic = (srgb_encode(frame.rgb * (0.8 / float(white.max()))) * 255.0 + 0.5).astype(np.uint8)
@@ -206,12 +242,14 @@ class CamerasStage(Stage):
             cam_id = Path(name).stem
             cameras.append(_record(rig_cams[cam_id], cal.K.tolist(), cal.dist.tolist(), cal.cam_from_world.tolist()))
         missing = {Path(n).stem: "not registered by the calibration" for n in result.unregistered}
-        missing |= {c: "no white-light frame to calibrate from" for c in rig_cams if f"{c}.png" not in names}
+        missing |= {c: "white-light frame unusable: " + why for c, why in broken.items()}
+        missing |= {c: "no white-light frame to calibrate from" for c in rig_cams
+                    if f"{c}.png" not in names and c not in broken}
         summary = result.summary() | {"unregistered": missing}
         (ctx.out_dir / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))
         for cam, why in sorted(missing.items()):
             ctx.log.warning("session %s: camera %s %s", ctx.scope_id, cam, why)
-        return cameras, {"n_cameras": len(cameras), "missing_views": missing,
+        return cameras, {"n_cameras": len(cameras), "missing_views": missing, "calibration_left_out": broken,
                          "reprojection_error_px": float(result.reprojection_error_px),
                          "alignment_residual_mm": list(result.alignment_residual_mm or [])}
 

@@ -6,6 +6,7 @@ the three frames) go to ``clipped/<cam>.png`` for the photometric stage's validi
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,6 +64,30 @@ def transforms_json(cameras: list[dict[str, Any]], image_dir: str = "full_on") -
             "frame": "stage: origin at LED-sphere centre, +y up", "frames": frames}
 
 
+def _file_digest(path: Path) -> str:
+    """BLAKE2b-128 of a file's bytes (read in blocks; the decode reads the same bytes from the page cache)."""
+    digest = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def check_no_duplicate_frames(raw_inputs: dict[str, Path], view_stats: dict[str, dict[str, Any]]) -> None:
+    """Raise InputError when two frames of an action are byte-identical (one frame delivered under two names,
+    e.g. copied to another camera's or illumination's file): the ratio of a pair that is one frame twice is
+    0 everywhere, and a camera with another's frame gets normals of the wrong view. ``view_stats`` are the
+    decode's per-camera stats with ``raw_blake2b`` (illumination -> digest)."""
+    seen: dict[str, str] = {}
+    for view, stats in sorted(view_stats.items()):
+        for illum, digest in sorted((stats or {}).get("raw_blake2b", {}).items()):
+            name = f"{illum}/{view}"
+            if digest in seen:
+                raise InputError(raw_inputs.get(name, name), f"the same bytes as {raw_inputs.get(seen[digest], seen[digest])}: "
+                                                             "one frame delivered twice (a duplicate frame)")
+            seen[digest] = name
+
+
 class DecodeStage(Stage):
     name = "decode"
     version = "2"
@@ -89,8 +114,10 @@ class DecodeStage(Stage):
         stats: dict[str, Any] = {}
         shape = None
         matrix = colour_matrix(ctx.upstream["colour"], view)
+        stats["raw_blake2b"] = {}
         for illum in ILLUMINATIONS:
             path = ctx.raw_inputs[f"{illum}/{view}"]
+            stats["raw_blake2b"][illum] = _file_digest(path)
             frame = decode_raw(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
                                expected_size=expected)
             if shape is not None and frame.rgb.shape != shape:
@@ -109,6 +136,7 @@ class DecodeStage(Stage):
         return stats
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        check_no_duplicate_frames(ctx.raw_inputs, view_stats)
         cameras = [scale_camera(c, self.config.half_size)
                    for c in load_cameras(ctx.upstream["cameras"] / "cameras.json").values()]
         (ctx.out_dir / "cameras.json").write_text(json.dumps({"camera_convention": "opencv",

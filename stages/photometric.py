@@ -18,11 +18,12 @@ import numpy as np
 from pipeline.codecs.exr import read_exr, write_exr
 from pipeline.codecs.image import preview_linear, preview_normals, read_png, write_png
 from pipeline.config import Documented
+from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
 from stages.lightcolour import corrected_normals, load_light_model
 from stages.numerics.denoise import joint_bilateral
-from stages.numerics.photometric import PhotometricParams, photometric_maps
+from stages.numerics.photometric import PhotometricParams, facing_away_fraction, photometric_maps
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions, white_light_specular
 
@@ -133,6 +134,27 @@ def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
     return corrected_normals(pos - fit.specular_pos, neg - fit.specular_neg, model, defined, light_iterations)
 
 
+SWAPPED_FACING_AWAY = 0.5
+"""A camera's g+/g- frames are taken as swapped when more than this fraction of its valid pixels get eq. 1
+normals facing away from it (correct frames of the simulator: 0.7-2%; swapped: 98-99%)."""
+SWAPPED_MIN_PIXELS = 50
+"""Fewer valid pixels than this are too little evidence to call a pair swapped."""
+
+
+def check_gradients_not_swapped(ctx: StageContext, view: str, cam: dict[str, Any], maps: Any) -> float:
+    """The fraction of valid pixels whose eq. 1 normal faces away from the camera; raises InputError naming the
+    camera's raw g+ and g- files when that says the two were swapped (over :data:`SWAPPED_FACING_AWAY`)."""
+    h, w = maps.alpha.shape
+    valid = (maps.alpha > 0.5) & maps.mask
+    away, count = facing_away_fraction(maps.normals, view_directions(cam["K"], cam["cam_from_world"], h, w), valid)
+    if count >= SWAPPED_MIN_PIXELS and away > SWAPPED_FACING_AWAY:
+        action = ctx.capture_root / "actions" / str(ctx.action_id)
+        pos, neg = (next(iter(sorted((action / i).glob(f"{view}.*"))), action / i / f"{view}.*") for i in ("pos", "neg"))
+        raise InputError(pos, f"g+ and g- frames of camera {view} look swapped (with {neg.name} of 'neg'): eq. 1 "
+                              f"normals face away from the camera on {100 * away:.0f}% of its {count} valid pixels")
+    return away
+
+
 class PhotometricStage(Stage):
     name = "photometric"
     version = "6"
@@ -155,6 +177,7 @@ class PhotometricStage(Stage):
         background = read_exr(plate_path) if self.config.use_clean_plate and plate_path.exists() else None
         maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam["white_reference"], np.float32),
                                 background=background, params=self.config.params)
+        facing_away = check_gradients_not_swapped(ctx, view, cam, maps)
         model = load_light_model(ctx.upstream["lights"])
         defined = np.any(maps.normals != 0, axis=-1)
         if model is not None:  # the session's LEDs were calibrated: invert their ratio model
@@ -175,7 +198,7 @@ class PhotometricStage(Stage):
         if self.config.previews:
             write_png(out / "previews" / f"normal_{view}.png", preview_normals(normals, maps.alpha))
             write_png(out / "previews" / f"albedo_{view}.png", preview_linear(albedo, exposure=1.0))
-        return {"mask_fraction": float(mask.mean()),
+        return {"mask_fraction": float(mask.mean()), "facing_away_fraction": facing_away,
                 "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
                 "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,
                 "plate": background is not None}

@@ -8,6 +8,8 @@ import numpy as np
 import OpenEXR
 
 _DEFAULT_CHANNELS = {1: ("Y",), 2: ("Y", "A"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
+HALF_MAX = float(np.finfo(np.float16).max)
+"""Largest finite half float (65504): half-float maps are clipped to [-HALF_MAX, HALF_MAX]."""
 
 
 def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | None = None,
@@ -20,8 +22,11 @@ def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | N
         channels: channel names, default Y / YA / RGB / RGBA by channel count.
         half: store as half float (the release format) instead of float32.
 
+    Values beyond the stored type's finite range (65504 for half float, e.g. a sun in an HDR render; float32's
+    for float64 input) are clipped to it, so no Inf is ever written.
+
     Raises:
-        ValueError: non-finite values, a wrong shape, or values beyond the half-float range.
+        ValueError: non-finite values (NaN or Inf; nothing is written) or a wrong shape.
     """
     path = Path(path)
     arr = np.asarray(array)
@@ -36,9 +41,10 @@ def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | N
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{path}: refusing to write non-finite values (NaN or Inf)")
     dtype = np.float16 if half else np.float32
-    if half and np.abs(arr).max(initial=0.0) > 65504.0:
-        raise ValueError(f"{path}: values exceed the half-float range (65504)")
-    data = {name: np.ascontiguousarray(arr[:, :, i].astype(dtype)) for i, name in enumerate(names)}
+    limit = float(np.finfo(dtype).max)
+    # clip in the input's precision, before the cast: a cast alone turns what is out of range into Inf
+    data = {name: np.ascontiguousarray(np.clip(arr[:, :, i], -limit, limit).astype(dtype))
+            for i, name in enumerate(names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")

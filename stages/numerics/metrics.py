@@ -23,8 +23,9 @@ __all__ = [
 def _unit(v: np.ndarray) -> np.ndarray:
     """float32 copy of ``v`` (..., 3) scaled to unit length; zero (or non-finite) vectors become 0."""
     v = np.nan_to_num(np.asarray(v, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    n = np.sqrt(np.einsum("...i,...i->...", v, v, dtype=np.float64)).astype(np.float32)
-    inv = np.divide(1.0, n, out=np.zeros_like(n), where=n > 1e-12)
+    # the length in float64: that of a float32 vector near float32's maximum overflows float32
+    n = np.sqrt(np.einsum("...i,...i->...", v, v, dtype=np.float64))
+    inv = np.divide(1.0, n, out=np.zeros_like(n), where=n > 1e-12).astype(np.float32)
     return v * inv[..., None]
 
 

@@ -9,7 +9,7 @@ Pure functions, arrays in and arrays out. Conventions (docs/CONTRACTS.md): image
 and ``|d| = 2/3`` for an ideal unoccluded Lambertian point. Occlusion, specular reflection, noise,
 saturation and dark pixels break the ratio; :func:`normal_alpha` turns those into a continuous
 confidence in ``[0, 1]`` ("valid" means ``alpha > 0.5``). No output ever holds NaN or Inf, whatever the
-input (zeros, negative values, NaN, Inf).
+input (zeros, negative values, NaN, Inf), and a pixel with a NaN or Inf input is never valid (alpha 0).
 
 The per-pixel work is one fused pass over blocks of rows that fit in cache, writing into preallocated
 outputs (no chain of full-size temporaries), shared by a few threads, so it runs near memory bandwidth
@@ -39,6 +39,7 @@ __all__ = [
     "albedo_from_white",
     "foreground_mask",
     "photometric_maps",
+    "facing_away_fraction",
 ]
 
 #: ``|d|`` of an ideal, unoccluded Lambertian point under the LED gradients.
@@ -117,6 +118,20 @@ class PhotometricParams:
         if int(self.edge_px) != self.edge_px or self.edge_px < 0 or not 0.0 <= self.edge_alpha <= 1.0:
             raise ValueError(f"photometric params: edge_px must be an integer >= 0 and edge_alpha in [0, 1], "
                              f"got {self.edge_px!r}, {self.edge_alpha!r}")
+        if not 0.0 <= self.ratio_min < self.ratio_max:
+            raise ValueError(f"photometric params: need 0 <= ratio_min < ratio_max, got {self.ratio_min!r}, "
+                             f"{self.ratio_max!r}")
+        positive = ("eps", "min_signal_abs", "signal_softness", "ratio_softness", "albedo_max")
+        bad = [f"{name}={getattr(self, name)!r}" for name in positive if not getattr(self, name) > 0]
+        bad += [f"{name}={getattr(self, name)!r}" for name in ("min_signal", "plate_brighter", "plate_darker",
+                                                                 "plate_noise_sigmas", "plate_min_diff",
+                                                                 "majority_radius", "close_radius", "max_hole",
+                                                                 "min_component") if not getattr(self, name) >= 0]
+        if not 0.0 < self.no_plate_threshold < 1.0:
+            bad.append(f"no_plate_threshold={self.no_plate_threshold!r} (must be in (0, 1))")
+        if bad:
+            raise ValueError(f"photometric params: {', '.join(positive)} must be > 0 and the other thresholds "
+                             f">= 0; got {', '.join(bad)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -223,6 +238,7 @@ def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
     P, N = scratch["P"][:n], scratch["N"][:n]
     t1, t2 = scratch["t1"][:n], scratch["t2"][:n]
     m = job.mask[r0:r1] if job.mask is not None else None
+    nonfinite = None  # (n, W) pixels with a NaN/Inf input (or a ratio that overflows): alpha 0 there
 
     # ---- normals: d = (p - q) / max(p + q, eps), r = |d|, n = d / r (0 outside the mask)
     if job.normals is not None:
@@ -235,6 +251,7 @@ def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
         np.multiply(D, D, out=P)
         np.matmul(P, _ONES3, out=R)
         if not np.isfinite(R.sum()):  # NaN/Inf inputs (or absurd negative ones): zero those channels
+            nonfinite = ~np.isfinite(R)
             np.nan_to_num(D, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
             np.clip(D, -1.0, 1.0, out=D)
             np.multiply(D, D, out=P)
@@ -245,6 +262,8 @@ def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
             np.divide(m, t1, out=t1)
         else:
             np.divide(1.0, t1, out=t1)
+        # |d| under _TINY (e.g. denormal inputs, whose squares underflow to 0) is undefined, not a tiny normal
+        np.copyto(t1, 0.0, where=R < _TINY)
         for c in range(3):
             np.multiply(D[..., c], t1, out=D[..., c])
         R_in = R
@@ -259,6 +278,9 @@ def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
     A = job.albedo[r0:r1] if job.albedo is not None else N
     A2 = A.reshape(n, W * 3)
     f = job.full_on[r0:r1]
+    if job.alpha is not None and not np.isfinite(f.sum()):  # one cheap reduction per block
+        bad_white = ~np.isfinite(f).all(axis=-1)
+        nonfinite = bad_white if nonfinite is None else (nonfinite | bad_white)
     np.multiply(f.reshape(n, W * 3), job.iw_row, out=A2)
     np.fmax(A2, 0, out=A2)  # NaN -> 0
     np.minimum(A2, job.amax, out=A2)
@@ -282,6 +304,8 @@ def _block(job: _Job, r0: int, r1: int, scratch: dict) -> None:
             np.multiply(AL, m, out=AL)
         for c in job.clips:
             np.copyto(AL, 0.0, where=c[r0:r1])
+        if nonfinite is not None:
+            np.copyto(AL, 0.0, where=nonfinite)
 
     if job.albedo is not None and m is not None:
         for c in range(3):
@@ -753,3 +777,28 @@ def photometric_maps(
         edge = mask & ~_erode(mask, int(params.edge_px))
         np.minimum(alpha, np.where(edge, np.float32(params.edge_alpha), np.float32(1.0)), out=alpha)
     return PhotometricMaps(normals=normals, alpha=alpha, albedo=albedo, mask=mask, ratio_norm=ratio)
+
+
+def facing_away_fraction(normals: np.ndarray, views: np.ndarray, valid: np.ndarray) -> tuple[float, int]:
+    """The fraction of ``valid`` pixels whose normal faces away from the camera, and how many pixels that is of.
+
+    A camera sees only surface that faces it, so eq. 1's normals of valid pixels face it (``n . v > 0``) but
+    for noise and occlusion; with g+ and g- swapped every normal flips and most face away.
+
+    Args:
+        normals: (H, W, 3) normals (0 where undefined).
+        views: (H, W, 3) unit directions from each pixel's surface point towards the camera.
+        valid: (H, W) bool pixels to count (e.g. alpha > 0.5 inside the mask).
+
+    Returns:
+        (fraction in [0, 1], number of valid pixels with a defined normal); (0.0, 0) when there are none.
+    """
+    normals, views = np.asarray(normals), np.asarray(views)
+    if normals.shape != views.shape or normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"normals and views must be the same (H, W, 3), got {normals.shape} and {views.shape}")
+    valid = _as_mask("valid", valid, normals.shape[:2])
+    cos = np.einsum("hwc,hwc->hw", np.nan_to_num(normals, nan=0.0, posinf=0.0, neginf=0.0),
+                    np.nan_to_num(views, nan=0.0, posinf=0.0, neginf=0.0))
+    counted = valid & np.any(normals != 0, axis=-1)
+    n = int(counted.sum())
+    return (float(np.count_nonzero(cos[counted] < 0)) / n if n else 0.0), n

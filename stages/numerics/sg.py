@@ -318,7 +318,9 @@ def evaluate_sg(lobes: SGLobes, directions, chunk: int = 1 << 16):
     axis = _unit(axis)
     parts = []
     for start in range(0, d.shape[0], chunk):
-        cos = d[start:start + chunk] @ axis.T  # (n, L)
+        # float32 rounding can put cos a hair above 1; times a sharp lobe's 1e5-1e6 that lifted its peak by
+        # several percent (and towards Inf for sharper ones): a lobe never exceeds its amplitude
+        cos = (d[start:start + chunk] @ axis.T).clamp(max=1.0)  # (n, L)
         parts.append(torch.exp(sharp * (cos - 1.0)) @ amp)
     out = torch.cat(parts) if parts else d.new_zeros((0, 3))
     return out.detach().numpy() if as_numpy else out
