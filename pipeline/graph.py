@@ -232,7 +232,7 @@ def _context(task: Task, store: ArtifactStore, capture: Capture) -> StageContext
                         subject=capture.action(task.action_id).subject if task.action_id else None,
                         upstream_keys={n: t.key for n, t in sorted(task.upstream.items())},
                         previous=previous if previous != store.final_dir(task.stage.name, task.scope_id, task.key)
-                        else None)
+                        else None, cache_dir=store.root.parent / "cache")
 
 
 def _failure(exc: BaseException) -> str:

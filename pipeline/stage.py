@@ -68,6 +68,9 @@ class StageContext:
     upstream_keys: dict[str, str] = field(default_factory=dict)
     """Upstream stage name -> its cache key."""
     previous: Path | None = None
+    cache_dir: Path | None = None
+    """A folder of content-addressed memos shared by every task of the work folder (a result stored under the
+    hash of everything it depends on, e.g. an environment map's SG fit); None: no memos."""
     """This stage's last committed result for the same scope under another key, if any: a stage may reuse
     the parts of it whose own inputs did not change (it must check that itself)."""
 

@@ -212,12 +212,40 @@ def view_shading(cfg: RelightConfig) -> ViewShading:
                        coverage_samples=cfg.coverage_samples)
 
 
+def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path | None) -> Any:
+    """:func:`stages.numerics.sg.fit_sg_environment` of a map, kept in ``cache_dir/sg_fits/`` under the hash of
+    the map's float32 bytes, the fit's settings and the fitting code, so a map is fitted once per work folder
+    (both actions and both stages of a session use the same maps). None: no memo."""
+    import hashlib
+
+    from stages.numerics import sg
+    from stages.numerics.sg import SGLobes, fit_sg_environment
+
+    if cache_dir is None:
+        return fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+    digest = hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes())
+    digest.update(repr((env.shape, int(sg_lobes), int(fit_height))).encode())
+    digest.update(Path(sg.__file__).read_bytes())
+    path = Path(cache_dir) / "sg_fits" / f"{digest.hexdigest()[:32]}.json"
+    if path.is_file():
+        try:
+            return SGLobes.from_dict(json.loads(path.read_text()))
+        except (OSError, ValueError, KeyError):
+            pass  # unreadable: fit again
+    lobes = fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(lobes.numpy().to_dict()))
+    os.replace(tmp, path)
+    return SGLobes.from_dict(json.loads(path.read_text()))
+
+
 def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Path], sg_lobes: int, fit_height: int,
-                     log: Any) -> list[dict[str, Any]]:
+                     log: Any, cache_dir: Path | None = None) -> list[dict[str, Any]]:
     """Each requested environment loaded (its file from ``raw_inputs['environment/<label>']``) and fitted with
     ``sg_lobes`` spherical Gaussians: records ``name``, ``requested``, ``label``, ``source``, ``lobes``,
     ``fit_seconds``, ``fit_errors``. Missing maps become the procedural sky, once, with a warning."""
-    from stages.numerics.sg import fit_sg_environment, sg_fit_errors
+    from stages.numerics.sg import sg_fit_errors
 
     environments: list[dict[str, Any]] = []
     for requested in requested_names:
@@ -232,7 +260,7 @@ def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Pat
         elif any(e["label"] == label for e in environments):
             raise ValueError(f"relight.environments {requested_names} give the label {label!r} twice")
         t0 = time.perf_counter()
-        lobes = fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+        lobes = fit_sg_memo(env, sg_lobes, fit_height, cache_dir)
         errors = sg_fit_errors(env, lobes)
         environments.append({"name": name, "requested": requested, "label": label, "source": how, "lobes": lobes,
                              "fit_seconds": time.perf_counter() - t0,
@@ -268,7 +296,8 @@ class RelightStage(Stage):
         out = ctx.out_dir
         renders = out / "renders"
         renders.mkdir(parents=True, exist_ok=True)
-        environments = fit_environments(cfg.environments, ctx.raw_inputs, cfg.sg_lobes, cfg.fit_height, ctx.log)
+        environments = fit_environments(cfg.environments, ctx.raw_inputs, cfg.sg_lobes, cfg.fit_height, ctx.log,
+                                        ctx.cache_dir)
         asset, cameras = load_relightable_asset(ActionArtifacts(ctx.upstream), cfg.min_alpha, cfg.diffuse_normals,
                                                 cfg.diffuse_albedo)
         directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None

@@ -229,7 +229,8 @@ class RelightSetStage(Stage):
         from stages.numerics.novel_view import auto_exposure, relight_view
         from stages.numerics.relightset import (draw_example, encode_normals, normals_to_camera, split_of,
                                                 subject_frame, tone_map)
-        from stages.numerics.sg import fibonacci_sphere, fit_sg_environment, rotate_sg, rotation_y
+        from stages.numerics.sg import fibonacci_sphere, rotate_sg, rotation_y
+        from stages.relight import fit_sg_memo
         from stages.numerics.sh import project_environment
 
         torch.set_num_threads(numeric_threads())
@@ -285,7 +286,7 @@ class RelightSetStage(Stage):
             else:
                 t0 = time.perf_counter()
                 if env_index not in fits:
-                    fits[env_index] = fit_sg_environment(env, cfg.sg_lobes, fit_height=cfg.fit_height)
+                    fits[env_index] = fit_sg_memo(env, cfg.sg_lobes, cfg.fit_height, ctx.cache_dir)
                 lobes = rotate_sg(fits[env_index], math.radians(rotation_deg))
                 view = relight_view(asset, K, cam_from_world, cfg.size, cfg.size, [lobes], cfg.shading,
                                     directions=directions)
