@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr, write_exr
+from stages.exr_headers import EXR_HEADERS
 from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
@@ -331,7 +332,7 @@ class RelightStage(Stage):
     # 8: edge pixels take the mean of their shaded neighbours (bake.dilate_texture), not the nearest one's;
     # 7: the coverage grid cast at the silhouette only; 6: antialiased silhouettes (alpha = pixel coverage);
     # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
-    version = "8"
+    version = "9"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")
@@ -456,7 +457,7 @@ class RelightStage(Stage):
                     for k, v in maps.items()}
             folder = renders / view["camera_id"]
             for name, image in maps.items():
-                write_exr(folder / f"{name}.exr", image)
+                write_exr(folder / f"{name}.exr", image, header=EXR_HEADERS[f"render_{name}"])
             write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
             row = [preview_normals(maps["normal"], out_mask.astype(np.float32))]
             for env in environments:
@@ -468,7 +469,8 @@ class RelightStage(Stage):
                 rgb = np.clip(np.nan_to_num(shaded["rgb"], nan=0.0, posinf=0.0, neginf=0.0), 0.0, _HALF_MAX)
                 # premultiplied by the pixel's coverage, as a camera integrates a silhouette pixel
                 image = premultiply_edges(_image(pix, rgb, h, w), mask, alpha)
-                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2))
+                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2),
+                          header=EXR_HEADERS["relit"])
                 row.append(preview_linear(image, exposure=_auto_exposure(image, out_mask)))
             sheet_rows.append(np.concatenate(row, axis=1))
             records.append({**view, "pixels": int(len(pix)), "mask_pixels": int(out_mask.sum()),

@@ -39,6 +39,7 @@ __all__ = [
     "albedo_from_white",
     "foreground_mask",
     "photometric_maps",
+    "normals_with_alpha",
 ]
 
 #: ``|d|`` of an ideal, unoccluded Lambertian point under the LED gradients.
@@ -753,3 +754,21 @@ def photometric_maps(
         edge = mask & ~_erode(mask, int(params.edge_px))
         np.minimum(alpha, np.where(edge, np.float32(params.edge_alpha), np.float32(1.0)), out=alpha)
     return PhotometricMaps(normals=normals, alpha=alpha, albedo=albedo, mask=mask, ratio_norm=ratio)
+
+
+def normals_with_alpha(normals: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The released RGBA normal map: (H, W, 4) float32, normals (H, W, 3) in RGB and ``alpha`` (H, W) in A,
+    with the normals set to 0 wherever the alpha *as stored* (half float, the release's EXR) is 0.
+
+    A pixel whose alpha rounds to 0 in half float (below 3e-8, or exactly 0: background, clipped, no
+    signal) carries no normal in the file, as CONVENTIONS.md says; normals elsewhere are kept as they are.
+    """
+    normals = np.asarray(normals, np.float32)
+    alpha = np.asarray(alpha, np.float32)
+    if normals.ndim != 3 or normals.shape[2] != 3 or alpha.shape != normals.shape[:2]:
+        raise ValueError(f"normals_with_alpha: expected normals (H, W, 3) and alpha (H, W), "
+                         f"got {normals.shape} and {alpha.shape}")
+    none = alpha.astype(np.float16) == 0
+    out = np.concatenate([normals, alpha[..., None]], axis=-1)
+    out[none, :3] = 0.0
+    return out
