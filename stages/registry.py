@@ -8,6 +8,7 @@ from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage
 from stages.cameras import CamerasConfig, CamerasStage
 from stages.decode import DecodeConfig, DecodeStage, PlatesStage
+from stages.exports import ExportsConfig, ExportsStage
 from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, TexturesStage
 from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
 from stages.materials import MaterialsConfig, MaterialsStage
@@ -17,7 +18,7 @@ from stages.relight import RelightConfig, RelightStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
                                           PhotometricStage, GeometryStage, TexturesStage,
-                                          MaterialsStage, DiffuseNormalsStage, RelightStage)
+                                          MaterialsStage, DiffuseNormalsStage, RelightStage, ExportsStage)
 
 
 @dataclass(frozen=True)
@@ -43,6 +44,9 @@ class PipelineConfig:
     per pixel, and the white-light albedo less the specular light it predicts."""
     relight: RelightConfig = field(default_factory=RelightConfig)
     """Novel views under HDR environments (renders/)."""
+    exports: ExportsConfig = field(default_factory=ExportsConfig)
+    """The action in other tools' formats: 8-bit sRGB images, nerfstudio transforms.json, a COLMAP model of
+    the subject's surface points, the textured OBJ with its texture beside it and a GLB."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     """Where and how tasks run; never part of a cache key."""
 
@@ -69,6 +73,7 @@ PRESETS: dict[str, PipelineConfig] = {
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
                                                    face_budget=20_000, previews=True, deocclude_iterations=60),
                            textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
+                           exports=ExportsConfig(colmap_points=5_000),
                            materials=MaterialsConfig(texture_size=64, max_views=4, median_neighbours=16,
                                                      occlusion_rays=16, occlusion_size=64),
                            relight=RelightConfig(environments=("procedural:sky", "procedural:studio"), novel_views=1,
