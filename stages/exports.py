@@ -14,7 +14,6 @@ Wiring only: the formats are pure functions below; the camera conventions are th
 """
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
