@@ -55,6 +55,8 @@ class Task:
     """Epoch seconds when its first piece of work started (None: cached, failed at plan, skipped)."""
     failed_stage: str | None = None
     """For a blocked or skipped task: the upstream stage whose failure stopped it (None otherwise)."""
+    retrying: str | None = None
+    """For a task planned to run: the stage (itself or upstream) whose last run failed and is retried."""
 
     @property
     def name(self) -> str:
@@ -178,7 +180,7 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
                   "inputs": inputs}
         key = record_key(record)
         bad_up = [t for t in upstream.values() if t.status in ("failed", "blocked")]
-        failed_stage = None
+        failed_stage = last_error = None
         if error:
             status, reason = "failed", error
         elif bad_up:
@@ -193,8 +195,16 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
             status, reason = "run", f"failed last run: {last_error}; will retry"
         else:
             status, reason = "run", _why(record, store.latest_record(stage.name, scope_id))
+        retrying = None
+        if status == "run":
+            retried_up = next((t.retrying for t in upstream.values() if t.retrying), None)
+            if last_error is not None and stage.name not in force:
+                retrying = stage.name
+            elif retried_up and reason in ("no earlier result", "result missing from store"):
+                retrying = retried_up  # it never ran because that upstream stage failed
+                reason = f"upstream {retried_up} failed last run; runs after its retry"
         task = Task(stage, scope_id, session_id, action_id, key, record, status, reason, upstream, raw,
-                    views=views, error=error, failed_stage=failed_stage)
+                    views=views, error=error, failed_stage=failed_stage, retrying=retrying)
         emit(f"{stage.name:<12} {scope_id:<8} {status:<7} {reason}")
         index[(stage.name, scope_id)] = task
         tasks.append(task)

@@ -66,6 +66,8 @@ def test_plan_after_a_failure_says_why_and_that_it_will_retry(toy_capture, tmp_p
     read_line = next(line for line in plan_lines() if line.startswith("read") and "A0001" in line)
     assert "failed last run: " in read_line and "corrupt toy frame" in read_line and read_line.endswith("; will retry")
     assert "no earlier result" not in read_line
+    summary_line = next(line for line in plan_lines() if line.startswith("summary") and "A0001" in line)
+    assert "upstream read failed last run" in summary_line
     # a run that succeeds clears the record: the task is cached, and no longer "failed last run"
     bad.write_text("A0001 full_on 00002")
     _run(toy_capture, tmp_path)
