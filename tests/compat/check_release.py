@@ -24,10 +24,12 @@ def check_action(folder: Path) -> list[str]:
 
     failures = []
     try:
-        outputs = NerfstudioDataParserConfig(data=folder, downscale_factor=1).setup().get_dataparser_outputs("train")
+        outputs = NerfstudioDataParserConfig(data=folder, downscale_factor=1, load_3D_points=True).setup().get_dataparser_outputs("train")
         n = len(outputs.image_filenames)
-        print(f"  nerfstudio NerfstudioDataParser: {n} train images, masks {outputs.mask_filenames is not None}, "
-              f"seed points {'points3D_xyz' in outputs.metadata}")
+        points = outputs.metadata.get("points3D_xyz")
+        if outputs.mask_filenames is None or points is None:
+            raise ValueError(f"no masks ({outputs.mask_filenames is None}) or no seed points ({points is None})")
+        print(f"  nerfstudio NerfstudioDataParser: {n} train images with masks, {len(points)} seed points")
     except Exception as exc:  # noqa: BLE001 - report every loader's failure, then exit 1
         failures.append(f"{folder}: NerfstudioDataParser: {type(exc).__name__}: {exc}")
     try:
