@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 RUN ?= runs/default
 ARGS ?=
 
-.PHONY: setup dataset test bench lint clean-runs
+.PHONY: setup dataset test bench lint clean-runs compat
 
 setup: $(STAMP)
 
@@ -33,6 +33,27 @@ test: setup
 
 bench: setup
 	$(PY) bench/run_all.py --out bench/out
+
+# Other tools' own loaders on a release (nerfstudio's dataparsers, COLMAP's reader), in their own environment
+# .venv-compat (never the main one). torch 2.13.0 goes in first from the CPU build the machine's pip finds
+# (https://download.pytorch.org/whl/cpu, or TORCH_CPU_INDEX= where pip's find-links already holds the CPU wheel),
+# so nerfstudio's requirement is already met and pip pulls no CUDA wheels (checked below). Needs a release:
+# `make dataset` first (or RUN=...).
+COMPAT_VENV := .venv-compat
+COMPAT_STAMP := $(COMPAT_VENV)/.installed
+TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
+
+$(COMPAT_STAMP):
+	test -x $(COMPAT_VENV)/bin/python || $(PYTHON) -m venv $(COMPAT_VENV)
+	$(COMPAT_VENV)/bin/python -m pip install -q --upgrade pip
+	$(COMPAT_VENV)/bin/python -m pip install -q torch==2.13.0 $(if $(TORCH_CPU_INDEX),--extra-index-url $(TORCH_CPU_INDEX))
+	$(COMPAT_VENV)/bin/python -m pip install -q nerfstudio==1.1.5 torch==2.13.0 $(if $(TORCH_CPU_INDEX),--extra-index-url $(TORCH_CPU_INDEX))
+	@if $(COMPAT_VENV)/bin/python -m pip list 2>/dev/null | grep -qi '^nvidia-'; then \
+	  echo "compat: CUDA wheels were pulled into $(COMPAT_VENV); remove it and check the torch index" >&2; exit 1; fi
+	touch $(COMPAT_STAMP)
+
+compat: $(COMPAT_STAMP)
+	$(COMPAT_VENV)/bin/python tests/compat/check_release.py $(RUN)/release
 
 lint: setup
 	$(PY) -m compileall -q pipeline stages manifests calibration synthetic

@@ -60,7 +60,7 @@ def load_release_views(release: Path, action: str):
         normal_alpha = read_exr(folder / "normal_alpha" / f"{cid}.exr")
         mask = read_png(folder / "mask" / f"{cid}.png")
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        cam_from_world = np.linalg.inv(np.asarray(frame["transform_matrix"], np.float64))[:3]
+        cam_from_world = np.asarray(frame["cam_from_world_opencv"], np.float64)[:3]
         views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]),
                              normal_valid=(normal_alpha[..., 3] > 0.5) & mask, mask=mask,
                              K=np.asarray(frame["K"], np.float64), cam_from_world=cam_from_world))

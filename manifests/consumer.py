@@ -330,7 +330,9 @@ class ActionView:
         return self._load(illumination, cam, ("R", "G", "B"))
 
     def transforms(self) -> dict:
-        """The action's transforms.json (per-frame K and transform_matrix)."""
+        """The action's transforms.json: nerfstudio convention (``transform_matrix`` OpenGL camera-to-world,
+        ``fl_x``..``cy`` with pixel centres at +0.5) and, per frame, the OpenCV ``K``, ``dist``,
+        ``cam_from_world_opencv`` (3x4) and ``world_from_cam_opencv`` (4x4); CONVENTIONS.md."""
         return self._load("transforms", None)
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:

@@ -346,6 +346,7 @@ MEDIA_TYPES: dict[str, str] = {
     ".parquet": "application/vnd.apache.parquet",
     ".ply": "application/ply",
     ".obj": "model/obj",
+    ".glb": "model/gltf-binary",
     ".mtl": "model/mtl",
     ".txt": "text/plain",
     ".md": "text/markdown",

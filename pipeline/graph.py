@@ -7,7 +7,10 @@ decision is logged as one line with its reason. Execution submits the remaining 
 dask.distributed), one task per (stage, scope) or per (stage, action, camera) for per-view stages.
 
 A task never raises into the scheduler: it returns a result record, and a failed upstream turns its
-downstream tasks into "skipped", so one bad action never stops the others.
+downstream tasks into "skipped", so one bad action never stops the others. A skipped task names the stage
+that failed (``failed_stage``), once, however many stages lie between; the failure itself is that
+stage's error. Failures are recorded in the store, so the next plan says "failed last run: REASON; will
+retry" for a task whose key failed last time.
 """
 from __future__ import annotations
 
@@ -50,6 +53,10 @@ class Task:
     stats: dict[str, Any] = field(default_factory=dict)
     started_at: float | None = None
     """Epoch seconds when its first piece of work started (None: cached, failed at plan, skipped)."""
+    failed_stage: str | None = None
+    """For a blocked or skipped task: the upstream stage whose failure stopped it (None otherwise)."""
+    retrying: str | None = None
+    """For a task planned to run: the stage (itself or upstream) whose last run failed and is retried."""
 
     @property
     def name(self) -> str:
@@ -188,20 +195,32 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
                   "config": key_fields(stage.config), "upstream": {n: t.key for n, t in sorted(upstream.items())},
                   "inputs": inputs}
         key = record_key(record)
-        bad_up = [n for n, t in upstream.items() if t.status in ("failed", "blocked")]
+        bad_up = [t for t in upstream.values() if t.status in ("failed", "blocked")]
+        failed_stage = last_error = None
         if error:
             status, reason = "failed", error
         elif bad_up:
-            status, reason = "blocked", f"upstream {bad_up[0]} failed"
-            error = f"not run: upstream {bad_up[0]} failed ({upstream[bad_up[0]].error})"
+            failed_stage = bad_up[0].failed_stage or bad_up[0].stage.name  # the root, not the chain
+            status, reason = "blocked", f"upstream {failed_stage} failed"
+            error = f"not run: upstream {failed_stage} failed"
         elif stage.name in force:
             status, reason = "run", "forced by --only/--from"
         elif store.is_complete(stage.name, scope_id, key):
             status, reason = "cached", f"key {short(key)} already in store"
+        elif (last_error := store.last_failure(stage.name, scope_id, key)) is not None:
+            status, reason = "run", f"failed last run: {last_error}; will retry"
         else:
             status, reason = "run", _why(record, store.latest_record(stage.name, scope_id))
+        retrying = None
+        if status == "run":
+            retried_up = next((t.retrying for t in upstream.values() if t.retrying), None)
+            if last_error is not None and stage.name not in force:
+                retrying = stage.name
+            elif retried_up and reason in ("no earlier result", "result missing from store"):
+                retrying = retried_up  # it never ran because that upstream stage failed
+                reason = f"upstream {retried_up} failed last run; runs after its retry"
         task = Task(stage, scope_id, session_id, action_id, key, record, status, reason, upstream, raw,
-                    views=views, error=error)
+                    views=views, error=error, failed_stage=failed_stage, retrying=retrying)
         emit(f"{stage.name:<12} {scope_id:<8} {status:<7} {reason}")
         index[(stage.name, scope_id)] = task
         tasks.append(task)
@@ -244,9 +263,13 @@ def _failure(exc: BaseException) -> str:
 
 
 def _upstream_failed(results: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """The "skipped" record of a task one of whose upstream results failed: it names the stage that
+    failed first (a skipped upstream passes its own ``failed_stage`` on), not a chain of "not run"s."""
     for res in results:
         if not res.get("ok"):
-            return {"ok": False, "skipped": True, "error": f"not run: {res.get('error')}", "seconds": 0.0}
+            failed_stage = res.get("failed_stage") or res.get("stage", "?")
+            return {"ok": False, "skipped": True, "failed_stage": failed_stage,
+                    "error": f"not run: upstream {failed_stage} failed", "seconds": 0.0}
     return None
 
 
@@ -261,8 +284,8 @@ def run_view_task(stage: Stage, ctx: StageContext, view: str, *upstream: dict[st
         return {"ok": True, "view": view, "stats": stats, "seconds": time.perf_counter() - start,
                 "started_at": started_at}
     except Exception as exc:  # noqa: BLE001 - every failure becomes a record naming the file and reason
-        return {"ok": False, "view": view, "error": _failure(exc), "seconds": time.perf_counter() - start,
-                "started_at": started_at, "traceback": traceback.format_exc()}
+        return {"ok": False, "stage": stage.name, "view": view, "error": _failure(exc),
+                "seconds": time.perf_counter() - start, "started_at": started_at, "traceback": traceback.format_exc()}
 
 
 def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
@@ -281,7 +304,8 @@ def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str,
         if failed:
             store.discard(ctx.stage, ctx.scope_id, key)
             first = failed[0]
-            return {"ok": False, "skipped": bool(first.get("skipped")), "error": first.get("error"),
+            return {"ok": False, "stage": stage.name, "skipped": bool(first.get("skipped")),
+                    "failed_stage": first.get("failed_stage"), "error": first.get("error"),
                     "traceback": first.get("traceback"), "seconds": view_seconds,
                     "started_at": None if first.get("skipped") else started_at}
         if stage.per_view:
@@ -293,7 +317,7 @@ def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str,
         return {"ok": True, "stats": stats, "seconds": seconds, "started_at": started_at}
     except Exception as exc:  # noqa: BLE001
         store.discard(ctx.stage, ctx.scope_id, key)
-        return {"ok": False, "error": _failure(exc), "traceback": traceback.format_exc(),
+        return {"ok": False, "stage": stage.name, "error": _failure(exc), "traceback": traceback.format_exc(),
                 "seconds": view_seconds + time.perf_counter() - start, "started_at": started_at}
 
 
@@ -428,7 +452,11 @@ def execute(plan: Plan, capture: Capture, executor: Any,
         else:
             task.status = "skipped" if result.get("skipped") else "failed"
             task.error = result.get("error")
-            if result.get("traceback") and not task.error.startswith("not run"):
-                log.debug("%s failed:\n%s", task.name, result["traceback"])
+            if task.status == "skipped":
+                task.failed_stage = result.get("failed_stage")
+            else:
+                store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
+                if result.get("traceback"):
+                    log.debug("%s failed:\n%s", task.name, result["traceback"])
         if on_done:
             on_done(task, result, done, total)

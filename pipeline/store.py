@@ -3,7 +3,8 @@
 Layout: ``<root>/<stage>/<scope_id>/<key16>/`` with ``_SUCCESS.json`` inside. Work goes to
 ``<root>/<stage>/<scope_id>/.tmp-<key16>`` and is renamed into place when complete, so a crash leaves
 only a temporary folder that the next run removes. ``latest.json`` beside the keyed folders records the
-last committed record, so a plan can say *why* a stage reruns.
+last committed record, so a plan can say *why* a stage reruns; ``failed.json`` there records the last
+failure of a key (its error), so a plan can say that a task failed last time and why, until it commits.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 SUCCESS = "_SUCCESS.json"
+FAILURE = "failed.json"
 
 
 def short(key: str) -> str:
@@ -83,7 +85,24 @@ class ArtifactStore:
         latest_tmp = final.parent / f".latest.{os.getpid()}.tmp"
         latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
         os.replace(latest_tmp, latest)
+        (final.parent / FAILURE).unlink(missing_ok=True)
         return final
+
+    def record_failure(self, stage: str, scope_id: str, key: str, error: str) -> None:
+        """Remember that this key's last run failed, and why (replaced by the next failure, removed by a commit)."""
+        folder = self.root / stage / scope_id
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / f".failed.{os.getpid()}.tmp"
+        tmp.write_text(json.dumps({"key": key, "error": error, "failed_at": time.time()}, sort_keys=True))
+        os.replace(tmp, folder / FAILURE)
+
+    def last_failure(self, stage: str, scope_id: str, key: str) -> str | None:
+        """The error of this key's last run when that run failed (and nothing committed since), else None."""
+        try:
+            record = json.loads((self.root / stage / scope_id / FAILURE).read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
+        return record.get("error") if record.get("key") == key else None
 
     def discard(self, stage: str, scope_id: str, key: str) -> None:
         shutil.rmtree(self.tmp_dir(stage, scope_id, key), ignore_errors=True)

@@ -255,7 +255,10 @@ class CamerasStage(Stage):
 
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = [(p, f"colmap/{p.name}", "colmap", None) for p in sorted((artifact / "colmap").glob("*.txt"))]
+        # The calibration's own model (its points are the calibration markers, its images the calibration
+        # frames): kept apart from the exports stage's colmap/ model of the subject.
+        files = [(p, f"calibration/colmap/{p.name}", f"calibration_colmap_{p.stem}", None)
+                 for p in sorted((artifact / "colmap").glob("*.txt"))]
         if (artifact / "calibration.json").exists():
             files.append((artifact / "calibration.json", "calibration.json", "calibration", None))
         return files

@@ -64,42 +64,61 @@ def _progress_printer() -> tuple[Any, Any, Any]:
     return on_done, on_view, on_progress
 
 
-def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
-    from rich.console import Console
+SUMMARY_WIDTH = 100
+"""Columns the run summary is laid out for (a terminal's default is 80-120)."""
+
+SUMMARY_METRICS = (("normal_mean_deg", "normal°"), ("normal_under5_pct", "<5°%"), ("valid_fraction", "valid"),
+                   ("albedo_psnr_db", "alb dB"), ("chamfer_mm", "cham mm"), ("roughness_mae", "rough"),
+                   ("relit_psnr_db", "relit dB"))
+"""(metric key of the evaluation's per-action summary, column title) shown per row when there is truth."""
+
+
+def _scope_outcome(tasks: list[Any]) -> tuple[str, float]:
+    """One cell for a scope's tasks: "3 ran, 9 cached", or the stage that failed ("FAILED decode"; the
+    error is printed below the table), and the seconds its tasks took."""
+    seconds = float(sum(t.seconds for t in tasks))
+    failed = [t for t in tasks if t.status == "failed"]
+    skipped = [t for t in tasks if t.status in ("skipped", "blocked")]
+    if failed:
+        return f"[red]FAILED {failed[0].stage.name}[/red]", seconds
+    if skipped:
+        return f"[yellow]skipped: {skipped[0].failed_stage or '?'} failed[/yellow]", seconds
+    ran = sum(t.status == "ran" for t in tasks)
+    cached = sum(t.status == "cached" for t in tasks)
+    return ", ".join(part for part in (f"{ran} ran" if ran else "", f"{cached} cached" if cached else "") if part), seconds
+
+
+def summary_table(result: Any, metrics: dict[str, dict[str, float]] | None) -> Any:
+    """The run summary as a rich Table: one row per session and action (what ran, what failed, the time,
+    and the accuracy against truth when there is one), laid out for SUMMARY_WIDTH columns."""
+    from rich import box
     from rich.table import Table
 
-    stage_names = list(dict.fromkeys(t.stage.name for t in result.plan.tasks))
-    table = Table(title=f"run {result.run_id}: {len(result.published)} action(s) published, "
+    table = Table(title=f"run {result.run_id}: {len(result.published)} published, "
                         f"{sum(s == 'failed' for s in result.action_status.values())} failed, "
-                        f"{result.seconds:.1f}s wall ({result.executor})")
-    table.add_column("action")
-    for name in stage_names:
-        table.add_column(name, justify="right")
-    metric_cols = [("normal_mean_deg", "normal err °"), ("normal_under5_pct", "<5° %"),
-                   ("valid_fraction", "valid"), ("albedo_psnr_db", "albedo dB"), ("chamfer_mm", "chamfer mm"),
-                   ("roughness_mae", "rough MAE"), ("relit_psnr_db", "relit dB")]
+                        f"{result.seconds:.0f}s ({result.executor})", box=box.SIMPLE_HEAD, pad_edge=False)
+    table.add_column("scope")
+    table.add_column("stages")
+    table.add_column("time", justify="right")
     if metrics:
-        for _, title in metric_cols:
+        for _, title in SUMMARY_METRICS:
             table.add_column(title, justify="right")
     scopes = list(dict.fromkeys(t.scope_id for t in result.plan.tasks))
     for scope in scopes:
-        cells = []
-        for name in stage_names:
-            task = next((t for t in result.plan.tasks if t.scope_id == scope and t.stage.name == name), None)
-            if task is None:
-                cells.append("")
-            elif task.status == "ran":
-                cells.append(f"ran {task.seconds:.1f}s" if task.seconds < 100 else f"ran {task.seconds:.0f}s")
-            elif task.status == "cached":
-                cells.append("cached")
-            else:
-                cells.append(f"[red]{task.status}[/red]")
+        outcome, seconds = _scope_outcome([t for t in result.plan.tasks if t.scope_id == scope])
+        cells = [scope, outcome, f"{seconds:.0f}s"]
         if metrics:
             m = metrics.get(scope, {})
-            cells += [f"{m[k]:.2f}" if k in m else "" for k, _ in metric_cols]
-        table.add_row(scope, *cells)
-    console = Console(width=max(190, Console().width))
-    console.print(table)
+            cells += [f"{m[k]:.2f}" if k in m else "" for k, _ in SUMMARY_METRICS]
+        table.add_row(*cells)
+    return table
+
+
+def _summary(result: Any, metrics: dict[str, dict[str, float]] | None) -> None:
+    from rich.console import Console
+
+    console = Console(width=min(SUMMARY_WIDTH, Console().width) if sys.stdout.isatty() else SUMMARY_WIDTH)
+    console.print(summary_table(result, metrics))
     for action, error in result.action_errors.items():
         console.print(f"[red]action {action} failed[/red]: {error}", markup=True, highlight=False)
 
@@ -268,23 +287,49 @@ def cmd_predict(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_run_args(p: argparse.ArgumentParser, capture_required: bool = True) -> None:
-    p.add_argument("--capture", required=capture_required, help="capture folder (capture.json inside)")
-    p.add_argument("--release", required=True, help="release folder to write")
+def _stage_names() -> list[str]:
+    from stages.registry import STAGE_CLASSES
+
+    return [cls.name for cls in STAGE_CLASSES]
+
+
+def _add_stage_choice(p: argparse.ArgumentParser, stage_names: list[str]) -> None:
+    listed = ", ".join(stage_names)
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--only", metavar="STAGE", choices=stage_names,
+                       help=f"force this stage to rerun (its dependents rerun only if their keys change); one of {listed}")
+    group.add_argument("--from", dest="from_stage", metavar="STAGE", choices=stage_names,
+                       help=f"force this stage and everything downstream of it; one of {listed}")
+
+
+def _add_run_args(p: argparse.ArgumentParser, stage_names: list[str], release_help: str) -> None:
+    p.add_argument("--capture", required=True, help="capture folder (capture.json inside)")
+    p.add_argument("--release", required=True, help=release_help)
     p.add_argument("--work", help="artifact store and run logs (default: <release>.work beside the release)")
     p.add_argument("--preset", default="default", help="config preset: default, production (GPU, full-resolution captures), fast (quick looks), test (tiny captures)")
     p.add_argument("--config", help="YAML overrides, e.g. {decode: {demosaic: DCB}}; unknown keys are errors")
-    p.add_argument("--scheduler", help="'local', 'sync' or a dask scheduler address")
-    group = p.add_mutually_exclusive_group()
-    group.add_argument("--only", help="force this stage to rerun (its dependents rerun only if their keys change)")
-    group.add_argument("--from", dest="from_stage", help="force this stage and everything downstream")
+    p.add_argument("--scheduler", help="'local' (a dask cluster on this machine, the default), 'sync' (in this process) "
+                                       "or the address of a running dask scheduler, e.g. tcp://10.0.0.5:8786")
+    _add_stage_choice(p, stage_names)
     p.add_argument("--actions", help="comma-separated action ids (default: all)")
     p.add_argument("--no-evaluate", action="store_true", help="skip the accuracy summary against ground truth")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ultrastage")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ultrastage", description="UltraStage light-stage dataset pipeline")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}",
+                        help="print the installed version and exit")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging (tracebacks of failures)")
+    stage_names = _stage_names()
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="render a synthetic raw capture with ground truth")
@@ -297,27 +342,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_simulate)
 
     p = sub.add_parser("run", help="run the DAG on a capture and write the release")
-    _add_run_args(p)
+    _add_run_args(p, stage_names, "release folder to write (created if absent; published actions are replaced)")
     p.set_defaults(fn=cmd_run)
 
     p = sub.add_parser("plan", help="show what `run` would do (cached / run and why) without running it")
-    _add_run_args(p)
+    _add_run_args(p, stage_names, "release folder the run would write (only its work folder is read)")
     p.set_defaults(fn=lambda a: cmd_run(a, plan_only=True))
 
     p = sub.add_parser("rerun", help="run again with the capture, work folder and config a release records")
-    p.add_argument("release")
+    p.add_argument("release", help="a release folder written by `ultrastage run` (its run.json names the capture)")
     p.add_argument("--config", help="YAML overrides (default: the release's config.yaml)")
-    p.add_argument("--scheduler")
-    group = p.add_mutually_exclusive_group()
-    group.add_argument("--only")
-    group.add_argument("--from", dest="from_stage")
-    p.add_argument("--actions")
-    p.add_argument("--no-evaluate", action="store_true")
+    p.add_argument("--scheduler", help="'local', 'sync' or a dask scheduler address (default: the config's)")
+    _add_stage_choice(p, stage_names)
+    p.add_argument("--actions", help="comma-separated action ids (default: all)")
+    p.add_argument("--no-evaluate", action="store_true", help="skip the accuracy summary against ground truth")
     p.set_defaults(fn=cmd_rerun)
 
     p = sub.add_parser("evaluate", help="accuracy of a release against ground truth")
-    p.add_argument("--release", required=True)
-    p.add_argument("--truth", required=True, help="CAPTURE/ground_truth")
+    p.add_argument("--release", required=True, help="release folder to evaluate (manifests/ inside)")
+    p.add_argument("--truth", required=True, help="the simulator's ground truth: CAPTURE/ground_truth")
     p.add_argument("--json", help="also write one flat JSON object of metric name to number")
     p.set_defaults(fn=cmd_evaluate)
 
@@ -328,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_calibrate)
 
     p = sub.add_parser("verify", help="re-check every asset of a release against its sha256")
-    p.add_argument("release")
+    p.add_argument("release", help="release folder to check (manifests/assets.parquet inside)")
     p.set_defaults(fn=cmd_verify)
 
     p = sub.add_parser("train", help="train the AlbedoNet or NormalNet baseline on a release's relighting set")

@@ -1,8 +1,11 @@
 """Action stage ``decode`` and session stage ``plates``: raw files to linear sRGB EXR, one task per camera.
 
 Wiring only: the decoding itself is :func:`pipeline.codecs.raw.decode_raw`. Each camera's three
-illuminations are decoded in one task and written as half-float EXR; the sensor's clipped pixels (any of
-the three frames) go to ``clipped/<cam>.png`` for the photometric stage's validity alpha.
+illuminations are decoded in one task and written as half-float EXR (its header says the colour space and
+units) and as an 8-bit sRGB PNG beside it (for viewers and for tools that read 8-bit images: nerfstudio,
+splatting trainers); the sensor's clipped pixels (any of the three frames) go to ``clipped/<cam>.png`` for
+the photometric stage's validity alpha. ``transforms.json`` holds the cameras in the nerfstudio / instant-ngp
+convention with the OpenCV matrices beside (:func:`transforms_json`).
 """
 from __future__ import annotations
 
@@ -15,16 +18,22 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.codecs.exr import write_exr
-from pipeline.codecs.image import write_png
+from pipeline.codecs.image import srgb_encode, write_png
 from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
 from stages.cameras import load_cameras, unregistered_cameras
+from stages.exr_headers import EXR_HEADERS
 from stages.lightcolour import colour_matrix
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
+OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Camera axes: OpenCV (x right, y down, z forward) to OpenGL (x right, y up, z back); its own inverse."""
+COLMAP_MODEL_DIR = "colmap/sparse/0"
+"""Where the exports stage's COLMAP model lies in the action folder (the sparse/0 layout COLMAP, nerfstudio
+and gaussian-splatting readers look for); transforms.json names its points3D.ply."""
 
 
 @dataclass(frozen=True)
@@ -48,20 +57,64 @@ def scale_camera(cam: dict[str, Any], half_size: bool) -> dict[str, Any]:
     return dict(cam) | {"K": K.tolist(), "width": cam["width"] // 2, "height": cam["height"] // 2}
 
 
+def srgb_png(linear_rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8: the sRGB transfer curve of the linear values clipped to [0, 1], no exposure change
+    (1.0, the sensor's clip level, is 255), so ``srgb_decode(png / 255)`` gives back the EXR below 1."""
+    rgb = np.nan_to_num(np.asarray(linear_rgb, np.float32)[..., :3], nan=0.0, posinf=1.0, neginf=0.0)
+    return (srgb_encode(rgb) * 255.0 + 0.5).astype(np.uint8)
+
+
+def opengl_camera_to_world(cam_from_world: np.ndarray) -> np.ndarray:
+    """(4, 4) camera-to-world with OpenGL camera axes (nerfstudio's and instant-ngp's ``transform_matrix``)
+    from an OpenCV (3, 4) or (4, 4) cam_from_world: the OpenCV world_from_cam with its y and z columns negated."""
+    P = np.eye(4)
+    P[:3, :4] = np.asarray(cam_from_world, np.float64)[:3, :4]
+    return np.linalg.inv(P) @ OPENGL_FROM_OPENCV
+
+
+def opencv_cam_from_world(transform_matrix: np.ndarray) -> np.ndarray:
+    """(3, 4) OpenCV cam_from_world from an OpenGL camera-to-world ``transform_matrix`` (the inverse of
+    :func:`opengl_camera_to_world`)."""
+    return np.linalg.inv(np.asarray(transform_matrix, np.float64) @ OPENGL_FROM_OPENCV)[:3, :4]
+
+
+def distortion_fields(dist: Any) -> dict[str, float]:
+    """OpenCV distortion (k1, k2, p1, p2[, k3]) as nerfstudio's per-frame fields (0 where absent)."""
+    d = [float(x) for x in (list(dist or []) + [0.0] * 5)[:5]]
+    return {"k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3], "k3": d[4]}
+
+
 def transforms_json(cameras: list[dict[str, Any]], image_dir: str = "full_on") -> dict[str, Any]:
-    """The release's transforms.json: per-frame K and world_from_cam 4x4 (OpenCV axes; CONVENTIONS.md)."""
+    """The release's transforms.json for the cameras (OpenCV records: K, dist, cam_from_world, width, height).
+
+    ``transform_matrix``, ``fl_x``, ``fl_y``, ``cx``, ``cy`` and the distortion fields follow nerfstudio /
+    instant-ngp (OpenGL camera-to-world; pixel centres at +0.5, as COLMAP: ``cx`` = OpenCV ``K[0][2]`` + 0.5).
+    ``K``, ``dist``, ``cam_from_world_opencv`` and ``world_from_cam_opencv`` are the OpenCV ones.
+    """
     frames = []
     for cam in cameras:
+        cid = cam["camera_id"]
+        K = np.asarray(cam["K"], np.float64)
         cam_from_world = np.eye(4)
-        cam_from_world[:3, :4] = np.asarray(cam["cam_from_world"], dtype=float)
-        world_from_cam = np.linalg.inv(cam_from_world)
-        K = cam["K"]
-        frames.append({"camera_id": cam["camera_id"], "file_path": f"{image_dir}/{cam['camera_id']}.exr",
-                       "w": cam["width"], "h": cam["height"], "fl_x": K[0][0], "fl_y": K[1][1],
-                       "cx": K[0][2], "cy": K[1][2], "K": K, "dist": cam.get("dist", [0.0] * 5),
-                       "transform_matrix": world_from_cam.tolist()})
-    return {"camera_convention": "opencv", "transform_matrix": "world_from_cam", "units": "metres",
-            "frame": "stage: origin at LED-sphere centre, +y up", "frames": frames}
+        cam_from_world[:3, :4] = np.asarray(cam["cam_from_world"], np.float64)[:3, :4]
+        frames.append({
+            "camera_id": cid, "file_path": f"{image_dir}/{cid}.png", "mask_path": f"mask/{cid}.png",
+            "exr_path": f"{image_dir}/{cid}.exr", "w": int(cam["width"]), "h": int(cam["height"]),
+            "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]) + 0.5, "cy": float(K[1, 2]) + 0.5,
+            **distortion_fields(cam.get("dist")),
+            "transform_matrix": opengl_camera_to_world(cam_from_world).tolist(),
+            "K": K.tolist(), "dist": list(distortion_fields(cam.get("dist")).values()),  # OpenCV order
+            "cam_from_world_opencv": cam_from_world[:3].tolist(),
+            "world_from_cam_opencv": np.linalg.inv(cam_from_world).tolist()})
+    return {"camera_model": "OPENCV",
+            "matrix_conventions": "transform_matrix: camera-to-world, OpenGL camera axes (x right, y up, z back), "
+                                  "as nerfstudio and instant-ngp read it; cam_from_world_opencv (3x4) and "
+                                  "world_from_cam_opencv (4x4): OpenCV camera axes (x right, y down, z forward); "
+                                  "transform_matrix = world_from_cam_opencv @ diag(1, -1, -1, 1) (CONVENTIONS.md)",
+            "intrinsics_conventions": "fl_x, fl_y, cx, cy, k1, k2, p1, p2, k3: nerfstudio/COLMAP (pixel centres at "
+                                      "+0.5: cx = K[0][2] + 0.5); K and dist: OpenCV (pixel centres at integers)",
+            "units": "metres", "world": "stage frame: origin at the LED-sphere centre, +y up",
+            "ply_file_path": f"{COLMAP_MODEL_DIR}/points3D.ply", "frames": frames}
 
 
 def _file_digest(path: Path) -> str:
@@ -90,10 +143,11 @@ def check_no_duplicate_frames(raw_inputs: dict[str, Path], view_stats: dict[str,
 
 class DecodeStage(Stage):
     name = "decode"
-    version = "2"
+    version = "3"
     scope = "action"
     requires = ("cameras", "colour")
     outputs = ("full_on", "pos", "neg", "clipped", "cameras.json", "transforms.json")
+    """full_on/, pos/, neg/ hold <cam>.exr (linear) and <cam>.png (8-bit sRGB)."""
     per_view = True
 
     def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
@@ -127,7 +181,8 @@ class DecodeStage(Stage):
             if matrix is not None:
                 apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
                 np.maximum(frame.rgb, 0.0, out=frame.rgb)
-            write_exr(ctx.out_dir / illum / f"{view}.exr", frame.rgb)
+            write_exr(ctx.out_dir / illum / f"{view}.exr", frame.rgb, header=EXR_HEADERS[illum])
+            write_png(ctx.out_dir / illum / f"{view}.png", srgb_png(frame.rgb))
             clipped = frame.clipped if clipped is None else (clipped | frame.clipped)
             stats[f"{illum}_mean"] = float(frame.rgb.mean())
             stats[f"{illum}_clipped_fraction"] = float(frame.clipped.mean())
@@ -148,6 +203,7 @@ class DecodeStage(Stage):
         files = [(artifact / "transforms.json", "transforms.json", "transforms", None)]
         for illum in ILLUMINATIONS:
             files += [(p, f"{illum}/{p.name}", illum, p.stem) for p in sorted((artifact / illum).glob("*.exr"))]
+            files += [(p, f"{illum}/{p.name}", f"{illum}_png", p.stem) for p in sorted((artifact / illum).glob("*.png"))]
         return files
 
 

@@ -124,8 +124,7 @@ def camera_errors(transforms: dict[str, Any], truth: dict[str, dict[str, Any]]) 
         cam = frame["camera_id"]
         if cam not in truth:
             continue
-        world_from_cam = np.asarray(frame["transform_matrix"], float)
-        est[cam] = np.linalg.inv(world_from_cam)[:3, :4]
+        est[cam] = np.asarray(frame["cam_from_world_opencv"], float)[:3, :4]
         K_true = np.asarray(truth[cam]["K"], float)
         scale = frame["w"] / float(truth[cam]["width"])  # half-size releases: compare at the truth's size
         focal.append(abs(frame["fl_x"] / scale - K_true[0, 0]) / K_true[0, 0] * 100.0)

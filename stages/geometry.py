@@ -30,6 +30,7 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
+from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.sdf import SDF_PRESETS, SDFConfig
 
@@ -323,7 +324,7 @@ class TexturesStage(Stage):
     """UV atlas of the decimated mesh and albedo/normal textures baked from the photometric maps."""
 
     name = "textures"
-    version = "2"
+    version = "3"
     scope = "action"
     requires = ("geometry", "photometric", "decode")
     outputs = ("mesh", "textures", "previews")
@@ -354,10 +355,10 @@ class TexturesStage(Stage):
 
         out = ctx.out_dir
         tex = out / "textures"
-        write_exr(tex / "albedo.exr", baked.textures["albedo"])
-        write_exr(tex / "normal.exr", baked.textures["normal"])
-        write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32))
-        write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32))
+        write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
+        write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
+        write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
+        write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
         # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
         write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
         atlas_vertices = np.asarray(vertices)[atlas.vmapping]
@@ -373,11 +374,9 @@ class TexturesStage(Stage):
                 "bake": {k: v for k, v in baked.stats.items() if isinstance(v, (int, float, str))}}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        # mesh/textured.obj is published by the exports stage, with its texture beside it (this artifact's
+        # MTL points at ../textures/albedo.png, a path some loaders refuse) and a GLB.
         files = []
-        for p in sorted((artifact / "mesh").iterdir()):
-            kind = {".obj": "mesh_textured", ".mtl": "mesh_material"}.get(p.suffix)
-            if kind:
-                files.append((p, f"mesh/{p.name}", kind, None))
         for p in sorted((artifact / "textures").iterdir()):
             kind = f"texture_{p.stem}" if p.suffix == ".exr" else f"texture_{p.stem}_preview"
             files.append((p, f"textures/{p.name}", kind, None))

@@ -78,9 +78,8 @@ def release_cameras(transforms: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """camera_id -> {"K" (3, 3), "cam_from_world" (3, 4), "width", "height"} from a transforms.json."""
     cams = {}
     for frame in transforms["frames"]:
-        world_from_cam = np.asarray(frame["transform_matrix"], np.float64)
         cams[frame["camera_id"]] = {"K": np.asarray(frame["K"], np.float64),
-                                    "cam_from_world": np.linalg.inv(world_from_cam)[:3],
+                                    "cam_from_world": np.asarray(frame["cam_from_world_opencv"], np.float64)[:3],
                                     "width": int(frame["w"]), "height": int(frame["h"])}
     return cams
 

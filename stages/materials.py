@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr, write_exr
+from stages.exr_headers import EXR_HEADERS
 from pipeline.codecs.image import preview_linear, preview_scalar, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
@@ -246,7 +247,7 @@ class MaterialsStage(Stage):
     and without specular light."""
 
     name = "materials"
-    version = "3"
+    version = "4"
     scope = "action"
     requires = ("textures", "decode", "photometric")
     outputs = ("textures", "previews")
@@ -321,12 +322,10 @@ class MaterialsStage(Stage):
         timings["occlusion_s"] = time.perf_counter() - t0
 
         out = ctx.out_dir
-        write_exr(out / "textures" / "roughness.exr", roughness_tex)
-        write_exr(out / "textures" / "roughness_fit_rms.exr", rms_tex)
-        write_exr(out / "textures" / "occlusion.exr", occlusion_tex)
-        write_exr(out / "textures" / "albedo_deoccluded.exr", deoccluded.astype(np.float32))
-        write_exr(out / "textures" / "diffuse_ratio.exr", ratio_tex)
-        write_exr(out / "textures" / "albedo_intrinsic.exr", intrinsic.astype(np.float32))
+        for name, texture in (("roughness", roughness_tex), ("roughness_fit_rms", rms_tex), ("occlusion", occlusion_tex),
+                              ("albedo_deoccluded", deoccluded.astype(np.float32)), ("diffuse_ratio", ratio_tex),
+                              ("albedo_intrinsic", intrinsic.astype(np.float32))):
+            write_exr(out / "textures" / f"{name}.exr", texture, header=EXR_HEADERS[f"texture_{name}"])
         if cfg.previews:
             write_png(out / "previews" / "texture_roughness.png", preview_scalar(roughness_tex))
             write_png(out / "previews" / "texture_occlusion.png", preview_scalar(occlusion_tex))

@@ -23,7 +23,9 @@ from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
 from stages.lightcolour import corrected_normals, load_light_model
 from stages.numerics.denoise import joint_bilateral
-from stages.numerics.photometric import PhotometricParams, facing_away_fraction, photometric_maps
+from stages.exr_headers import EXR_HEADERS
+from stages.numerics.photometric import (PhotometricParams, facing_away_fraction, normals_with_alpha,
+                                         photometric_maps)
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions, white_light_specular
 
@@ -157,7 +159,7 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: dict[str, Any
 
 class PhotometricStage(Stage):
     name = "photometric"
-    version = "6"
+    version = "7"
     scope = "action"
     requires = ("decode", "plates", "lights")
     outputs = ("normal_alpha", "albedo", "mask", "previews")
@@ -192,8 +194,9 @@ class PhotometricStage(Stage):
             if den.normal_alpha:
                 normals = filtered[0]
         out = ctx.out_dir
-        write_exr(out / "normal_alpha" / f"{view}.exr", np.concatenate([normals, maps.alpha[..., None]], -1))
-        write_exr(out / "albedo" / f"{view}.exr", albedo)
+        write_exr(out / "normal_alpha" / f"{view}.exr", normals_with_alpha(normals, maps.alpha),
+                  header=EXR_HEADERS["normal_alpha"])
+        write_exr(out / "albedo" / f"{view}.exr", albedo, header=EXR_HEADERS["albedo"])
         write_png(out / "mask" / f"{view}.png", maps.mask)
         if self.config.previews:
             write_png(out / "previews" / f"normal_{view}.png", preview_normals(normals, maps.alpha))
@@ -340,7 +343,7 @@ class DiffuseNormalsStage(Stage):
     config)."""
 
     name = "diffuse_normals"
-    version = "4"
+    version = "5"
     scope = "action"
     requires = ("decode", "lights", "photometric", "textures", "materials")
     outputs = ("normal_diffuse", "albedo_diffuse", "previews")
@@ -379,7 +382,7 @@ class DiffuseNormalsStage(Stage):
             scene = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))[0]
             normals, occlusion_stats = deocclude_view(scene, cam["K"], cam["cam_from_world"], normals,
                                                       cfg.occlusion_directions, cfg.occlusion_min_visible)
-        write_exr(out, np.concatenate([normals, alpha[..., None]], -1))
+        write_exr(out, normals_with_alpha(normals, alpha), header=EXR_HEADERS["normal_diffuse"])
         self._preview(ctx, view, normals, alpha)
         fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
         stats = {}
@@ -388,7 +391,8 @@ class DiffuseNormalsStage(Stage):
 
             f0 = fitted_f0(ctx.upstream["materials"]) if cfg.use_materials_roughness else cfg.fit.f0
             albedo_diffuse = diffuse_albedo(albedo, normals, cam, roughness, f0)
-            write_exr(ctx.out_dir / "albedo_diffuse" / f"{view}.exr", albedo_diffuse)
+            write_exr(ctx.out_dir / "albedo_diffuse" / f"{view}.exr", albedo_diffuse,
+                      header=EXR_HEADERS["albedo_diffuse"])
             taken = (albedo - albedo_diffuse).mean(axis=-1)[fitted]
             stats = {"albedo_f0": f0, "specular_taken_mean": float(taken.mean()) if taken.size else 0.0}
         return {"fitted": True, "seconds": time.perf_counter() - start,

@@ -8,6 +8,7 @@ from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage
 from stages.cameras import CamerasConfig, CamerasStage
 from stages.decode import DecodeConfig, DecodeStage, PlatesStage
+from stages.exports import ExportsConfig, ExportsStage
 from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, TexturesStage
 from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
 from stages.materials import MaterialsConfig, MaterialsStage
@@ -19,7 +20,8 @@ from stages.relightset import RelightSetConfig, RelightSetStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
                                           PhotometricStage, GeometryStage, TexturesStage,
-                                          MaterialsStage, DiffuseNormalsStage, RelightStage, RelightSetStage)
+                                          MaterialsStage, DiffuseNormalsStage, RelightStage, RelightSetStage,
+                                          ExportsStage)
 
 CODE_PACKAGES: tuple[str, ...] = ("stages", "calibration", "synthetic", "pipeline.codecs")
 """The project's packages whose code can change a stage's output: a stage's cache key holds the digests of its
@@ -52,6 +54,9 @@ class PipelineConfig:
     """Novel views under HDR environments (renders/)."""
     relightset: RelightSetConfig = field(default_factory=RelightSetConfig)
     """The single-image relighting set (relight/ at the release root, manifests/relight_examples.parquet)."""
+    exports: ExportsConfig = field(default_factory=ExportsConfig)
+    """The action in other tools' formats: 8-bit sRGB images, nerfstudio transforms.json, a COLMAP model of
+    the subject's surface points, the textured OBJ with its texture beside it and a GLB."""
     execution: ExecutionConfig = field(default_factory=ExecutionConfig)
     """Where and how tasks run; never part of a cache key."""
 
@@ -81,6 +86,7 @@ PRESETS: dict[str, PipelineConfig] = {
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
                                                    face_budget=20_000, previews=True, deocclude_iterations=60),
                            textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
+                           exports=ExportsConfig(colmap_points=5_000),
                            materials=MaterialsConfig(texture_size=64, max_views=4, median_neighbours=16,
                                                      occlusion_rays=16, occlusion_size=64),
                            relight=RelightConfig(environments=("procedural:sky", "procedural:studio"), novel_views=1,

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import write_exr
+from stages.exr_headers import EXR_HEADERS
 from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
@@ -276,7 +277,7 @@ class RelightStage(Stage):
     # 8: edge pixels take the mean of their shaded neighbours (bake.dilate_texture), not the nearest one's;
     # 7: the coverage grid cast at the silhouette only; 6: antialiased silhouettes (alpha = pixel coverage);
     # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
-    version = "8"
+    version = "9"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")
@@ -321,11 +322,12 @@ class RelightStage(Stage):
             maps, out_mask, alpha = rendered["maps"], rendered["mask"], rendered["alpha"]
             folder = renders / view["camera_id"]
             for name, image in maps.items():
-                write_exr(folder / f"{name}.exr", image)
+                write_exr(folder / f"{name}.exr", image, header=EXR_HEADERS[f"render_{name}"])
             write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
             row = [preview_normals(maps["normal"], out_mask.astype(np.float32))]
             for env, image in zip(environments, rendered["images"]):
-                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2))
+                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2),
+                          header=EXR_HEADERS["relit"])
                 row.append(preview_linear(image, exposure=auto_exposure(image, out_mask)))
             sheet_rows.append(np.concatenate(row, axis=1))
             records.append({**view, "pixels": rendered["pixels"], "mask_pixels": int(out_mask.sum()),

@@ -1,7 +1,9 @@
-"""OpenEXR read/write for float maps: half float, lossless ZIP compression, finite values only."""
+"""OpenEXR read/write for float maps: half float, lossless ZIP compression, finite values only, with
+optional header attributes (the colour space, what the channels hold and their units)."""
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -11,9 +13,26 @@ _DEFAULT_CHANNELS = {1: ("Y",), 2: ("Y", "A"), 3: ("R", "G", "B"), 4: ("R", "G",
 HALF_MAX = float(np.finfo(np.float16).max)
 """Largest finite half float (65504): half-float maps are clipped to [-HALF_MAX, HALF_MAX]."""
 
+LINEAR_SRGB_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+"""CIE xy of the red, green and blue primaries and the white point of linear sRGB / Rec. 709 (D65), in the
+order of the EXR standard attribute ``chromaticities``."""
+
+_RESERVED = {"channels", "compression", "dataWindow", "displayWindow", "lineOrder", "pixelAspectRatio",
+             "screenWindowCenter", "screenWindowWidth", "type", "tiles"}
+
+
+def describe(content: str, units: str, colour: bool = False) -> dict[str, object]:
+    """Header attributes that say what an EXR holds: ``content`` (what each channel is), ``units``, the
+    same in the standard ``comments`` attribute (shown by ``exrheader`` and most viewers), and, for colour
+    images (``colour=True``), the standard ``chromaticities`` of linear sRGB / Rec. 709 with a D65 white."""
+    header: dict[str, object] = {"content": content, "units": units, "comments": f"{content} Units: {units}"}
+    if colour:
+        header["chromaticities"] = LINEAR_SRGB_CHROMATICITIES
+    return header
+
 
 def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | None = None,
-              half: bool = True) -> Path:
+              half: bool = True, header: Mapping[str, object] | None = None) -> Path:
     """Write an (H, W) or (H, W, C) float array as an EXR file.
 
     Args:
@@ -21,12 +40,15 @@ def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | N
         array: (H, W) or (H, W, C) with C in 1..4 (or any C when ``channels`` names them).
         channels: channel names, default Y / YA / RGB / RGBA by channel count.
         half: store as half float (the release format) instead of float32.
+        header: extra header attributes (e.g. from :func:`describe`): strings, or 8 floats for
+            ``chromaticities``; the structural ones (channels, compression, windows, ...) are the writer's.
 
     Values beyond the stored type's finite range (65504 for half float, e.g. a sun in an HDR render; float32's
     for float64 input) are clipped to it, so no Inf is ever written.
 
     Raises:
-        ValueError: non-finite values (NaN or Inf; nothing is written) or a wrong shape.
+        ValueError: non-finite values (NaN or Inf; nothing is written), a wrong shape, or a header attribute
+            that would override a structural one.
     """
     path = Path(path)
     arr = np.asarray(array)
@@ -45,10 +67,13 @@ def write_exr(path: str | Path, array: np.ndarray, channels: tuple[str, ...] | N
     # clip in the input's precision, before the cast: a cast alone turns what is out of range into Inf
     data = {name: np.ascontiguousarray(np.clip(arr[:, :, i], -limit, limit).astype(dtype))
             for i, name in enumerate(names)}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    clash = sorted(set(header or {}) & _RESERVED)
+    if clash:
+        raise ValueError(f"{path}: header attributes {clash} are set by the writer")
+    attributes = dict(header or {}) | {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with OpenEXR.File(header, data) as exr_file:
+    with OpenEXR.File(attributes, data) as exr_file:
         exr_file.write(str(tmp))
     os.replace(tmp, path)
     return path
@@ -75,3 +100,9 @@ def read_exr(path: str | Path, channels: tuple[str, ...] | None = None) -> np.nd
             raise ValueError(f"{path}: channels {missing} not in file (has {available})")
         stack = [np.asarray(planes[c].pixels, dtype=np.float32) for c in channels]
     return stack[0] if len(stack) == 1 else np.stack(stack, axis=-1)
+
+
+def read_exr_header(path: str | Path) -> dict[str, object]:
+    """The header attributes of an EXR file (``content``, ``units``, ``chromaticities``, ... when written)."""
+    with OpenEXR.File(str(path)) as exr_file:
+        return dict(exr_file.header())

@@ -40,6 +40,7 @@ __all__ = [
     "foreground_mask",
     "photometric_maps",
     "facing_away_fraction",
+    "normals_with_alpha",
 ]
 
 #: ``|d|`` of an ideal, unoccluded Lambertian point under the LED gradients.
@@ -802,3 +803,21 @@ def facing_away_fraction(normals: np.ndarray, views: np.ndarray, valid: np.ndarr
     counted = valid & np.any(normals != 0, axis=-1)
     n = int(counted.sum())
     return (float(np.count_nonzero(cos[counted] < 0)) / n if n else 0.0), n
+
+
+def normals_with_alpha(normals: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The released RGBA normal map: (H, W, 4) float32, normals (H, W, 3) in RGB and ``alpha`` (H, W) in A,
+    with the normals set to 0 wherever the alpha *as stored* (half float, the release's EXR) is 0.
+
+    A pixel whose alpha rounds to 0 in half float (below 3e-8, or exactly 0: background, clipped, no
+    signal) carries no normal in the file, as CONVENTIONS.md says; normals elsewhere are kept as they are.
+    """
+    normals = np.asarray(normals, np.float32)
+    alpha = np.asarray(alpha, np.float32)
+    if normals.ndim != 3 or normals.shape[2] != 3 or alpha.shape != normals.shape[:2]:
+        raise ValueError(f"normals_with_alpha: expected normals (H, W, 3) and alpha (H, W), "
+                         f"got {normals.shape} and {alpha.shape}")
+    none = alpha.astype(np.float16) == 0
+    out = np.concatenate([normals, alpha[..., None]], axis=-1)
+    out[none, :3] = 0.0
+    return out

@@ -84,12 +84,12 @@ def test_marker_calibration_is_the_default_and_beats_the_rig_spec(tmp_path):
     stats = _stats(result, "cameras")
     assert stats["source"] == "markers" and stats["missing_views"] == {} and stats["reprojection_error_px"] < 0.2
     action = tmp_path / "release" / "actions" / "A0000"
-    assert (action / "colmap" / "points3D.txt").read_text().count("\n") > 100      # the balls, with their tracks
+    assert (action / "calibration" / "colmap" / "points3D.txt").read_text().count("\n") > 100      # the balls, with their tracks
     truth = true_cameras(root / "ground_truth", "S000")
     calibrated = camera_errors(json.loads((action / "transforms.json").read_text()), truth)
     rig = json.loads((root / "sessions" / "S000" / "rig.json").read_text())
     spec = camera_errors({"frames": [{"camera_id": c["camera_id"], "w": c["width"], "fl_x": c["K"][0][0],
-                                      "transform_matrix": np.linalg.inv(np.vstack([c["cam_from_world"], [0, 0, 0, 1]])).tolist()}
+                                      "cam_from_world_opencv": c["cam_from_world"]}
                                      for c in rig["cameras"]]}, truth)
     assert calibrated["cameras_registered"] == 8
     for key in ("cam_rotation_err_deg", "cam_center_err_mm", "cam_focal_err_pct"):

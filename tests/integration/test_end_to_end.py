@@ -62,7 +62,10 @@ def test_release_layout_and_manifests(first_run):
                      "renders/N000/normal.exr", "renders/N000/albedo.exr", "renders/N000/roughness.exr",
                      "renders/N000/mask.png", "renders/N000/procedural_sky.exr",
                      "renders/N000/procedural_studio.exr", "previews/relit.png", "textures/diffuse_ratio.exr",
-                     "textures/albedo_intrinsic.exr", "previews/normals_sheet.png", "previews/normals_diffuse_sheet.png"):
+                     "textures/albedo_intrinsic.exr", "previews/normals_sheet.png", "previews/normals_diffuse_sheet.png",
+                     "full_on/00000.png", "pos/00005.png", "neg/00003.png", "mesh/textured.png", "mesh/textured.glb",
+                     "colmap/sparse/0/cameras.txt", "colmap/sparse/0/images.txt", "colmap/sparse/0/points3D.txt",
+                     "colmap/sparse/0/points3D.ply"):
             assert (release / "actions" / action / name).is_file(), (action, name)
     assert (release / "CONVENTIONS.md").exists() and (release / "config.yaml").exists()
     from manifests import open_release, verify_release
@@ -76,6 +79,109 @@ def test_release_layout_and_manifests(first_run):
     diffuse = rel.action("A0001").normals("00002", diffuse=True)  # the specular-fitted normal maps
     assert diffuse.shape == normals.shape and not np.array_equal(diffuse, normals)
     assert verify_release(release).ok
+
+
+# ---- the release in other tools, read by those tools' own loaders -----------------------------------------
+
+def test_transforms_json_in_the_nerfstudio_convention_opens_with_pil(first_run):
+    """Every file_path and mask_path opens in PIL (nerfstudio's reader) at the frame's size, and the OpenGL
+    camera-to-world matrices look at the subject: their -z axis points at the mesh's centroid."""
+    from PIL import Image
+
+    from pipeline.codecs.mesh import read_ply
+
+    out, _ = first_run
+    for action in ("A0000", "A0001"):
+        folder = out / "release" / "actions" / action
+        transforms = json.loads((folder / "transforms.json").read_text())
+        assert transforms["camera_model"] == "OPENCV" and "transform_matrix" not in transforms
+        assert (folder / transforms["ply_file_path"]).is_file()
+        centroid = read_ply(folder / "mesh" / "mesh.ply")[0].mean(axis=0)
+        for frame in transforms["frames"]:
+            with Image.open(folder / frame["file_path"]) as image:
+                assert image.mode == "RGB" and image.size == (frame["w"], frame["h"])
+                assert np.asarray(image).max() > 0
+            with Image.open(folder / frame["mask_path"]) as mask:
+                assert mask.size == (frame["w"], frame["h"]) and np.asarray(mask).max() == 255
+            assert all(k in frame for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"))
+            camera_to_world = np.asarray(frame["transform_matrix"])
+            to_subject = centroid - camera_to_world[:3, 3]
+            assert np.dot(-camera_to_world[:3, 2], to_subject / np.linalg.norm(to_subject)) > 0.95, frame["camera_id"]
+            # the centroid projects inside the picture with nerfstudio's intrinsics and OpenGL axes (y up)
+            x, y, z = (np.linalg.inv(camera_to_world) @ np.append(centroid, 1.0))[:3]
+            u, v = frame["fl_x"] * x / -z + frame["cx"], -frame["fl_y"] * y / -z + frame["cy"]
+            assert 0 < u < frame["w"] and 0 < v < frame["h"]
+
+
+def test_colmap_model_loads_in_pycolmap_with_the_subject_as_points(first_run):
+    """pycolmap reads the model; its image names are files of the action; its points lie on the subject:
+    projected through the model's own cameras they fall on the masks."""
+    import pycolmap
+    from PIL import Image
+
+    out, _ = first_run
+    folder = out / "release" / "actions" / "A0000"
+    model = pycolmap.Reconstruction(str(folder / "colmap" / "sparse" / "0"))
+    assert model.num_images() == 6 and model.num_points3D() == PRESETS["test"].exports.colmap_points
+    points = np.array([p.xyz for p in model.points3D.values()])
+    colours = np.array([p.color for p in model.points3D.values()])
+    assert colours.mean() > 20  # coloured by the albedo, not black markers
+    for image in model.images.values():
+        assert (folder / image.name).is_file(), image.name
+        mask = np.asarray(Image.open(folder / "mask" / Path(image.name).name)) > 127
+        uv = np.array([image.project_point(p) for p in points[::10]], dtype=float)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < mask.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < mask.shape[0])
+        assert inside.mean() > 0.99, image.name
+        # COLMAP's pixel centres are at +0.5: the pixel index is the floor of the coordinate. The tiny
+        # capture's coarse mesh is a little fatter than its 96 px masks: 67-86% of the points land on a mask
+        # that covers 8-13% of the picture (a wrong pose or axis convention lands them off it)
+        on_mask = mask[uv[inside, 1].astype(int), uv[inside, 0].astype(int)]
+        assert on_mask.mean() > 0.5 and on_mask.mean() > 4 * mask.mean(), (image.name, on_mask.mean())
+
+
+def test_textured_mesh_loads_in_trimesh_with_its_texture_and_as_glb(first_run):
+    import trimesh
+    from PIL import Image
+
+    out, _ = first_run
+    mesh = out / "release" / "actions" / "A0000" / "mesh"
+    obj = trimesh.load(mesh / "textured.obj", process=False)
+    assert isinstance(obj.visual, trimesh.visual.TextureVisuals) and obj.visual.uv is not None
+    with Image.open(mesh / "textured.png") as texture:
+        size = texture.size
+    assert obj.visual.material.image is not None and obj.visual.material.image.size == size
+    glb = trimesh.load(mesh / "textured.glb")
+    (geometry,) = glb.geometry.values() if isinstance(glb, trimesh.Scene) else (glb,)
+    assert geometry.visual.material.baseColorTexture is not None
+    assert geometry.visual.material.baseColorTexture.size == size
+    assert np.allclose(geometry.bounds, obj.bounds, atol=1e-5)  # metres, world frame, as the OBJ
+
+
+def test_manifests_answer_plain_sql_in_duckdb(first_run):
+    import duckdb
+
+    from manifests import open_release
+
+    out, _ = first_run
+    release = out / "release"
+    assets = (release / "manifests" / "assets.parquet").as_posix()
+    ((count,),) = duckdb.sql(f"SELECT count(*) FROM '{assets}'").fetchall()
+    assert count == len(open_release(release).assets)
+    kinds = dict(duckdb.sql(f"SELECT kind, count(*) FROM '{assets}' WHERE action_id = 'A0000' GROUP BY kind").fetchall())
+    assert kinds["full_on_png"] == 6 and kinds["mesh_glb"] == 1 and kinds["colmap_images_txt"] == 1
+
+
+def test_released_exr_say_what_they_hold_and_normals_are_zero_without_alpha(first_run):
+    from pipeline.codecs.exr import LINEAR_SRGB_CHROMATICITIES, read_exr, read_exr_header
+
+    out, _ = first_run
+    folder = out / "release" / "actions" / "A0000"
+    header = read_exr_header(folder / "full_on" / "00000.exr")
+    assert np.allclose(header["chromaticities"], LINEAR_SRGB_CHROMATICITIES, atol=1e-6) and header["units"]
+    for path in sorted(folder.glob("normal_*/*.exr")):
+        assert "alpha" in read_exr_header(path)["content"]
+        data = read_exr(path)
+        assert not np.any(data[data[..., 3] == 0][:, :3]), path
 
 
 def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_run):

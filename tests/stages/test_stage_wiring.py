@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.decode import scale_camera, transforms_json
+from stages.decode import opencv_cam_from_world, scale_camera, srgb_png, transforms_json
 from stages.photometric import contact_sheet
 
 CAM = {"camera_id": "00007", "width": 320, "height": 480, "K": [[800.0, 0, 159.5], [0, 800.0, 239.5], [0, 0, 1]],
@@ -21,14 +21,31 @@ def test_half_size_camera_follows_the_pixel_centre_convention():
     assert scale_camera(CAM, half_size=False) == CAM
 
 
-def test_transforms_json_holds_world_from_cam():
-    frame = transforms_json([CAM])["frames"][0]
-    world_from_cam = np.asarray(frame["transform_matrix"])
-    centre = world_from_cam[:3, 3]
+def test_transforms_json_follows_nerfstudio_and_keeps_the_opencv_matrices():
+    data = transforms_json([CAM])
+    frame = data["frames"][0]
+    assert data["camera_model"] == "OPENCV" and "transform_matrix" not in data  # the key names no string
+    camera_to_world = np.asarray(frame["transform_matrix"])
     R, t = np.asarray(CAM["cam_from_world"])[:, :3], np.asarray(CAM["cam_from_world"])[:, 3]
-    assert np.allclose(centre, -R.T @ t)  # camera centre in the world
-    assert np.allclose(world_from_cam[3], [0, 0, 0, 1])
-    assert frame["file_path"] == "full_on/00007.exr" and frame["fl_x"] == 800.0
+    assert np.allclose(camera_to_world[:3, 3], -R.T @ t)  # camera centre in the world
+    assert np.allclose(camera_to_world[3], [0, 0, 0, 1])
+    # OpenGL axes: the camera looks along its -z; OpenCV's +z (the third row of R) is the viewing direction
+    assert np.allclose(-camera_to_world[:3, 2], R[2]) and np.allclose(camera_to_world[:3, 1], -R[1])
+    assert np.allclose(frame["cam_from_world_opencv"], CAM["cam_from_world"])
+    assert np.allclose(np.asarray(frame["world_from_cam_opencv"]) @ np.diag([1, -1, -1, 1]), camera_to_world)
+    assert np.allclose(opencv_cam_from_world(camera_to_world), CAM["cam_from_world"])
+    assert frame["file_path"] == "full_on/00007.png" and frame["mask_path"] == "mask/00007.png"
+    assert frame["fl_x"] == 800.0 and frame["cx"] == 160.0 and frame["cy"] == 240.0  # COLMAP/nerfstudio: +0.5
+    assert frame["K"][0][2] == 159.5 and [frame[k] for k in ("k1", "k2", "p1", "p2")] == [0.0] * 4
+
+
+def test_srgb_png_is_the_transfer_curve_without_exposure():
+    from pipeline.codecs.image import srgb_decode
+
+    linear = np.array([[[0.0, 0.0031308, 0.18], [0.5, 1.0, 3.0]]], np.float32)
+    png = srgb_png(linear)
+    assert png.dtype == np.uint8 and png[0, 1, 1] == 255 and png[0, 1, 2] == 255 and png[0, 0, 0] == 0
+    assert np.allclose(srgb_decode(png[0, 0, 2] / 255.0), 0.18, atol=0.003)
 
 
 def test_contact_sheet_tiles_row_major():
@@ -111,3 +128,56 @@ def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
                        ({"second_pass_error_floor_deg": -1.0}, "second_pass_error_floor_deg")):
         with pytest.raises(ValueError, match=match):
             GeometryConfig(**bad)
+
+
+def test_released_normals_are_zero_where_the_stored_alpha_is_zero():
+    from stages.numerics.photometric import normals_with_alpha
+
+    normals = np.tile(np.array([0.0, 0.6, 0.8], np.float32), (2, 3, 1))
+    alpha = np.array([[0.0, 1e-9, 0.2], [0.6, 1.0, 2e-7]], np.float32)  # 1e-9 is 0 in half float, 2e-7 is not
+    out = normals_with_alpha(normals, alpha)
+    assert out.shape == (2, 3, 4) and np.array_equal(out[..., 3], alpha)
+    zero = alpha.astype(np.float16) == 0
+    assert np.all(out[zero, :3] == 0) and zero.sum() == 2
+    assert np.allclose(out[~zero, :3], [0.0, 0.6, 0.8])
+    with pytest.raises(ValueError, match="normals_with_alpha"):
+        normals_with_alpha(normals[..., :2], alpha)
+
+
+def test_exr_headers_say_colour_space_content_and_units(tmp_path):
+    from pipeline.codecs.exr import LINEAR_SRGB_CHROMATICITIES, read_exr, read_exr_header, write_exr
+    from stages.exr_headers import EXR_HEADERS
+
+    path = write_exr(tmp_path / "full_on.exr", np.full((2, 3, 3), 0.5, np.float32), header=EXR_HEADERS["full_on"])
+    header = read_exr_header(path)
+    assert np.allclose(header["chromaticities"], LINEAR_SRGB_CHROMATICITIES, atol=1e-6)
+    assert "linear sRGB" in header["content"] and "clip level" in header["units"]
+    assert header["units"] in header["comments"]
+    assert np.allclose(read_exr(path), 0.5)
+    normals = read_exr_header(write_exr(tmp_path / "n.exr", np.zeros((2, 3, 4), np.float32),
+                                        header=EXR_HEADERS["normal_alpha"]))
+    assert "chromaticities" not in normals and "alpha" in normals["content"]
+    with pytest.raises(ValueError, match="set by the writer"):
+        write_exr(tmp_path / "bad.exr", np.zeros((2, 2), np.float32), header={"compression": "none"})
+
+
+def test_colmap_text_model_reads_in_pycolmap_and_projects_like_opencv(tmp_path):
+    import pycolmap
+
+    from stages.exports import colmap_cameras_txt, colmap_images_txt, colmap_points3d_txt, sample_surface
+
+    vertices = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2]], float)
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+    points, normals, uv = sample_surface(vertices, faces, vertices[:, :2], 50, seed=1)
+    assert points.shape == (50, 3) and np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+    assert np.all(points >= -1e-12) and np.all(points.sum(axis=1) <= 0.2 + 1e-9)  # on the tetrahedron
+    (tmp_path / "cameras.txt").write_text(colmap_cameras_txt([CAM]))
+    (tmp_path / "images.txt").write_text(colmap_images_txt([CAM]))
+    (tmp_path / "points3D.txt").write_text(colmap_points3d_txt(points, np.full((50, 3), 200, np.uint8)))
+    model = pycolmap.Reconstruction(str(tmp_path))
+    assert model.num_points3D() == 50
+    (image,) = model.images.values()
+    assert image.name == "full_on/00007.png"
+    P, K = np.asarray(CAM["cam_from_world"]), np.asarray(CAM["K"])
+    x = K @ (P[:, :3] @ points[0] + P[:, 3])
+    assert np.allclose(image.project_point(points[0]), x[:2] / x[2] + 0.5)  # COLMAP: pixel centres at +0.5
