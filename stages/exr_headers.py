@@ -51,5 +51,13 @@ EXR_HEADERS: dict[str, dict[str, object]] = {
     "relit": describe("RGB: the novel view relit under the environment, linear sRGB, premultiplied by alpha; "
                       "A: the share of the pixel the subject covers.",
                       "RGB linear radiance in the environment map's own units, A unitless", True),
+    "relightset_image": describe("RGB: the relighting-set example's image under its turned environment, linear sRGB, "
+                                 "premultiplied by alpha; A: the share of the pixel the subject covers.",
+                                 "RGB linear radiance in the environment map's own units, A unitless", True),
+    "relightset_albedo": describe("RGB: the example's diffuse albedo (specular light and ambient occlusion out), "
+                                  "linear sRGB; 0 outside the mask.", _REFLECTANCE, True),
+    "relightset_normal": describe("RGB: unit normal in the example's CAMERA frame, OpenCV axes (x right, y down, "
+                                  "z forward; facing the camera: z < 0); 0 outside the mask.",
+                                  "unit-vector components"),
 }
 """Header attributes per asset kind of the release's EXR files."""

@@ -41,6 +41,7 @@ from pipeline.codecs.image import write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.novel_view import ViewShading
 from stages.relight import DEFAULT_HDRI_DIRS, PROCEDURAL_PREFIX, find_environment
@@ -293,12 +294,13 @@ class RelightSetStage(Stage):
                 image, mask, alpha = view["images"][0], view["mask"], view["alpha"]
                 normals_cam = normals_to_camera(view["maps"]["normal"], cam_from_world)
                 exposure = auto_exposure(image, mask, cfg.png_level)
-                write_exr(folder / "image.exr", np.concatenate([image, alpha[..., None]], axis=2))
+                write_exr(folder / "image.exr", np.concatenate([image, alpha[..., None]], axis=2),
+                          header=EXR_HEADERS["relightset_image"])
                 write_png(folder / "image.png", tone_map(image, exposure))
                 albedo = np.clip(view["maps"]["albedo"], 0.0, 1.0)
-                write_exr(folder / "albedo.exr", albedo)
+                write_exr(folder / "albedo.exr", albedo, header=EXR_HEADERS["relightset_albedo"])
                 write_png(folder / "albedo.png", tone_map(albedo, 1.0))
-                write_exr(folder / "normal.exr", normals_cam, half=False)
+                write_exr(folder / "normal.exr", normals_cam, half=False, header=EXR_HEADERS["relightset_normal"])
                 write_png(folder / "normal.png", encode_normals(normals_cam, mask))
                 write_png(folder / "mask.png", mask)
                 row |= {"png_exposure": float(exposure), "mask_pixels": int(mask.sum())}
