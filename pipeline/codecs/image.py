@@ -62,3 +62,21 @@ def preview_scalar(values: np.ndarray, vmin: float = 0.0, vmax: float = 1.0) -> 
     """uint8 grey picture of a scalar map mapped from [vmin, vmax]."""
     v = np.nan_to_num(np.asarray(values, dtype=np.float32))
     return (np.clip((v - vmin) / max(vmax - vmin, 1e-12), 0, 1) * 255.0 + 0.5).astype(np.uint8)
+
+
+def label_picture(picture: np.ndarray, text: str) -> np.ndarray:
+    """A copy of a uint8 (H, W, 3) picture with ``text`` written in its top-left corner: white on a dark
+    band, Pillow's default bitmap font (about 11 px high), cut at the picture's width."""
+    from PIL import ImageDraw, ImageFont
+
+    pic = np.asarray(picture)
+    if pic.dtype != np.uint8 or pic.ndim != 3 or pic.shape[2] < 3:
+        raise ValueError(f"label_picture takes a uint8 (H, W, 3) picture, got {pic.dtype} {pic.shape}")
+    image = Image.fromarray(np.ascontiguousarray(pic[..., :3]))
+    draw = ImageDraw.Draw(image)
+    font = ImageFont.load_default()
+    left, top, right, bottom = draw.textbbox((3, 2), text, font=font)
+    draw.rectangle((0, 0, min(right + 3, image.width - 1), min(bottom + 2, image.height - 1)), fill=(0, 0, 0))
+    draw.text((3, 2), text, fill=(255, 255, 255), font=font)
+    out = np.asarray(image).copy()
+    return np.concatenate([out, pic[..., 3:]], axis=2) if pic.shape[2] > 3 else out
