@@ -26,9 +26,13 @@ def turntable_cameras(vertices: np.ndarray, frames: int, height: int, width: int
     if frames < 1 or height < 1 or width < 1:
         raise ValueError(f"frames, height and width must be positive, got {frames}, {height}, {width}")
     lo, hi = vertices.min(0), vertices.max(0)
-    centre, radius = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-6)
+    centre = (lo + hi) / 2
+    # the mesh turns within a vertical cylinder about the centre: fit its height and its width from any side,
+    # from its near side (the camera is the cylinder's radius closer to it than to the axis)
+    radius = max(float(np.linalg.norm(vertices[:, [0, 2]] - centre[[0, 2]], axis=1).max()), 1e-6)
+    half_height = max(float(hi[1] - lo[1]) / 2, 1e-6)
     focal = 1.2 * min(height, width)  # about 45 degrees across the narrow side
-    distance = radius * (1.0 + 2.0 * focal / min(height, width)) * 1.05
+    distance = radius + 1.1 * max(half_height * focal / (height / 2), radius * focal / (width / 2))
     K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]], np.float64)
     elevation = np.radians(elevation_deg)
     cameras = []
