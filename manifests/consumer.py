@@ -231,6 +231,7 @@ class Release:
 
 
 _RENDER_KINDS = ("render_", "relit_")  # assets of novel views, not of captured cameras
+_PAGE_KINDS = ("page", "page_thumbnail")  # the release page's files: pictures of the assets, not assets of a view
 
 
 class ActionView:
@@ -265,7 +266,8 @@ class ActionView:
     def cameras(self) -> list[str]:
         """Sorted ids of the captured cameras this action has per-camera assets for (novel views of
         ``renders/`` are in :attr:`render_views`)."""
-        return sorted({cam for (kind, cam) in self._index if cam is not None and not kind.startswith(_RENDER_KINDS)})
+        return sorted({cam for (kind, cam) in self._index
+                       if cam is not None and not kind.startswith(_RENDER_KINDS) and kind not in _PAGE_KINDS})
 
     @property
     def render_views(self) -> list[str]:

@@ -17,6 +17,12 @@ def _links(text: str) -> list[str]:
 
 
 def test_page_links_labelled_thumbnails_of_every_map_and_verifies(release_dir, tiny):
+    from manifests import append_rows, asset_row
+    from pipeline.codecs.exr import write_exr
+
+    relit = write_exr(release_dir / "actions" / "A0000" / "renders" / "N000" / "procedural_sky.exr",
+                      np.full((tiny.H, tiny.W, 4), 0.5, np.float32))
+    append_rows(release_dir, "assets", [asset_row(release_dir, relit, "relit_procedural_sky", "A0000", "N000")])
     page = write_release_page(release_dir)
     text = page.read_text()
     for cam in tiny.CAMS:
@@ -28,7 +34,10 @@ def test_page_links_labelled_thumbnails_of_every_map_and_verifies(release_dir, t
     assert all((release_dir / link).is_file() for link in _links(text))
     assert "Not evaluated" in text and "http" not in text.replace("http-equiv", "")
     kinds = open_release(release_dir).assets.kind.value_counts()
-    assert kinds["page"] == 1 and kinds["page_thumbnail"] == 12
+    assert kinds["page"] == 1 and kinds["page_thumbnail"] == 13
+    assert "view N000 · procedural_sky" in text
+    # the thumbnails are listed per camera, yet the action's cameras are the captured ones only
+    assert open_release(release_dir).action("A0000").cameras == list(tiny.CAMS)
     assert verify_release(release_dir).ok
 
 
