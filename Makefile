@@ -16,6 +16,10 @@ $(STAMP): pyproject.toml requirements.lock
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
 	  else echo "setup: libusb-1.0-0 is missing; install it (sudo apt-get install libusb-1.0-0)" >&2; exit 1; fi; fi
+	@# The release page's test loads index.html in a headless browser: Debian's chromium.
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	  else echo "setup: chromium is missing; the release page test skips without it (sudo apt-get install chromium)" >&2; fi; fi
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -r requirements.lock

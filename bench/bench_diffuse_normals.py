@@ -205,8 +205,9 @@ def main() -> int:
     go_on, truth = check_inputs("bench_diffuse_normals", release, capture, need_truth=True)
     if not go_on:
         return 0
-    run = json.loads((release / "run.json").read_text())
-    work = Path(run["work"])
+    from pipeline.runner import read_run_record
+
+    work = Path(read_run_record(release)["work"])  # run.json holds it relative to the release
     if not (work / "artifacts" / "diffuse_normals").is_dir():
         print(f"bench_diffuse_normals: no diffuse_normals artifacts under {work} (rerun `make dataset`); skipped")
         return 0

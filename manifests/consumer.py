@@ -24,7 +24,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from manifests.schemas import ILLUMINATIONS, TABLE_SPECS
-from manifests.writer import MANIFEST_DIR, file_sha256, manifest_path, read_manifest, release_relpath
+from manifests.writer import (INDEX_NAME, MANIFEST_DIR, file_sha256, manifest_path, read_index, read_manifest,
+                              release_relpath)
 
 
 class ReleaseError(FileNotFoundError):
@@ -133,8 +134,14 @@ class Release:
 
     @property
     def metrics(self) -> pd.DataFrame:
-        """Measured numbers in long format: action, camera, metric, region, value, source, run."""
+        """Measured numbers of the actions in long format: action, camera (view), metric, region, environment
+        (None where they do not apply), value, unit, source, run. Release-wide numbers: :attr:`metrics_summary`."""
         return self.dataframe("metrics")
+
+    @property
+    def metrics_summary(self) -> pd.DataFrame:
+        """Release-wide aggregates of the latest evaluation: metric, value, unit, aggregation, n_actions."""
+        return self.dataframe("metrics_summary")
 
     @property
     def stage_runs(self) -> pd.DataFrame:
@@ -224,6 +231,7 @@ class Release:
 
 
 _RENDER_KINDS = ("render_", "relit_")  # assets of novel views, not of captured cameras
+_PAGE_KINDS = ("page", "page_thumbnail")  # the release page's files: pictures of the assets, not assets of a view
 
 
 class ActionView:
@@ -258,7 +266,8 @@ class ActionView:
     def cameras(self) -> list[str]:
         """Sorted ids of the captured cameras this action has per-camera assets for (novel views of
         ``renders/`` are in :attr:`render_views`)."""
-        return sorted({cam for (kind, cam) in self._index if cam is not None and not kind.startswith(_RENDER_KINDS)})
+        return sorted({cam for (kind, cam) in self._index
+                       if cam is not None and not kind.startswith(_RENDER_KINDS) and kind not in _PAGE_KINDS})
 
     @property
     def render_views(self) -> list[str]:
@@ -403,7 +412,11 @@ class VerifyReport:
     mismatched: list[str] = field(default_factory=list)
     """'path: ...expected vs actual' for files whose size or SHA-256 differs from the assets table."""
     extra: list[str] = field(default_factory=list)
-    """Files under actions/ that the assets table does not list."""
+    """Files of the release that no manifest covers: not in the assets table, nor a manifest table in
+    ``manifests/index.json``."""
+    not_covered: list[str] = field(default_factory=list)
+    """'path: why' for files that are not checked and are not an error: ``manifests/index.json``, the root of
+    the check (it holds the digests of the tables, and the assets table the digests of every other file)."""
 
     @property
     def ok(self) -> bool:
@@ -413,14 +426,16 @@ class VerifyReport:
     def to_dict(self) -> dict:
         """Plain dict (with ``ok``) for JSON output."""
         return {"release": self.release, "ok": self.ok, "n_checked": self.n_checked,
-                "missing": list(self.missing), "mismatched": list(self.mismatched), "extra": list(self.extra)}
+                "missing": list(self.missing), "mismatched": list(self.mismatched), "extra": list(self.extra),
+                "not_covered": list(self.not_covered)}
 
     def summary(self, limit: int = 20) -> str:
         """Human-readable report, listing at most ``limit`` entries per category."""
         head = (f"{self.release}: {'OK' if self.ok else 'FAILED'}: {self.n_checked} assets checked, "
                 f"{len(self.missing)} missing, {len(self.mismatched)} mismatched, {len(self.extra)} extra")
         lines = [head]
-        for title, items in (("missing", self.missing), ("mismatched", self.mismatched), ("extra", self.extra)):
+        for title, items in (("missing", self.missing), ("mismatched", self.mismatched), ("extra", self.extra),
+                             ("not covered", self.not_covered)):
             for item in items[:limit]:
                 lines.append(f"  {title}: {item}")
             if len(items) > limit:
@@ -450,15 +465,16 @@ def _check_asset(root: Path, rel: str, size: int, sha: str) -> tuple[str, str | 
 
 
 def verify_release(path: str | Path, workers: int | None = None) -> VerifyReport:
-    """Re-hash every asset of a release against its assets table and look for unlisted files.
+    """Re-hash every asset of a release against its assets table, every manifest table against
+    ``manifests/index.json``, and look for files neither lists.
 
     Args:
         path: the release folder.
         workers: threads hashing files in parallel (default: up to 8, by CPU count).
 
     Returns:
-        A :class:`VerifyReport`; ``report.ok`` is False when any asset is missing or differs, a file
-        under ``actions/`` is not listed, or the release has no assets table.
+        A :class:`VerifyReport`; ``report.ok`` is False when any asset or manifest table is missing or
+        differs, a file of the release is listed nowhere, or the release has no assets table.
 
     Raises:
         ReleaseError: the folder does not exist or holds no manifests.
@@ -485,13 +501,39 @@ def verify_release(path: str | Path, workers: int | None = None) -> VerifyReport
         else:
             report.n_checked += 1
             report.mismatched.append(detail)
-    listed = set(rels)
-    actions_dir = root / "actions"
-    if actions_dir.is_dir():
-        for dirpath, _dirnames, filenames in os.walk(actions_dir):
-            for fname in filenames:
-                rel = (Path(dirpath) / fname).relative_to(root).as_posix()
-                if rel not in listed:
-                    report.extra.append(rel)
+    listed = set(rels) | _check_manifest_index(root, report)
+    index = f"{MANIFEST_DIR}/{INDEX_NAME}"
+    for dirpath, _dirnames, filenames in os.walk(root):
+        for fname in filenames:
+            rel = (Path(dirpath) / fname).relative_to(root).as_posix()
+            if rel == index:
+                report.not_covered.append(f"{rel}: the index of the manifest tables' digests (the root of the check)")
+            elif rel not in listed:
+                report.extra.append(rel)
     report.extra.sort()
+    report.missing = list(dict.fromkeys(report.missing))  # the assets table may be missing twice over
     return report
+
+
+def _check_manifest_index(root: Path, report: VerifyReport) -> set[str]:
+    """Check every table of ``manifests/index.json`` against its file (into ``report``); the paths it lists."""
+    directory = root / MANIFEST_DIR
+    try:
+        index = read_index(directory)
+    except ValueError as exc:
+        report.mismatched.append(str(exc))
+        return set()
+    if not index:
+        report.missing.append(f"{MANIFEST_DIR}/{INDEX_NAME}")
+    listed = set()
+    for name, entry in sorted(index.items()):
+        rel = f"{MANIFEST_DIR}/{name}"
+        listed.add(rel)
+        status, detail = _check_asset(root, rel, int(entry["bytes"]), str(entry["sha256"]))
+        if status == "missing":
+            report.missing.append(detail)
+        else:
+            report.n_checked += 1
+            if status == "mismatched":
+                report.mismatched.append(detail)
+    return listed

@@ -20,14 +20,19 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "1"
-"""Bumped whenever a column is added, removed or changes meaning."""
+SCHEMA_VERSION = "2"
+"""Bumped whenever a column is added, removed or changes meaning. 2: metrics holds per-action rows only,
+with environment and unit columns and NULL where a column does not apply; release-wide aggregates moved to
+metrics_summary."""
+
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 CAMERA_ID_PATTERN = re.compile(r"^[0-9]{5}$")
 #: Captured cameras ('00000') or, in the assets and metrics tables, the novel views of renders/ ('N000').
 VIEW_ID_PATTERN = re.compile(r"^([0-9]{5}|N[0-9]{3})$")
 SHA256_PATTERN = re.compile(r"^[0-9a-f]{64}$")
+METRIC_UNITS = ("deg", "dB", "%", "mm", "px", "s", "count", "1")
+"""Units of the metrics tables; '1' is dimensionless."""
 
 
 @dataclass(frozen=True)
@@ -188,20 +193,50 @@ ASSETS = TableSpec(
 
 METRICS = TableSpec(
     name="metrics",
-    description="Measured numbers (accuracy against ground truth, photometric statistics, ...), one value "
-                "per row, in long format.",
-    primary_key=("action_id", "camera_id", "metric", "region", "source"),
+    description="Measured numbers of the actions (accuracy against ground truth, stage statistics), one "
+                "measure per row in long format: a metric name means one quantity, so AVG(value) GROUP BY "
+                "metric, unit averages like with like. Release-wide aggregates are in metrics_summary, never here.",
+    primary_key=("action_id", "camera_id", "metric", "region", "environment", "source"),
     columns=(
-        _action_id(nullable=True, extra=" Null for release-level metrics."),
-        _camera_id(nullable=True, novel=True, extra=" Null for metrics over all cameras of an action."),
-        Column("metric", _STR, "Metric name with its unit, e.g. 'normal_angular_error_mean_deg', "
-               "'albedo_psnr_db', 'valid_fraction'."),
-        Column("region", _STR, "Pixels the metric is taken over: 'valid' (alpha > 0.5), 'all' (subject "
-               "mask), 'occluded', 'unoccluded', 'mesh' (the action's mesh against the true surface), ... ; '' when "
-               "not applicable."),
-        Column("value", _F64, "The value (finite)."),
-        Column("source", _STR, "What produced the number, e.g. 'evaluate' (against ground truth), "
-               "'photometric' (a stage's own statistics)."),
+        _action_id(extra=" Every row belongs to one action (release-wide numbers: metrics_summary)."),
+        _camera_id(nullable=True, novel=True, extra=" Null for metrics over a whole action (its mesh, its "
+                   "textures, its held-out views)."),
+        Column("metric", _STR, "Metric name, e.g. 'normal_mean_deg', 'albedo_psnr_db', 'valid_fraction'; one "
+               "name is one quantity measured one way (the held-out views against the simulator's maps are "
+               "'heldout_normal_mean_deg_truth', not a region of 'heldout_normal_mean_deg'); a stage's own "
+               "statistics are prefixed with the stage ('photometric_valid_fraction')."),
+        Column("region", _STR, "Pixels or geometry the metric is taken over: 'valid' (alpha > 0.5 inside the "
+               "true mask), 'all' (the subject's mask), 'mesh' (the action's mesh against the true surface), "
+               "'textures' (the UV atlas seen from the true cameras), 'heldout' (the held-out cameras' pixels, "
+               "the variant in the metric's name); "
+               "null when it does not apply.", nullable=True),
+        Column("environment", _STR, "Label of the environment map a relit view was lit by (as in "
+               "renders/environments.json); null for every other metric.", nullable=True),
+        Column("value", _F64, "The value (finite), in `unit`."),
+        Column("unit", _STR, "Unit of the value: 'deg', 'dB', '%', 'mm', 'px', 's', 'count' or '1' "
+               "(dimensionless: fractions, SSIM, IoU, roughness, RMSE of values in [0, 1]).", choices=METRIC_UNITS),
+        Column("source", _STR, "What produced the number: 'evaluate' (against ground truth) or the stage whose "
+               "own statistics it is ('decode', 'photometric', 'diffuse_normals', ...)."),
+        Column("run_id", _STR, "Id of the run that measured it (`ultrastage run`'s, or the evaluation's own when "
+               "`ultrastage evaluate` ran alone)."),
+    ),
+)
+
+METRICS_SUMMARY = TableSpec(
+    name="metrics_summary",
+    description="Release-wide aggregates of the metrics (what `ultrastage evaluate` prints): one row per "
+                "metric of the latest evaluation, kept apart from the per-action rows of metrics.",
+    primary_key=("metric", "source"),
+    columns=(
+        Column("metric", _STR, "Metric name; where a per-action metric of the same name exists in metrics, this "
+               "is its aggregate over the release."),
+        Column("value", _F64, "The value (finite), in `unit`."),
+        Column("unit", _STR, "Unit of the value (as in metrics.unit).", choices=METRIC_UNITS),
+        Column("aggregation", _STR, "How the value was formed: 'pooled' (over every pixel of every action), "
+               "'mean_over_views', 'mean_over_actions', 'mean_over_sessions' (camera calibration) or 'count'.",
+               choices=("pooled", "mean_over_views", "mean_over_actions", "mean_over_sessions", "count")),
+        Column("n_actions", _I32, "Number of published actions the value covers.", min_value=0),
+        Column("source", _STR, "What produced the number, e.g. 'evaluate'."),
         Column("run_id", _STR, "Id of the run that measured it."),
     ),
 )
@@ -323,8 +358,8 @@ STANDALONE_SPECS: dict[str, TableSpec] = {t.name: t for t in (BASELINE_METRICS,)
 """Tables written as single Parquet files outside a release's manifests/ folder (never looked for by
 :class:`manifests.Release`), by name."""
 
-TABLE_SPECS: dict[str, TableSpec] = {t.name: t for t in (ACTIONS, FRAMES, ASSETS, METRICS, STAGE_RUNS,
-                                                            RELIGHT_EXAMPLES)}
+TABLE_SPECS: dict[str, TableSpec] = {t.name: t for t in (ACTIONS, FRAMES, ASSETS, METRICS, METRICS_SUMMARY,
+                                                            STAGE_RUNS, RELIGHT_EXAMPLES)}
 """Every manifest table by name."""
 
 SCHEMAS: dict[str, pa.Schema] = {name: spec.schema() for name, spec in TABLE_SPECS.items()}
@@ -361,6 +396,26 @@ def media_type(path: str) -> str:
     """Media type of a file from its extension ('application/octet-stream' when unknown)."""
     suffix = "." + path.rsplit(".", 1)[-1].lower() if "." in path.rsplit("/", 1)[-1] else ""
     return MEDIA_TYPES.get(suffix, "application/octet-stream")
+
+
+_UNIT_SUFFIXES = (("_deg", "deg"), ("_db", "dB"), ("_pct", "%"), ("_mm", "mm"), ("_px", "px"), ("_s", "s"),
+                  ("seconds", "s"), ("_faces", "count"), ("_pixels", "count"), ("_views", "count"),
+                  ("_registered", "count"), ("actions_ok", "count"), ("actions_failed", "count"),
+                  ("width", "px"), ("height", "px"))
+
+
+def metric_unit(metric: str) -> str:
+    """The unit of a metric from its name: the name ends with it ('_deg', '_db', '_pct', '_mm', '_px', '_s' or
+    'seconds'), or counts things ('_faces', '_pixels', '_views', ...); anything else is dimensionless ('1':
+    fractions, SSIM, IoU, roughness). A unit suffix may be followed by a variant ('normal_mean_deg_diffuse',
+    'heldout_albedo_psnr_db_truth')."""
+    parts = metric.split("_")
+    for end in range(len(parts), 0, -1):  # the unit suffix nearest the end wins: 'x_mm_truth' is mm
+        head = "_".join(parts[:end])
+        for suffix, unit in _UNIT_SUFFIXES:
+            if head.endswith(suffix):
+                return unit
+    return "1"
 
 
 def spec(name: str) -> TableSpec:

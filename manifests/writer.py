@@ -17,7 +17,7 @@ import math
 import os
 import uuid
 from collections import Counter
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from datetime import datetime, timezone
 from pathlib import Path, PurePosixPath
 
@@ -30,6 +30,9 @@ from pipeline.hashing import file_sha256  # one implementation; re-exported by m
 
 MANIFEST_DIR = "manifests"
 """Folder of the manifests inside a release."""
+INDEX_NAME = "index.json"
+"""``RELEASE/manifests/index.json``: bytes and SHA-256 of every manifest table, rewritten with each table (the
+assets table cannot list itself; ``ultrastage verify`` checks the tables against this index)."""
 
 _INT_RANGES = {pa.int32(): (-(2**31), 2**31 - 1), pa.int64(): (-(2**63), 2**63 - 1)}
 
@@ -205,12 +208,41 @@ def conform(table: pa.Table, name: str, source: str | Path = "") -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
+def upgrade_metrics_v1(table: pa.Table) -> pa.Table:
+    """A metrics table of schema version 1 in the current layout: release-wide rows (null action) dropped
+    (they belong in metrics_summary, which the next evaluation writes), '' regions null, a relit view's
+    environment moved from ``region`` to ``environment``, held-out variants named as their own metrics
+    (``heldout_normal_mean_deg`` of region 'heldout_truth' -> ``heldout_normal_mean_deg_truth``, region
+    'heldout') and the unit derived from the metric name."""
+    from manifests.schemas import metric_unit
+
+    heldout = {"heldout": "", "heldout_truth": "_truth", "heldout_diffuse": "_diffuse",
+               "heldout_truth_diffuse": "_diffuse_truth"}
+    rows = []
+    for row in table.to_pylist():
+        if row.get("action_id") is None:
+            continue
+        metric, region, environment = row["metric"], row.get("region") or None, None
+        if metric == "relit_psnr_db" and region is not None:
+            region, environment = "all", region
+        elif region in heldout:
+            metric, region = metric + heldout[region], "heldout"
+        rows.append({"action_id": row["action_id"], "camera_id": row.get("camera_id"), "metric": metric,
+                     "region": region, "environment": environment, "value": row["value"],
+                     "unit": metric_unit(metric), "source": row["source"], "run_id": row["run_id"]})
+    return validate_rows("metrics", rows)
+
+
 def read_manifest(release_dir: str | Path, name: str) -> pa.Table | None:
-    """The table ``RELEASE/manifests/<name>.parquet`` in the current schema, or None when absent."""
+    """The table ``RELEASE/manifests/<name>.parquet`` in the current schema, or None when absent (a metrics
+    table of schema version 1 is upgraded on reading: :func:`upgrade_metrics_v1`)."""
     path = manifest_path(release_dir, name)
     if not path.is_file():
         return None
-    return conform(pq.read_table(path), name, path)
+    table = pq.read_table(path)
+    if name == "metrics" and "unit" not in table.column_names:
+        return upgrade_metrics_v1(table)
+    return conform(table, name, path)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -245,6 +277,7 @@ def _write_atomic(directory: Path, name: str, table: pa.Table) -> Path:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    _update_index(directory)
     with contextlib.suppress(OSError):  # make the rename durable where the platform allows it
         dfd = os.open(directory, os.O_RDONLY)
         try:
@@ -252,6 +285,58 @@ def _write_atomic(directory: Path, name: str, table: pa.Table) -> Path:
         finally:
             os.close(dfd)
     return dest
+
+
+def read_index(directory: Path) -> dict[str, dict]:
+    """The ``tables`` of ``manifests/index.json`` (file name -> {bytes, sha256}); empty when absent.
+
+    Raises:
+        ValueError: the index is not valid JSON (naming the file).
+    """
+    path = Path(directory) / INDEX_NAME
+    if not path.is_file():
+        return {}
+    try:
+        return dict(json.loads(path.read_text())["tables"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a manifest index ({exc})") from None
+
+
+def _update_index(directory: Path) -> None:
+    """Rewrite ``index.json`` with the digest of every ``*.parquet`` of the folder (called under the lock)."""
+    tables = {p.name: {"bytes": p.stat().st_size, "sha256": file_sha256(p)}
+              for p in sorted(directory.glob("*.parquet"))}
+    from manifests.schemas import SCHEMA_VERSION
+
+    text = json.dumps({"schema_version": SCHEMA_VERSION, "tables": tables}, indent=1, sort_keys=True) + "\n"
+    tmp = directory / f".{INDEX_NAME}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    tmp.write_text(text)
+    os.replace(tmp, directory / INDEX_NAME)
+
+
+def replace_rows(release_dir: str | Path, name: str, rows: Iterable[Mapping],
+                 drop: Callable[[dict], bool]) -> Path:
+    """Write a table as its existing rows for which ``drop(row)`` is false plus ``rows``, atomically, under the
+    release's manifest lock: a writer replaces the rows it owns (e.g. every 'evaluate' row) without leaving
+    stale ones behind or touching the others'.
+
+    Raises:
+        ValueError: invalid rows (:func:`validate_rows`) or a kept row sharing the primary key with a new one.
+    """
+    ts = spec(name)
+    new = validate_rows(name, list(rows))
+    directory = Path(release_dir) / MANIFEST_DIR
+    directory.mkdir(parents=True, exist_ok=True)
+    with _locked(directory):
+        old = read_manifest(release_dir, name)
+        table = new
+        if old is not None and old.num_rows:
+            kept = old.filter(pa.array([not drop(r) for r in old.to_pylist()], type=pa.bool_()))
+            if kept.num_rows:
+                kept = kept.select([c.name for c in ts.columns]).cast(new.schema)
+                table = _sorted(pa.concat_tables([kept, new]), ts)
+                _duplicates(name, ts.primary_key, {k: table.column(k).to_pylist() for k in ts.primary_key})
+        return _write_atomic(directory, name, table)
 
 
 def write_table(release_dir: str | Path, name: str, rows: Iterable[Mapping]) -> Path:

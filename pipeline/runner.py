@@ -8,6 +8,7 @@ from __future__ import annotations
 import datetime
 import json
 import logging
+import math
 import os
 import secrets
 import shutil
@@ -169,15 +170,18 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                  actions: Sequence[str] | None = None, echo: Callable[[str], None] = print,
                  progress: Callable[[Task, dict, int, int], None] | None = None,
                  view_progress: Callable[[Task, dict, int, int], None] | None = None,
-                 stage_progress: Callable[[dict], None] | None = None) -> RunResult:
+                 stage_progress: Callable[[dict], None] | None = None,
+                 record: dict[str, Any] | None = None) -> RunResult:
     """Run the DAG over a capture and publish the release. ``config`` is saved beside the run.
 
     The run holds ``<work>/run.lock`` throughout (:mod:`pipeline.runlock`): a second run on the same work
-    folder is refused with :class:`pipeline.runlock.RunLockedError` before it reads or writes anything.
+    folder is refused with :class:`pipeline.runlock.RunLockedError` before it reads or writes anything. The
+    release gets ``run.json`` (:func:`write_run_record`, with ``record``'s fields, e.g. the preset name), its
+    manifests and its page (``index.html``, :func:`manifests.page.write_release_page`).
     """
     with hold_run_lock(work, echo=echo):
         return _run_pipeline_locked(capture_dir, release, work, stages, config, execution, only, from_stage,
-                                    actions, echo, progress, view_progress, stage_progress)
+                                    actions, echo, progress, view_progress, stage_progress, record)
 
 
 def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
@@ -185,7 +189,8 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
                          actions: Sequence[str] | None, echo: Callable[[str], None],
                          progress: Callable[[Task, dict, int, int], None] | None,
                          view_progress: Callable[[Task, dict, int, int], None] | None,
-                         stage_progress: Callable[[dict], None] | None) -> RunResult:
+                         stage_progress: Callable[[dict], None] | None,
+                         record: dict[str, Any] | None) -> RunResult:
     start = time.perf_counter()
     capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
     capture = open_capture(capture_dir)
@@ -239,11 +244,61 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
         published.append(action_id)
 
     _write_release_docs(release, config, capture)
-    _write_manifests(release, capture, plan, digests, run_id, action_status, action_errors, asset_rows, table_rows)
+    write_run_record(release, run_id, capture_dir, work, record or {})
+    places = {capture_dir: "<capture>", work: "<work>", release: "<release>"}
+    _write_manifests(release, capture, plan, digests, run_id, action_status,
+                     {a: portable_message(e, places) for a, e in action_errors.items()}, asset_rows, places,
+                     table_rows)
+    from manifests.page import write_release_page
+
+    write_release_page(release)
     (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
     (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
     return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
                      executor_name)
+
+
+RUN_RECORD = "run.json"
+
+
+def write_run_record(release: Path, run_id: str, capture: Path, work: Path, extra: dict[str, Any]) -> Path:
+    """``RELEASE/run.json``: the run id and the capture and work folders as paths relative to the release (no
+    absolute path of this machine goes into a release), plus ``extra`` (e.g. ``{"preset": "default"}``)."""
+    path = release / RUN_RECORD
+    path.write_text(json.dumps({"run_id": run_id, "capture": os.path.relpath(capture, release),
+                                "work": os.path.relpath(work, release), **extra}, indent=1) + "\n")
+    return path
+
+
+def read_run_record(release: Path) -> dict[str, Any]:
+    """``RELEASE/run.json`` with ``capture`` and ``work`` as absolute paths (resolved against the release;
+    records of older runs hold absolute paths already).
+
+    Raises:
+        FileNotFoundError: no run.json (naming it). ValueError: it is not a JSON object with those keys.
+    """
+    path = Path(release) / RUN_RECORD
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no run record: this folder was not written by `ultrastage run`")
+    try:
+        info = json.loads(path.read_text())
+        for key in ("capture", "work"):
+            info[key] = os.path.normpath(Path(release).resolve() / info[key])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not a run record ({exc!r})") from None
+    return info
+
+
+def portable_message(text: str | None, places: dict[Path, str]) -> str | None:
+    """``text`` with the absolute folders of this machine named by their role instead (``{capture_dir:
+    "<capture>"}``): messages that go into a release name files relative to the capture, work or release
+    folder. The longest folder is replaced first, so a folder inside another keeps its own name."""
+    if text is None:
+        return None
+    for folder, name in sorted(places.items(), key=lambda kv: -len(str(kv[0]))):
+        for spelling in {str(folder), os.path.realpath(folder)}:
+            text = text.replace(spelling.rstrip("/") + "/", name + "/").replace(spelling, name)
+    return text
 
 
 def _utc(epoch: float | None) -> datetime.datetime | None:
@@ -285,9 +340,14 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
 def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,
                      action_status: dict[str, str],
                      action_errors: dict[str, str], asset_rows: list[dict[str, Any]],
+                     places: dict[Path, str],
                      table_rows: dict[str, list[dict[str, Any]]] | None = None) -> None:
+    """The actions, frames, assets, stage_runs and metrics tables of this run, and the tables stages add rows to
+    (``table_rows``, e.g. relight_examples). ``action_errors`` are portable already; the frames' and stages'
+    errors are made so with ``places`` (:func:`portable_message`)."""
     from manifests import append_rows, asset_row
-    from manifests.writer import write_table_keeping
+    from manifests.schemas import metric_unit
+    from manifests.writer import replace_rows, write_table_keeping
 
     action_rows, frame_rows, metric_rows = [], [], []
     for action_id, status in action_status.items():
@@ -320,11 +380,11 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                        "status": "missing", "error": f"no raw file for camera {cam['camera_id']} under '{illum}'"}
                 if path is not None:
                     d = digests.digest(path)
-                    failed_here = status == "failed" and str(path) in error
+                    failed_here = status == "failed" and portable_message(str(path), places) in error
                     left_out = missing_views.get(cam["camera_id"])
                     row |= {"raw_path": path.relative_to(capture.root).as_posix(), "raw_bytes": d["bytes"],
                             "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
-                            "error": error if failed_here else (f"camera {cam['camera_id']}: {left_out}" if left_out else None)}
+                            "error": error if failed_here else (portable_message(f"camera {cam['camera_id']}: {left_out}", places) if left_out else None)}
                 frame_rows.append(row)
         # Calibration frames a session stage left out (its stats' "calibration_left_out": camera -> file and
         # reason, also logged): one row per camera and stage for every action the calibration feeds.
@@ -338,16 +398,19 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                 continue
             for cam, stats in (task.stats.get("views", {}) or {}).items():
                 for metric, value in (stats or {}).items():
-                    if isinstance(value, (int, float)) and not isinstance(value, bool):
-                        metric_rows.append({"action_id": action_id, "camera_id": cam, "metric": metric,
-                                            "region": "", "value": float(value), "source": task.stage.name,
+                    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+                        # named after the stage: its 'valid_fraction' is not evaluate's (one name, one quantity)
+                        metric_rows.append({"action_id": action_id, "camera_id": cam,
+                                            "metric": f"{task.stage.name}_{metric}",
+                                            "region": None, "environment": None, "value": float(value),
+                                            "unit": metric_unit(metric), "source": task.stage.name,
                                             "run_id": run_id})
     stage_rows = [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
                    "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
-                   "seconds": float(t.seconds), "error": t.error,
+                   "seconds": float(t.seconds), "error": portable_message(t.error, places),
                    "started_at": _utc(t.started_at), "config_json": json.dumps(t.record["config"], sort_keys=True)}
                   for t in plan.tasks]
-    for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml"):
+    for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml", RUN_RECORD):
         asset_rows.append(asset_row(release, release / name, "document"))
     # A run over some actions (--actions) leaves the other published actions' rows in place.
     keep = [a.action_id for a in capture.actions
@@ -364,8 +427,11 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
     write_table_keeping(release, "frames", frame_rows, keep)
     write_table_keeping(release, "assets", asset_rows, keep)
     append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
-    if metric_rows:
-        append_rows(release, "metrics", metric_rows, ["action_id", "camera_id", "metric", "region", "source"])
+    # This run's actions get their stage statistics anew; a failed action keeps no numbers at all (its
+    # accuracy rows described files that are gone); evaluate owns the other rows of the published ones.
+    replace_rows(release, "metrics", metric_rows,
+                 drop=lambda row: row["action_id"] in action_status and (
+                     row["source"] != "evaluate" or action_status[row["action_id"]] != "ok"))
 
 
 def _write_split_lists(release: Path) -> list[dict[str, Any]]:

@@ -186,9 +186,8 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
     on_done, on_view, on_progress = _progress_printer()
     result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
                           only=args.only, from_stage=args.from_stage, actions=actions,
-                          progress=on_done, view_progress=on_view, stage_progress=on_progress)
-    (release / "run.json").write_text(json.dumps({"run_id": result.run_id, "capture": str(Path(args.capture).resolve()),
-                                                  "work": str(work.resolve()), "preset": args.preset}, indent=1))
+                          progress=on_done, view_progress=on_view, stage_progress=on_progress,
+                          record={"preset": args.preset})
     metrics = None
     truth = Path(args.capture) / "ground_truth"
     if not args.no_evaluate and truth.is_dir() and result.published:
@@ -207,11 +206,12 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
 
 
 def cmd_rerun(args: argparse.Namespace) -> int:
+    from pipeline.runner import RUN_RECORD, read_run_record
+
     release = Path(args.release)
-    info_path = release / "run.json"
-    if not info_path.exists():
-        raise InputError(info_path, "no run record: this folder was not written by `ultrastage run`")
-    info = json.loads(info_path.read_text())
+    if not (release / RUN_RECORD).exists():
+        raise InputError(release / RUN_RECORD, "no run record: this folder was not written by `ultrastage run`")
+    info = read_run_record(release)
     ns = argparse.Namespace(capture=info["capture"], release=str(release), work=info["work"],
                             preset=info.get("preset", "default"), config=args.config or None,
                             scheduler=args.scheduler, only=args.only, from_stage=args.from_stage,
@@ -249,7 +249,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
     report = verify_release(Path(args.release))
     print(f"checked {report.n_checked} asset(s): {len(report.missing)} missing, "
           f"{len(report.mismatched)} changed, {len(report.extra)} not in the manifest")
-    for label, items in (("missing", report.missing), ("changed", report.mismatched), ("extra", report.extra)):
+    for label, items in (("missing", report.missing), ("changed", report.mismatched), ("extra", report.extra),
+                         ("not covered", report.not_covered)):
         for item in items[:50]:
             print(f"  {label}: {item}")
     print("OK" if report.ok else "FAILED")

@@ -133,12 +133,40 @@ def camera_errors(transforms: dict[str, Any], truth: dict[str, dict[str, Any]]) 
             "cam_focal_err_pct": float(np.mean(focal)), "cameras_registered": float(len(est))}
 
 
-def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
+def _row(action_id: str, camera_id: str | None, metric: str, region: str | None, value: float, run_id: str,
+         environment: str | None = None) -> dict[str, Any]:
+    """One row of the metrics manifest measured against ground truth."""
+    from manifests.schemas import metric_unit
+
+    return {"action_id": action_id, "camera_id": camera_id, "metric": metric, "region": region,
+            "environment": environment, "value": float(value), "unit": metric_unit(metric), "source": "evaluate",
+            "run_id": run_id}
+
+
+def summary_rows(overall: dict[str, float], aggregation: dict[str, str], n_actions: int,
+                 run_id: str) -> list[dict[str, Any]]:
+    """The metrics_summary rows of the release-wide numbers (``aggregation``: metric -> how it was formed;
+    'pooled' when absent)."""
+    from manifests.schemas import metric_unit
+
+    return [{"metric": metric, "value": float(value), "unit": metric_unit(metric),
+             "aggregation": aggregation.get(metric, "pooled"), "n_actions": int(n_actions), "source": "evaluate",
+             "run_id": run_id} for metric, value in sorted(overall.items())]
+
+
+def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
                      relit_cache: Path | None = None) -> EvaluationSummary:
-    """Evaluate every published action; writes rows to the metrics manifest (source "evaluate").
+    """Evaluate every published action: its rows replace every 'evaluate' row of the metrics manifest, the
+    release-wide numbers replace the metrics_summary table, and the release's page is written again with
+    them. ``run_id``: the run the numbers belong to (default: a new id of this evaluation).
     ``relit_cache``: a folder that keeps the simulator's renders the relit views are compared with
     (:class:`RelitTruthCache`); None renders them every time."""
-    from manifests import append_rows, open_release
+    from manifests import open_release, write_table
+    from manifests.page import write_release_page
+    from manifests.writer import replace_rows
+    from pipeline.runner import new_run_id
+
+    run_id = run_id or new_run_id()
 
     rel = open_release(release)
     actions = rel.actions
@@ -188,12 +216,11 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
             s = cam_stats.stats()
             for metric, value, region in (("normal_mean_deg", s.get("mean"), "valid"),
                                           ("normal_under5_pct", s.get("under5_pct"), "valid"),
-                                          ("valid_fraction", res["valid_fraction"], ""),
+                                          ("valid_fraction", res["valid_fraction"], "all"),
                                           ("albedo_psnr_db", _psnr_from_mse(res["albedo_sq_sum"] / max(res["albedo_sq_count"], 1)), "all"),
-                                          ("albedo_ssim", res["albedo_ssim"], "all"), ("mask_iou", res["mask_iou"], "")):
+                                          ("albedo_ssim", res["albedo_ssim"], "all"), ("mask_iou", res["mask_iou"], None)):
                 if value is not None and np.isfinite(value):
-                    rows.append({"action_id": action_id, "camera_id": cam, "metric": metric, "region": region,
-                                 "value": float(value), "source": "evaluate", "run_id": run_id})
+                    rows.append(_row(action_id, cam, metric, region, value, run_id))
         st = a_pool.stats()
         per_action[action_id] = {"normal_mean_deg": st.get("mean", float("nan")),
                                  "normal_under5_pct": st.get("under5_pct", float("nan")),
@@ -223,19 +250,24 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str = "evaluate",
     diffuse = diffuse_pool.stats()
     overall |= {f"normal_{k}{'_deg' if k in ('mean', 'median') else ''}_diffuse": diffuse[k]
                 for k in ("mean", "median", "under5_pct") if k in diffuse}
-    overall |= _camera_overall(rel, truth_dir, ok_ids)
-    overall |= _mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
-    overall |= _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id)
-    overall |= _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
+    aggregation = {"albedo_ssim": "mean_over_views", "mask_iou": "mean_over_views", "actions_ok": "count",
+                   "actions_failed": "count"}
+    cameras = _camera_overall(rel, truth_dir, ok_ids)
+    aggregation |= dict.fromkeys(cameras, "mean_over_sessions")
+    overall |= cameras
     relighters: dict[tuple[str, int], Any] = {}  # the simulator's subjects, traced once per action and light count
-    overall |= _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters)
-    overall |= _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters)
+    for part in (_mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
+                 _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id),
+                 _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
+                 _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters),
+                 _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache,
+                                     relighters)):
+        aggregation |= dict.fromkeys(part, "mean_over_actions")
+        overall |= part
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
-    for metric, value in overall.items():
-        rows.append({"action_id": None, "camera_id": None, "metric": metric, "region": "", "value": value,
-                     "source": "evaluate", "run_id": run_id})
-    if rows:
-        append_rows(release, "metrics", rows, ["action_id", "camera_id", "metric", "region", "source"])
+    replace_rows(release, "metrics", rows, drop=lambda row: row["source"] == "evaluate")
+    write_table(release, "metrics_summary", summary_rows(overall, aggregation, len(ok_ids), run_id))
+    write_release_page(release)
     return EvaluationSummary(overall, per_action, rows)
 
 
@@ -265,8 +297,7 @@ def _mesh_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict
                 continue
             values[key].append(value)
             per_action.setdefault(action_id, {})[key] = value
-            rows.append({"action_id": action_id, "camera_id": None, "metric": key, "region": "mesh",
-                         "value": value, "source": "evaluate", "run_id": run_id})
+            rows.append(_row(action_id, None, key, "mesh", value, run_id))
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
@@ -292,29 +323,27 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
         values.setdefault("heldout_albedo_view_dependent", []).append(
             float(metrics.get("heldout_albedo_model") == "view_dependent"))
         for base in HELDOUT_METRICS:
-            for key, region in ((base, "heldout"), (f"{base}_truth", "heldout_truth")):
+            for key in (base, f"{base}_truth"):
                 value = metrics.get(key)
                 if value is None or not np.isfinite(value):
                     continue
                 values.setdefault(key, []).append(float(value))
                 per_action.setdefault(action_id, {})[key] = float(value)
-                rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
-                             "value": float(value), "source": "evaluate", "run_id": run_id})
+                rows.append(_row(action_id, None, key, "heldout", value, run_id))
         if "normal_diffuse" in data.view.kinds:  # the same with the specular-fitted maps
             diffuse_albedo = "albedo_diffuse" in data.view.kinds
             metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data.variant(True, diffuse_albedo))
             for base in HELDOUT_METRICS:
                 if not (base.startswith("heldout_normal") or (diffuse_albedo and base.startswith("heldout_albedo"))):
                     continue  # the white-light albedo: the same as above
-                for key, region in ((base, "heldout_diffuse"), (f"{base}_truth", "heldout_truth_diffuse")):
+                for key in (base, f"{base}_truth"):
                     value = metrics.get(key)
                     if value is None or not np.isfinite(value):
                         continue
                     name = key.replace(base, f"{base}_diffuse")
                     values.setdefault(name, []).append(float(value))
                     per_action.setdefault(action_id, {})[name] = float(value)
-                    rows.append({"action_id": action_id, "camera_id": None, "metric": base, "region": region,
-                                 "value": float(value), "source": "evaluate", "run_id": run_id})
+                    rows.append(_row(action_id, None, name, "heldout", value, run_id))
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
@@ -389,8 +418,7 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
         for key, value in metrics.items():
             values.setdefault(key, []).append(value)
             per_action.setdefault(action_id, {})[key] = value
-            rows.append({"action_id": action_id, "camera_id": None, "metric": key, "region": "textures",
-                         "value": value, "source": "evaluate", "run_id": run_id})
+            rows.append(_row(action_id, None, key, "textures", value, run_id))
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
@@ -516,12 +544,10 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                         normal = view.render_gbuffer(cam["camera_id"])["normal"]
                         error = float(angular_error_deg(normal[both], np.asarray(true["normals_world"])[both]).mean())
                         normal_errors[cam["camera_id"]] = error
-                        rows.append({"action_id": action_id, "camera_id": cam["camera_id"],
-                                     "metric": "relit_normal_mean_deg", "region": "all", "value": error,
-                                     "source": "evaluate", "run_id": run_id})
-                rows.append({"action_id": action_id, "camera_id": cam["camera_id"], "metric": "relit_psnr_db",
-                             "region": env_record["label"], "value": score["psnr_db"], "source": "evaluate",
-                             "run_id": run_id})
+                        rows.append(_row(action_id, cam["camera_id"], "relit_normal_mean_deg", "all", error,
+                                         run_id))
+                rows.append(_row(action_id, cam["camera_id"], "relit_psnr_db", "all", score["psnr_db"], run_id,
+                                 environment=env_record["label"]))
         if scores:
             per_action.setdefault(action_id, {})["relit_psnr_db"] = float(np.mean(scores))
             values.append(float(np.mean(scores)))
@@ -620,8 +646,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
                 value = float(np.mean(action_scores[kind]))
                 values.append(value)
                 per_action.setdefault(action_id, {})[metric] = value
-                rows.append({"action_id": action_id, "camera_id": None, "metric": metric, "region": "all",
-                             "value": value, "source": "evaluate", "run_id": run_id})
+                rows.append(_row(action_id, None, metric, "relightset", value, run_id))
         if values:
             out[metric] = float(np.mean(values))
     return out
@@ -651,14 +676,15 @@ def _camera_overall(rel: Any, truth_dir: Path, ok_ids: list[str]) -> dict[str, f
 
 
 def evaluate_release_cached(release: Path, truth_dir: Path, work: Path,
-                            run_id: str = "evaluate") -> tuple[EvaluationSummary, bool]:
+                            run_id: str | None = None) -> tuple[EvaluationSummary, bool]:
     """:func:`evaluate_release`, skipped when the published actions and the truth are what was last
     evaluated (the key: every action's published stage keys, and the truth folder's path)."""
     import hashlib
     import json
 
     published = sorted((work / "published").glob("*.json"))
-    key = hashlib.sha256(json.dumps({"truth": str(Path(truth_dir).resolve()),
+    # format 2: the metrics layout of manifest schema 2 (metrics_summary); older evaluations are redone
+    key = hashlib.sha256(json.dumps({"format": 2, "truth": str(Path(truth_dir).resolve()),
                                      "published": {p.stem: json.loads(p.read_text())["keys"] for p in published}},
                                     sort_keys=True).encode()).hexdigest()
     record = work / "evaluated.json"

@@ -23,8 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from calibration.colour import (apply_colour_matrix, chart_patch_means, delta_e_2000, fit_colour_matrix,
-                                reference_chart_srgb)
+from calibration.colour import apply_colour_matrix, chart_patch_means, delta_e_2000, fit_colour_matrix
 from calibration.light import LightModel, correct_normals, fit_light_model, ideal_light_model, sphere_normals
 from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented

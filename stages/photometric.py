@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr, write_exr
-from pipeline.codecs.image import preview_linear, preview_normals, read_png, write_png
+from pipeline.codecs.image import label_picture, preview_linear, preview_normals, read_png, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
@@ -108,14 +108,18 @@ class PhotometricConfig(Documented):
     """Edge-preserving denoising of the albedo maps (and of ``normal_alpha`` when asked)."""
 
 
-def contact_sheet(pictures: list[np.ndarray], columns: int = 8) -> np.ndarray:
-    """Tile equally sized uint8 (H, W, 3) pictures into one (rows*H, columns*W, 3) picture."""
+def contact_sheet(pictures: list[np.ndarray], columns: int = 8, labels: list[str] | None = None) -> np.ndarray:
+    """Tile equally sized uint8 (H, W, 3) pictures into one (rows*H, columns*W, 3) picture, row-major; with
+    ``labels`` (one per picture, e.g. the camera id) each tile carries its label in its top-left corner."""
+    if labels is not None and len(labels) != len(pictures):
+        raise ValueError(f"contact_sheet: {len(labels)} labels for {len(pictures)} pictures")
     h, w = pictures[0].shape[:2]
     rows = -(-len(pictures) // columns)
     sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
     for i, pic in enumerate(pictures):
         r, c = divmod(i, columns)
-        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = pic[..., :3]
+        tile = pic[..., :3] if pic.ndim == 3 else np.repeat(pic[..., None], 3, axis=2)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = label_picture(tile, labels[i]) if labels else tile
     return sheet
 
 
@@ -159,6 +163,7 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: dict[str, Any
 
 class PhotometricStage(Stage):
     name = "photometric"
+    # 7: the normal sheet's tiles are labelled with their camera ids
     version = "7"
     scope = "action"
     requires = ("decode", "plates", "lights")
@@ -208,11 +213,12 @@ class PhotometricStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            paths = [ctx.out_dir / "previews" / f"normal_{v}.png" for v in sorted(view_stats)
-                     if "missing" not in view_stats[v]]
-            pics = [read_png(p) for p in paths if p.exists()]
-            if pics:
-                write_png(ctx.out_dir / "previews" / "normals_sheet.png", contact_sheet(pics))
+            paths = {v: ctx.out_dir / "previews" / f"normal_{v}.png" for v in sorted(view_stats)
+                     if "missing" not in view_stats[v]}
+            shown = [v for v, p in paths.items() if p.exists()]
+            if shown:
+                write_png(ctx.out_dir / "previews" / "normals_sheet.png",
+                          contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))
         fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 
@@ -343,6 +349,7 @@ class DiffuseNormalsStage(Stage):
     config)."""
 
     name = "diffuse_normals"
+    # 5: the normal sheet's tiles are labelled with their camera ids
     version = "5"
     scope = "action"
     requires = ("decode", "lights", "photometric", "textures", "materials")
@@ -406,11 +413,12 @@ class DiffuseNormalsStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            paths = [ctx.out_dir / "previews" / f"normal_diffuse_{v}.png" for v in sorted(view_stats)
-                     if "missing" not in view_stats[v]]
-            pics = [read_png(p) for p in paths if p.exists()]
-            if pics:
-                write_png(ctx.out_dir / "previews" / "normals_diffuse_sheet.png", contact_sheet(pics))
+            paths = {v: ctx.out_dir / "previews" / f"normal_diffuse_{v}.png" for v in sorted(view_stats)
+                     if "missing" not in view_stats[v]}
+            shown = [v for v, p in paths.items() if p.exists()]
+            if shown:
+                write_png(ctx.out_dir / "previews" / "normals_diffuse_sheet.png",
+                          contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))
         fitted = [s for s in view_stats.values() if s.get("fitted")]
         return {"views": view_stats, "fitted_views": len(fitted),
                 "seconds": float(sum(s["seconds"] for s in fitted))}

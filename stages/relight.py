@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import write_exr
+from pipeline.codecs.image import label_picture, preview_linear, preview_normals, write_png
 from stages.exr_headers import EXR_HEADERS
-from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
@@ -59,6 +59,10 @@ FALLBACK_ENVIRONMENT = "procedural:sky"
 #: Where environment names are looked up, after $ULTRASTAGE_HDRI (os.pathsep-separated folders).
 DEFAULT_HDRI_DIRS = (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdri",)
 _HDR_SUFFIXES = (".hdr", ".exr")
+TURNTABLE_FRAMES = 12
+"""Views of ``previews/turntable.png`` (30 degrees apart about +y)."""
+TURNTABLE_SIZE = (240, 160)
+"""(height, width) in pixels of each turntable view."""
 
 
 @dataclass(frozen=True)
@@ -277,6 +281,8 @@ class RelightStage(Stage):
     # 8: edge pixels take the mean of their shaded neighbours (bake.dilate_texture), not the nearest one's;
     # 7: the coverage grid cast at the silhouette only; 6: antialiased silhouettes (alpha = pixel coverage);
     # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
+    # 9: the relit sheet's tiles are labelled (view, environment); previews/turntable.png, the textured mesh
+    # from TURNTABLE_FRAMES azimuths side by side
     version = "9"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
@@ -324,11 +330,13 @@ class RelightStage(Stage):
             for name, image in maps.items():
                 write_exr(folder / f"{name}.exr", image, header=EXR_HEADERS[f"render_{name}"])
             write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
-            row = [preview_normals(maps["normal"], out_mask.astype(np.float32))]
+            row = [label_picture(preview_normals(maps["normal"], out_mask.astype(np.float32)),
+                                 f"{view['camera_id']} normal")]
             for env, image in zip(environments, rendered["images"]):
                 write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2),
                           header=EXR_HEADERS["relit"])
-                row.append(preview_linear(image, exposure=auto_exposure(image, out_mask)))
+                row.append(label_picture(preview_linear(image, exposure=auto_exposure(image, out_mask)),
+                                         f"{view['camera_id']} {env['label']}"))
             sheet_rows.append(np.concatenate(row, axis=1))
             records.append({**view, "pixels": rendered["pixels"], "mask_pixels": int(out_mask.sum()),
                             "coverage": rendered["coverage"], "normal_fusion_px": rendered["normal_fusion_px"],
@@ -347,6 +355,14 @@ class RelightStage(Stage):
              "blend": blend.record if blend is not None else "heuristic"}, indent=1, default=float))
         if cfg.previews and sheet_rows:
             write_png(out / "previews" / "relit.png", np.concatenate(sheet_rows, axis=0))
+        if cfg.previews:
+            from stages.numerics.turntable import turntable_cameras, turntable_strip
+
+            atlas_vertices = ActionArtifacts(ctx.upstream).atlas_mesh()[0]
+            cams = turntable_cameras(atlas_vertices, TURNTABLE_FRAMES, *TURNTABLE_SIZE)
+            strip = turntable_strip(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, asset.albedo_tex, cams,
+                                    *TURNTABLE_SIZE)
+            write_png(out / "previews" / "turntable.png", preview_linear(strip, exposure=1.0))
         return {"novel_views": len(views), "environments": [e["label"] for e in environments],
                 "source_albedo": "albedo_diffuse" if asset.sources_diffuse_albedo else "albedo x diffuse_ratio",
                 "fallbacks": [e["name"] for e in environments if e["source"].startswith("FALLBACK")],
@@ -367,6 +383,7 @@ class RelightStage(Stage):
                 kind = f"relit_{p.stem}"
             camera = p.parent.name if p.parent != renders else None
             files.append((p, f"renders/{rel}", kind, camera))
-        if (artifact / "previews" / "relit.png").exists():
-            files.append((artifact / "previews" / "relit.png", "previews/relit.png", "preview_relit", None))
+        for name in ("relit", "turntable"):
+            if (artifact / "previews" / f"{name}.png").exists():
+                files.append((artifact / "previews" / f"{name}.png", f"previews/{name}.png", f"preview_{name}", None))
         return files

@@ -62,3 +62,35 @@ def preview_scalar(values: np.ndarray, vmin: float = 0.0, vmax: float = 1.0) -> 
     """uint8 grey picture of a scalar map mapped from [vmin, vmax]."""
     v = np.nan_to_num(np.asarray(values, dtype=np.float32))
     return (np.clip((v - vmin) / max(vmax - vmin, 1e-12), 0, 1) * 255.0 + 0.5).astype(np.uint8)
+
+
+def label_picture(picture: np.ndarray, text: str) -> np.ndarray:
+    """A copy of a uint8 (H, W, 3) picture with ``text`` written in its top-left corner, light on a dark band,
+    in Pillow's default font: 11 px high, smaller (down to 9 px) where the text is wider than the picture, and
+    broken at spaces onto more lines where even that is too wide."""
+    from PIL import ImageDraw, ImageFont
+
+    pic = np.asarray(picture)
+    if pic.dtype != np.uint8 or pic.ndim != 3 or pic.shape[2] < 3:
+        raise ValueError(f"label_picture takes a uint8 (H, W, 3) picture, got {pic.dtype} {pic.shape}")
+    image = Image.fromarray(np.ascontiguousarray(pic[..., :3]))
+    draw = ImageDraw.Draw(image)
+    room = image.width - 6
+    for size in (11, 10, 9):
+        font = ImageFont.load_default(size=size)
+        if draw.textlength(text, font=font) <= room:
+            break
+    else:
+        lines = [""]
+        for word in text.split(" "):
+            joined = f"{lines[-1]} {word}".strip()
+            if lines[-1] and draw.textlength(joined, font=font) > room:
+                lines.append(word)
+            else:
+                lines[-1] = joined
+        text = "\n".join(lines)
+    left, top, right, bottom = draw.multiline_textbbox((3, 2), text, font=font, spacing=1)
+    draw.rectangle((0, 0, min(right + 3, image.width - 1), min(bottom + 2, image.height - 1)), fill=(0, 0, 0))
+    draw.multiline_text((3, 2), text, fill=(255, 255, 255), font=font, spacing=1)
+    out = np.asarray(image).copy()
+    return np.concatenate([out, pic[..., 3:]], axis=2) if pic.shape[2] > 3 else out

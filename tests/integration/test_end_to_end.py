@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
 from pathlib import Path
 
@@ -399,11 +401,17 @@ def test_outputs_are_finite_and_normals_unit(first_run):
         assert np.allclose(np.linalg.norm(na[..., :3][valid], axis=-1), 1.0, atol=2e-3), slot
 
 
-def test_accuracy_against_ground_truth(first_run, capture):
+@pytest.fixture(scope="module")
+def evaluated(first_run, capture):
+    """The first run's release evaluated against the truth (once; later tests change the release)."""
     from stages.evaluate import evaluate_release
 
     out, _ = first_run
-    overall = evaluate_release(out / "release", capture / "ground_truth").overall
+    return evaluate_release(out / "release", capture / "ground_truth")
+
+
+def test_accuracy_against_ground_truth(evaluated):
+    overall = evaluated.overall
     # Measured at this tiny size (96 px wide, where demosaicing across a few pixels per limb dominates):
     # 18.8 deg mean on valid pixels, 17.1 unoccluded, 24.3 occluded, valid fraction 0.84 (0.66 since the
     # silhouette's outer ring of mixed pixels is invalid: a large share of a 96 px mask), albedo 20.1 dB,
@@ -495,6 +503,13 @@ def test_bad_inputs_fail_their_action_only(capture, tmp_path):
     assert "00004" in result.action_errors["A0001"] and "neg" in result.action_errors["A0001"]
     assert not (tmp_path / "release" / "actions" / "A0000").exists()
     assert not (tmp_path / "release" / "actions" / "A0001").exists()
+    # the release names the file relative to the capture, not by this machine's absolute path
+    from manifests import open_release
+
+    errors = dict(zip(*(open_release(tmp_path / "release").actions[c] for c in ("action_id", "error"))))
+    assert "<capture>/actions/A0000/pos/00003.dng" in errors["A0000"] and "truncat" in errors["A0000"]
+    assert _files_holding(tmp_path / "release", tmp_path, capture) == []
+    assert "A0000" in (tmp_path / "release" / "index.html").read_text()  # the page says why it failed
 
 
 def test_empty_file_names_the_file_and_other_action_completes(capture, tmp_path):
@@ -660,3 +675,154 @@ def test_relighting_set_environment_pool_errors(capture, tmp_path, capsys):
                 "--config", str(override)])
     assert code == 2 and str(empty) in capsys.readouterr().err
     assert not (tmp_path / "rel").exists()
+
+
+# -- the release as its users meet it: naive SQL, no absolute paths, verify, the page in a browser -------------
+
+
+def _files_holding(release: Path, *folders: Path) -> list[str]:
+    """Files of the release whose bytes (a Parquet table's values: its pages are compressed) hold one of these
+    folders' absolute paths, as given or resolved."""
+    import pyarrow.parquet as pq
+
+    needles = {str(f).encode() for f in folders} | {str(Path(f).resolve()).encode() for f in folders}
+
+    def content(path: Path) -> bytes:
+        if path.suffix == ".parquet":
+            return repr(pq.read_table(path).to_pylist()).encode()
+        return path.read_bytes()
+
+    return sorted(p.relative_to(release).as_posix() for p in release.rglob("*")
+                  if p.is_file() and any(n in content(p) for n in needles))
+
+
+def test_metrics_answer_naive_sql(first_run, evaluated):
+    """duckdb over metrics.parquet: a metric is one quantity in one unit from one source; averaging it never
+    mixes in a release-wide row (those are in metrics_summary); NULL, not '', where a column does not apply."""
+    duckdb = pytest.importorskip("duckdb", reason="duckdb is in requirements.lock; run make setup")
+    out, _ = first_run
+    manifests_dir = out / "release" / "manifests"
+    con = duckdb.connect()
+    con.execute(f"CREATE VIEW metrics AS SELECT * FROM read_parquet('{manifests_dir / 'metrics.parquet'}')")
+    con.execute(f"CREATE VIEW summary AS SELECT * FROM read_parquet('{manifests_dir / 'metrics_summary.parquet'}')")
+    averages = {m: (u, v, n) for m, u, v, n in con.execute(
+        "SELECT metric, unit, AVG(value), COUNT(*) FROM metrics GROUP BY metric, unit").fetchall()}
+    assert len(averages) == con.execute("SELECT COUNT(DISTINCT metric) FROM metrics").fetchone()[0]  # one unit each
+    assert con.execute("SELECT COUNT(*) FROM metrics GROUP BY metric HAVING COUNT(DISTINCT source) > 1").fetchall() == []
+    assert con.execute("SELECT COUNT(*) FROM metrics WHERE action_id IS NULL OR region = '' OR environment = '' "
+                       "OR run_id = 'evaluate'").fetchone()[0] == 0
+    run_ids = {r for (r,) in con.execute("SELECT DISTINCT run_id FROM metrics").fetchall()}
+    assert all(re.fullmatch(r"[0-9]{8}T[0-9]{6}-[0-9a-f]{6}", r) for r in run_ids), run_ids
+    # every held-out number is one quantity: the plain AVG is the mean over actions the summary holds
+    for metric in ("heldout_normal_mean_deg", "heldout_normal_mean_deg_truth", "chamfer_mm", "relit_psnr_db"):
+        unit, value, count = averages[metric]
+        (summary, summary_unit, how), = con.execute(
+            "SELECT value, unit, aggregation FROM summary WHERE metric = ?", [metric]).fetchall()
+        assert (unit, how) == (summary_unit, "mean_over_actions"), metric
+        per_action = con.execute("SELECT AVG(a) FROM (SELECT AVG(value) AS a FROM metrics WHERE metric = ? "
+                                 "GROUP BY action_id)", [metric]).fetchone()[0]
+        assert per_action == pytest.approx(summary, rel=1e-9), metric
+    assert averages["heldout_normal_mean_deg"][2] == 2  # one row per action, no other region, no summary row
+    # the relit views: one row per view and environment, the environment in its own column
+    envs = con.execute("SELECT DISTINCT environment FROM metrics WHERE metric = 'relit_psnr_db'").fetchall()
+    assert sorted(e for (e,) in envs) == ["procedural_sky", "procedural_studio"]
+    assert con.execute("SELECT COUNT(*) FROM metrics WHERE environment IS NOT NULL AND metric <> 'relit_psnr_db'"
+                       ).fetchone()[0] == 0
+    assert con.execute("SELECT unit FROM summary WHERE metric = 'actions_ok'").fetchone()[0] == "count"
+    # the stages' own statistics are named after the stage and are per view
+    assert con.execute("SELECT COUNT(*) FROM metrics WHERE source = 'photometric' AND "
+                       "(metric NOT LIKE 'photometric\\_%' ESCAPE '\\' OR camera_id IS NULL)").fetchone()[0] == 0
+    from manifests import open_release
+
+    rel = open_release(out / "release")
+    assert set(rel.metrics_summary.metric) >= {"normal_mean_deg", "actions_ok"} and rel.metrics["unit"].notna().all()
+
+
+def test_release_holds_no_absolute_path_and_verify_names_every_changed_file(first_run, capture, tmp_path):
+    out, _ = first_run
+    release = out / "release"
+    assert _files_holding(release, out, capture, capture.parent) == []
+    run = json.loads((release / "run.json").read_text())
+    assert not Path(run["capture"]).is_absolute() and (release / run["capture"]).resolve() == capture.resolve()
+    copy = tmp_path / "release"
+    shutil.copytree(release, copy)
+    from manifests import open_release, verify_release
+
+    report = verify_release(copy)
+    assert report.ok, report.summary()
+    assert [n.split(":")[0] for n in report.not_covered] == ["manifests/index.json"]
+    listed = set(open_release(copy).assets.path)
+    assert {"run.json", "index.html", "config.yaml"} <= listed
+    for rel in ("actions/A0000/albedo/00002.exr", "manifests/frames.parquet"):
+        data = bytearray((copy / rel).read_bytes())
+        data[len(data) // 2] ^= 0x01
+        (copy / rel).write_bytes(bytes(data))
+    (copy / "notes.txt").write_text("not in any manifest")
+    report = verify_release(copy)
+    assert sorted(m.split(":")[0] for m in report.mismatched) == ["actions/A0000/albedo/00002.exr",
+                                                                  "manifests/frames.parquet"]
+    assert report.extra == ["notes.txt"] and not report.missing
+
+
+def _chromium() -> str:
+    found = shutil.which("chromium") or shutil.which("chromium-browser")
+    if found is None:
+        if os.geteuid() != 0:
+            pytest.skip("chromium is not installed and this user cannot install it (make setup installs "
+                        "Debian's chromium as root; or: sudo apt-get install chromium)")
+        pytest.fail("chromium is missing: run make setup (as root it installs Debian's chromium)")
+    return found
+
+
+def test_release_page_loads_in_headless_chromium(first_run, evaluated, tmp_path):
+    """index.html in a real browser: no console error, every local link resolves to a file of the release, the
+    summary, accuracy and labelled thumbnails are there; the screenshot is kept in the test's folder."""
+    import subprocess
+    from html.parser import HTMLParser
+    from urllib.parse import unquote, urlparse
+
+    browser = _chromium()
+    out, _ = first_run
+    release = out / "release"
+    page = release / "index.html"
+    text = page.read_text()
+
+    class Links(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.links: list[str] = []
+
+        def handle_starttag(self, tag, attrs):
+            self.links += [v for k, v in attrs if k in ("href", "src") and v]
+            style = dict(attrs).get("style") or ""
+            self.links += re.findall(r"url\('([^']+)'\)", style)
+
+    parser = Links()
+    parser.feed(text)
+    local = [link for link in parser.links if not link.startswith("#")]
+    assert all(urlparse(link).scheme == "" for link in local), "the page fetches nothing from elsewhere"
+    missing = [link for link in local if not (release / unquote(link)).is_file()]
+    assert local and missing == []
+    for expected in ("Accuracy against ground truth", "normal_mean_deg", "Action A0000", "Action A0001",
+                     "cam 00003 · full_on", "cam 00005 · normal_alpha", "view N000 · procedural_sky",
+                     "data-turntable", "sdf_losses.png"):
+        assert expected in text, expected
+    assert "Relighting set" not in text  # this release has no relight_examples table
+
+    flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+             f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=3000", "--enable-logging=stderr",
+             "--v=0"]
+    screenshot = tmp_path / "release-page.png"
+    shot = subprocess.run(flags + [f"--screenshot={screenshot}", "--window-size=1280,2400", page.as_uri()],
+                          capture_output=True, text=True, timeout=120)
+    dom = subprocess.run(flags + ["--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=120)
+    console = [line for line in (shot.stderr + dom.stderr).splitlines()
+               if "CONSOLE" in line or "Uncaught" in line or "ERR_FILE_NOT_FOUND" in line]
+    assert console == [], console
+    assert dom.returncode == 0 and "Action A0000" in dom.stdout
+    errors = re.search(r'<pre id="page-errors"[^>]*>(.*?)</pre>', dom.stdout, re.S)
+    assert errors is not None and errors.group(1).strip() == "" and "hidden" in errors.group(0)
+    # the turntable's script ran: it set the frame's background position
+    assert "background-position" in dom.stdout
+    assert screenshot.is_file() and screenshot.stat().st_size > 10_000
+    print(f"screenshot of the release page: {screenshot}")

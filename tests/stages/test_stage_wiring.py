@@ -181,3 +181,21 @@ def test_colmap_text_model_reads_in_pycolmap_and_projects_like_opencv(tmp_path):
     P, K = np.asarray(CAM["cam_from_world"]), np.asarray(CAM["K"])
     x = K @ (P[:, :3] @ points[0] + P[:, 3])
     assert np.allclose(image.project_point(points[0]), x[:2] / x[2] + 0.5)  # COLMAP: pixel centres at +0.5
+
+
+def test_contact_sheet_labels_each_tile_with_its_camera():
+    """The normal sheets say which camera a tile is: each tile's top-left corner carries its label (light text
+    on a dark band), the rest of the tile is the picture."""
+    from pipeline.codecs.image import label_picture
+
+    pics = [np.full((40, 80, 3), 128, np.uint8) for _ in range(3)]
+    sheet = contact_sheet(pics, columns=2, labels=["cam 00000", "cam 00001", "cam 00002"])
+    for r, c in ((0, 0), (0, 80), (40, 0)):
+        corner = sheet[r:r + 16, c:c + 60]
+        assert (corner > 200).all(axis=-1).sum() > 20 and (corner == 0).all(axis=-1).sum() > 100
+        assert (sheet[r + 30:r + 40, c + 60:c + 80] == 128).all()
+    # the labels differ as their texts do
+    assert not np.array_equal(sheet[0:16, 0:60], sheet[0:16, 80:140])
+    assert np.array_equal(label_picture(pics[0], "cam 00001"), sheet[0:40, 80:160])
+    with pytest.raises(ValueError, match="2 labels for 3 pictures"):
+        contact_sheet(pics, labels=["a", "b"])

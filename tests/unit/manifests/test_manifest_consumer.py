@@ -121,10 +121,31 @@ def test_unknown_table_name(release_dir):
 def test_old_file_missing_a_nullable_column_still_reads(tmp_path):
     import pyarrow.parquet as pq
 
-    write_table(tmp_path, "metrics", [dict(action_id="A", camera_id=None, metric="m", region="", value=1.0,
-                                           source="evaluate", run_id="r")])
+    write_table(tmp_path, "metrics", [dict(action_id="A", camera_id=None, metric="m", region=None, value=1.0,
+                                           unit="1", source="evaluate", run_id="r")])
     path = tmp_path / "manifests" / "metrics.parquet"
     pq.write_table(pq.read_table(path).drop_columns(["camera_id"]), path)
     table = open_release(tmp_path).table("metrics")
     assert table.schema.names == manifests.SCHEMAS["metrics"].names
     assert table.column("camera_id").to_pylist() == [None]
+
+
+def test_metrics_of_schema_1_are_read_in_the_current_layout(tmp_path):
+    """A release written before schema 2: summary rows (null action) are dropped, '' regions become null, a
+    relit view's environment leaves the region column, held-out variants get their own names, units appear."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    (tmp_path / "manifests").mkdir()
+    old = [("A0000", "00000", "valid_fraction", "", 0.8), ("A0000", "N000", "relit_psnr_db", "procedural_sky", 20.0),
+           ("A0000", None, "heldout_normal_mean_deg", "heldout_truth", 9.0),
+           ("A0000", None, "heldout_normal_mean_deg", "heldout", 7.0), (None, None, "normal_mean_deg", "", 5.0)]
+    pq.write_table(pa.table({"action_id": [r[0] for r in old], "camera_id": [r[1] for r in old],
+                             "metric": [r[2] for r in old], "region": [r[3] for r in old],
+                             "value": [r[4] for r in old], "source": ["evaluate"] * len(old),
+                             "run_id": ["evaluate"] * len(old)}), tmp_path / "manifests" / "metrics.parquet")
+    got = {(r["metric"], r["region"], r["environment"], r["unit"]): r["value"]
+           for r in open_release(tmp_path).table("metrics").to_pylist()}
+    assert got == {("valid_fraction", None, None, "1"): 0.8, ("relit_psnr_db", "all", "procedural_sky", "dB"): 20.0,
+                   ("heldout_normal_mean_deg_truth", "heldout", None, "deg"): 9.0,
+                   ("heldout_normal_mean_deg", "heldout", None, "deg"): 7.0}

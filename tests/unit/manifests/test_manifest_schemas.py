@@ -16,7 +16,8 @@ EXPECTED_COLUMNS = {
     "frames": ["action_id", "camera_id", "illumination", "raw_path", "raw_bytes", "raw_sha256", "exposure_s",
                "width", "height", "status", "error"],
     "assets": ["action_id", "camera_id", "kind", "path", "bytes", "sha256", "media_type"],
-    "metrics": ["action_id", "camera_id", "metric", "region", "value", "source", "run_id"],
+    "metrics": ["action_id", "camera_id", "metric", "region", "environment", "value", "unit", "source", "run_id"],
+    "metrics_summary": ["metric", "value", "unit", "aggregation", "n_actions", "source", "run_id"],
     "stage_runs": ["run_id", "stage", "version", "scope", "scope_id", "cache_key", "status", "seconds",
                    "error", "started_at", "config_json"],
     "relight_examples": ["example_id", "action_id", "subject", "session_id", "split", "view_index", "width", "height",
@@ -44,9 +45,13 @@ SAMPLE_ROWS = {
                dict(action_id="A0000", camera_id="00000", kind="mask", path="actions/A0000/mask/00000.png",
                     bytes=99, sha256=SHA, media_type="image/png")],
     "metrics": [dict(action_id="A0000", camera_id=None, metric="normal_angular_error_mean_deg", region="valid",
-                     value=4.8, source="evaluate", run_id="r1"),
-                dict(action_id=None, camera_id=None, metric="n_actions", region="", value=1, source="evaluate",
-                     run_id="r1")],
+                     environment=None, value=4.8, unit="deg", source="evaluate", run_id="r1"),
+                dict(action_id="A0000", camera_id="N000", metric="relit_psnr_db", region="all",
+                     environment="procedural_sky", value=21.0, unit="dB", source="evaluate", run_id="r1")],
+    "metrics_summary": [dict(metric="normal_mean_deg", value=4.8, unit="deg", aggregation="pooled", n_actions=2,
+                             source="evaluate", run_id="r1"),
+                        dict(metric="actions_ok", value=2, unit="count", aggregation="count", n_actions=2,
+                             source="evaluate", run_id="r1")],
     "stage_runs": [dict(run_id="r1", stage="decode", version="1", scope="action", scope_id="A0000", cache_key="k1",
                         status="ran", seconds=2.0, error=None, started_at=T0, config_json='{"demosaic": "AHD"}'),
                    dict(run_id="r1", stage="calibrate", version="2", scope="session", scope_id="S000",
@@ -56,7 +61,7 @@ SAMPLE_ROWS = {
 
 
 def test_tables_and_columns_are_as_documented():
-    assert set(SCHEMAS) == set(EXPECTED_COLUMNS)
+    assert set(SCHEMAS) == set(EXPECTED_COLUMNS) | {"relight_examples"}
     for name, cols in EXPECTED_COLUMNS.items():
         assert SCHEMAS[name].names == cols
         assert set(PRIMARY_KEYS[name]) <= set(cols)

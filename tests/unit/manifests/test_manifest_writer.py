@@ -15,7 +15,7 @@ from manifests import writer as writer_mod
 
 def metric(value=1.0, **kw):
     row = dict(action_id="A0000", camera_id="00000", metric="normal_angular_error_mean_deg", region="valid",
-               value=value, source="evaluate", run_id="r1")
+               environment=None, value=value, unit="deg", source="evaluate", run_id="r1")
     row.update(kw)
     return row
 
@@ -121,7 +121,7 @@ def test_write_leaves_no_temp_files(tmp_path):
     write_table(tmp_path, "metrics", [metric()])
     write_table(tmp_path, "metrics", [metric(value=2.0)])
     append_rows(tmp_path, "metrics", [metric(region="all")])
-    assert manifest_files(tmp_path) == ["metrics.parquet"]
+    assert manifest_files(tmp_path) == ["index.json", "metrics.parquet"]
 
 
 def test_failed_write_keeps_old_table_and_leaves_no_temp_files(tmp_path, monkeypatch):
@@ -135,7 +135,7 @@ def test_failed_write_keeps_old_table_and_leaves_no_temp_files(tmp_path, monkeyp
     monkeypatch.setattr(writer_mod.pq, "write_table", crash)
     with pytest.raises(OSError, match="disk full"):
         write_table(tmp_path, "metrics", [metric(value=2.0)])
-    assert manifest_files(tmp_path) == ["metrics.parquet"]
+    assert manifest_files(tmp_path) == ["index.json", "metrics.parquet"]
     assert (tmp_path / "manifests" / "metrics.parquet").read_bytes() == before
 
 
@@ -165,12 +165,12 @@ def test_append_replaces_matching_keys_and_keeps_others(tmp_path):
     write_table(tmp_path, "metrics", [
         metric(value=1.0),
         metric(camera_id="00001", value=2.0),
-        metric(action_id=None, camera_id=None, metric="n_actions", value=1.0),
+        metric(camera_id=None, region=None, metric="n_actions", value=1.0),
         metric(source="photometric", value=9.0),
     ])
     append_rows(tmp_path, "metrics", [
         metric(value=10.0, run_id="r2"),                                           # replaces
-        metric(action_id=None, camera_id=None, metric="n_actions", value=3.0, run_id="r2"),  # null keys match
+        metric(camera_id=None, region=None, metric="n_actions", value=3.0, run_id="r2"),  # null keys match
         metric(camera_id="00002", value=20.0, run_id="r2"),                        # new
     ], keys)
     df = open_release(tmp_path).metrics
@@ -181,7 +181,7 @@ def test_append_replaces_matching_keys_and_keeps_others(tmp_path):
         ("A0000", "00001", "normal_angular_error_mean_deg", "evaluate"): (2.0, "r1"),
         ("A0000", "00002", "normal_angular_error_mean_deg", "evaluate"): (20.0, "r2"),
         ("A0000", "00000", "normal_angular_error_mean_deg", "photometric"): (9.0, "r1"),
-        (None, None, "n_actions", "evaluate"): (3.0, "r2"),
+        ("A0000", None, "n_actions", "evaluate"): (3.0, "r2"),
     }
 
 
@@ -253,8 +253,8 @@ def test_write_table_keeping_replaces_the_run_actions_rows_and_keeps_the_others(
     from manifests.writer import read_manifest, write_table_keeping
 
     write_table(tmp_path, "metrics", [metric(1.0), metric(2.0, action_id="A0001"), metric(3.0, action_id="A0002"),
-                                      metric(4.0, action_id=None, camera_id=None)])
-    # a run over A0000 only: its rows and the action-less ones are replaced, A0001's kept, A0002's dropped
+                                      metric(4.0, action_id="A0003", camera_id=None)])
+    # a run over A0000 only: its rows are replaced, A0001's kept, A0002's and A0003's dropped
     write_table_keeping(tmp_path, "metrics", [metric(5.0)], keep_actions=["A0001"])
     table = read_manifest(tmp_path, "metrics").to_pylist()
     assert sorted((r["action_id"], r["value"]) for r in table) == [("A0000", 5.0), ("A0001", 2.0)]
@@ -262,3 +262,26 @@ def test_write_table_keeping_replaces_the_run_actions_rows_and_keeps_the_others(
         write_table_keeping(tmp_path, "metrics", [metric(6.0, action_id="A0001")], keep_actions=["A0001"])
     write_table_keeping(tmp_path, "metrics", [metric(7.0)], keep_actions=[])  # = write_table
     assert [r["value"] for r in read_manifest(tmp_path, "metrics").to_pylist()] == [7.0]
+
+
+def test_replace_rows_drops_what_the_writer_owns_and_keeps_the_rest(tmp_path):
+    from manifests.writer import read_manifest, replace_rows
+
+    write_table(tmp_path, "metrics", [metric(1.0), metric(2.0, source="photometric"),
+                                      metric(3.0, action_id="A0001", metric="stale_deg")])
+    replace_rows(tmp_path, "metrics", [metric(9.0)], drop=lambda row: row["source"] == "evaluate")
+    got = sorted((r["action_id"], r["source"], r["value"]) for r in read_manifest(tmp_path, "metrics").to_pylist())
+    assert got == [("A0000", "evaluate", 9.0), ("A0000", "photometric", 2.0)]
+    with pytest.raises(ValueError, match="duplicate key"):  # a kept row may not collide with a new one
+        replace_rows(tmp_path, "metrics", [metric(5.0, source="photometric")], drop=lambda row: False)
+
+
+def test_every_write_records_the_tables_digests_in_the_index(tmp_path):
+    from manifests.writer import read_index
+
+    write_table(tmp_path, "metrics", [metric(1.0)])
+    append_rows(tmp_path, "stage_runs", [stage_run()])
+    index = read_index(tmp_path / "manifests")
+    assert sorted(index) == ["metrics.parquet", "stage_runs.parquet"]
+    for name, entry in index.items():
+        assert entry["sha256"] == file_sha256(tmp_path / "manifests" / name)
