@@ -71,10 +71,13 @@ class AlbedoNet(UNet):
     ``clip(srgb_to_linear(photo) * exp(c + g), 0, 1)``.
 
     A shaded photo is albedo x shading, so the network predicts a log shading correction rather than the
-    albedo itself: ``c`` (B, 3, H, W) per pixel from the U-Net's head and ``g`` (B, 3, 1, 1) per image from
-    the mean of the bottleneck's features (a global gain: the photo's exposure normalisation hides the
-    albedo's absolute level and the light's colour, which no 3x3 window sees). Both layers start at zero, so
-    an untrained AlbedoNet is exactly the input-image baseline and training learns what to take out of it.
+    albedo itself: ``c`` (B, 3, H, W) per pixel from the U-Net's head and ``g`` (B, 3, 1, 1) per image, a
+    linear layer on the mean of the bottleneck's features over the cells that hold the subject (a global
+    gain: the photo's exposure normalisation hides the albedo's absolute level, and the light's colour is a
+    property of the whole image). The photo is 0 off the subject, so the mean over the subject's cells alone
+    does not change with the canvas around it: a training crop and a whole photo give it alike. Both layers
+    start at zero, so an untrained AlbedoNet is exactly the input-image baseline and training learns what to
+    take out of it.
     ``c + g`` is bounded to +-:attr:`max_log_correction` by a tanh (slope 1 at 0) so ``exp`` cannot overflow.
     """
 
@@ -94,7 +97,10 @@ class AlbedoNet(UNet):
     def log_correction(self, x: torch.Tensor) -> torch.Tensor:
         """``c + g`` (B, 3, H, W), bounded, for photos x (B, 3, H, W)."""
         last, bottleneck = self.features(x)
-        raw = self.head(last) + self.gain(bottleneck.mean(dim=(2, 3)))[:, :, None, None]
+        subject = (x.amax(dim=1, keepdim=True) > 0).to(x.dtype)
+        cells = F.max_pool2d(subject, size_multiple(self.depth))  # (B, 1, H', W'): 1 where a cell holds subject
+        pooled = (bottleneck * cells).sum(dim=(2, 3)) / cells.sum(dim=(2, 3)).clamp(min=1.0)
+        raw = self.head(last) + self.gain(pooled)[:, :, None, None]
         bound = self.max_log_correction
         return bound * torch.tanh(raw / bound)
 
