@@ -83,7 +83,7 @@ class AlbedoNet(UNet):
 
     name = "albedonet"
     max_log_correction = 6.0
-    """Bound of the log correction: the albedo is at most e^6 ~ 400 times the linearised photo or 1/400 of it."""
+    """Bound of the log correction: the albedo lies between 1/400 and 400 (e^6) times the linearised photo."""
 
     def __init__(self, in_channels: int = 3, out_channels: int = 3, width: int = 32, depth: int = 4):
         super().__init__(in_channels, out_channels, width, depth)
