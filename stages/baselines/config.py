@@ -68,7 +68,7 @@ class TrainConfig:
 
 PRESETS: dict[str, TrainConfig] = {
     # seconds on a CPU: the tests' config (a 64 x 64 fixture set)
-    "tiny": TrainConfig(width=8, depth=3, crop=32, batch_size=4, steps=60, lr=3e-3, checkpoint_every=30),
+    "tiny": TrainConfig(width=8, depth=3, crop=32, batch_size=4, steps=120, lr=3e-3, checkpoint_every=30),
     # a few minutes to an hour on a 2-core CPU: small crops, small net
     "cpu": TrainConfig(width=16, depth=4, crop=128, batch_size=4, steps=2000, lr=1e-3, checkpoint_every=200),
     # the paper-sized run on one GPU

@@ -1,9 +1,9 @@
 """Training and testing AlbedoNet / NormalNet on a release's relighting set (``ultrastage train``).
 
 ``train(release, config, out_dir)`` trains on the ``train`` split with the MSE on the masked pixels (as the
-paper), then measures the ``test`` split (:mod:`stages.baselines.metrics`) for the network and the trivial
-baselines. Everything goes into ``out_dir`` (default :func:`default_out_dir`, beside the release, never in
-it):
+paper; the AlbedoNet's in linear space, on its albedo before the clip to [0, 1]), then measures the ``test``
+split (:mod:`stages.baselines.metrics`) for the network and the trivial baselines. Everything goes into
+``out_dir`` (default :func:`default_out_dir`, beside the release, never in it):
 
 * ``checkpoint.pt``: ``{format, format_version, network, config, step, model, optimizer, losses}``, written
   atomically (temporary file, then rename) every ``checkpoint_every`` steps and at the end; a run finding one
@@ -39,8 +39,10 @@ __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "CHECKPOINT_NAME", "METRIC
 
 CHECKPOINT_FORMAT = "ultrastage-baseline"
 """The ``format`` field of a baseline checkpoint."""
-CHECKPOINT_VERSION = 1
-"""Bumped when the checkpoint's contents or the networks' layers change; other versions are refused."""
+CHECKPOINT_VERSION = 2
+"""Bumped when the checkpoint's contents or the networks' layers change; other versions are refused.
+Version 2: the AlbedoNet predicts a shading correction of the linearised photo (with a global gain layer)
+instead of a sigmoid albedo."""
 CHECKPOINT_NAME = "checkpoint.pt"
 METRICS_NAME = "test_metrics.parquet"
 TRIVIAL_METHOD = {"albedonet": "input_image", "normalnet": "constant_normal"}
@@ -233,7 +235,7 @@ def train(release: str | Path, config: TrainConfig, out_dir: str | Path | None =
                 rng = np.random.default_rng([config.seed, step])
                 items = [dataset.example(int(i), rng) for i in rng.integers(0, len(dataset), config.batch_size)]
                 batch = {k: torch.stack([it[k] for it in items]).to(device) for k in ("image", target_key, "mask")}
-                loss = masked_mse(model(batch["image"]), batch[target_key], batch["mask"])
+                loss = masked_mse(model.training_output(batch["image"]), batch[target_key], batch["mask"])
                 if not torch.isfinite(loss):
                     raise ValueError(f"{ckpt_path}: training loss is {loss.item()} at step {step} (lower lr?); "
                                      "the last checkpoint is kept")

@@ -7,6 +7,7 @@ import torch
 
 from pipeline.errors import InputError
 from stages.baselines.data import RelightDataset, flip_horizontal, random_crop
+from stages.baselines.metrics import input_image_albedo
 from stages.baselines.models import AlbedoNet, NormalNet, predict_image
 
 
@@ -47,7 +48,9 @@ def test_networks_take_any_size_and_give_their_ranges():
     albedo = predict_image(AlbedoNet(width=4, depth=3), image)
     normal = predict_image(NormalNet(width=4, depth=3), image)
     assert albedo.shape == normal.shape == (37, 51, 3)
-    assert albedo.min() > 0 and albedo.max() < 1
+    assert albedo.min() >= 0 and albedo.max() <= 1
+    # untrained, the AlbedoNet's shading correction is 0: it is the input-image baseline
+    np.testing.assert_allclose(albedo, input_image_albedo(image), atol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(normal, axis=-1), 1.0, atol=1e-4)
     with pytest.raises(ValueError):
         AlbedoNet(width=4, depth=3)(torch.zeros(1, 3, 30, 30))

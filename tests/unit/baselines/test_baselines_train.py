@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -26,18 +27,25 @@ def test_tiny_albedonet_beats_the_input_image(trained):
     m, rows = _overall(out)
     assert {r["example_id"] for r in rows} >= {"*", "A0011_00", "A0013_01"}  # per example and over the split
     assert {r["split"] for r in rows} == {"test"}
-    # the scale-aligned numbers: a network that learnt to take the shading out beats the shaded photo
+    # every albedo metric, raw and scale-aligned, beats the linearised photo taken as the albedo
+    for metric in ("albedo_psnr_raw_db", "albedo_psnr_scaled_db", "albedo_ssim_raw", "albedo_ssim_scaled"):
+        assert m[("albedonet", metric)] > m[("input_image", metric)], metric
+    for metric in ("albedo_rmse_raw", "albedo_rmse_scaled"):
+        assert m[("albedonet", metric)] < m[("input_image", metric)], metric
+    # the margin where the network's work shows most: the shading taken out, up to the unknowable scale
     assert m[("albedonet", "albedo_psnr_scaled_db")] > m[("input_image", "albedo_psnr_scaled_db")] + 1.0
-    assert m[("albedonet", "albedo_rmse_scaled")] < m[("input_image", "albedo_rmse_scaled")]
+    # no loss-went-down check: an untrained AlbedoNet already is the baseline, and losses of 4 random crops
+    # vary more from batch to batch than they fall; the test metrics above are what says it learnt
     losses = read_checkpoint(out / CHECKPOINT_NAME, "albedonet")["losses"]
-    assert len(losses) == 60 and sum(losses[-10:]) / 10 < 0.6 * losses[0]
+    assert len(losses) == 120 and all(math.isfinite(x) for x in losses)
 
 
 def test_tiny_normalnet_beats_the_camera_facing_normal(trained):
     m, _ = _overall(trained["normalnet"])
     assert m[("normalnet", "normal_mean_deg")] < m[("constant_normal", "normal_mean_deg")] - 10.0
     assert m[("normalnet", "normal_median_deg")] < m[("constant_normal", "normal_median_deg")]
-    assert m[("normalnet", "normal_under_30_pct")] > m[("constant_normal", "normal_under_30_pct")]
+    for metric in ("normal_under_11_25_pct", "normal_under_22_5_pct", "normal_under_30_pct"):
+        assert m[("normalnet", metric)] > m[("constant_normal", metric)], metric
 
 
 def test_resume_continues_as_one_run(fake_set, tmp_path):
