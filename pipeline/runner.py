@@ -391,8 +391,10 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
         for task in plan.tasks:
             if task.scope_id == info.session_id:
                 for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
-                    metric_rows.append({"action_id": action_id, "camera_id": cam, "metric": "calibration_frame_left_out",
-                                        "region": "", "value": 1.0, "source": task.stage.name, "run_id": run_id})
+                    metric_rows.append({"action_id": action_id, "camera_id": cam,
+                                        "metric": f"{task.stage.name}_calibration_frame_left_out", "region": None,
+                                        "environment": None, "value": 1.0, "unit": "count",
+                                        "source": task.stage.name, "run_id": run_id})
         for task in tasks:
             if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
                 continue

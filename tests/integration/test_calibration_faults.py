@@ -4,7 +4,7 @@ One tiny simulated session (6 cameras, 160 px, chart + diffuse sphere + marker f
 a truncated and a deleted frame of each calibration (chart -> ``colour``, sphere -> ``lights``, marker
 frames -> ``cameras``), on different cameras so each effect can be told apart. The action must still be
 published, each left-out camera logged and listed with its file and reason in the stage's stats, and
-recorded in ``metrics.parquet`` (metric ``calibration_frame_left_out``, source = the stage).
+recorded in ``metrics.parquet`` (metric ``<stage>_calibration_frame_left_out``, source = the stage).
 """
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def _left_out_metrics(release: Path, source: str) -> set[str]:
     from manifests import open_release
 
     metrics = open_release(release).metrics
-    rows = metrics[(metrics.metric == "calibration_frame_left_out") & (metrics.source == source)]
+    rows = metrics[(metrics.metric == f"{source}_calibration_frame_left_out") & (metrics.source == source)]
     assert set(rows.action_id) <= {"A0000"} and (rows.value == 1.0).all()
     return set(rows.camera_id)
 
