@@ -12,6 +12,7 @@ Everything here is arrays in, arrays out.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,15 @@ draw in its range. The ranges keep the limbs off the body: arms raised at most t
 at ~40 degrees from vertical), lowered by at most 20 degrees (hands stay clear of the hips), forearms bend
 in the plane of the upper arm and the forward direction (hands never cross to the midline), thighs
 spread inward by at most 3 degrees."""
+
+CHAINS = {"head": ("neck_turn", "neck_bend", "neck_tilt"),
+          "l_arm": ("l_shoulder_raise", "l_shoulder_swing", "l_elbow_bend"),
+          "r_arm": ("r_shoulder_raise", "r_shoulder_swing", "r_elbow_bend"),
+          "l_leg": ("l_hip_swing", "l_hip_spread", "l_knee_bend"),
+          "r_leg": ("r_hip_swing", "r_hip_spread", "r_knee_bend")}
+"""The joint angles of each limb chain: a chain's angles move only the vertices skinned to its bones."""
+CHAIN_BONES = {"head": ("head",), "l_arm": ("l_upper_arm", "l_forearm"), "r_arm": ("r_upper_arm", "r_forearm"),
+               "l_leg": ("l_thigh", "l_shin"), "r_leg": ("r_thigh", "r_shin")}
 
 BLEND_M = 0.025
 """Standard deviation of the skinning weights' blend across a joint boundary, metres, along the surface."""
@@ -147,12 +157,19 @@ def skinning_weights(vertices: np.ndarray, triangles: np.ndarray, landmarks: dic
 
 
 def rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    """Right-handed rotation (3, 3) by `angle_deg` about the unit-normalised `axis`."""
-    axis = np.asarray(axis, np.float64)
-    axis = axis / np.linalg.norm(axis)
+    """Right-handed rotation (3, 3) (read-only) by `angle_deg` about the unit-normalised `axis`."""
+    return _rotation(tuple(float(c) for c in np.asarray(axis, np.float64).reshape(3)), float(angle_deg))
+
+
+@functools.lru_cache(maxsize=4096)
+def _rotation(axis: tuple[float, float, float], angle_deg: float) -> np.ndarray:
+    # cached: reach_extent's pose grids repeat the same few axes and angles hundreds of times
+    u = np.array(axis) / np.linalg.norm(axis)
     theta = np.radians(angle_deg)
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * k + (1.0 - np.cos(theta)) * (k @ k)
+    k = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    out = np.eye(3) + np.sin(theta) * k + (1.0 - np.cos(theta)) * (k @ k)
+    out.flags.writeable = False
+    return out
 
 
 def draw_pose(rng: np.random.Generator, variation: float) -> dict[str, float]:
@@ -203,11 +220,42 @@ def pose_vertices(vertices: np.ndarray, skeleton: Skeleton, angles_deg: dict[str
     vertices = np.asarray(vertices, np.float64)
     if vertices.shape != (len(skeleton.weights), 3):
         raise ValueError(f"vertices must be ({len(skeleton.weights)}, 3), got {vertices.shape}")
-    transforms = bone_transforms(angles_deg, skeleton)
-    posed = np.zeros_like(vertices)
-    for b in range(len(BONES)):
-        w = skeleton.weights[:, b]
-        used = w > 0
+    return skin(vertices, skeleton.weights, bone_transforms(angles_deg, skeleton))
+
+
+def skin(vertices: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """Linear blend skinning: sum over bones of weight x (R p + t); vertices (V, 3), weights (V, B),
+    transforms (B, 3, 4); returns (V, 3)."""
+    posed = np.zeros_like(vertices, dtype=np.float64)
+    for b in range(weights.shape[1]):
+        used = weights[:, b] > 0
         if np.any(used):
-            posed[used] += w[used, None] * (vertices[used] @ transforms[b, :, :3].T + transforms[b, :, 3])
+            posed[used] += weights[used, b, None] * (vertices[used] @ transforms[b, :, :3].T + transforms[b, :, 3])
     return posed
+
+
+def reach_extent(vertices: np.ndarray, skeleton: Skeleton, variation: float,
+                 steps: int = 4, spacing_m: float = 0.02) -> tuple[float, float, float]:
+    """Bounding cylinder (radius about +y, y_min, y_max) of the rest mesh and of the poses `draw_pose`
+    can give at `variation`, whatever the draws (so framing does not depend on which actions are drawn).
+
+    Each chain's angles sweep a steps^3 grid of their scaled ranges with the other chains at rest: a chain
+    moves only the vertices skinned to its bones, so the union over chains bounds every combination (up
+    to the grid spacing, ~2 cm for a 0.8 m arm at 4 steps, and to `spacing_m`: the moving vertices are
+    thinned to about one per `spacing_m` cube).
+    """
+    vertices = np.asarray(vertices, np.float64)
+    radius = float(np.sqrt(vertices[:, 0] ** 2 + vertices[:, 2] ** 2).max())
+    y_min, y_max = float(vertices[:, 1].min()), float(vertices[:, 1].max())
+    for chain, names in CHAINS.items():
+        columns = [BONES.index(bone) for bone in CHAIN_BONES[chain]]
+        moving = np.flatnonzero(skeleton.weights[:, columns].sum(axis=1) > 0)
+        _, first = np.unique(np.floor(vertices[moving] / spacing_m).astype(np.int64), axis=0, return_index=True)
+        moving = moving[first]
+        points, weights = vertices[moving], skeleton.weights[moving]
+        grids = [variation * np.linspace(*POSE_RANGES_DEG[name], steps) for name in names]
+        for values in np.stack(np.meshgrid(*grids, indexing="ij"), axis=-1).reshape(-1, len(names)):
+            posed = skin(points, weights, bone_transforms(dict(zip(names, values)), skeleton))
+            radius = max(radius, float(np.sqrt(posed[:, 0] ** 2 + posed[:, 2] ** 2).max()))
+            y_min, y_max = min(y_min, float(posed[:, 1].min())), max(y_max, float(posed[:, 1].max()))
+    return radius, y_min, y_max

@@ -98,15 +98,11 @@ def action_pose(config: SimConfig, base: BaseSubject, action_index: int) -> dict
 
 def subject_extent(config: SimConfig, base: BaseSubject) -> tuple[float, tuple[float, float]]:
     """Bounding cylinder (radius about +y, (y_min, y_max)) the cameras frame: the rest mesh's, widened to
-    hold every action's posed mesh, so raised or spread limbs stay in view."""
-    radius, (y_min, y_max) = base.radius_xz, base.y_range
-    for action_index in range(config.actions):
-        angles = action_pose(config, base, action_index)
-        if angles is None:
-            continue
-        posed = pose.pose_vertices(base.vertices, base.skeleton, angles)
-        radius = max(radius, float(np.sqrt(posed[:, 0] ** 2 + posed[:, 2] ** 2).max()))
-        y_min, y_max = min(y_min, float(posed[:, 1].min())), max(y_max, float(posed[:, 1].max()))
+    the reach of every pose pose_variation allows (synthetic.pose.reach_extent), so raised or spread limbs
+    stay in view and the rig does not depend on the number of actions or their draws."""
+    if config.pose_variation <= 0.0 or base.landmarks is None:
+        return base.radius_xz, base.y_range
+    radius, y_min, y_max = pose.reach_extent(base.vertices, base.skeleton, config.pose_variation)
     return radius, (y_min, y_max)
 
 

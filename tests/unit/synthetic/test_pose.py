@@ -111,8 +111,13 @@ def test_posed_limbs_move_the_torso_stays(makehuman):
         assert np.all(np.isfinite(posed))
         assert np.linalg.norm(posed - rest, axis=1)[l_hand].mean() > 0.03, angles
         assert np.abs(posed - rest)[torso].max() < 1e-6
+    # the cameras frame the reach of every pose the variation allows: it holds the drawn ones
     radius, (y_min, y_max) = subject_extent(config, makehuman)
-    assert radius >= makehuman.radius_xz and y_min <= makehuman.y_range[0] and y_max >= makehuman.y_range[1]
+    assert radius > makehuman.radius_xz + 0.05 and y_min <= makehuman.y_range[0] and y_max >= makehuman.y_range[1]
+    for action_index in range(20):
+        posed = pose.pose_vertices(rest, skeleton, action_pose(config, makehuman, action_index))
+        assert np.sqrt(posed[:, 0] ** 2 + posed[:, 2] ** 2).max() <= radius + 0.01
+        assert y_min - 0.01 <= posed[:, 1].min() and posed[:, 1].max() <= y_max + 0.01
 
 
 @needs_shared
