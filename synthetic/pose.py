@@ -3,10 +3,12 @@
 The skeleton (torso, head, upper arms, forearms with hands, thighs, shins with feet) hangs from joint
 positions found in the MakeHuman mesh's `joint-*` helper groups. Each vertex takes its bone from the
 nearest bone capsule (segment and radius); the one-hot weights are then averaged over mesh neighbours a
-number of times (scaled to the mesh resolution), so weights blend over a few centimetres along the surface round every joint (no tearing
-at shoulders, elbows, hips, knees, neck) and never leak between parts that only touch in space (an arm
-and the torso below the armpit are not connected). A pose is a dict of joint angles in degrees
-(`POSE_RANGES_DEG`); `pose_variation` scales the uniform draw, so 0 is the rest pose exactly.
+number of times (scaled to the mesh resolution), so weights blend over a few centimetres along the
+surface round every joint (no tearing at shoulders, elbows, hips, knees, neck) and never leak between
+parts that only touch in space (an arm and the torso below the armpit are not connected). A pose is a
+dict of joint angles in degrees (`POSE_RANGES_DEG`); `pose_variation` scales the uniform draw, so 0 is
+the rest pose exactly. Linear blend skinning loses some volume on the inside of strongly bent elbows and
+knees (a few triangles shrink to a few percent of their area); nothing tears or turns NaN.
 
 Everything here is arrays in, arrays out.
 """
