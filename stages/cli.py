@@ -132,8 +132,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from synthetic.calibration import CalibrationConfig
 
     overrides = {k: v for k, v in {"mesh": args.mesh, "actions": args.actions, "width": args.width,
-                                   "seed": args.seed}.items() if v is not None}
-    config = dataclasses.replace(SimConfig(), **overrides)
+                                   "seed": args.seed, "pose_variation": args.pose_variation}.items()
+                 if v is not None}
+    try:
+        config = dataclasses.replace(SimConfig(), **overrides)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
     out = Path(args.out)
     index = out / "capture.json"
     calibration = CalibrationConfig()  # chart and diffuse-sphere frames for the session stages
@@ -335,7 +339,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="render a synthetic raw capture with ground truth")
     p.add_argument("--out", required=True, help="capture folder to write")
-    p.add_argument("--mesh", help="subject mesh (OBJ); default: the MakeHuman body in ../shared, else procedural")
+    p.add_argument("--mesh", help="subject mesh (OBJ, PLY, glTF/GLB, STL, OFF; 'procedural' for the built-in "
+                   "subject); default: the MakeHuman body in ../shared, else procedural")
+    p.add_argument("--pose-variation", type=float, metavar="X",
+                   help="0..1: how far each action's pose departs from the rest A-pose (default 0; "
+                        "MakeHuman subject only)")
     p.add_argument("--actions", type=int, help="number of actions")
     p.add_argument("--width", type=int, help="image width in pixels (height follows the D750's 2:3 portrait)")
     p.add_argument("--seed", type=int, help="random seed")

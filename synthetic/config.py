@@ -10,7 +10,8 @@ class SimConfig:
     """What `synthetic.simulate` renders: subject, rig, lighting, sensor and output options."""
 
     actions: int = 2
-    """Number of actions (poses) to render; each gets its own skin, yaw, cloth pattern and folds."""
+    """Number of actions (poses) to render; each gets its own skin, yaw, cloth pattern and folds (and
+    joint angles when pose_variation > 0)."""
     width: int = 320
     """Image width in pixels. Height is `width * 6016 / 4016` rounded to an even number: the D750s are
     mounted in portrait, so the 24 x 35.9 mm sensor is 24 mm wide and 35.9 mm tall."""
@@ -19,7 +20,14 @@ class SimConfig:
     mesh: str | None = None
     """Subject OBJ path. None: `../shared/data/meshes/makehuman_base.obj` beside the repository when it
     exists, else the procedural subject. "procedural" forces the procedural subject. An OBJ with a
-    MakeHuman `body` group gets skins, clothes and folds; any other OBJ gets a procedural albedo."""
+    MakeHuman `body` group gets skins, clothes and folds; any other OBJ, or a PLY / glTF / GLB / STL / OFF
+    file (read with trimesh), gets a procedural albedo."""
+    pose_variation: float = 0.0
+    """How far each action's pose departs from the rest A-pose, in [0, 1]: every joint angle (neck turn /
+    bend / tilt, shoulders, elbows, hips, knees; synthetic.pose.POSE_RANGES_DEG) is this times a uniform
+    draw in its range, keyed by (seed, action index). 0 renders the rest pose exactly (the same files as
+    without posing). Only subjects with a skeleton are posed: the MakeHuman body (its joint groups); the
+    procedural subject and other meshes stay in their rest pose."""
     n_leds: int = 512
     """Number of LEDs on the sphere (Fibonacci directions)."""
     led_error: float = 0.03
@@ -75,6 +83,7 @@ class SimConfig:
             (1 <= self.n_cameras <= 99999, "n_cameras must be >= 1"),
             (self.fold_amplitude_m >= 0.0, "fold_amplitude_m must be >= 0"),
             (0 <= self.subdivisions <= 3, "subdivisions must be in 0..3"),
+            (0.0 <= self.pose_variation <= 1.0, "pose_variation must be in [0, 1]"),
             (self.full_well_e > 0.0 and self.read_noise_dn >= 0.0, "noise parameters must be positive"),
             (0.0 < self.exposure_target < 0.9, "exposure_target must be in (0, 0.9)"),
             (1 <= self.supersample <= 8, "supersample must be in 1..8"),

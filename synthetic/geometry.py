@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -55,6 +55,16 @@ def read_obj(path: str | Path) -> ObjMesh:
         raise ValueError(f"{path}: no vertices or faces")
     return ObjMesh(np.asarray(vertices, dtype=np.float64), np.asarray(uvs, dtype=np.float64).reshape(-1, 2),
                    faces, groups)
+
+
+def group_centroids(obj: ObjMesh, groups: Iterable[str]) -> dict[str, np.ndarray]:
+    """Centroid (3,) of the distinct vertices of each named group that has faces (absent groups are left out)."""
+    wanted = set(groups)
+    members: dict[str, set[int]] = {}
+    for (vids, _), group in zip(obj.faces, obj.groups):
+        if group in wanted:
+            members.setdefault(group, set()).update(vids)
+    return {group: obj.vertices[sorted(ids)].mean(axis=0) for group, ids in members.items()}
 
 
 def triangulate(obj: ObjMesh, keep_group: Callable[[str], bool]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

@@ -18,7 +18,7 @@ import numpy as np
 import open3d as o3d
 
 from . import calibration as calib_frames
-from . import files, sensor, shading
+from . import files, pose, sensor, shading
 from .calibration import CalibrationConfig
 from .config import SimConfig
 from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds, perturb_pose
@@ -32,7 +32,7 @@ TRUTH_FORMAT = "ultrastage-truth/1"
 CAPTURE_ENTRIES = ("capture.json", "sessions", "actions", "ground_truth", "previews")
 
 # purposes of the random streams: default_rng([seed, PURPOSE, ...])
-_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE, _RIG_SPEC = range(1, 8)
+_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE, _RIG_SPEC, _POSE = range(1, 9)
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,8 @@ class Session:
 def make_session(config: SimConfig, base: BaseSubject, index: int) -> Session:
     """Rig, LEDs and exposures of session `index` (session 0 has the nominal rig)."""
     session_rng = np.random.default_rng([config.seed, _SESSION_RIG, index]) if index > 0 else None
-    cameras = make_cameras(config.n_cameras, config.width, config.height, base.radius_xz, base.y_range,
+    radius_xz, y_range = subject_extent(config, base)
+    cameras = make_cameras(config.n_cameras, config.width, config.height, radius_xz, y_range,
                            np.random.default_rng([config.seed, _RIG]), session_rng)
     leds = make_leds(config.n_leds, config.led_error, config.led_radius_m,
                      np.random.default_rng([config.seed, _LEDS, index]))
@@ -85,6 +86,24 @@ def make_session(config: SimConfig, base: BaseSubject, index: int) -> Session:
     backgrounds = [shading.background_image(camera, leds.radius_m) for camera in cameras]
     return Session(f"S{index:03d}", index, cameras, leds, gains, references, backgrounds,
                    spec_cameras(cameras, config, np.random.default_rng([config.seed, _RIG_SPEC, index])))
+
+
+def action_pose(config: SimConfig, base: BaseSubject, action_index: int) -> dict[str, float] | None:
+    """Joint angles (degrees) of an action, drawn from (seed, action index); None when the action is not
+    posed (pose_variation 0, or a subject without a skeleton)."""
+    if config.pose_variation <= 0.0 or base.landmarks is None:
+        return None
+    return pose.draw_pose(np.random.default_rng([config.seed, _POSE, action_index]), config.pose_variation)
+
+
+def subject_extent(config: SimConfig, base: BaseSubject) -> tuple[float, tuple[float, float]]:
+    """Bounding cylinder (radius about +y, (y_min, y_max)) the cameras frame: the rest mesh's, widened to
+    the reach of every pose pose_variation allows (synthetic.pose.reach_extent), so raised or spread limbs
+    stay in view and the rig does not depend on the number of actions or their draws."""
+    if config.pose_variation <= 0.0 or base.landmarks is None:
+        return base.radius_xz, base.y_range
+    radius, y_min, y_max = pose.reach_extent(base.vertices, base.skeleton, config.pose_variation)
+    return radius, (y_min, y_max)
 
 
 def spec_cameras(cameras: list[Camera], config: SimConfig, rng: np.random.Generator) -> list[Camera]:
@@ -123,9 +142,10 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
     say = progress or (lambda message: None)
     started = time.perf_counter()
     out = Path(out_dir)
-    clear_previous_capture(out)
+    # read the subject first: a bad mesh file is refused before anything is written
     mesh_path = resolve_mesh(config.mesh)
     base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
+    clear_previous_capture(out)
     say(f"subject {base.name}: {len(base.vertices)} vertices, {len(base.triangles)} triangles")
 
     blocks = np.array_split(np.arange(config.actions), config.sessions)
@@ -212,7 +232,8 @@ def prepare_action(config: SimConfig, base: BaseSubject, session: Session, actio
     """The action's subject, its ray-casting scene and its view-independent lighting."""
     cycle_offset = int(np.random.default_rng([config.seed, _SUBJECT]).integers(1 << 16))
     subject = make_action_subject(base, np.random.default_rng([config.seed, _SUBJECT, action_index]),
-                                  action_index, config.fold_amplitude_m, cycle_offset)
+                                  action_index, config.fold_amplitude_m, cycle_offset,
+                                  action_pose(config, base, action_index))
     scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
     visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world,
                                         session.leds.directions)
@@ -292,7 +313,10 @@ def truth_record(config: SimConfig, subject: ActionSubject, session: Session, ac
                     "skin": subject.skin_name,
                     "skin_tone": subject.skin_tone.tolist() if subject.skin_texture is None else None,
                     "vertices": len(subject.vertices_world), "triangles": len(subject.triangles),
-                    "cloth": subject.cloth.to_json() if base.kind != "obj" else None},
+                    "cloth": subject.cloth.to_json() if base.kind in ("makehuman", "procedural") else None,
+                    "pose": (None if subject.pose_deg is None else
+                             {"variation": config.pose_variation, "skinning": "linear blend, 10 bones",
+                              "angles_deg": {k: round(v, 3) for k, v in subject.pose_deg.items()}})},
         "materials": {name: {"roughness": rough, "f0": f0, "ggx_alpha": round(rough ** 2, 4),
                              "model": "lambert + GGX (Smith height-correlated, Schlick)" if config.specular
                              else "lambert"} for name, rough, f0 in MATERIALS.values()},

@@ -1,26 +1,31 @@
 """The subject: a mesh in the stage frame with per-point materials (albedo, roughness, Fresnel F0).
 
-Three kinds:
+Four kinds:
 - ``makehuman``: the MakeHuman body (``body`` group only; decimetre units scaled to metres, ~1.67 m), a
   MakeHuman skin atlas (sRGB PNG, linearised) per action, a shirt and trousers with procedural stripe /
   check / denim albedo and displaced folds, shiny shoes and belt.
 - ``procedural``: a smooth union of capsules (torso, arms close to it, legs, neck), a sphere head and a
   torus round the waist, meshed by marching cubes; it has concavities and self-occlusion like a body.
 - ``obj``: any other OBJ, one skin-like material with a procedural albedo by 3D position.
+- ``mesh``: a PLY, glTF / GLB, STL, OFF, ... file (read with trimesh), the same material as ``obj``.
 
 Each action varies the subject deterministically from (seed, action index): skin atlas or tone, yaw about
-+y, cloth pattern and colours, fold pattern. Materials are evaluated per surface point from its rest-frame
-position (solid textures move with the body) and UV.
++y, cloth pattern and colours, fold pattern, and (MakeHuman only, `pose_variation` > 0) a pose: joint
+angles of a linear-blend-skinned skeleton (synthetic.pose). The pose is applied to the rest mesh before
+the yaw. Materials are evaluated per surface point from its rest-frame (unposed, unyawed) position, so
+solid textures and cloth regions move with the body, and UV.
 """
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from . import geometry
+from pipeline.errors import InputError
+
+from . import geometry, pose
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "data" / "meshes"
@@ -49,7 +54,8 @@ SKIN_TONES = np.array([[0.56, 0.36, 0.26], [0.42, 0.25, 0.16], [0.22, 0.12, 0.07
 class BaseSubject:
     """Action-independent geometry: rest-frame mesh in metres, bounding box centred at the stage origin.
 
-    vertices: (V, 3) float64; triangles: (T, 3) int64; corner_uvs: (T, 3, 2) or None.
+    vertices: (V, 3) float64; triangles: (T, 3) int64; corner_uvs: (T, 3, 2) or None; landmarks: skeleton
+    landmark -> (3,) rest position (synthetic.pose.MAKEHUMAN_JOINTS) or None when the subject cannot be posed.
     """
     kind: str
     name: str
@@ -59,6 +65,15 @@ class BaseSubject:
     triangles: np.ndarray
     corner_uvs: np.ndarray | None
     skins: tuple[str, ...] = ()
+    landmarks: dict[str, np.ndarray] | None = field(default=None, compare=False)
+
+    @functools.cached_property
+    def skeleton(self) -> pose.Skeleton | None:
+        """Joints and smooth skinning weights of the rest mesh (computed on first use), None if unposable."""
+        if self.landmarks is None:
+            return None
+        return pose.Skeleton(pose.bone_joints(self.landmarks), self.landmarks,
+                             pose.skinning_weights(self.vertices, self.triangles, self.landmarks))
 
     @property
     def y_range(self) -> tuple[float, float]:
@@ -96,10 +111,11 @@ class ClothStyle:
 
 @dataclass(frozen=True)
 class ActionSubject:
-    """The subject of one action: displaced rest mesh, world mesh (yawed) and material parameters.
+    """The subject of one action: displaced rest mesh, world mesh (posed, then yawed) and material parameters.
 
     vertices_rest / vertices_world / normals_world: (V, 3) float64; skin_texture: (h, w, 3) float32 linear
-    albedo atlas or None.
+    albedo atlas or None; pose_deg: joint angle name -> degrees (synthetic.pose.POSE_RANGES_DEG), None when
+    the subject is not posed (pose_variation 0 or no skeleton).
     """
     base: BaseSubject
     label: str
@@ -111,6 +127,7 @@ class ActionSubject:
     vertices_rest: np.ndarray
     vertices_world: np.ndarray
     normals_world: np.ndarray
+    pose_deg: dict[str, float] | None = None
 
     @property
     def triangles(self) -> np.ndarray:
@@ -150,34 +167,58 @@ class ActionSubject:
 # --- loading -------------------------------------------------------------------------------------------
 
 def resolve_mesh(mesh: str | None) -> Path | None:
-    """The OBJ a config means, or None for the procedural subject."""
+    """The mesh file a config means, or None for the procedural subject (InputError if it is missing)."""
     if mesh is None:
         return DEFAULT_MESH if DEFAULT_MESH.is_file() else None
     if mesh == "procedural":
         return None
     path = Path(mesh).expanduser()
     if not path.is_file():
-        raise FileNotFoundError(f"subject mesh {path} does not exist")
+        raise InputError(path, "subject mesh does not exist")
     return path
 
 
 @functools.lru_cache(maxsize=4)
 def load_base_subject(mesh_path: str | None, subdivisions: int) -> BaseSubject:
-    """Read (or build) the subject geometry, scale to metres, centre it, subdivide."""
+    """Read (or build) the subject geometry, scale to metres, centre it, subdivide.
+
+    OBJ files are parsed here (groups kept: a `body` group makes a MakeHuman subject, whose `joint-*`
+    groups give the skeleton landmarks); any other format is read with trimesh as one triangle mesh.
+    A file that cannot be read raises InputError naming it and the reason.
+    """
     if mesh_path is None:
         vertices, triangles = procedural_body_mesh()
         return BaseSubject("procedural", "procedural/capsules-torus", None, 1.0, vertices, triangles, None)
-    obj = geometry.read_obj(mesh_path)
-    is_makehuman = "body" in set(obj.groups)
-    if is_makehuman:
-        vertices, triangles, corner_uvs = geometry.triangulate(obj, lambda g: g == "body")
-        units_m = MAKEHUMAN_UNITS_M
+    landmarks = None
+    if Path(mesh_path).suffix.lower() == ".obj":
+        try:
+            obj = geometry.read_obj(mesh_path)
+            is_makehuman = "body" in set(obj.groups)
+            if is_makehuman:
+                vertices, triangles, corner_uvs = geometry.triangulate(obj, lambda g: g == "body")
+                units_m = MAKEHUMAN_UNITS_M
+                found = geometry.group_centroids(obj, pose.MAKEHUMAN_JOINTS.values())
+                if len(found) == len(pose.MAKEHUMAN_JOINTS):
+                    landmarks = {name: found[group] for name, group in pose.MAKEHUMAN_JOINTS.items()}
+            else:
+                vertices, triangles, corner_uvs = geometry.triangulate(
+                    obj, lambda g: not (g.startswith("helper-") or g.startswith("joint-")))
+                units_m = metres_per_unit(vertices)
+        except (OSError, ValueError, IndexError) as exc:
+            raise InputError(mesh_path, f"not a readable OBJ mesh ({exc})") from exc
+        kind = "makehuman" if is_makehuman else "obj"
     else:
-        vertices, triangles, corner_uvs = geometry.triangulate(
-            obj, lambda g: not (g.startswith("helper-") or g.startswith("joint-")))
-        units_m = metres_per_unit(vertices)
+        vertices, triangles = read_mesh_file(mesh_path)
+        corner_uvs, is_makehuman, kind = None, False, "mesh"
+        try:
+            units_m = metres_per_unit(vertices)
+        except ValueError as exc:
+            raise InputError(mesh_path, str(exc)) from exc
     vertices = vertices * units_m
-    vertices = vertices - 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    vertices = vertices - centre
+    if landmarks is not None:
+        landmarks = {name: p * units_m - centre for name, p in landmarks.items()}
     for _ in range(subdivisions):
         vertices, triangles, corner_uvs = geometry.loop_subdivide(vertices, triangles, corner_uvs)
     skins: tuple[str, ...] = ()
@@ -185,10 +226,31 @@ def load_base_subject(mesh_path: str | None, subdivisions: int) -> BaseSubject:
         skins = tuple(str(p) for p in sorted(Path(mesh_path).parent.glob("skins/*.png")))
         if not skins:
             skins = tuple(str(p) for p in sorted(SHARED_MESHES.glob("skins/*.png")))
-    kind = "makehuman" if is_makehuman else "obj"
-    name = "makehuman" if is_makehuman else f"obj/{Path(mesh_path).stem}"
+    name = "makehuman" if is_makehuman else f"{kind}/{Path(mesh_path).stem}"
     return BaseSubject(kind, name, str(mesh_path), units_m, vertices, triangles,
-                       corner_uvs if is_makehuman else None, skins)
+                       corner_uvs if is_makehuman else None, skins, landmarks)
+
+
+def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (V, 3) float64 and triangles (T, 3) int64 of a mesh file trimesh reads (PLY, glTF / GLB,
+    STL, OFF, ...); a scene's meshes are merged in their placed positions. InputError names the file and
+    the reason when it cannot be read or holds no triangles."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds (ValueError, KeyError, struct.error, ...)
+        raise InputError(path, f"not a readable mesh ({type(exc).__name__}: {exc})") from exc
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64).reshape(-1, 3)
+    triangles = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64).reshape(-1, 3)
+    if len(vertices) == 0 or len(triangles) == 0:
+        raise InputError(path, "holds no triangles (a point cloud, an empty scene or not a mesh)")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(path, "vertex positions hold NaN or Inf")
+    if triangles.min() < 0 or triangles.max() >= len(vertices):
+        raise InputError(path, "faces index vertices that do not exist")
+    used, remapped = np.unique(triangles, return_inverse=True)
+    return vertices[used], remapped.reshape(-1, 3)
 
 
 def metres_per_unit(vertices: np.ndarray) -> float:
@@ -239,9 +301,12 @@ def procedural_body_mesh(step: float = 0.012) -> tuple[np.ndarray, np.ndarray]:
 # --- per action ----------------------------------------------------------------------------------------
 
 def make_action_subject(base: BaseSubject, rng: np.random.Generator, action_index: int,
-                        fold_amplitude_m: float, cycle_offset: int = 0) -> ActionSubject:
+                        fold_amplitude_m: float, cycle_offset: int = 0,
+                        pose_deg: dict[str, float] | None = None) -> ActionSubject:
     """Vary the base subject for one action: yaw, cloth colours and folds from `rng`; skin, skin tone
-    and cloth pattern kinds cycle with `cycle_offset + action_index`, so consecutive actions differ."""
+    and cloth pattern kinds cycle with `cycle_offset + action_index`, so consecutive actions differ.
+    `pose_deg` (joint angles, synthetic.pose) poses the displaced rest mesh before the yaw; it is ignored
+    (the subject stays in its rest pose) when the base has no skeleton."""
     cycle = cycle_offset + action_index
     yaw = float(rng.uniform(-np.pi, np.pi))
     cloth = random_cloth(rng, fold_amplitude_m, cycle)
@@ -256,12 +321,17 @@ def make_action_subject(base: BaseSubject, rng: np.random.Generator, action_inde
     displacement = cloth.fold_amplitude_m * weight * fold_pattern(base.vertices, cloth.fold_freqs,
                                                                   cloth.fold_phases)
     vertices_rest = base.vertices + displacement[:, None] * normals_rest
+    vertices_posed = vertices_rest
+    if pose_deg is not None and base.skeleton is not None:
+        vertices_posed = pose.pose_vertices(vertices_rest, base.skeleton, pose_deg)
+    else:
+        pose_deg = None
     rotation = geometry.yaw_matrix(yaw)
-    vertices_world = vertices_rest @ rotation.T
+    vertices_world = vertices_posed @ rotation.T
     normals_world = geometry.vertex_normals(vertices_world, base.triangles)
     label = base.name if base.kind != "makehuman" else f"makehuman/{skin_name}"
     return ActionSubject(base, label, yaw, skin_name, skin_texture, skin_tone, cloth, vertices_rest,
-                         vertices_world, normals_world)
+                         vertices_world, normals_world, pose_deg)
 
 
 def random_cloth(rng: np.random.Generator, fold_amplitude_m: float, cycle: int) -> ClothStyle:
