@@ -243,15 +243,15 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
 
 def _context(task: Task, store: ArtifactStore, capture: Capture) -> StageContext:
     upstream_dirs = {n: store.final_dir(n, t.scope_id, t.key) for n, t in task.upstream.items()}
-    previous = store.latest_dir(task.stage.name, task.scope_id)
+    this = store.final_dir(task.stage.name, task.scope_id, task.key)
+    previous = [d for d in store.committed_dirs(task.stage.name, task.scope_id) if d != this]
     return StageContext(stage=task.stage.name, scope_id=task.scope_id, session_id=task.session_id,
                         action_id=task.action_id, out_dir=store.tmp_dir(task.stage.name, task.scope_id, task.key),
                         upstream=upstream_dirs, raw_inputs=task.raw_inputs,
                         rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=task.views,
                         subject=capture.action(task.action_id).subject if task.action_id else None,
                         upstream_keys={n: t.key for n, t in sorted(task.upstream.items())},
-                        previous=previous if previous != store.final_dir(task.stage.name, task.scope_id, task.key)
-                        else None, cache_dir=store.root.parent / "cache")
+                        previous=previous, cache_dir=store.root.parent / "cache")
 
 
 def _failure(exc: BaseException) -> str:

@@ -64,6 +64,14 @@ class ArtifactStore:
             return None
         return self.final_dir(stage, scope_id, record["key"])
 
+    def committed_dirs(self, stage: str, scope_id: str) -> list[Path]:
+        """Every complete result of a (stage, scope), under any key, the most recently committed first."""
+        folder = self.root / stage / scope_id
+        if not folder.is_dir():
+            return []
+        found = [d for d in folder.iterdir() if d.is_dir() and not d.name.startswith(".") and (d / SUCCESS).is_file()]
+        return sorted(found, key=lambda d: (d / SUCCESS).stat().st_mtime_ns, reverse=True)
+
     def begin(self, stage: str, scope_id: str, key: str) -> Path:
         """A fresh, empty temporary folder for this key (a leftover from a crashed run is removed)."""
         tmp = self.tmp_dir(stage, scope_id, key)

@@ -18,7 +18,7 @@ radiance in the map's units premultiplied by alpha), ``image.png`` (8-bit sRGB o
 ``albedo.exr`` / ``albedo.png`` (linear / sRGB), ``normal.exr`` / ``normal.png`` (camera-frame normals,
 OpenCV axes; (n + 1) / 2), ``mask.png`` and ``example.json`` (its row of ``manifests/relight_examples.parquet``).
 
-An example whose ``example_key`` (everything it is rendered from) equals one in the stage's previous result
+An example whose ``example_key`` (everything it is rendered from) equals one in an earlier result of the stage
 for the action is linked from there instead of rendered again: a new map in the pool re-renders only the
 examples it takes over.
 """
@@ -278,8 +278,8 @@ class RelightSetStage(Stage):
                        env, cam_from_world[:, :3] @ world_from_map).round(6).tolist()),
                    "seed": cfg.seed, "example_key": key}
             row |= {f"{name.replace('.', '_')}": f"relight/{example_id}/{name}" for name in EXAMPLE_FILES}
-            old = previous.get(example_id)
-            if old is not None and old[0].get("example_key") == key:
+            old = previous.get(key)
+            if old is not None:
                 for name in EXAMPLE_FILES:
                     _link(old[1] / name, folder / name)
                 row |= {"png_exposure": old[0]["png_exposure"], "mask_pixels": old[0]["mask_pixels"]}
@@ -316,16 +316,19 @@ class RelightSetStage(Stage):
 
     @staticmethod
     def _previous_examples(ctx: StageContext) -> dict[str, tuple[dict[str, Any], Path]]:
-        """The examples of this action's previous result (example id -> (row, folder))."""
-        previous = ctx.previous
-        if previous is None or not (previous / "relight" / "examples.json").is_file():
-            return {}
-        try:
-            rows = json.loads((previous / "relight" / "examples.json").read_text())
-        except (OSError, json.JSONDecodeError):
-            return {}
-        return {r["example_id"]: (r, previous / "relight" / r["example_id"]) for r in rows
-                if all((previous / "relight" / r["example_id"] / n).is_file() for n in EXAMPLE_FILES)}
+        """The examples of this action's earlier results, by example key (key -> (row, folder)); the most
+        recent result wins."""
+        found: dict[str, tuple[dict[str, Any], Path]] = {}
+        for previous in reversed(ctx.previous):
+            try:
+                rows = json.loads((previous / "relight" / "examples.json").read_text())
+            except (OSError, json.JSONDecodeError):
+                continue
+            for row in rows:
+                folder = previous / "relight" / row["example_id"]
+                if all((folder / name).is_file() for name in EXAMPLE_FILES):
+                    found[row["example_key"]] = (row, folder)
+        return found
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
         """Nothing under ``actions/<id>/``: the examples are published at the release root."""
