@@ -24,7 +24,7 @@ from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of
 from pipeline.hashing import DigestCache
 from pipeline.runlock import hold_run_lock
 from pipeline.stage import Stage
-from pipeline.store import ArtifactStore, swap_into_place
+from pipeline.store import ArtifactStore, link_or_copy, swap_into_place
 
 log = logging.getLogger("ultrastage.run")
 CONVENTIONS = Path(__file__).with_name("conventions.md")
@@ -71,14 +71,6 @@ def make_executor(cfg: ExecutionConfig) -> Any:
     return DaskExecutor(address=cfg.scheduler)
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
-
-
 def _root_units(entries: list[tuple[Path, str, str]]) -> list[str]:
     """The folders (first two path parts, e.g. ``relight/A0000_00``) that release-root files are published in."""
     return sorted({"/".join(rel.split("/")[:2]) for _, rel, _ in entries})
@@ -112,7 +104,7 @@ def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: s
         artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
         for src, rel, kind, camera in (task.stage.release_files(artifact) if hasattr(task.stage, "release_files")
                                        else []):
-            _link_or_copy(src, tmp / rel)
+            link_or_copy(src, tmp / rel)
             entries.append((rel, kind, camera))
         if hasattr(task.stage, "release_root_files"):
             root_entries += task.stage.release_root_files(artifact)
@@ -127,7 +119,7 @@ def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: s
     staging = release / f".tmp-root-{action_id}"
     shutil.rmtree(staging, ignore_errors=True)
     for src, rel, kind in root_entries:
-        _link_or_copy(src, staging / rel)
+        link_or_copy(src, staging / rel)
         row = asset_row(release, staging / rel, kind, action_id=action_id)
         row["path"] = rel
         rows.append(row)

@@ -34,6 +34,15 @@ def swap_into_place(tmp: Path, final: Path) -> None:
         os.rename(tmp, final)
 
 
+def link_or_copy(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` to ``dst`` (its folders made), or copy it where links are not possible."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
 class ArtifactStore:
     def __init__(self, root: str | Path):
         self.root = Path(root)

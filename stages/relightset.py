@@ -28,7 +28,6 @@ import hashlib
 import json
 import math
 import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -41,6 +40,7 @@ from pipeline.codecs.image import write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from pipeline.store import link_or_copy
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.novel_view import ViewShading
@@ -281,7 +281,7 @@ class RelightSetStage(Stage):
             old = previous.get(key)
             if old is not None:
                 for name in EXAMPLE_FILES:
-                    _link(old[1] / name, folder / name)
+                    link_or_copy(old[1] / name, folder / name)
                 row |= {"png_exposure": old[0]["png_exposure"], "mask_pixels": old[0]["mask_pixels"]}
                 reused += 1
             else:
@@ -359,11 +359,3 @@ def camera_centres(cameras: dict[str, dict[str, Any]]) -> np.ndarray:
     """World centres (C, 3) of camera records with ``cam_from_world``."""
     poses = [np.asarray(c["cam_from_world"], np.float64) for c in cameras.values()]
     return np.array([-p[:, :3].T @ p[:, 3] for p in poses]).reshape(-1, 3)
-
-
-def _link(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
