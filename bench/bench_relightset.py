@@ -75,7 +75,7 @@ def main() -> int:
     from stages.numerics.novel_view import relight_view
     from stages.numerics.relightset import draw_example, normals_to_camera, subject_frame
     from stages.numerics.sg import fit_sg_environment, rotate_environment, rotate_sg
-    from stages.relightset import RelightSetStage, _environment, camera_centres, example_name
+    from stages.relightset import RelightSetStage, camera_centres, example_name, load_pool_map
     from synthetic.relight import TruthRelighter
 
     cap = open_capture(capture)
@@ -90,7 +90,7 @@ def main() -> int:
             print(f"bench_relightset: no committed stage results for {action_id} under {work}; skipped")
             return 0
         maps, _ = stage.pool(capture)
-        loaded = [_environment(m, m.path) for m in maps]
+        loaded = [load_pool_map(m, m.path) for m in maps]
         digests = [sha for _, sha in loaded]
         asset, cameras = load_relightable_asset(artifacts)
         centre, radius, distance = subject_frame(artifacts.mesh()[0], camera_centres(cameras))

@@ -384,7 +384,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(fn=cmd_verify)
 
     p = sub.add_parser("train", help="train the AlbedoNet or NormalNet baseline on a release's relighting set")
-    p.add_argument("network", choices=("albedonet", "normalnet"))
+    p.add_argument("network", choices=("albedonet", "normalnet"),
+                   help="which baseline to train: albedonet (image -> linear albedo) or normalnet "
+                        "(image -> camera-frame normals)")
     p.add_argument("--set", required=True, help="release folder with the relighting set (relight_examples)")
     p.add_argument("--preset", default="cpu", help="config preset: tiny (tests), cpu (default), gpu")
     p.add_argument("--config", help="YAML overrides of TrainConfig, e.g. {steps: 500, lr: 0.001}")

@@ -586,7 +586,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
 
     from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.numerics.sg import rotate_environment
-    from stages.relightset import _environment, resolve_pool
+    from stages.relightset import load_pool_map, resolve_pool
 
     capture_root = Path(truth_dir).parent
     examples = rel.relight_examples
@@ -609,7 +609,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             pool_map = environments.get(example["environment_name"])
             if pool_map is None:
                 continue
-            env, sha = _environment(pool_map, pool_map.path)
+            env, sha = load_pool_map(pool_map, pool_map.path)
             if sha != example["environment_sha256"]:
                 continue  # the map changed since the set was rendered: not the same lighting
             env = rotate_environment(env, math.radians(float(example["environment_rotation_deg"])))

@@ -178,7 +178,7 @@ def resolve_pool(entries: tuple[str, ...], capture_root: Path | None) -> tuple[l
     return [pool[k] for k in sorted(pool)], skipped
 
 
-def _environment(pool_map: PoolMap, path: Path | None) -> tuple[np.ndarray, str]:
+def load_pool_map(pool_map: PoolMap, path: Path | None) -> tuple[np.ndarray, str]:
     """(map (H, 2H, 3) float32, sha256) of a pool map (of the file's bytes; of the float32 map for procedural)."""
     from stages.relight import load_environment
 
@@ -238,7 +238,7 @@ class RelightSetStage(Stage):
         cfg: RelightSetConfig = self.config
         started = time.perf_counter()
         maps, skipped = self.pool(ctx.capture_root)
-        loaded = [_environment(m, ctx.raw_inputs.get(f"environment/{m.label}")) for m in maps]
+        loaded = [load_pool_map(m, ctx.raw_inputs.get(f"environment/{m.label}")) for m in maps]
         digests = [sha for _, sha in loaded]
         subject = ctx.subject or ctx.action_id
         split = split_of(cfg.seed, subject, cfg.split_ratios)

@@ -808,7 +808,9 @@ def test_release_page_loads_in_headless_chromium(first_run, evaluated, tmp_path)
                      "cam 00003 · full_on", "cam 00005 · normal_alpha", "view N000 · procedural_sky",
                      "data-turntable", "sdf_losses.png"):
         assert expected in text, expected
-    assert "Relighting set" not in text  # this release has no relight_examples table
+    # the relighting set's section: a labelled thumbnail per example (id, split, environment)
+    assert "Relighting set" in text and "4 examples" in text
+    assert "A0000_00 · " in text and "A0001_01 · " in text and "procedural:s" in text
 
     flags = [browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
              f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=3000", "--enable-logging=stderr",
