@@ -18,7 +18,7 @@ radiance in the map's units premultiplied by alpha), ``image.png`` (8-bit sRGB o
 ``albedo.exr`` / ``albedo.png`` (linear / sRGB), ``normal.exr`` / ``normal.png`` (camera-frame normals,
 OpenCV axes; (n + 1) / 2), ``mask.png`` and ``example.json`` (its row of ``manifests/relight_examples.parquet``).
 
-An example whose ``example_key`` (everything it is rendered from) equals one in an earlier result of the stage
+An example whose ``example_key`` (everything it is rendered from, the stage's code included) equals one in an earlier result of the stage
 for the action is linked from there instead of rendered again: a new map in the pool re-renders only the
 examples it takes over.
 """
@@ -39,6 +39,7 @@ from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
+from pipeline.hashing import code_digests
 from pipeline.stage import Stage, StageContext
 from pipeline.store import link_or_copy
 from stages.exr_headers import EXR_HEADERS
@@ -246,7 +247,9 @@ class RelightSetStage(Stage):
         asset, cameras = load_relightable_asset(artifacts)
         centre, radius, distance = subject_frame(artifacts.mesh()[0], camera_centres(cameras))
         directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
+        # the code that renders enters every example's key: a renderer change re-renders, never links stale files
         render_record = {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
+                         "code": code_digests(self.code_module, self.code_packages),
                          "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
                          "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
         previous = self._previous_examples(ctx)

@@ -618,7 +618,7 @@ def test_relighting_set_is_indexed_split_by_subject_and_consistent(first_run):
     assert verify_release(release).ok
 
 
-def test_relighting_set_renders_only_the_examples_a_pool_change_touches(first_run, capture, tmp_path):
+def test_relighting_set_renders_only_the_examples_a_pool_change_touches(first_run, capture, tmp_path, monkeypatch):
     import dataclasses
     import shutil
 
@@ -647,6 +647,11 @@ def test_relighting_set_renders_only_the_examples_a_pool_change_touches(first_ru
                (out / "release" / before.loc[example_id, "image_exr"]).read_bytes()
     # every other stage stayed cached
     assert {t.stage.name for t in result.plan.tasks if t.status == "ran"} == {"relightset"}
+    # the renderer's code is in every example's key: after a code change nothing is linked from before
+    monkeypatch.setattr("stages.relightset.code_digests", lambda module, packages: {module: "changed code"})
+    result, _ = _run(capture, copy, config, only="relightset")
+    stats = [t.stats for t in result.plan.tasks if t.stage.name == "relightset"]
+    assert sum(s["reused"] for s in stats) == 0 and sum(s["rendered"] for s in stats) == len(after)
 
 
 def test_relighting_set_environment_pool_errors(capture, tmp_path, capsys):
