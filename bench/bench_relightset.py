@@ -93,7 +93,7 @@ def main() -> int:
         loaded = [load_pool_map(m, m.path) for m in maps]
         digests = [sha for _, sha in loaded]
         asset, cameras = load_relightable_asset(artifacts)
-        centre, radius, distance = subject_frame(artifacts.mesh()[0], camera_centres(cameras))
+        centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
         t0 = time.perf_counter()
         truth = TruthRelighter(capture, action_id, lights=2048)
         report["truth_setup_s"] = time.perf_counter() - t0

@@ -152,5 +152,5 @@ def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, d
                         roughness_tex=artifacts.texture("roughness_texture", 1),
                         occlusion_tex=artifacts.texture("occlusion_texture", 1),
                         diffuse_ratio_tex=artifacts.texture("diffuse_ratio_texture"),
-                        sources_diffuse_albedo=use_diffuse_albedo)
+                        sources_diffuse_albedo=use_diffuse_albedo, vertices=np.asarray(vertices, np.float64))
     return asset, cameras

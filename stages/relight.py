@@ -358,8 +358,7 @@ class RelightStage(Stage):
         if cfg.previews:
             from stages.numerics.turntable import turntable_cameras, turntable_strip
 
-            atlas_vertices = ActionArtifacts(ctx.upstream).atlas_mesh()[0]
-            cams = turntable_cameras(atlas_vertices, TURNTABLE_FRAMES, *TURNTABLE_SIZE)
+            cams = turntable_cameras(asset.vertices, TURNTABLE_FRAMES, *TURNTABLE_SIZE)
             strip = turntable_strip(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, asset.albedo_tex, cams,
                                     *TURNTABLE_SIZE)
             write_png(out / "previews" / "turntable.png", preview_linear(strip, exposure=1.0))

@@ -180,15 +180,24 @@ def resolve_pool(entries: tuple[str, ...], capture_root: Path | None) -> tuple[l
 
 
 def load_pool_map(pool_map: PoolMap, path: Path | None) -> tuple[np.ndarray, str]:
-    """(map (H, 2H, 3) float32, sha256) of a pool map (of the file's bytes; of the float32 map for procedural)."""
+    """(map (H, 2H, 3) float32, sha256) of a pool map (:func:`pool_map_digest`)."""
     from stages.relight import load_environment
 
     env, _ = load_environment(pool_map.name, path)
+    return env, pool_map_digest(pool_map, path, env)
+
+
+def pool_map_digest(pool_map: PoolMap, path: Path | None, env: np.ndarray | None = None) -> str:
+    """sha256 of a pool map: of the file's bytes, or of the float32 map for a procedural one (made here unless
+    ``env`` gives it)."""
+    from pipeline.hashing import file_sha256
+    from stages.relight import load_environment
+
     if path is not None:
-        sha = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    else:
-        sha = hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()
-    return env, sha
+        return file_sha256(path)
+    if env is None:
+        env, _ = load_environment(pool_map.name, None)
+    return hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()
 
 
 def _digest(record: dict[str, Any]) -> str:
@@ -232,20 +241,20 @@ class RelightSetStage(Stage):
         from stages.numerics.relightset import (draw_example, encode_normals, normals_to_camera, split_of,
                                                 subject_frame, tone_map)
         from stages.numerics.sg import fibonacci_sphere, rotate_sg, rotation_y
-        from stages.relight import fit_sg_memo
+        from stages.relight import fit_sg_memo, load_environment
         from stages.numerics.sh import project_environment
 
         torch.set_num_threads(numeric_threads())
         cfg: RelightSetConfig = self.config
         started = time.perf_counter()
         maps, skipped = self.pool(ctx.capture_root)
-        loaded = [load_pool_map(m, ctx.raw_inputs.get(f"environment/{m.label}")) for m in maps]
-        digests = [sha for _, sha in loaded]
+        paths = [ctx.raw_inputs.get(f"environment/{m.label}") for m in maps]
+        digests = [pool_map_digest(m, path) for m, path in zip(maps, paths)]
+        envs: dict[int, np.ndarray] = {}  # only the maps the action's examples draw are read
         subject = ctx.subject or ctx.action_id
         split = split_of(cfg.seed, subject, cfg.split_ratios)
-        artifacts = ActionArtifacts(ctx.upstream)
-        asset, cameras = load_relightable_asset(artifacts)
-        centre, radius, distance = subject_frame(artifacts.mesh()[0], camera_centres(cameras))
+        asset, cameras = load_relightable_asset(ActionArtifacts(ctx.upstream))
+        centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
         directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
         # the code that renders enters every example's key: a renderer change re-renders, never links stale files
         render_record = {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
@@ -267,7 +276,9 @@ class RelightSetStage(Stage):
                                            "rotation_deg": rotation_deg, "K": K.round(9).tolist(),
                                            "cam_from_world": cam_from_world.round(9).tolist()})
             folder = out / example_id
-            env, _ = loaded[env_index]
+            if env_index not in envs:
+                envs[env_index] = load_environment(maps[env_index].name, paths[env_index])[0]
+            env = envs[env_index]
             world_from_map = rotation_y(math.radians(rotation_deg))
             row = {"example_id": example_id, "action_id": ctx.action_id, "subject": subject,
                    "session_id": ctx.session_id, "split": split, "view_index": index, "width": cfg.size,

@@ -38,6 +38,8 @@ class ActionAsset:
     sources_diffuse_albedo: bool = False
     """The sources' albedo is ``albedo_diffuse`` (specular light already out): no diffuse ratio where they
     give the albedo."""
+    vertices: np.ndarray | None = None
+    """The mesh's vertices (V, 3), world frame, metres (None when the caller did not keep them)."""
 
 
 def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
