@@ -161,6 +161,16 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: dict[str, Any
     return away
 
 
+
+def write_normal_sheet(previews: Path, prefix: str, sheet: str, view_stats: dict[str, dict[str, Any]]) -> None:
+    """``previews/<sheet>``: the per-camera previews ``<prefix>_<camera>.png`` of the views that ran,
+    side by side, each tile labelled with its camera id (nothing when none was written)."""
+    paths = {v: previews / f"{prefix}_{v}.png" for v in sorted(view_stats) if "missing" not in view_stats[v]}
+    shown = [v for v, p in paths.items() if p.exists()]
+    if shown:
+        write_png(previews / sheet,
+                  contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))
+
 class PhotometricStage(Stage):
     name = "photometric"
     # 7: the normal sheet's tiles are labelled with their camera ids
@@ -213,12 +223,7 @@ class PhotometricStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            paths = {v: ctx.out_dir / "previews" / f"normal_{v}.png" for v in sorted(view_stats)
-                     if "missing" not in view_stats[v]}
-            shown = [v for v, p in paths.items() if p.exists()]
-            if shown:
-                write_png(ctx.out_dir / "previews" / "normals_sheet.png",
-                          contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))
+            write_normal_sheet(ctx.out_dir / "previews", "normal", "normals_sheet.png", view_stats)
         fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 
@@ -413,12 +418,8 @@ class DiffuseNormalsStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            paths = {v: ctx.out_dir / "previews" / f"normal_diffuse_{v}.png" for v in sorted(view_stats)
-                     if "missing" not in view_stats[v]}
-            shown = [v for v, p in paths.items() if p.exists()]
-            if shown:
-                write_png(ctx.out_dir / "previews" / "normals_diffuse_sheet.png",
-                          contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))
+            write_normal_sheet(ctx.out_dir / "previews", "normal_diffuse", "normals_diffuse_sheet.png",
+                               view_stats)
         fitted = [s for s in view_stats.values() if s.get("fitted")]
         return {"views": view_stats, "fitted_views": len(fitted),
                 "seconds": float(sum(s["seconds"] for s in fitted))}
