@@ -597,6 +597,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
     entries = tuple((config.get("relightset") or {}).get("environments") or ("hdri-folders",))
     maps, _ = resolve_pool(entries, capture_root)
     environments = {m.name: m for m in maps}
+    loaded: dict[str, tuple[np.ndarray, str]] = {}  # each map read and hashed once, whatever its examples
     scores: dict[str, dict[str, list[float]]] = {}
     for action_id in ok_ids:
         chosen = examples[examples["action_id"] == action_id]
@@ -609,7 +610,9 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             pool_map = environments.get(example["environment_name"])
             if pool_map is None:
                 continue
-            env, sha = load_pool_map(pool_map, pool_map.path)
+            if pool_map.name not in loaded:
+                loaded[pool_map.name] = load_pool_map(pool_map, pool_map.path)
+            env, sha = loaded[pool_map.name]
             if sha != example["environment_sha256"]:
                 continue  # the map changed since the set was rendered: not the same lighting
             env = rotate_environment(env, math.radians(float(example["environment_rotation_deg"])))
