@@ -15,7 +15,7 @@ every ``--stride``-th camera it reports per variant:
 3. that the ``materials`` variant reproduces the released maps (max abs difference);
 4. the released ``albedo_diffuse`` against the white-light ``albedo``: the median difference to the
    simulator's albedo per band of n.v (true normal, view direction) and the PSNR over the valid pixels, and the
-   seconds per camera of taking the specular light out (:func:`stages.photometric.diffuse_albedo`, which
+   seconds per camera of taking the specular light out (:func:`stages.diffuse_normals.diffuse_albedo`, which
    must reproduce the released map).
 
 Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant).
@@ -54,7 +54,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     from stages.numerics.raycast import mesh_scene
     from stages.materials import fitted_f0
     from stages.numerics.specular_normals import view_directions
-    from stages.photometric import DiffuseNormalsConfig, diffuse_albedo, materials_roughness, refit_diffuse_normals
+    from stages.diffuse_normals import DiffuseNormalsConfig, diffuse_albedo, materials_roughness, refit_diffuse_normals
 
     from stages.numerics.shadowing import deocclude_view
 

@@ -5,12 +5,11 @@ photometric normal maps), :mod:`stages.numerics.mesh` (narrow-band marching cube
 decimation, xatlas) and :mod:`stages.numerics.bake` (texel reprojection into the cameras that see it).
 
 The SDF is trained twice (``deocclude``): eq. 1's normals lean away from whatever hides part of the LED
-sphere, so the first mesh bulges where the body occludes itself (inner thighs, armpits, neck); its
-visibility of the sphere divides that lean out of the normals (:func:`stages.numerics.shadowing.deocclude_view`)
-and a second training on them gives the published mesh. On the default capture (`make dataset`, A0000 /
-A0001) Chamfer went 2.30 / 2.27 -> 1.41 / 1.47 mm and the held-out albedo SSIM 0.9658 / 0.9603 -> 0.9673 /
-0.9623; bench_geometry (A0000, one thread): 2.31 mm in 179 s -> 1.39 mm in 371 s. A third pass (scratch
-run) was no better (1.67 mm, 0.9675 on A0000).
+sphere, so a mesh fitted to them bulges where the body occludes itself (inner thighs, armpits, neck). A short
+first pass gives a mesh whose visibility of the sphere divides that lean out of the normals
+(:func:`stages.numerics.shadowing.deocclude_view`) and shows where it misses them; the second training, on the
+de-occluded normals, gives the published mesh. bench/bench_sdf_schedule.py measures Chamfer against the
+stage's time over the two passes' step counts.
 """
 from __future__ import annotations
 
@@ -51,14 +50,21 @@ class GeometryConfig(Documented):
     """Train the SDF a second time, on eq. 1's normals with the first mesh's occlusion of the LED sphere divided
     out (:func:`stages.numerics.shadowing.deocclude_view`). Eq. 1 measures the cosine-weighted mean of the
     *visible* light directions, which leans away from an arm or the other leg; fitted to those normals the
-    surface bulges out where it is occluded (inner thighs, armpits, neck: 4-5 mm on A0000). Doubles the SDF's
-    time (the published mesh and ``sdf/sdf.pt`` are the second pass's; ``training.json`` keeps both)."""
+    surface bulges out where it is occluded (inner thighs, armpits, neck: 4-5 mm on A0000). The first pass runs
+    ``first_pass_iterations`` steps (the published mesh and ``sdf/sdf.pt`` are the second pass's;
+    ``training.json`` keeps both)."""
     deocclude_iterations: int = 0
     """0: the second pass trains a new field with the full schedule. N > 0: it continues the first field for N
-    steps at the schedule's final sharpness with every hash level on (cheaper; A0000, one thread: 600 steps
-    took 51 s instead of ~200 s and gave Chamfer 1.65 mm, SSIM 0.9665; 1000 steps 1.76 mm, 0.9674; from scratch
-    1.57 mm, 0.9672)."""
-    deocclude_directions: int = 256
+    steps at the schedule's final sharpness with every hash level on (cheaper, and a worse mesh than a new
+    field on the default capture)."""
+    first_pass_iterations: int = 600
+    """Steps of the first SDF pass when ``deocclude`` trains two (0: ``sdf.iterations``; the schedule's warm-up,
+    sharpness ramp and coarse-to-fine are scaled to it). The first mesh only has to give the body's occlusion
+    of the LED sphere and where it misses the normals; the published mesh is the second pass's
+    (bench/bench_sdf_schedule.py: time against Chamfer over both passes' steps)."""
+    first_pass_mesh_resolution: int = 256
+    """Marching-cubes cells of the first pass's mesh (0: ``mesh_resolution``)."""
+    deocclude_directions: int = 128
     """Directions (Fibonacci sphere) of the visibility traced for the second pass."""
     deocclude_min_visible: float = 0.1
     """Pixels whose cosine-weighted visible fraction is below this keep eq. 1's normal."""
@@ -77,6 +83,10 @@ class GeometryConfig(Documented):
     def __post_init__(self) -> None:
         if int(self.deocclude_iterations) < 0:
             raise ValueError(f"deocclude_iterations must be >= 0, got {self.deocclude_iterations!r}")
+        if int(self.first_pass_iterations) < 0:
+            raise ValueError(f"first_pass_iterations must be >= 0, got {self.first_pass_iterations!r}")
+        if int(self.first_pass_mesh_resolution) < 0:
+            raise ValueError(f"first_pass_mesh_resolution must be >= 0, got {self.first_pass_mesh_resolution!r}")
         if int(self.deocclude_directions) < 16:
             raise ValueError(f"deocclude_directions must be >= 16, got {self.deocclude_directions!r}")
         if not 0.0 <= float(self.deocclude_min_visible) < 1.0:
@@ -124,6 +134,26 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
         records.append(record)
     stats = {k: float(np.mean([r[k] for r in records])) for k in records[0]} if records else {}
     return out, stats
+
+
+def pass_configs(cfg: GeometryConfig) -> tuple[Any, Any]:
+    """The SDF configs of the stage's passes: ``(first, second)``, ``second`` None without ``deocclude``.
+
+    The first pass runs ``first_pass_iterations`` steps of ``cfg.sdf`` (its warm-up capped to them; the sharpness
+    ramp and coarse-to-fine are fractions of the steps); the second runs ``cfg.sdf`` with the importance share
+    of its rays, or continues the first field for ``deocclude_iterations`` steps at the final sharpness."""
+    if not cfg.deocclude:
+        return cfg.sdf, None
+    first = cfg.sdf
+    if cfg.first_pass_iterations > 0:
+        first = dataclasses.replace(cfg.sdf, iterations=cfg.first_pass_iterations,
+                                    warmup_iterations=min(cfg.sdf.warmup_iterations, cfg.first_pass_iterations))
+    second = cfg.sdf
+    if cfg.deocclude_iterations > 0:
+        second = dataclasses.replace(cfg.sdf, iterations=cfg.deocclude_iterations, inv_s_start=cfg.sdf.inv_s_end,
+                                     coarse_to_fine=0.0,
+                                     warmup_iterations=min(cfg.sdf.warmup_iterations, cfg.deocclude_iterations))
+    return first, dataclasses.replace(second, importance_fraction=cfg.second_pass_importance)
 
 
 def second_pass_views(cfg: GeometryConfig, views: list[Any], vertices: np.ndarray,
@@ -249,13 +279,8 @@ class GeometryStage(Stage):
                              f"{len(views)} camera(s) have normal maps; the SDF needs at least {cfg.min_views}")
         start = time.perf_counter()
         passes = 2 if cfg.deocclude else 1
-        second = cfg.sdf
-        if cfg.deocclude and cfg.deocclude_iterations > 0:
-            second = dataclasses.replace(cfg.sdf, iterations=cfg.deocclude_iterations, inv_s_start=cfg.sdf.inv_s_end,
-                                         coarse_to_fine=0.0,
-                                         warmup_iterations=min(cfg.sdf.warmup_iterations, cfg.deocclude_iterations))
-        second = dataclasses.replace(second, importance_fraction=cfg.second_pass_importance)
-        total = cfg.sdf.iterations + (second.iterations if cfg.deocclude else 0)
+        first, second = pass_configs(cfg)
+        total = first.iterations + (second.iterations if second is not None else 0)
         reported = {"tenth": 0, "done": 0}
 
         def progress(iteration: int, record: dict[str, float]) -> None:
@@ -266,11 +291,10 @@ class GeometryStage(Stage):
                 reported["tenth"] = tenth
                 ctx.progress(step, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
 
-        def fit(sdf_views: list[Any], config: Any, init: Any = None):
+        def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution):
             result = train_sdf(sdf_views, config, progress=progress, init=init)
             reported["done"] += config.iterations
-            vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds),
-                                                       cfg.mesh_resolution)
+            vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds), resolution)
             extracted = len(faces)
             vertices, faces = largest_component(vertices, faces)
             vertices, faces = decimate(vertices, faces, cfg.face_budget)
@@ -278,10 +302,11 @@ class GeometryStage(Stage):
                 raise RuntimeError(f"the SDF of {ctx.scope_id} gave no usable surface (faces {len(faces)})")
             return result, vertices, faces, mesh_stats | {"faces_extracted": extracted}
 
-        result, vertices, faces, mesh_stats = fit(views, cfg.sdf)
+        result, vertices, faces, mesh_stats = fit(views, first, resolution=(
+            cfg.first_pass_mesh_resolution or cfg.mesh_resolution) if second is not None else cfg.mesh_resolution)
         first_pass = None
         deocclusion: dict[str, float] = {}
-        if cfg.deocclude:
+        if second is not None:
             tick = time.perf_counter()
             sdf_views, deocclusion = second_pass_views(cfg, views, vertices, faces)
             deocclusion["seconds"] = time.perf_counter() - tick

@@ -18,7 +18,7 @@ bench reports the held-out photometric map's own score against the truth beside 
 **View-dependent albedo** (``albedo_model="view_dependent"``, the default). The white-light albedo a camera
 measures is the diffuse albedo plus the specular reflection of the white light, which depends on the view:
 on the default capture it lies 0.017-0.020 above the simulator's albedo head-on and 0.057-0.060 at grazing
-views (stages.photometric.DiffuseNormalsConfig.albedo), and near a held-out view's silhouette that view sees
+views (stages.diffuse_normals.DiffuseNormalsConfig.albedo), and near a held-out view's silhouette that view sees
 the surface at grazing angles that the nearest sources, weighted to the ones that see it head-on, do not.
 So the held-out white-light albedo is predicted (:func:`predict_white_albedo`) as the blend of the other
 cameras' ``albedo_diffuse`` (their white-light albedo less their own specular light) plus the GGX
@@ -203,7 +203,7 @@ class ActionGBuffers:
         the texture's median where that mesh misses a pixel."""
         from stages.materials import load_atlas_mesh
         from stages.numerics.raycast import mesh_scene
-        from stages.photometric import materials_roughness
+        from stages.diffuse_normals import materials_roughness
 
         if "atlas" not in self._shared:
             vertices, faces, atlas = load_atlas_mesh(self.view.path("mesh_textured"))

@@ -1,14 +1,10 @@
-"""Action stages ``photometric`` (normals by eq. 1, validity alpha, albedo and mask) and ``diffuse_normals``
-(the normals with the specular reflection fitted out, each pixel with the materials stage's roughness), one
-task per camera each.
+"""Action stage ``photometric``: normals by eq. 1, validity alpha, albedo and mask, one task per camera.
 
-Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps` and
-:func:`stages.numerics.specular_normals.fit_diffuse_normals`.
+Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps`. The normals with the
+specular reflection fitted out are the ``diffuse_normals`` stage's (:mod:`stages.diffuse_normals`).
 """
 from __future__ import annotations
 
-import functools
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,8 +22,7 @@ from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics.photometric import (PhotometricParams, facing_away_fraction, normals_with_alpha,
                                          photometric_maps)
-from stages.numerics.shadowing import deocclude_view
-from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions, white_light_specular
+from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions
 
 
 @dataclass(frozen=True)
@@ -234,198 +229,3 @@ class PhotometricStage(Stage):
         files += [(p, f"previews/{p.name}", "preview", None)
                   for p in sorted((artifact / "previews").glob("*sheet*.png"))]
         return files
-
-
-@dataclass(frozen=True)
-class DiffuseNormalsConfig(Documented):
-    """The released ``normal_diffuse`` maps: the specular fit, each pixel with its roughness from the materials
-    stage; and ``albedo_diffuse``, the white-light albedo less the specular light that fit predicts. The
-    photometric stage does not fit them: the mesh and the roughness texture need only eq. 1's ``normal_alpha``,
-    so a first pass with one roughness prior for every pixel would be thrown away (it cost 1.5 s per camera on
-    the default capture)."""
-
-    enabled: bool = True
-    """Write ``normal_diffuse`` (and so release them). The ratio normals stay the release's ``normal_alpha``: the
-    SDF is fitted to those (with the specular-fitted ones its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm:
-    the fit leaves a few hundredths of n.v of bias per material, which moves a 10 cm limb's surface by
-    millimetres)."""
-    use_materials_roughness: bool = True
-    """Fit each pixel with the materials stage's roughness texture seen through the textured mesh. On the
-    default capture (`make dataset`, valid pixels of every camera, the Adam fit of the time) the maps came
-    closer to the simulator's normals, 7.08 -> 6.38 deg, shiny leather (roughness 0.25) most: 11.6 -> 8.2 deg
-    (6.33 deg with the Levenberg-Marquardt fit; 6.38 since the materials stage leaves shadowed texels out of
-    its roughness median, which brought the roughness closer to the truth, MAE 0.079 -> 0.064).
-    bench_diffuse_normals (8 cameras per action): 7.13 -> 6.48 and 7.88 -> 7.12 deg, against 6.32 and 6.87 with
-    the simulator's own roughness, for the same fit time.
-    Off: every pixel is fitted with ``fit.roughness``."""
-    fit: SpecularConfig = field(default_factory=SpecularConfig)
-    """The per-pixel fit; its ``roughness`` is used where the textured mesh does not cover a pixel (every
-    pixel with ``use_materials_roughness`` off)."""
-    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
-    """The same edge-preserving filter as the photometric stage's maps get, guided by the released albedo
-    (``normal_alpha`` is not read here)."""
-    light_iterations: int = 4
-    """Gauss-Newton iterations when inverting the session's LED ratio model (as ``photometric``'s)."""
-    albedo: bool = True
-    """Also write ``albedo_diffuse``: the released white-light albedo less the GGX reflection of the white light
-    that the fitted normals, each pixel's roughness and the materials stage's F0 predict (its roughness was
-    fitted with that F0). On the default capture (bench_diffuse_normals, 8 cameras per action, median over the
-    valid pixels) the white-light albedo lies 0.017-0.020 above the simulator's albedo head-on (n.v > 0.7) and
-    0.057-0.060 at grazing views (n.v < 0.15); ``albedo_diffuse`` lies within 0.005 for n.v > 0.15 and 0.011
-    below (PSNR 27.2 -> 27.6 and 26.9 -> 27.5 dB), for 0.04 s per camera. It still holds the stage's ambient
-    occlusion, as the white-light albedo."""
-    occlusion: bool = True
-    """Divide the occlusion of the LED sphere out of the fitted normals: the mesh's visibility of each pixel's
-    surface point over ``occlusion_directions`` directions, inverted by
-    :func:`stages.numerics.shadowing.deocclude_normals` (eq. 1's ratio measures the cosine-weighted mean of the
-    *visible* directions, which leans away from an arm or the other leg). On the default capture
-    (bench_diffuse_normals, 8 cameras per action, against the simulator's normals) 6.39 -> 4.64 deg on A0000
-    and 7.04 -> 5.72 on A0001 (56 -> 73% and 49 -> 60% under 5 deg); where less than 80% of the
-    cosine-weighted sphere is visible 15.7 -> 6.9 deg (A0000, one-off). The released maps of both actions
-    went 6.37 -> 4.99 deg (with the two-pass mesh and its roughness). About 1 s per camera."""
-    occlusion_directions: int = 256
-    """Directions (Fibonacci sphere) of the visibility."""
-    occlusion_min_visible: float = 0.1
-    """Pixels whose cosine-weighted visible fraction is below this keep the fitted normal."""
-    previews: bool = True
-    """Write a PNG preview per camera and a contact sheet."""
-
-    def __post_init__(self) -> None:
-        if int(self.occlusion_directions) < 16:
-            raise ValueError(f"occlusion_directions must be >= 16, got {self.occlusion_directions!r}")
-        if not 0.0 <= float(self.occlusion_min_visible) < 1.0:
-            raise ValueError(f"occlusion_min_visible must be in [0, 1), got {self.occlusion_min_visible!r}")
-
-
-@functools.lru_cache(maxsize=2)
-def _roughness_atlas(textures_dir: str, materials_dir: str) -> tuple[Any, Any, np.ndarray]:
-    """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process)."""
-    from stages.materials import load_atlas_mesh
-    from stages.numerics.raycast import mesh_scene
-
-    vertices, faces, atlas = load_atlas_mesh(Path(textures_dir) / "mesh" / "textured.obj")
-    texture = read_exr(Path(materials_dir) / "textures" / "roughness.exr")
-    return mesh_scene(vertices, faces), atlas, (texture[..., 0] if texture.ndim == 3 else texture)
-
-
-def materials_roughness(scene: Any, atlas: Any, texture: np.ndarray, cam: dict[str, Any], height: int, width: int,
-                        fallback: float) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W) float32 roughness of each pixel from the materials' texture seen through the textured mesh
-    (``fallback`` where the mesh does not cover the pixel or the texture holds no value), and the (H, W)
-    bool pixels that got it from the texture."""
-    from stages.numerics.bake import texture_in_camera
-
-    seen, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"], cam["cam_from_world"],
-                                      height, width)
-    on_mesh = on_mesh & np.isfinite(seen) & (seen > 0)
-    return np.where(on_mesh, seen, fallback).astype(np.float32), on_mesh
-
-
-def refit_diffuse_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray, normal_alpha: np.ndarray,
-                          mask: np.ndarray, albedo: np.ndarray, model: Any, cfg: DiffuseNormalsConfig,
-                          roughness: float | np.ndarray) -> np.ndarray:
-    """The diffuse_normals stage's maps of one camera for a given roughness: the specular fit from eq. 1's
-    normals (``normal_alpha`` (H, W, 4)) where they are defined, then the edge-preserving filter over the
-    valid pixels (alpha > 0.5 inside ``mask``) guided by ``albedo``. (H, W, 3) float32, finite."""
-    normals_init = normal_alpha[..., :3]  # eq. 1 (through the LED model when there is one), unfiltered
-    defined = np.any(normals_init != 0, axis=-1)
-    normals = specular_free_normals(cam, pos, neg, normals_init, defined, model, cfg.fit, roughness,
-                                    cfg.light_iterations)
-    if cfg.denoise.enabled:
-        valid = (normal_alpha[..., 3] > 0.5) & mask
-        _, (normals,) = joint_bilateral(albedo, [normals], valid, cfg.denoise.spatial_sigma_px,
-                                        cfg.denoise.range_sigma, cfg.denoise.radius)
-    return np.where(np.isfinite(normals), normals, 0.0).astype(np.float32)
-
-
-def diffuse_albedo(albedo: np.ndarray, normals: np.ndarray, cam: dict[str, Any], roughness: float | np.ndarray,
-                   f0: float) -> np.ndarray:
-    """(H, W, 3) float32 white-light ``albedo`` (H, W, 3) less the white light's GGX reflection predicted from
-    ``normals`` (H, W, 3), the camera's view directions, ``roughness`` (scalar or (H, W)) and ``f0``, clipped to
-    [0, 1] (so where a normal is undefined (0), the white-light albedo clipped)."""
-    h, w = albedo.shape[:2]
-    views = view_directions(cam["K"], cam["cam_from_world"], h, w)
-    specular = white_light_specular(normals, views, roughness, f0)
-    return np.clip(np.nan_to_num(albedo - specular, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0).astype(np.float32)
-
-
-class DiffuseNormalsStage(Stage):
-    """``normal_diffuse`` fitted with per-pixel roughness, and ``albedo_diffuse``, one task per camera (see the
-    config)."""
-
-    name = "diffuse_normals"
-    # 5: the normal sheet's tiles are labelled with their camera ids
-    version = "5"
-    scope = "action"
-    requires = ("decode", "lights", "photometric", "textures", "materials")
-    outputs = ("normal_diffuse", "albedo_diffuse", "previews")
-    per_view = True
-
-    def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        cfg: DiffuseNormalsConfig = self.config
-        if not cfg.enabled:
-            return {"disabled": True}
-        decoded, photometric = ctx.upstream["decode"], ctx.upstream["photometric"]
-        cameras = load_cameras(decoded / "cameras.json")
-        normal_alpha_path = photometric / "normal_alpha" / f"{view}.exr"
-        if view not in cameras or not normal_alpha_path.exists():
-            return {"missing": "no photometric normal_alpha for this camera"}
-        out = ctx.out_dir / "normal_diffuse" / f"{view}.exr"
-        normal_alpha = read_exr(normal_alpha_path)
-        alpha = normal_alpha[..., 3]
-        start = time.perf_counter()
-        cam = cameras[view]
-        pos = read_exr(decoded / "pos" / f"{view}.exr")
-        neg = read_exr(decoded / "neg" / f"{view}.exr")
-        mask = read_png(photometric / "mask" / f"{view}.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
-        if cfg.use_materials_roughness:
-            scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]),
-                                                     str(ctx.upstream["materials"]))
-            roughness, on_mesh = materials_roughness(scene, atlas, texture, cam, *alpha.shape, cfg.fit.roughness)
-        else:
-            roughness = np.full(alpha.shape, cfg.fit.roughness, np.float32)
-            on_mesh = np.zeros(alpha.shape, bool)
-        normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo,
-                                        load_light_model(ctx.upstream["lights"]), cfg, roughness)
-        occlusion_stats: dict[str, float] = {}
-        if cfg.occlusion:
-            scene = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))[0]
-            normals, occlusion_stats = deocclude_view(scene, cam["K"], cam["cam_from_world"], normals,
-                                                      cfg.occlusion_directions, cfg.occlusion_min_visible)
-        write_exr(out, normals_with_alpha(normals, alpha), header=EXR_HEADERS["normal_diffuse"])
-        self._preview(ctx, view, normals, alpha)
-        fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
-        stats = {}
-        if cfg.albedo:
-            from stages.materials import fitted_f0
-
-            f0 = fitted_f0(ctx.upstream["materials"]) if cfg.use_materials_roughness else cfg.fit.f0
-            albedo_diffuse = diffuse_albedo(albedo, normals, cam, roughness, f0)
-            write_exr(ctx.out_dir / "albedo_diffuse" / f"{view}.exr", albedo_diffuse,
-                      header=EXR_HEADERS["albedo_diffuse"])
-            taken = (albedo - albedo_diffuse).mean(axis=-1)[fitted]
-            stats = {"albedo_f0": f0, "specular_taken_mean": float(taken.mean()) if taken.size else 0.0}
-        return {"fitted": True, "seconds": time.perf_counter() - start,
-                "roughness_mean": float(roughness[fitted].mean()) if fitted.any() else 0.0,
-                "on_mesh_fraction": float(on_mesh[fitted].mean()) if fitted.any() else 0.0, **stats,
-                **occlusion_stats}
-
-    def _preview(self, ctx: StageContext, view: str, normals: np.ndarray, alpha: np.ndarray) -> None:
-        if self.config.previews:
-            write_png(ctx.out_dir / "previews" / f"normal_diffuse_{view}.png", preview_normals(normals, alpha))
-
-    def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
-        if self.config.previews:
-            write_normal_sheet(ctx.out_dir / "previews", "normal_diffuse", "normals_diffuse_sheet.png",
-                               view_stats)
-        fitted = [s for s in view_stats.values() if s.get("fitted")]
-        return {"views": view_stats, "fitted_views": len(fitted),
-                "seconds": float(sum(s["seconds"] for s in fitted))}
-
-    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = [(p, f"{slot}/{p.name}", slot, p.stem) for slot in ("normal_diffuse", "albedo_diffuse")
-                 for p in sorted((artifact / slot).glob("*.exr"))]
-        sheet = artifact / "previews" / "normals_diffuse_sheet.png"
-        return files + ([(sheet, f"previews/{sheet.name}", "preview", None)] if sheet.exists() else [])

@@ -13,7 +13,8 @@ from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, Textu
 from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
 from stages.materials import MaterialsConfig, MaterialsStage
 from stages.numerics.sdf import SDF_PRESETS
-from stages.photometric import DiffuseNormalsConfig, DiffuseNormalsStage, PhotometricConfig, PhotometricStage
+from stages.diffuse_normals import DiffuseNormalsConfig, DiffuseNormalsStage
+from stages.photometric import PhotometricConfig, PhotometricStage
 from stages.numerics.novel_view import ViewShading
 from stages.relight import RelightConfig, RelightStage
 from stages.relightset import RelightSetConfig, RelightSetStage
@@ -67,7 +68,8 @@ PRESETS: dict[str, PipelineConfig] = {
     # Full-resolution 24 MP captures on a GPU: maps at half the sensor resolution are what the SDF uses.
     "production": PipelineConfig(decode=DecodeConfig(demosaic="AHD", half_size=True),
                                  geometry=GeometryConfig(sdf=SDF_PRESETS["production"], mesh_resolution=1024,
-                                                         face_budget=500_000),
+                                                         face_budget=500_000, first_pass_iterations=0,
+                                                         first_pass_mesh_resolution=0, deocclude_directions=256),
                                  textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4),
                                  materials=MaterialsConfig(texture_size=1024, occlusion_size=2048),
                                  relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128),
@@ -75,7 +77,8 @@ PRESETS: dict[str, PipelineConfig] = {
     # Quick looks: cheapest demosaic, in-process execution, a short SDF schedule.
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
                            geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000,
-                                                   deocclude_iterations=60),
+                                                   deocclude_iterations=60, first_pass_iterations=0,
+                                                   first_pass_mesh_resolution=0),
                            textures=TexturesConfig(atlas_faces=10_000, texture_size=512),
                            materials=MaterialsConfig(max_views=8, occlusion_rays=32),
                            relight=RelightConfig(novel_views=2, sg_lobes=16, visibility_directions=128),
@@ -84,7 +87,8 @@ PRESETS: dict[str, PipelineConfig] = {
                            execution=ExecutionConfig(scheduler="sync")),
     # The test suite's tiny captures (a few cameras, ~100 px): every stage runs, in seconds.
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
-                                                   face_budget=20_000, previews=True, deocclude_iterations=60),
+                                                   face_budget=20_000, previews=True, deocclude_iterations=60,
+                                                   first_pass_iterations=0, first_pass_mesh_resolution=0),
                            textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
                            exports=ExportsConfig(colmap_points=5_000),
                            materials=MaterialsConfig(texture_size=64, max_views=4, median_neighbours=16,

@@ -217,27 +217,15 @@ class SDFConfig(Documented):
 
 SDF_PRESETS: dict[str, SDFConfig] = {
     # `make dataset` on a 2-core machine: one action (32 views, 320x480) on one thread while the other action
-    # trains on the other core, planned at ~100 s (budget 150 s); the development machine takes about 205 s
-    # (training.json's time_s on the default capture; 499 s while dask's workers trimmed malloc's heap at
-    # 64 KiB, see pipeline.graph.DaskExecutor). With the calibrated cameras the silhouettes are
-    # pixel-exact, so the mask loss earns a larger weight: Chamfer on the default capture (A0000 / A0001,
-    # 256^3 marching) 2.79 / 2.85 mm at weight_mask 0.1, 2.20 / 2.27 at 0.5 (0.3: 2.29, 1.0: 2.60 on A0000),
-    # against 2.52 mm for the visual hull alone (bench/bench_geometry.py). The geometry stage trains it twice
-    # (geometry.deocclude): about 200-210 s per pass. The second pass draws a fifth of its rays where the
-    # first mesh missed the normals (geometry.second_pass_importance); with it a 2^18 table (fewer hash
-    # collisions on the fine levels), normals kept down to 3 deg from grazing and 2% outliers instead of 5% (the
-    # finger and contour pixels a first fit misses are those the larger settings dropped). Second pass alone on
-    # the same de-occluded normals, seeds 0 / 1: A0000 Chamfer 1.51 / 1.54 -> 1.29 / 1.36 mm, held-out SSIM
-    # 0.9680 / 0.9682 -> 0.9690 / 0.9692; A0001 (seed 0) 1.46 -> 1.36 mm, 0.9626 -> 0.9643. In `make dataset`:
-    # 1.41 / 1.47 -> 1.30 / 1.49 mm. The price: the body's front moves in (median depth offset -1.25 -> -1.08
-    # mm) and so do its silhouettes, by a fraction of a pixel (relit novel views, then hard-edged, 24.35 ->
-    # 24.13 dB; on A0000 all of it at the silhouettes, on A0001 mixed; relight v6's antialiased edges since:
-    # 24.80). The same settings without the importance share: 1.52 mm, 0.9674 (A0000); the share with the
-    # former 0.15 / 5%: 1.54 / 1.55 mm.
+    # trains on the other core. The geometry stage runs this schedule as its second pass, after a shorter first
+    # one (geometry.first_pass_iterations); bench/bench_sdf_schedule.py measures Chamfer against time over both
+    # passes' steps, bench/bench_geometry.py the pass's curve over iterations. Pixel-exact calibrated silhouettes
+    # earn the mask loss a weight of 0.5; a 2^18 table, normals down to 3 deg from grazing and 2% outliers
+    # keep the finger and contour pixels the second pass's importance-drawn rays are for.
     "cpu": SDFConfig(
         encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
                                 base_resolution=16, finest_resolution=512),
-        hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
+        hidden_width=64, hidden_layers=2, iterations=1200, rays_per_batch=512, samples_per_ray=8,
         hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5,
         grazing_cos_min=0.05, outlier_fraction=0.02,
     ),

@@ -192,7 +192,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
     from pipeline.codecs.image import read_png
     from stages.cameras import load_cameras
     from stages.lightcolour import load_light_model
-    from stages.photometric import refit_diffuse_normals
+    from stages.diffuse_normals import refit_diffuse_normals
 
     out, _ = first_run
     artifacts = out / "work" / "artifacts"

@@ -57,7 +57,8 @@ def test_contact_sheet_tiles_row_major():
 
 def test_diffuse_normals_off_reads_and_writes_nothing(tmp_path):
     from pipeline.stage import StageContext
-    from stages.photometric import DiffuseNormalsConfig, DiffuseNormalsStage, PhotometricStage
+    from stages.diffuse_normals import DiffuseNormalsConfig, DiffuseNormalsStage
+    from stages.photometric import PhotometricStage
 
     # upstream folders that do not exist: a disabled stage must not look at them
     absent = {name: tmp_path / "absent" / name for name in DiffuseNormalsStage.requires}
@@ -72,7 +73,7 @@ def test_diffuse_normals_off_reads_and_writes_nothing(tmp_path):
 
 def test_occlusion_configs_check_their_fields():
     from stages.geometry import GeometryConfig
-    from stages.photometric import DiffuseNormalsConfig
+    from stages.diffuse_normals import DiffuseNormalsConfig
 
     assert GeometryConfig().deocclude and DiffuseNormalsConfig().occlusion  # on by default
     for bad, match in (({"deocclude_iterations": -1}, "deocclude_iterations"),
@@ -199,3 +200,26 @@ def test_contact_sheet_labels_each_tile_with_its_camera():
     assert np.array_equal(label_picture(pics[0], "cam 00001"), sheet[0:40, 80:160])
     with pytest.raises(ValueError, match="2 labels for 3 pictures"):
         contact_sheet(pics, labels=["a", "b"])
+
+
+def test_pass_configs_give_each_pass_its_steps():
+    from stages.geometry import GeometryConfig, pass_configs
+    from stages.numerics.sdf import SDF_PRESETS
+
+    sdf = SDF_PRESETS["cpu"]
+    first, second = pass_configs(GeometryConfig(sdf=sdf, first_pass_iterations=600))
+    assert (first.iterations, second.iterations) == (600, sdf.iterations)
+    assert first.importance_fraction == 0.0 and second.importance_fraction == GeometryConfig().second_pass_importance
+    # 0: the first pass runs the whole schedule; a warm-up longer than a short first pass is capped to it
+    first, _ = pass_configs(GeometryConfig(sdf=sdf, first_pass_iterations=0))
+    assert first == sdf
+    first, _ = pass_configs(GeometryConfig(sdf=sdf, first_pass_iterations=20))
+    assert (first.iterations, first.warmup_iterations) == (20, 20)
+    # continuation: the second pass starts at the final sharpness with every level on
+    _, second = pass_configs(GeometryConfig(sdf=sdf, deocclude_iterations=300))
+    assert (second.iterations, second.inv_s_start, second.coarse_to_fine) == (300, sdf.inv_s_end, 0.0)
+    first, second = pass_configs(GeometryConfig(sdf=sdf, deocclude=False))
+    assert first == sdf and second is None
+    for bad in ({"first_pass_iterations": -1}, {"first_pass_mesh_resolution": -2}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            GeometryConfig(**bad)
