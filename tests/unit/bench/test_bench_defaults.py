@@ -108,3 +108,22 @@ def test_benches_declare_no_setting_of_a_stage_and_import_no_private_helper(path
                and (node.module or "").split(".")[0] in PROJECT_PACKAGES
                for alias in node.names if alias.name.startswith("_")]
     assert not private, f"{path.name} imports private helpers {private}"
+
+
+def test_sdf_schedule_default_row_is_the_stage_default():
+    from stages.geometry import GeometryConfig
+
+    bench = load_bench("bench_sdf_schedule")
+    base = GeometryConfig()
+    for quick in (False, True):
+        rows = bench.schedules(quick)
+        assert rows[0] == (base.first_pass_iterations, base.sdf.iterations)
+        assert len(set(rows)) == len(rows)
+        assert bench.schedule_config(*rows[0]) == base
+    # a schedule changes only the two step counts
+    other = bench.schedule_config(1800, 1800)
+    assert other.sdf == dataclasses.replace(base.sdf, iterations=1800)
+    assert dataclasses.replace(other, sdf=base.sdf, first_pass_iterations=base.first_pass_iterations) == base
+    # the Pareto front: b is beaten by a on both axes; c is slower but better
+    rows = [{"cpu_s": 10, "chamfer_mm": 1.5}, {"cpu_s": 12, "chamfer_mm": 1.6}, {"cpu_s": 20, "chamfer_mm": 1.3}]
+    assert bench.pareto(rows) == [True, False, True]
