@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 # (first pass steps, second pass steps); the stage default is inserted first.
-SCHEDULES = ((1800, 1800), (1200, 1200), (400, 1200), (600, 800))
+SCHEDULES = ((1800, 1800), (600, 1500), (600, 1200), (400, 1200))
 QUICK_SCHEDULES = ((300, 400),)
 
 

@@ -225,7 +225,7 @@ SDF_PRESETS: dict[str, SDFConfig] = {
     "cpu": SDFConfig(
         encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
                                 base_resolution=16, finest_resolution=512),
-        hidden_width=64, hidden_layers=2, iterations=1200, rays_per_batch=512, samples_per_ray=8,
+        hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
         hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5,
         grazing_cos_min=0.05, outlier_fraction=0.02,
     ),
