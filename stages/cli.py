@@ -222,7 +222,25 @@ def cmd_rerun(args: argparse.Namespace) -> int:
                             actions=args.actions, no_evaluate=args.no_evaluate)
     if args.config is None and (release / "config.yaml").exists():
         ns.config = str(release / "config.yaml")
-    return cmd_run(ns)
+    if args.failed or args.where or args.subject or args.session:
+        from manifests.select import parse_condition, select_actions
+
+        try:
+            where = parse_condition(args.where) if args.where else None
+        except ValueError as exc:
+            raise InputError(release / "manifests" / "metrics.parquet", str(exc)) from None
+        selection = select_actions(release, failed=args.failed, where=where, subject=args.subject,
+                                   session=args.session)
+        if args.actions:
+            wanted = set(args.actions.split(","))
+            selection.actions = [a for a in selection.actions if a in wanted]
+        for action_id in selection.actions:
+            print(f"{'select':<12} {action_id:<8} {selection.reasons[action_id]}")
+        if not selection.actions:
+            print("rerun: no action matches; nothing to redo")
+            return 0
+        ns.actions = ",".join(selection.actions)
+    return cmd_run(ns, plan_only=args.dry_run)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -364,6 +382,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="'local', 'sync' or a dask scheduler address (default: the config's)")
     _add_stage_choice(p, stage_names)
     p.add_argument("--actions", help="comma-separated action ids (default: all)")
+    p.add_argument("--failed", action="store_true", help="the actions that failed in the last run (manifests/actions.parquet)")
+    p.add_argument("--where", metavar="'METRIC OP NUMBER'",
+                   help="actions whose metric (manifests/metrics.parquet: the action's value, else the mean over its "
+                        "cameras) meets the condition, e.g. \"heldout_albedo_psnr_db < 30\"; OP: < <= > >= == !=")
+    p.add_argument("--subject", help="only this subject's actions (exact, or a prefix ending in '/')")
+    p.add_argument("--session", help="only this session's actions")
+    p.add_argument("--dry-run", action="store_true", help="print what would be redone and why; run nothing")
     p.add_argument("--no-evaluate", action="store_true", help="skip the accuracy summary against ground truth")
     p.set_defaults(fn=cmd_rerun)
 
