@@ -168,12 +168,36 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
         responses.append(response)
         say(f"session {session.session_id}: rig with {len(session.cameras)} cameras, {session.leds.count} LEDs")
 
-    actions = []
-    for session, response, block in zip(sessions, responses, blocks):
-        for action_index in block:
-            action_id = f"A{int(action_index):04d}"
-            label = render_action(out, config, base, session, int(action_index), action_id, say, response)
-            actions.append({"action_id": action_id, "session_id": session.session_id, "subject": label})
+    jobs = [(session_pos, int(action_index)) for session_pos, block in enumerate(blocks) for action_index in block]
+    workers = action_workers(len(jobs))
+    if workers > 1:
+        # Forked children see the subject, sessions and responses without pickling them; each action's random
+        # numbers come from its own seeded generators, so the files do not depend on which process wrote them.
+        # Their progress messages come back through a queue and reach `say` in this process.
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, wait
+
+        global _FORKED
+        context = multiprocessing.get_context("fork")
+        messages = context.SimpleQueue()
+        _FORKED = (out, config, base, sessions, responses, messages.put)
+        try:
+            with ProcessPoolExecutor(workers, mp_context=context) as pool:
+                futures = [pool.submit(_render_forked, job) for job in jobs]
+                pending = set(futures)
+                while pending:
+                    _, pending = wait(pending, timeout=0.2)
+                    while not messages.empty():
+                        say(messages.get())
+                while not messages.empty():
+                    say(messages.get())
+                labels = [f.result() for f in futures]
+        finally:
+            _FORKED = None
+    else:
+        labels = [render_action(out, config, base, sessions[s], a, f"A{a:04d}", say, responses[s]) for s, a in jobs]
+    actions = [{"action_id": f"A{a:04d}", "session_id": sessions[s].session_id, "subject": label}
+               for (s, a), label in zip(jobs, labels)]
 
     capture = {"format": CAPTURE_FORMAT,
                "sessions": [{"session_id": s.session_id, "rig": f"sessions/{s.session_id}/rig.json"}
@@ -187,6 +211,31 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
     files.write_json(out / "capture.json", capture)
     say(f"capture written to {out} in {time.perf_counter() - started:.1f} s")
     return out
+
+
+_FORKED: tuple | None = None  # what the forked action renderers share (set only while a pool runs)
+
+
+def action_workers(n_actions: int) -> int:
+    """Processes that render actions side by side: ``ULTRASTAGE_SIMULATE_WORKERS`` when set, else the CPUs this
+    process may use (at most 8), never more than the actions; 1 where ``fork`` is unavailable."""
+    import multiprocessing
+    import os
+
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return 1
+    env = os.environ.get("ULTRASTAGE_SIMULATE_WORKERS")
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    wanted = int(env) if env else min(cpus, 8)
+    return max(1, min(wanted, n_actions))
+
+
+def _render_forked(job: tuple[int, int]) -> str:
+    out, config, base, sessions, responses, say = _FORKED
+    session_pos, action_index = job
+    with limit_blas_threads(1):
+        return render_action(out, config, base, sessions[session_pos], action_index, f"A{action_index:04d}", say,
+                             responses[session_pos])
 
 
 def clear_previous_capture(out: Path) -> None:

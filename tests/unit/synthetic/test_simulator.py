@@ -396,3 +396,26 @@ def test_makehuman_capture(tmp_path):
     present = np.unique(roughness[roughness > 0]).astype(np.float64)
     for expected in (0.25, 0.45, 0.7, 0.8):  # shiny leather, skin, trousers, shirt
         assert np.isclose(present, expected, atol=2e-3).any(), (expected, present)
+
+
+def test_actions_rendered_side_by_side_write_the_same_files(tmp_path, monkeypatch):
+    """Actions render in forked processes when there are several: byte-identical files, progress kept."""
+    import hashlib
+
+    from synthetic.simulate import action_workers
+
+    def digests(root: Path) -> dict[str, str]:
+        return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(root.rglob("*")) if p.is_file()}
+
+    config = SimConfig(mesh="procedural", actions=3, sessions=2, **TINY)
+    runs = {}
+    for workers in ("1", "2"):
+        monkeypatch.setenv("ULTRASTAGE_SIMULATE_WORKERS", workers)
+        assert action_workers(3) == int(workers)
+        messages: list[str] = []
+        runs[workers] = digests(simulate(tmp_path / f"cap{workers}", config, progress=messages.append))
+        assert any(m.startswith("A0002: done") for m in messages), messages
+    assert runs["1"] == runs["2"] and len(runs["1"]) > 10
+    monkeypatch.setenv("ULTRASTAGE_SIMULATE_WORKERS", "8")
+    assert action_workers(3) == 3 and action_workers(1) == 1
