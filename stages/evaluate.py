@@ -171,6 +171,15 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
     rel = open_release(release)
     actions = rel.actions
     ok_ids = [a for a, s in zip(actions["action_id"], actions["status"]) if s == "ok"]
+    # The relit views and the relighting set (the simulator's renders: the larger part of the time) are
+    # measured in a process of their own while this one measures the rest.
+    relit_pool, relit_future = None, None
+    if evaluate_workers() > 1 and ok_ids:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        relit_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        relit_future = relit_pool.submit(_relit_parts, Path(release), Path(truth_dir), ok_ids, run_id, relit_cache)
     pools = {k: _ErrorPool() for k in ("valid", "all", "valid_unoccluded", "valid_occluded",
                                        "all_unoccluded", "all_occluded")}
     diffuse_pool = _ErrorPool()
@@ -255,13 +264,21 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
     cameras = _camera_overall(rel, truth_dir, ok_ids)
     aggregation |= dict.fromkeys(cameras, "mean_over_sessions")
     overall |= cameras
-    relighters: dict[tuple[str, int], Any] = {}  # the simulator's subjects, traced once per action and light count
-    for part in (_mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
-                 _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id),
-                 _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
-                 _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters),
-                 _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache,
-                                     relighters)):
+    parts = [_mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
+             _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id),
+             _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)]
+    if relit_future is not None:
+        try:
+            relit_parts = relit_future.result()
+        finally:
+            relit_pool.shutdown()
+    else:
+        relit_parts = _relit_parts(Path(release), Path(truth_dir), ok_ids, run_id, relit_cache)
+    relit, relightset, relit_per_action, relit_rows = relit_parts
+    for action_id, values in relit_per_action.items():
+        per_action.setdefault(action_id, {}).update(values)
+    rows.extend(relit_rows)
+    for part in parts + [relit, relightset]:
         aggregation |= dict.fromkeys(part, "mean_over_actions")
         overall |= part
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
@@ -269,6 +286,35 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
     write_table(release, "metrics_summary", summary_rows(overall, aggregation, len(ok_ids), run_id))
     write_release_page(release)
     return EvaluationSummary(overall, per_action, rows)
+
+
+def evaluate_workers() -> int:
+    """Processes :func:`evaluate_release` uses: ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in this
+    process), else 2 where this process may use two CPUs or more, else 1."""
+    import os
+
+    env = os.environ.get("ULTRASTAGE_EVALUATE_WORKERS")
+    if env:
+        return max(1, int(env))
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 2 if cpus >= 2 else 1
+
+
+def _relit_parts(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str, relit_cache: Path | None
+                 ) -> tuple[dict[str, float], dict[str, float], dict[str, dict[str, float]], list[dict[str, Any]]]:
+    """:func:`_relit_overall` and :func:`_relightset_overall` of a release (they share the simulator's
+    relighters, traced once per action and light count): ``(relit, relightset, per_action, rows)``. Takes and
+    returns plain values, so it runs in another process as well as in this one."""
+    from manifests import open_release
+
+    rel = open_release(release)
+    per_action: dict[str, dict[str, float]] = {}
+    rows: list[dict[str, Any]] = []
+    relighters: dict[tuple[str, int], Any] = {}
+    relit = _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters)
+    relightset = _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache,
+                                     relighters)
+    return relit, relightset, per_action, rows
 
 
 MESH_METRICS = ("chamfer_mm", "chamfer_pred_to_gt_mm", "chamfer_gt_to_pred_mm", "normal_consistency",

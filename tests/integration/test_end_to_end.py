@@ -410,6 +410,22 @@ def evaluated(first_run, capture):
     return evaluate_release(out / "release", capture / "ground_truth")
 
 
+def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
+    """The relit parts measured in a process of their own give the numbers of an all-in-one-process run."""
+    from pipeline.runner import new_run_id
+    from stages.evaluate import evaluate_release, evaluate_workers
+
+    out, _ = first_run
+    run_id = new_run_id()
+    monkeypatch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "2")
+    split = evaluate_release(out / "release", capture / "ground_truth", run_id=run_id)
+    monkeypatch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "1")
+    assert evaluate_workers() == 1
+    serial = evaluate_release(out / "release", capture / "ground_truth", run_id=run_id)
+    assert "relit_psnr_db" in split.overall and split.overall == serial.overall
+    assert split.per_action == serial.per_action
+
+
 def test_accuracy_against_ground_truth(evaluated):
     overall = evaluated.overall
     # Measured at this tiny size (96 px wide, where demosaicing across a few pixels per limb dominates):
