@@ -293,7 +293,8 @@ class TruthRelighter:
             for start in range(0, len(normals), chunk):
                 stop = min(start + chunk, len(normals))
                 cos = np.maximum(normals[start:stop] @ self.directions.T, 0.0)
-                per_vertex[start:stop, 0:3] = (cos * (visible[start:stop] > 0)) @ irradiance
+                cos *= visible[start:stop] > 0
+                per_vertex[start:stop, 0:3] = cos @ irradiance
         lighting = dataclasses.replace(self._lighting, irradiance=per_vertex,
                                        clusters=(shading.cluster_leds(self.directions, table, None),))
         self._cache[key] = lighting

@@ -41,6 +41,7 @@ EXACT_LEVELS = ((0.0, None),)  # (min GGX alpha, LED cluster count; None = every
 CLUSTER_LEVELS = ((0.35, 64), (0.12, 256), (0.0, None))
 CHUNK_ELEMENTS = 1 << 17  # pixels x LED clusters per specular chunk: arrays stay cache-resident (2-3x faster)
 INVALID_ID = np.iinfo(np.uint32).max
+_XYZ = np.dtype((np.void, 12))  # three float32 as one item
 
 
 def raycasting_scene(vertices: np.ndarray, triangles: np.ndarray) -> o3d.t.geometry.RaycastingScene:
@@ -66,12 +67,14 @@ def vertex_visibility(scene: o3d.t.geometry.RaycastingScene, vertices: np.ndarra
         normal = normals[start:stop].astype(np.float32)
         origins = vertices[start:stop].astype(np.float32) + offset_m * normal
         above = dirs32 @ normal.T > 0.0  # (L, chunk): LED-major ray order, coherent rays trace faster
-        li, vi = np.nonzero(above)
+        vi = np.nonzero(above)[1]
         if len(vi) == 0:
             continue
+        # rays (origin, direction) in LED-major order, each 12-byte half copied as one item
         rays = np.empty((len(vi), 6), np.float32)
-        rays[:, :3] = origins[vi]
-        rays[:, 3:] = dirs32[li]
+        halves = rays.view(_XYZ)
+        halves[:, 0] = np.ascontiguousarray(origins).view(_XYZ)[:, 0].take(vi)
+        halves[:, 1] = np.repeat(dirs32.view(_XYZ)[:, 0], np.count_nonzero(above, axis=1))
         occluded = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
         seen = np.zeros_like(above)
         seen[above] = ~occluded
@@ -174,9 +177,19 @@ def ggx_weights(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, a
 
     normals, view (towards the camera): (N, 3) unit; light_dirs: (C, 3) unit; alpha (GGX alpha =
     roughness**2), f0: (N,). Vis = G2 / (4 n.l n.v) with the height-correlated Smith G2; Schlick F.
+    With float32 directions (the renderer's case) the (N, C) terms are computed in a few reused buffers
+    (:func:`_ggx_weights_float32`: the same float32 operations in the same order, so the same bits).
     """
     a2 = (alpha * alpha).astype(np.float32)[:, None]
     f0 = f0.astype(np.float32)[:, None]
+    if normals.dtype == view.dtype == light_dirs.dtype == np.float32:
+        return _ggx_weights_float32(normals, view, light_dirs, a2, f0)
+    return _ggx_weights_formula(normals, view, light_dirs, a2, f0)
+
+
+def _ggx_weights_formula(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, a2: np.ndarray,
+                         f0: np.ndarray) -> np.ndarray:
+    """:func:`ggx_weights` written as the formula (a2, f0: (N, 1) float32)."""
     nl = np.maximum(normals @ light_dirs.T, 0.0)
     vl = view @ light_dirs.T
     nv = np.maximum(np.sum(normals * view, axis=1, keepdims=True), 1e-3)
@@ -192,6 +205,48 @@ def ggx_weights(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, a
     lambda_l = np.sqrt(nl * nl * (1.0 - a2) + a2)
     vis = 0.5 / (nl * lambda_v + nv * lambda_l)
     return (fresnel * distribution * vis * nl).astype(np.float32)
+
+
+def _ggx_weights_float32(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, a2: np.ndarray,
+                         f0: np.ndarray) -> np.ndarray:
+    """:func:`ggx_weights` of float32 inputs (a2, f0: (N, 1) float32), each (N, C) term written in place."""
+    nl = normals @ light_dirs.T
+    np.maximum(nl, 0.0, out=nl)
+    one_plus = view @ light_dirs.T
+    one_plus += 1.0
+    np.maximum(one_plus, 1e-6, out=one_plus)
+    nv = np.maximum(np.sum(normals * view, axis=1, keepdims=True), 1e-3)
+    d = nl + nv  # nh2 = min((nl + nv)^2 / (2 (1 + v.l)), 1), then d = nh2 (a2 - 1) + 1
+    np.square(d, out=d)
+    tmp = one_plus * 2.0
+    d /= tmp
+    np.minimum(d, 1.0, out=d)
+    d *= a2 - 1.0
+    d += 1.0
+    np.multiply(d, np.pi, out=tmp)  # distribution = a2 / (pi d d)
+    tmp *= d
+    distribution = np.divide(a2, tmp, out=tmp)
+    one_plus *= 0.5  # f = 1 - sqrt((1 + v.l) / 2); fresnel = f0 + (1 - f0) f^5
+    f = np.sqrt(one_plus, out=one_plus)
+    np.subtract(1.0, f, out=f)
+    fresnel = np.multiply(f, f, out=d)
+    fresnel *= fresnel
+    fresnel *= f
+    fresnel *= 1.0 - f0
+    fresnel += f0
+    lambda_v = np.sqrt(nv * nv * (1.0 - a2) + a2)
+    lambda_l = np.multiply(nl, nl, out=f)  # vis = 0.5 / (nl lambda_v + nv lambda_l)
+    lambda_l *= 1.0 - a2
+    lambda_l += a2
+    np.sqrt(lambda_l, out=lambda_l)
+    lambda_l *= nv
+    denominator = nl * lambda_v
+    denominator += lambda_l
+    fresnel *= distribution
+    np.divide(0.5, denominator, out=denominator)
+    fresnel *= denominator
+    fresnel *= nl
+    return fresnel
 
 
 def pixel_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -442,5 +497,6 @@ def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarr
             vis = cluster_vis[t[:, 0]] * b[:, 0:1]
             vis += cluster_vis[t[:, 1]] * b[:, 1:2]
             vis += cluster_vis[t[:, 2]] * b[:, 2:3]
-            out[sel] = (weights * vis) @ clusters.irradiance
+            weights *= vis
+            out[sel] = weights @ clusters.irradiance
     return out

@@ -419,3 +419,31 @@ def test_actions_rendered_side_by_side_write_the_same_files(tmp_path, monkeypatc
     assert runs["1"] == runs["2"] and len(runs["1"]) > 10
     monkeypatch.setenv("ULTRASTAGE_SIMULATE_WORKERS", "8")
     assert action_workers(3) == 3 and action_workers(1) == 1
+
+
+def test_ggx_weights_in_place_are_the_formula_bit_for_bit():
+    """The float32 path of ggx_weights (reused buffers) gives the formula's bits, grazing and back-facing
+    views included, so captures and relit references do not change with it."""
+    from synthetic import geometry
+    from synthetic.shading import _ggx_weights_float32, _ggx_weights_formula, ggx_weights
+
+    rng = np.random.default_rng(7)
+    for count in (64, 2048):
+        normals = geometry.normalize(rng.normal(size=(300, 3))).astype(np.float32)
+        views = geometry.normalize(rng.normal(size=(300, 3)) + 1.5 * normals).astype(np.float32)
+        lights = geometry.fibonacci_sphere(count).astype(np.float32)
+        views[:4] = -normals[:4]
+        normals[4:8], views[4:8] = lights[:4], -lights[:4]
+        a2 = (rng.uniform(0.05, 0.9, (300, 1)) ** 4).astype(np.float32)
+        f0 = rng.uniform(0.02, 0.05, (300, 1)).astype(np.float32)
+        fast = _ggx_weights_float32(normals, views, lights, a2, f0)
+        formula = _ggx_weights_formula(normals, views, lights, a2, f0)
+        assert fast.dtype == formula.dtype == np.float32
+        assert np.array_equal(fast.view(np.uint32), formula.view(np.uint32))
+        alpha = np.sqrt(a2[:, 0])
+        squared = (alpha * alpha)[:, None]
+        assert np.array_equal(ggx_weights(normals, views, lights, alpha, f0[:, 0]).view(np.uint32),
+                              _ggx_weights_formula(normals, views, lights, squared, f0).view(np.uint32))
+        wide = normals.astype(np.float64)  # other dtypes take the formula
+        assert np.array_equal(ggx_weights(wide, views, lights, alpha, f0[:, 0]),
+                              _ggx_weights_formula(wide, views, lights, squared, f0))
