@@ -160,7 +160,18 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
     release-wide numbers replace the metrics_summary table, and the release's page is written again with
     them. ``run_id``: the run the numbers belong to (default: a new id of this evaluation).
     ``relit_cache``: a folder that keeps the simulator's renders the relit views are compared with
-    (:class:`RelitTruthCache`); None renders them every time."""
+    (:class:`RelitTruthCache`); None renders them every time.
+
+    Runs with one BLAS thread in this process and in its workers (:func:`evaluate_workers`): the products are
+    small, and idle BLAS threads spinning beside the other processes cost CPU time the measuring needs."""
+    from synthetic.threads import limit_blas_threads
+
+    with limit_blas_threads(1):
+        return _evaluate_release(release, truth_dir, run_id, relit_cache)
+
+
+def _evaluate_release(release: Path, truth_dir: Path, run_id: str | None, relit_cache: Path | None
+                      ) -> EvaluationSummary:
     from manifests import open_release, write_table
     from manifests.page import write_release_page
     from manifests.writer import replace_rows
@@ -172,14 +183,16 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
     actions = rel.actions
     ok_ids = [a for a, s in zip(actions["action_id"], actions["status"]) if s == "ok"]
     # The relit views and the relighting set (the simulator's renders: the larger part of the time) are
-    # measured in a process of their own while this one measures the rest.
-    relit_pool, relit_future = None, None
-    if evaluate_workers() > 1 and ok_ids:
+    # measured action by action in worker processes while this one measures the rest.
+    relit_pool, relit_futures = None, None
+    workers = min(evaluate_workers(), len(ok_ids))
+    if workers > 1:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        relit_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        relit_future = relit_pool.submit(_relit_parts, Path(release), Path(truth_dir), ok_ids, run_id, relit_cache)
+        relit_pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+        relit_futures = [relit_pool.submit(_relit_action, Path(release), Path(truth_dir), action_id, run_id,
+                                           relit_cache) for action_id in ok_ids]
     pools = {k: _ErrorPool() for k in ("valid", "all", "valid_unoccluded", "valid_occluded",
                                        "all_unoccluded", "all_occluded")}
     diffuse_pool = _ErrorPool()
@@ -264,17 +277,19 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
     cameras = _camera_overall(rel, truth_dir, ok_ids)
     aggregation |= dict.fromkeys(cameras, "mean_over_sessions")
     overall |= cameras
+    textured: dict[str, dict] = {}  # the held-out protocol's textured meshes, for the materials
     parts = [_mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
-             _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id),
-             _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)]
-    if relit_future is not None:
+             _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, textured),
+             _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, textured)]
+    if relit_futures is not None:
         try:
-            relit_parts = relit_future.result()
+            relit_actions = [future.result() for future in relit_futures]
         finally:
-            relit_pool.shutdown()
+            relit_pool.shutdown(cancel_futures=True)
     else:
-        relit_parts = _relit_parts(Path(release), Path(truth_dir), ok_ids, run_id, relit_cache)
-    relit, relightset, relit_per_action, relit_rows = relit_parts
+        relit_actions = [_relit_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
+                         for action_id in ok_ids]
+    relit, relightset, relit_per_action, relit_rows = _relit_parts(ok_ids, relit_actions)
     for action_id, values in relit_per_action.items():
         per_action.setdefault(action_id, {}).update(values)
     rows.extend(relit_rows)
@@ -289,8 +304,9 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
 
 
 def evaluate_workers() -> int:
-    """Processes :func:`evaluate_release` uses: ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in this
-    process), else 2 where this process may use two CPUs or more, else 1."""
+    """Worker processes :func:`evaluate_release` measures the relit views and the relighting set in, one
+    action at a time: ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in this process), else 2 where this
+    process may use two CPUs or more, else 1. Never more than the actions."""
     import os
 
     env = os.environ.get("ULTRASTAGE_EVALUATE_WORKERS")
@@ -300,20 +316,49 @@ def evaluate_workers() -> int:
     return 2 if cpus >= 2 else 1
 
 
-def _relit_parts(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str, relit_cache: Path | None
-                 ) -> tuple[dict[str, float], dict[str, float], dict[str, dict[str, float]], list[dict[str, Any]]]:
-    """:func:`_relit_overall` and :func:`_relightset_overall` of a release (they share the simulator's
-    relighters, traced once per action and light count): ``(relit, relightset, per_action, rows)``. Takes and
-    returns plain values, so it runs in another process as well as in this one."""
+RELIGHTSET_METRICS = ("relightset_image_psnr_db", "relightset_normal_mean_deg", "relightset_albedo_psnr_db")
+
+
+def _relit_action(release: Path, truth_dir: Path, action_id: str, run_id: str, relit_cache: Path | None
+                  ) -> tuple[dict[str, float], list[dict[str, Any]], list[dict[str, Any]]]:
+    """:func:`_relit_overall` and :func:`_relightset_overall` of one action (they share the simulator's
+    relighter, traced once per light count): ``(per-action values, relit rows, relighting-set rows)``. Takes
+    and returns plain values, so it runs in a worker process as well as in this one."""
     from manifests import open_release
+    from synthetic.threads import limit_blas_threads
 
     rel = open_release(release)
     per_action: dict[str, dict[str, float]] = {}
-    rows: list[dict[str, Any]] = []
+    relit_rows: list[dict[str, Any]] = []
+    set_rows: list[dict[str, Any]] = []
     relighters: dict[tuple[str, int], Any] = {}
-    relit = _relit_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache, relighters)
-    relightset = _relightset_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, relit_cache,
-                                     relighters)
+    with limit_blas_threads(1):  # as in evaluate_release, also when this runs in a worker process
+        _relit_overall(rel, truth_dir, [action_id], per_action, relit_rows, run_id, relit_cache, relighters)
+        _relightset_overall(release, rel, truth_dir, [action_id], per_action, set_rows, run_id, relit_cache,
+                            relighters)
+    return per_action.get(action_id, {}), relit_rows, set_rows
+
+
+def _relit_parts(ok_ids: list[str], actions: list[tuple[dict[str, float], list[dict[str, Any]], list[dict[str, Any]]]]
+                 ) -> tuple[dict[str, float], dict[str, float], dict[str, dict[str, float]], list[dict[str, Any]]]:
+    """The per-action results of :func:`_relit_action` (in ``ok_ids`` order) put together as
+    :func:`_relit_overall` and :func:`_relightset_overall` give them over all actions: ``(relit, relightset,
+    per_action, rows)``, the means over actions taken in the same order and the rows in the same order (the
+    relit views action by action, then the relighting set metric by metric)."""
+    per_action = {action_id: values for action_id, (values, _, _) in zip(ok_ids, actions) if values}
+    relit: dict[str, float] = {}
+    relightset: dict[str, float] = {}
+    for metric in ("relit_psnr_db", "relit_normal_mean_deg"):
+        values = [v[metric] for v in per_action.values() if metric in v]
+        if values:
+            relit[metric] = float(np.mean(values))
+    for metric in RELIGHTSET_METRICS:
+        values = [v[metric] for v in per_action.values() if metric in v]
+        if values:
+            relightset[metric] = float(np.mean(values))
+    rows = [row for _, relit_rows, _ in actions for row in relit_rows]
+    rows += [row for metric in RELIGHTSET_METRICS for _, _, set_rows in actions for row in set_rows
+             if row["metric"] == metric]
     return relit, relightset, per_action, rows
 
 
@@ -352,10 +397,13 @@ HELDOUT_METRICS = ("heldout_albedo_psnr_db", "heldout_albedo_ssim", "heldout_alb
 
 
 def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str],
-                     per_action: dict[str, dict[str, float]], rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
+                     per_action: dict[str, dict[str, float]], rows: list[dict[str, Any]], run_id: str,
+                     textured: dict[str, dict] | None = None) -> dict[str, float]:
     """The paper's table-1 protocol on every action with a mesh: two held-out cameras' albedo and normal
     maps synthesised from the other cameras, against the held-out photometric maps and (``_truth``)
-    against the simulator's maps (:mod:`stages.heldout`)."""
+    against the simulator's maps (:mod:`stages.heldout`). ``textured``: receives action id -> the
+    ray-casting scene and atlas of the textured mesh where the protocol loaded it (the ``scene_cache`` of
+    :func:`texture_in_camera`)."""
     from stages.heldout import ActionGBuffers, heldout_metrics
 
     values: dict[str, list[float]] = {}
@@ -365,6 +413,9 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
         truth = truth_dir if (truth_dir / action_id).is_dir() else None
         data = ActionGBuffers(release, action_id)
         metrics = heldout_metrics(release, action_id, truth_dir=truth, data=data)
+        if textured is not None and "atlas" in data._shared:
+            scene, atlas = data._shared["atlas"][:2]
+            textured[action_id] = {"scene": scene, "atlas": atlas}
         # 1 where the white-light albedo was predicted per view (stages.heldout), 0 where blended as it is
         values.setdefault("heldout_albedo_view_dependent", []).append(
             float(metrics.get("heldout_albedo_model") == "view_dependent"))
@@ -394,9 +445,11 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
 
 
 def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.ndarray, cam_from_world: np.ndarray,
-                      height: int, width: int, scene_cache: dict | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                      height: int, width: int, scene_cache: dict | None = None,
+                      where: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Textures of the atlas seen by a camera through the textured mesh: name -> (H, W[, C]) and the hit
-    mask (H, W)."""
+    mask (H, W). ``where``: (H, W) bool, the only pixels the textures are looked up at (0 elsewhere); None:
+    every pixel."""
     from stages.materials import load_atlas_mesh
     from stages.numerics.bake import sample_texture
     from stages.numerics.raycast import mesh_scene, render_uvs
@@ -407,17 +460,26 @@ def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.nda
         cache.update(scene=mesh_scene(vertices, faces), atlas=atlas)
     atlas = cache["atlas"]
     uv, hit = render_uvs(cache["scene"], atlas.faces, atlas.uvs, K, cam_from_world, height, width)
-    out = {name: sample_texture(tex, uv.reshape(-1, 2)).reshape((height, width) + tex.shape[2:])
-           for name, tex in textures.items()}
+    if where is None:
+        out = {name: sample_texture(tex, uv.reshape(-1, 2)).reshape((height, width) + tex.shape[2:])
+               for name, tex in textures.items()}
+        return out, hit
+    pixels = np.asarray(where, bool)
+    out = {}
+    for name, tex in textures.items():
+        out[name] = np.zeros((height, width) + tex.shape[2:], np.float32)
+        out[name][pixels] = sample_texture(tex, uv[pixels])
     return out, hit
 
 
 def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
-                       rows: list[dict[str, Any]], run_id: str) -> dict[str, float]:
+                       rows: list[dict[str, Any]], run_id: str, textured: dict[str, dict] | None = None
+                       ) -> dict[str, float]:
     """Roughness and albedo textures against the simulator's maps, seen through the textured mesh from every
     true camera (pixels where the truth has the subject and the mesh is hit): roughness mean absolute error
     and bias, and the albedo PSNR of the baked (white-light) texture, the de-occluded one and the intrinsic
-    one (specular share and occlusion out)."""
+    one (specular share and occlusion out). ``textured``: action id -> the textured mesh's ray-casting scene
+    and atlas where already loaded (:func:`_heldout_overall`)."""
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
 
@@ -432,7 +494,7 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
             if f"texture_{name}" in view.kinds:
                 textures[name] = view.texture(name)[..., :3]
         abs_err, signed, sq = [], [], {k: [0.0, 0] for k in textures if k.startswith("albedo")}
-        cache: dict = {}
+        cache: dict = dict((textured or {}).get(action_id, {}))  # the textured mesh the held-out protocol loaded
         for cam_id, cam in sorted(cameras.items()):
             rough_path = truth_dir / action_id / "roughness" / f"{cam_id}.exr"
             if not rough_path.exists():
@@ -444,7 +506,7 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
             true_albedo = read_exr(truth_dir / action_id / "albedo" / f"{cam_id}.exr")[..., :3]
             seen, hit = texture_in_camera(view.path("mesh_textured"), textures, np.asarray(cam["K"]),
                                           np.asarray(cam["cam_from_world"])[:3], true_rough.shape[0],
-                                          true_rough.shape[1], cache)
+                                          true_rough.shape[1], cache, where=true_mask)
             both = hit & true_mask
             diff = seen["roughness"][both] - true_rough[both]
             abs_err.append(np.abs(diff))
@@ -686,8 +748,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             diff = np.clip(maps_["albedo"][both], 0, 1) - np.clip(np.asarray(true["albedo"])[both], 0, 1)
             action_scores["albedo"].append(_psnr_from_mse(float(np.mean(diff ** 2))))
     out: dict[str, float] = {}
-    names = {"image": "relightset_image_psnr_db", "normal": "relightset_normal_mean_deg",
-             "albedo": "relightset_albedo_psnr_db"}
+    names = dict(zip(("image", "normal", "albedo"), RELIGHTSET_METRICS))
     for kind, metric in names.items():
         values = []
         for action_id, action_scores in scores.items():

@@ -411,7 +411,8 @@ def evaluated(first_run, capture):
 
 
 def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
-    """The relit parts measured in a process of their own give the numbers of an all-in-one-process run."""
+    """The relit parts measured action by action in worker processes give the numbers and the metrics rows
+    (in the same order) of an all-in-one-process run."""
     from pipeline.runner import new_run_id
     from stages.evaluate import evaluate_release, evaluate_workers
 
@@ -424,6 +425,7 @@ def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, ca
     serial = evaluate_release(out / "release", capture / "ground_truth", run_id=run_id)
     assert "relit_psnr_db" in split.overall and split.overall == serial.overall
     assert split.per_action == serial.per_action
+    assert split.rows == serial.rows and any(row["metric"] == "relightset_image_psnr_db" for row in split.rows)
 
 
 def test_accuracy_against_ground_truth(evaluated):
