@@ -149,33 +149,46 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
     say(f"subject {base.name}: {len(base.vertices)} vertices, {len(base.triangles)} triangles")
 
     blocks = np.array_split(np.arange(config.actions), config.sessions)
-    sessions, responses = [], []
+    sessions, responses, frames = [], [], []
     for index in range(config.sessions):
         session = make_session(config, base, index)
-        rig, response = session.rig_json(), None
+        rig, response, centre = session.rig_json(), None, None
         if calibration is not None:
             response = calib_frames.colour_responses(config.seed, index, len(session.cameras),
                                                      calibration.colour_error)
             centre = calib_frames.sphere_centre(base.y_range)
             rig["calibration_objects"] = calib_frames.calibration_objects(centre, calibration)
-            calib_frames.write_session_calibration(out, config.seed, config.noise, config.full_well_e,
-                                                   config.read_noise_dn, calibration, session, response, centre)
         files.write_json(out / "sessions" / session.session_id / "rig.json", rig)
         files.write_json(out / "ground_truth" / "cameras" / f"{session.session_id}.json", session.truth_cameras_json())
-        if config.background:
-            write_clean_plates(out, config, session, response)
         sessions.append(session)
         responses.append(response)
         say(f"session {session.session_id}: rig with {len(session.cameras)} cameras, {session.leds.count} LEDs")
+        if calibration is not None or config.background:
+            frames.append((session, response, centre))
+
+    def write_frames(say: Callable[[str], None]) -> None:
+        """Every session's calibration frames and clean plates (the actions do not read them)."""
+        for session, response, centre in frames:
+            begun = time.perf_counter()
+            if calibration is not None:
+                calib_frames.write_session_calibration(out, config.seed, config.noise, config.full_well_e,
+                                                       config.read_noise_dn, calibration, session, response,
+                                                       centre)
+            if config.background:
+                write_clean_plates(out, config, session, response)
+            written = [name for name, on in (("calibration frames", calibration is not None),
+                                             ("clean plates", config.background)) if on]
+            say(f"session {session.session_id}: {' and '.join(written)} in {time.perf_counter() - begun:.1f} s")
 
     jobs = [(session_pos, int(action_index)) for session_pos, block in enumerate(blocks) for action_index in block]
     workers = action_workers(len(jobs))
     if workers > 1:
         # Forked children see the subject, sessions and responses without pickling them; each action's random
         # numbers come from its own seeded generators, so the files do not depend on which process wrote them.
-        # Their progress messages come back through a queue and reach `say` in this process.
+        # Once they are forked, a thread of this process writes the sessions' frames beside them. Progress
+        # messages of both come back through a queue and reach `say` in this process's main thread, whole.
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, wait
+        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
 
         global _FORKED
         context = multiprocessing.get_context("fork")
@@ -183,18 +196,22 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
         _FORKED = (out, config, base, sessions, responses, messages.put)
         try:
             with ProcessPoolExecutor(workers, mp_context=context) as pool:
-                futures = [pool.submit(_render_forked, job) for job in jobs]
-                pending = set(futures)
-                while pending:
-                    _, pending = wait(pending, timeout=0.2)
-                    while not messages.empty():
-                        say(messages.get())
+                futures = [pool.submit(_render_forked, job) for job in jobs]  # forks every worker
+                with ThreadPoolExecutor(1) as side:
+                    written = side.submit(write_frames, messages.put)
+                    pending = set(futures) | {written}
+                    while pending:
+                        _, pending = wait(pending, timeout=0.2)
+                        while not messages.empty():
+                            say(messages.get())
                 while not messages.empty():
                     say(messages.get())
+                written.result()
                 labels = [f.result() for f in futures]
         finally:
             _FORKED = None
     else:
+        write_frames(say)
         labels = [render_action(out, config, base, sessions[s], a, f"A{a:04d}", say, responses[s]) for s, a in jobs]
     actions = [{"action_id": f"A{a:04d}", "session_id": sessions[s].session_id, "subject": label}
                for (s, a), label in zip(jobs, labels)]

@@ -399,9 +399,11 @@ def test_makehuman_capture(tmp_path):
 
 
 def test_actions_rendered_side_by_side_write_the_same_files(tmp_path, monkeypatch):
-    """Actions render in forked processes when there are several: byte-identical files, progress kept."""
+    """Actions render in forked processes when there are several, the sessions' calibration frames and clean
+    plates written beside them: byte-identical files, progress kept."""
     import hashlib
 
+    from synthetic.calibration import CalibrationConfig
     from synthetic.simulate import action_workers
 
     def digests(root: Path) -> dict[str, str]:
@@ -414,9 +416,13 @@ def test_actions_rendered_side_by_side_write_the_same_files(tmp_path, monkeypatc
         monkeypatch.setenv("ULTRASTAGE_SIMULATE_WORKERS", workers)
         assert action_workers(3) == int(workers)
         messages: list[str] = []
-        runs[workers] = digests(simulate(tmp_path / f"cap{workers}", config, progress=messages.append))
+        runs[workers] = digests(simulate(tmp_path / f"cap{workers}", config, progress=messages.append,
+                                         calibration=CalibrationConfig()))
         assert any(m.startswith("A0002: done") for m in messages), messages
+        for session in ("S000", "S001"):
+            assert any(m.startswith(f"session {session}: calibration frames and clean plates in") for m in messages)
     assert runs["1"] == runs["2"] and len(runs["1"]) > 10
+    assert any("/calibration/" in name for name in runs["1"]) and any("/background/" in name for name in runs["1"])
     monkeypatch.setenv("ULTRASTAGE_SIMULATE_WORKERS", "8")
     assert action_workers(3) == 3 and action_workers(1) == 1
 
