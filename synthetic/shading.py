@@ -67,15 +67,18 @@ def vertex_visibility(scene: o3d.t.geometry.RaycastingScene, vertices: np.ndarra
         normal = normals[start:stop].astype(np.float32)
         origins = vertices[start:stop].astype(np.float32) + offset_m * normal
         above = dirs32 @ normal.T > 0.0  # (L, chunk): LED-major ray order, coherent rays trace faster
-        vi = np.nonzero(above)[1]
-        if len(vi) == 0:
+        counts = np.count_nonzero(above, axis=1)
+        ends = np.cumsum(counts)
+        if not counts.any():
             continue
         # rays (origin, direction) in LED-major order, each 12-byte half copied as one item
-        rays = np.empty((len(vi), 6), np.float32)
-        halves = rays.view(_XYZ)
-        halves[:, 0] = np.ascontiguousarray(origins).view(_XYZ)[:, 0].take(vi)
-        halves[:, 1] = np.repeat(dirs32.view(_XYZ)[:, 0], np.count_nonzero(above, axis=1))
-        occluded = scene.test_occlusions(o3d.core.Tensor(rays)).numpy()
+        rays = np.empty((int(ends[-1]), 6), np.float32)
+        starts_of_led = ends - counts
+        origin_items, halves = np.ascontiguousarray(origins).view(_XYZ)[:, 0], rays.view(_XYZ)
+        for led in np.nonzero(counts)[0]:
+            halves[starts_of_led[led]:ends[led], 0] = origin_items[above[led]]
+        halves[:, 1] = np.repeat(dirs32.view(_XYZ)[:, 0], counts)
+        occluded = scene.test_occlusions(o3d.core.Tensor.from_numpy(rays)).numpy()
         seen = np.zeros_like(above)
         seen[above] = ~occluded
         visible[start:stop] = seen.T

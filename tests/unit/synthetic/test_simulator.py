@@ -453,3 +453,26 @@ def test_ggx_weights_in_place_are_the_formula_bit_for_bit():
         wide = normals.astype(np.float64)  # other dtypes take the formula
         assert np.array_equal(ggx_weights(wide, views, lights, alpha, f0[:, 0]),
                               _ggx_weights_formula(wide, views, lights, squared, f0))
+
+
+def test_vertex_visibility_traces_every_vertex_led_pair_above_the_horizon():
+    """vertex_visibility (rays built LED by LED, in chunks) against one shadow ray per (vertex, LED) pair."""
+    import open3d as o3d
+
+    from synthetic import geometry
+    from synthetic.shading import SHADOW_OFFSET_M, raycasting_scene, vertex_visibility
+    from synthetic.subject import load_base_subject
+
+    base = load_base_subject(None, 0)
+    vertices = base.vertices.astype(np.float32)
+    normals = geometry.normalize(np.random.default_rng(3).normal(size=vertices.shape)).astype(np.float32)
+    directions = geometry.fibonacci_sphere(48)
+    scene = raycasting_scene(vertices, base.triangles)
+    visible = vertex_visibility(scene, vertices, normals, directions, chunk=1000)
+    above = normals @ directions.astype(np.float32).T > 0.0
+    v, l = np.nonzero(above)
+    rays = np.concatenate([vertices[v] + SHADOW_OFFSET_M * normals[v], directions.astype(np.float32)[l]], axis=1)
+    expected = np.zeros_like(above)
+    expected[v, l] = ~scene.test_occlusions(o3d.core.Tensor(np.ascontiguousarray(rays, np.float32))).numpy()
+    assert visible.shape == above.shape and np.array_equal(visible, expected)
+    assert 0 < expected.sum() < above.sum()  # some rays blocked, some not
