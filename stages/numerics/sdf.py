@@ -50,6 +50,7 @@ import torch.nn.functional as F
 
 from pipeline.config import Documented, to_dict
 from stages.numerics import torch_threads
+from stages.numerics import hashgrid_kernel
 from stages.numerics.hull import HullGrid, check_camera, visual_hull
 
 __all__ = [
@@ -379,8 +380,16 @@ class HashEncoding(torch.nn.Module):
         self.level_mask.copy_(mask)
         self.active_count = max(1, int((mask > 0).sum()))
 
+    def _use_kernel(self, x01: torch.Tensor) -> bool:
+        """The fused CPU kernel (:mod:`stages.numerics.hashgrid_kernel`) computes this call: float32 CPU
+        tensors, points without a gradient, no double backward, torch on at most
+        :data:`hashgrid_kernel.MAX_TORCH_THREADS` threads (the kernel runs on one), and a compiled kernel."""
+        return (x01.device.type == "cpu" and self.table.dtype == torch.float32 and not x01.requires_grad
+                and not self.double_backward and torch.get_num_threads() <= hashgrid_kernel.MAX_TORCH_THREADS
+                and hashgrid_kernel.kernel_available())
+
     def forward(self, x01: torch.Tensor, jacobian: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Encode points.
+        """Encode points (with the fused CPU kernel where :meth:`_use_kernel`, else torch operations).
 
         Args:
             x01: (N, 3) points in the unit cube (clamped into it).
@@ -389,6 +398,9 @@ class HashEncoding(torch.nn.Module):
         Returns:
             ``(features (N, L*F), jacobian (3, N, L*F) or None)``.
         """
+        if self._use_kernel(x01):
+            return hashgrid_kernel.encode(self.table, x01, self.res, self.offsets, self.n_dense, self.hash_mask,
+                                          self.level_mask, self.active_count, jacobian)
         L_all, Fd = self.config.levels, self.config.features_per_level
         L = self.active_count  # switched-off fine levels are not computed at all (coarse-to-fine is cheap)
         N = x01.shape[0]

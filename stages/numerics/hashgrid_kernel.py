@@ -1,0 +1,264 @@
+"""A fused CPU kernel of the multiresolution hash encoding: features, their spatial Jacobian and the table
+gradient of both, in one pass over the points each.
+
+:class:`stages.numerics.sdf.HashEncoding` computes the same with torch operations; on a CPU those allocate and
+walk about thirty (N, L, 8, F)-sized temporaries per step, which made the encoding more than half of an SDF
+training step. This module's C source is compiled once per machine with the system's C compiler into
+``$ULTRASTAGE_KERNEL_CACHE`` (default ``~/.cache/ultrastage/kernels``), loaded with :mod:`ctypes`, and wrapped
+in an autograd function. Where no C compiler is found (or ``ULTRASTAGE_HASHGRID_KERNEL=torch``), for CUDA
+tensors, and where torch runs on more than :data:`MAX_TORCH_THREADS` threads, the encoding keeps its torch
+path; :func:`kernel_available` says whether the kernel is there.
+
+The gradient flows to the table only: the encoded points are data (ray samples and random points), never
+parameters, and :func:`encode` refuses points that require a gradient.
+"""
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+_SOURCE = r"""
+#include <stdint.h>
+#include <math.h>
+
+/* Corner indices (x the slowest bit, as the torch path) and per-axis cell fractions of one point at one level. */
+static inline void corners(const float *x, float res, int dense, int64_t offset, uint32_t hash_mask,
+                           uint32_t idx[8], float frac[3]) {
+    int64_t cell[3];
+    for (int a = 0; a < 3; ++a) {
+        float u = x[a];
+        u = u < 0.f ? 0.f : (u > 1.f ? 1.f : u);
+        float p = u * res;
+        float c = floorf(p);
+        if (c > res - 1.f) c = res - 1.f;
+        frac[a] = p - c;
+        cell[a] = (int64_t)c;
+    }
+    if (dense) {
+        int64_t stride = (int64_t)res + 1;
+        for (int i = 0; i < 2; ++i)
+            for (int j = 0; j < 2; ++j)
+                for (int k = 0; k < 2; ++k)
+                    idx[i * 4 + j * 2 + k] = (uint32_t)(offset + cell[0] + i + (cell[1] + j) * stride
+                                                        + (cell[2] + k) * stride * stride);
+    } else {
+        for (int i = 0; i < 2; ++i)
+            for (int j = 0; j < 2; ++j)
+                for (int k = 0; k < 2; ++k) {
+                    uint32_t h = ((uint32_t)(cell[0] + i)) ^ ((uint32_t)(cell[1] + j) * 2654435761u)
+                                 ^ ((uint32_t)(cell[2] + k) * 805459861u);
+                    idx[i * 4 + j * 2 + k] = (uint32_t)offset + (h & hash_mask);
+                }
+    }
+}
+
+/* The 8 corners' trilinear weights w and their derivatives along x, y, z (times s = res * level weight). */
+static inline void weights(const float fr[3], float m, float s, float w[8], float dx[8], float dy[8], float dz[8]) {
+    const float wx[2] = {1.f - fr[0], fr[0]}, wy[2] = {1.f - fr[1], fr[1]}, wz[2] = {1.f - fr[2], fr[2]};
+    const float sg[2] = {-1.f, 1.f};
+    for (int i = 0; i < 2; ++i)
+        for (int j = 0; j < 2; ++j)
+            for (int k = 0; k < 2; ++k) {
+                const int c = i * 4 + j * 2 + k;
+                w[c] = wx[i] * wy[j] * wz[k] * m;
+                dx[c] = sg[i] * wy[j] * wz[k] * s;
+                dy[c] = wx[i] * sg[j] * wz[k] * s;
+                dz[c] = wx[i] * wy[j] * sg[k] * s;
+            }
+}
+
+/* enc: (N, L_all*F); jac: (3, N, L_all*F) or NULL. Levels >= L are left untouched (the caller zeroes them). */
+void hashgrid_forward(const float *table, int64_t F, const float *x, int64_t N, int64_t L, int64_t L_all,
+                      const float *res, const int64_t *offsets, int64_t n_dense, uint32_t hash_mask,
+                      const float *level_mask, float *enc, float *jac) {
+    const int64_t D = L_all * F;
+    for (int64_t n = 0; n < N; ++n) {
+        for (int64_t l = 0; l < L; ++l) {
+            uint32_t idx[8];
+            float fr[3], w[8], dx[8], dy[8], dz[8];
+            corners(x + 3 * n, res[l], l < n_dense, offsets[l], hash_mask, idx, fr);
+            weights(fr, level_mask[l], res[l] * level_mask[l], w, dx, dy, dz);
+            for (int64_t f = 0; f < F; ++f) {
+                float e = 0.f, gx = 0.f, gy = 0.f, gz = 0.f;
+                for (int c = 0; c < 8; ++c) {
+                    const float v = table[(int64_t)idx[c] * F + f];
+                    e += w[c] * v;
+                    gx += dx[c] * v;
+                    gy += dy[c] * v;
+                    gz += dz[c] * v;
+                }
+                const int64_t o = n * D + l * F + f;
+                enc[o] = e;
+                if (jac) {
+                    jac[o] = gx;
+                    jac[N * D + o] = gy;
+                    jac[2 * N * D + o] = gz;
+                }
+            }
+        }
+    }
+}
+
+/* grad_table (rows, F) += d loss / d table for d loss / d enc (N, L_all*F) and d loss / d jac (3, N, L_all*F)
+   (either may be NULL). */
+void hashgrid_backward(int64_t F, const float *x, int64_t N, int64_t L, int64_t L_all, const float *res,
+                       const int64_t *offsets, int64_t n_dense, uint32_t hash_mask, const float *level_mask,
+                       const float *grad_enc, const float *grad_jac, float *grad_table) {
+    const int64_t D = L_all * F;
+    for (int64_t n = 0; n < N; ++n) {
+        for (int64_t l = 0; l < L; ++l) {
+            uint32_t idx[8];
+            float fr[3], w[8], dx[8], dy[8], dz[8];
+            corners(x + 3 * n, res[l], l < n_dense, offsets[l], hash_mask, idx, fr);
+            weights(fr, level_mask[l], res[l] * level_mask[l], w, dx, dy, dz);
+            for (int64_t f = 0; f < F; ++f) {
+                const int64_t o = n * D + l * F + f;
+                const float ge = grad_enc ? grad_enc[o] : 0.f;
+                const float gx = grad_jac ? grad_jac[o] : 0.f;
+                const float gy = grad_jac ? grad_jac[N * D + o] : 0.f;
+                const float gz = grad_jac ? grad_jac[2 * N * D + o] : 0.f;
+                for (int c = 0; c < 8; ++c)
+                    grad_table[(int64_t)idx[c] * F + f] += w[c] * ge + dx[c] * gx + dy[c] * gy + dz[c] * gz;
+            }
+        }
+    }
+}
+"""
+
+MAX_TORCH_THREADS = 2
+"""The encoding uses the kernel (one thread) only where torch runs on at most this many threads: with more,
+torch's own operations spread over the cores (the geometry stage of `make dataset` trains each action on one)."""
+
+_FLAGS = ("-O3", "-shared", "-fPIC", "-std=c99")
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("ULTRASTAGE_KERNEL_CACHE")
+    return Path(root) if root else Path.home() / ".cache" / "ultrastage" / "kernels"
+
+
+@functools.lru_cache(maxsize=1)
+def _library() -> ctypes.CDLL | None:
+    """The compiled kernel (compiled on first use, then loaded from the cache), or None where it cannot be."""
+    if os.environ.get("ULTRASTAGE_HASHGRID_KERNEL", "").lower() == "torch":
+        return None
+    compiler = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
+    if compiler is None:
+        return None
+    digest = hashlib.sha256((_SOURCE + " ".join(_FLAGS) + sys.platform).encode()).hexdigest()[:16]
+    target = _cache_dir() / f"hashgrid_{digest}.so"
+    if not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+            source = Path(tmp) / "hashgrid.c"
+            source.write_text(_SOURCE)
+            built = Path(tmp) / target.name
+            proc = subprocess.run([compiler, *_FLAGS, "-o", str(built), str(source), "-lm"], capture_output=True,
+                                  text=True)
+            if proc.returncode != 0:
+                print(f"hash-grid kernel: {compiler} failed ({proc.stderr.strip()[:300]}); the torch path is used",
+                      file=sys.stderr)
+                return None
+            os.replace(built, target)  # atomic: processes compiling side by side each install a whole file
+    lib = ctypes.CDLL(str(target))
+    i64, f32p, i64p = ctypes.c_int64, ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_int64)
+    lib.hashgrid_forward.argtypes = [f32p, i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p,
+                                     f32p]
+    lib.hashgrid_forward.restype = None
+    lib.hashgrid_backward.argtypes = [i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p,
+                                      f32p, f32p]
+    lib.hashgrid_backward.restype = None
+    return lib
+
+
+def kernel_available() -> bool:
+    """True where :func:`encode` runs the compiled kernel on CPU tensors."""
+    return _library() is not None
+
+
+def _ptr(tensor: torch.Tensor | None, kind=ctypes.c_float):
+    if tensor is None:
+        return ctypes.POINTER(kind)()
+    return ctypes.cast(tensor.data_ptr(), ctypes.POINTER(kind))
+
+
+class _Layout:
+    """The encoding's constants as the kernel reads them (contiguous CPU tensors)."""
+
+    def __init__(self, res: torch.Tensor, offsets: torch.Tensor, n_dense: int, hash_mask: int,
+                 level_mask: torch.Tensor, active: int, levels: int, features: int):
+        self.res = res.detach().float().contiguous()
+        self.offsets = offsets.detach().long().contiguous()
+        self.n_dense, self.hash_mask = int(n_dense), int(hash_mask)
+        self.level_mask = level_mask.detach().float().contiguous()
+        self.active, self.levels, self.features = int(active), int(levels), int(features)
+
+
+class _HashGridFunction(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, x01: torch.Tensor, layout: _Layout, jacobian: bool):  # type: ignore[override]
+        lib = _library()
+        table = table.detach().contiguous()
+        x01 = x01.detach().float().contiguous()
+        N, D = x01.shape[0], layout.levels * layout.features
+        enc = torch.zeros(N, D, dtype=torch.float32)
+        jac = torch.zeros(3, N, D, dtype=torch.float32) if jacobian else None
+        lib.hashgrid_forward(_ptr(table), layout.features, _ptr(x01), N, layout.active, layout.levels,
+                             _ptr(layout.res), _ptr(layout.offsets, ctypes.c_int64), layout.n_dense,
+                             layout.hash_mask, _ptr(layout.level_mask), _ptr(enc), _ptr(jac))
+        ctx.save_for_backward(x01)
+        ctx.layout, ctx.table_shape = layout, table.shape
+        return enc, jac
+
+    @staticmethod
+    def backward(ctx, grad_enc: torch.Tensor | None, grad_jac: torch.Tensor | None):  # type: ignore[override]
+        (x01,) = ctx.saved_tensors
+        layout: _Layout = ctx.layout
+        grad_table = torch.zeros(ctx.table_shape, dtype=torch.float32)
+        grad_enc = None if grad_enc is None else grad_enc.float().contiguous()
+        grad_jac = None if grad_jac is None else grad_jac.float().contiguous()
+        _library().hashgrid_backward(layout.features, _ptr(x01), x01.shape[0], layout.active, layout.levels,
+                                     _ptr(layout.res), _ptr(layout.offsets, ctypes.c_int64), layout.n_dense,
+                                     layout.hash_mask, _ptr(layout.level_mask), _ptr(grad_enc), _ptr(grad_jac),
+                                     _ptr(grad_table))
+        return grad_table, None, None, None
+
+
+def encode(table: torch.Tensor, x01: torch.Tensor, res: torch.Tensor, offsets: torch.Tensor, n_dense: int,
+           hash_mask: int, level_mask: torch.Tensor, active: int, jacobian: bool
+           ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Hash-encode points with the compiled kernel.
+
+    Args:
+        table: (rows, F) float32 CPU feature table (dense levels first, then one ``hash_mask + 1`` block per
+            hashed level, at ``offsets``).
+        x01: (N, 3) float32 CPU points in the unit cube (clamped into it); must not require a gradient.
+        res: (L,) cells per edge of each level; offsets: (L,) int64 first row of each level's table.
+        n_dense: the first ``n_dense`` levels index a dense grid, the others hash.
+        hash_mask: table size per hashed level minus one (a power of two minus one).
+        level_mask: (L,) weight of each level (coarse-to-fine); levels from ``active`` on are all zero.
+        jacobian: also return d(features)/d(x01).
+
+    Returns:
+        ``(features (N, L*F), jacobian (3, N, L*F) or None)``; differentiable with respect to ``table``.
+    """
+    if x01.requires_grad:
+        raise ValueError("encode: the points must not require a gradient (the kernel differentiates the table only)")
+    if table.device.type != "cpu" or x01.device.type != "cpu" or table.dtype != torch.float32:
+        raise ValueError("encode: float32 CPU tensors only")
+    if x01.ndim != 2 or x01.shape[1] != 3:
+        raise ValueError(f"encode: x01 must be (N, 3), got {tuple(x01.shape)}")
+    levels = int(res.shape[0])
+    layout = _Layout(res, offsets, n_dense, hash_mask, level_mask, min(int(active), levels), levels,
+                     int(table.shape[1]))
+    enc, jac = _HashGridFunction.apply(table, x01, layout, jacobian)
+    return enc, jac
