@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import ConfigError, InputError, WriteError
 
 
 def _resolve_config(preset: str, config_file: str | None, scheduler: str | None) -> Any:
@@ -447,6 +447,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"ultrastage {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except (WriteError, OSError) as exc:  # a folder that cannot take the output: full, read-only, not a folder
+        if args.verbose:
+            raise
+        print(f"ultrastage {args.command}: error: {exc}", file=sys.stderr)
+        return 4
 
 
 if __name__ == "__main__":
