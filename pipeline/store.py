@@ -9,6 +9,7 @@ failure of a key (its error), so a plan can say that a task failed last time and
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import time
@@ -133,10 +134,15 @@ class ArtifactStore:
     def record_failure(self, stage: str, scope_id: str, key: str, error: str) -> None:
         """Remember that this key's last run failed, and why (replaced by the next failure, removed by a commit)."""
         folder = self.root / stage / scope_id
-        folder.mkdir(parents=True, exist_ok=True)
         tmp = folder / f".failed.{os.getpid()}.tmp"
-        tmp.write_text(json.dumps({"key": key, "error": error, "failed_at": time.time()}, sort_keys=True))
-        os.replace(tmp, folder / FAILURE)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(json.dumps({"key": key, "error": error, "failed_at": time.time()}, sort_keys=True))
+            os.replace(tmp, folder / FAILURE)
+        except OSError as exc:  # e.g. the work folder is full (often the very failure): the memo only helps a message
+            tmp.unlink(missing_ok=True)
+            logging.getLogger("ultrastage.store").warning("%s: could not record the failure of %s %s: %s", folder,
+                                                          stage, scope_id, exc)
 
     def last_failure(self, stage: str, scope_id: str, key: str) -> str | None:
         """The error of this key's last run when that run failed (and nothing committed since), else None."""
