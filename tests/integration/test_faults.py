@@ -12,13 +12,19 @@ digest, with the one an uninterrupted run writes.
 - The driver (``ultrastage run``) killed once some stages committed: the rerun takes over the dead run's lock,
   takes every committed stage from the store (reported cached), runs only the rest, and rebuilds the manifests
   from the success records. The share of tasks it redoes is printed.
-- A full disk and a read-only or impossible release folder: see the tests further down.
+- A full disk (a tmpfs, as root; skipped otherwise) under the release: the run ends with exit 4 and an error
+  naming the release folder, ENOSPC and the step of the publication, and the release is byte for byte what it
+  was (nothing of a new one; a published one still verifies), whichever step the disk runs full in; with the
+  space back the same run publishes the uninterrupted release. Under the work folder: the actions fail, named
+  with the file and the reason, and the rerun retries them. A release folder on a read-only bind mount, or under
+  a regular file: refused before any work (exit 4), naming the path.
 """
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -237,3 +243,224 @@ def test_a_killed_driver_is_rerun_from_its_success_records(capture, reference, t
         [k for k in cached if k[1].startswith("A")])
     assert _leftovers(work / "artifacts") == [] and _leftovers(release) == []
     print(f"test_a_killed_driver: {time.perf_counter() - start:.1f}s")
+
+
+# --- a full disk, an unwritable release folder ----------------------------------------------------------
+
+OVERRIDE = "{photometric: {params: {ratio_min: 0.35}}}\n"
+"""A config change that reruns photometric: every action is published anew."""
+
+
+@contextlib.contextmanager
+def _mounted(folder: Path, *mount_args: str):
+    """``mount *mount_args folder``, unmounted again at the end; skips the test when this user cannot mount."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs or a read-only bind mount needs root")
+    folder.mkdir(parents=True, exist_ok=True)
+    done = subprocess.run(["mount", *mount_args, str(folder)], capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount here ({' '.join(mount_args)}): {done.stderr.strip()}")
+    try:
+        yield folder
+    finally:
+        if subprocess.run(["umount", str(folder)], capture_output=True).returncode != 0:
+            subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+def _cli(capsys, capture: Path, release: Path, work: Path, *extra: str) -> tuple[int, str, str]:
+    from stages.cli import main as cli
+
+    capsys.readouterr()
+    code = cli(["run", "--capture", str(capture), "--release", str(release), "--work", str(work), "--preset", "test",
+                "--through", THROUGH, "--no-evaluate", "--scheduler", "sync", *extra])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _files(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (hidden ones too) -> sha256 of its bytes."""
+    import hashlib
+
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _free_bytes(folder: Path) -> int:
+    st = os.statvfs(folder)
+    return st.f_bavail * st.f_frsize
+
+
+def _leave_free(disk: Path, free: int) -> Path:
+    """Fill the file system of ``disk`` with a file ``disk/filler`` so that about ``free`` bytes are left."""
+    filler = disk / "filler"
+    with open(filler, "wb") as fh:
+        fh.write(b"\0" * max(0, _free_bytes(disk) - free))
+    return filler
+
+
+def _pages(folder: Path) -> int:
+    """Bytes the files under ``folder`` take on a tmpfs (whole 4 KiB pages)."""
+    return sum(-(-p.stat().st_size // 4096) * 4096 for p in folder.rglob("*") if p.is_file())
+
+
+@pytest.fixture(scope="module")
+def reference_changed(tiny_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The release an uninterrupted run with OVERRIDE writes (sync, in this process)."""
+    from stages.cli import main as cli
+
+    out = tmp_path_factory.mktemp("reference_changed")
+    (out / "o.yaml").write_text(OVERRIDE)
+    code = cli(["run", "--capture", str(tiny_capture), "--release", str(out / "release"), "--work", str(out / "work"),
+                "--preset", "test", "--through", THROUGH, "--no-evaluate", "--scheduler", "sync",
+                "--config", str(out / "o.yaml")])
+    assert code == 0
+    return out / "release"
+
+
+STEPS = ("staging the action files beside the release", "swapping the actions in", "writing the documents",
+         "writing the manifests", "writing the release page")
+"""The steps of a publication (``pipeline.runner``'s error names the one that failed); all but the swap (renames,
+after the transaction's journal is written) write files' bytes."""
+
+
+def _publication_error(err: str, release: Path) -> str:
+    """The step a run that ran out of space in ``release`` names; fails unless the error names the release folder
+    and ENOSPC."""
+    found = re.search(rf"{re.escape(str(release))}: No space left on device \(ENOSPC\) while publishing the "
+                      rf"release \((.*?)\); it is left as it was before this run", err)
+    assert found, err
+    return found.group(1)
+
+
+def test_a_full_disk_under_a_new_release(tiny_capture, reference_changed, tmp_path, capsys):
+    """The first run into a release on a tmpfs too small for it (mounted at the release's parent, a filler file
+    leaving half the space the action files need): exit 4, an error naming the release folder and ENOSPC, and
+    nothing at all in the release folder; with the filler gone the same run publishes the uninterrupted release."""
+    start = time.perf_counter()
+    (tmp_path / "o.yaml").write_text(OVERRIDE)
+    changed = ("--config", str(tmp_path / "o.yaml"))
+    with _mounted(tmp_path / "disk", "-t", "tmpfs", "-o", "size=2m", "tmpfs") as disk:
+        release = disk / "release"
+        filler = _leave_free(disk, _pages(reference_changed / "actions") // 2)
+        code, out, err = _cli(capsys, tiny_capture, release, tmp_path / "work", *changed)
+        assert code == 4, out[-2000:] + err
+        assert _publication_error(err, release) == STEPS[0]
+        assert list(release.rglob("*")) == []  # no file, no folder
+        failure = err.strip()
+        filler.unlink()
+        code, out, err = _cli(capsys, tiny_capture, release, tmp_path / "work", *changed)
+        assert code == 0, err
+        assert "executing" not in out  # the stages' results were committed before the disk ran full: cached
+        from manifests import verify_release
+
+        assert verify_release(release).ok and _digests(release) == _digests(reference_changed)
+        assert _leftovers(release) == []
+    with capsys.disabled():
+        print(f"\n[new release] {failure}; {time.perf_counter() - start:.1f}s")
+
+
+def test_a_full_disk_under_a_published_release(tiny_capture, reference_changed, tmp_path, capsys):
+    """A published release on a tmpfs (mounted at its parent), and a run that republishes every action (a changed
+    photometric config) with less and less space taken away by a filler file, so that the disk runs full at every
+    step of the publication in turn: staging the action files, the documents, the manifests, the page. Each time:
+    exit 4, an error naming the release folder, ENOSPC and the step, and the release is byte for byte the one
+    before (every file, hidden ones too; it verifies against its manifests). The first run with room enough
+    publishes the uninterrupted run's release."""
+    from manifests import verify_release
+
+    start = time.perf_counter()
+    work = tmp_path / "work"
+    (tmp_path / "o.yaml").write_text(OVERRIDE)
+    changed = ("--config", str(tmp_path / "o.yaml"))
+    with _mounted(tmp_path / "disk", "-t", "tmpfs", "-o", "size=4m", "tmpfs") as disk:
+        release = disk / "release"
+        code, out, err = _cli(capsys, tiny_capture, release, work)
+        assert code == 0, err
+        before = _files(release)
+        need = _pages(reference_changed / "actions")  # the new action folders, staged in full
+        steps = []
+        for free in [need // 2] + [need + k * 12 * 1024 for k in range(40)]:
+            filler = _leave_free(disk, free)
+            code, out, err = _cli(capsys, tiny_capture, release, work, *changed)
+            filler.unlink()
+            if code == 0:
+                break
+            assert code == 4, out[-2000:] + err
+            steps.append(_publication_error(err, release))
+            assert _files(release) == before, steps[-1]  # as it was, byte for byte
+            assert verify_release(release).ok, verify_release(release).summary()
+        assert code == 0, "no run succeeded with 480 KiB more than the action files"
+        assert set(STEPS) - {STEPS[1]} <= set(steps) <= set(STEPS), steps  # it ran full at every step
+        assert verify_release(release).ok, verify_release(release).summary()
+        assert _digests(release) == _digests(reference_changed)
+        assert _leftovers(release) == []
+    with capsys.disabled():
+        print(f"\n[published release] ran full {len(steps)} times: " +
+              ", ".join(f"{s} x{steps.count(s)}" for s in STEPS) + f"; {time.perf_counter() - start:.1f}s")
+
+
+def test_a_full_disk_under_the_work_folder(tiny_capture, reference_changed, tmp_path, capsys):
+    """The work folder (the artifact store) on a tmpfs with 64 KiB free: the stages that write there fail, each
+    action is recorded failed with the file in the work folder and 'No space left on device' (exit 3), nothing of
+    it is in the release and the store holds no half-written result; with the space back, the rerun retries them
+    and publishes the uninterrupted release."""
+    from manifests import open_release, verify_release
+
+    start = time.perf_counter()
+    (tmp_path / "o.yaml").write_text(OVERRIDE)
+    changed = ("--config", str(tmp_path / "o.yaml"))
+    release = tmp_path / "release"
+    with _mounted(tmp_path / "disk", "-t", "tmpfs", "-o", "size=2m", "tmpfs") as disk:
+        work = disk / "work"
+        filler = _leave_free(disk, 64 * 1024)
+        code, out, err = _cli(capsys, tiny_capture, release, work, *changed)
+        assert code == 3, out[-3000:] + err
+        actions = open_release(release).actions
+        assert set(actions.status) == {"failed"}
+        for error in actions.error:
+            assert "No space left on device" in error and "<work>/artifacts/" in error, error
+        assert verify_release(release).ok
+        assert not (release / "actions").exists() or not any((release / "actions").iterdir())
+        assert _leftovers(work / "artifacts") == []  # the failed tasks' folders were discarded
+        assert not [p for p in (work / "artifacts").glob("*/*/*") if p.is_dir() and not (p / "_SUCCESS.json").exists()]
+        failure = actions.error.iloc[0]
+        filler.unlink()
+        code, out, err = _cli(capsys, tiny_capture, release, work, *changed)
+        assert code == 0, out[-3000:] + err
+        assert "will retry" in out
+        assert verify_release(release).ok and _digests(release) == _digests(reference_changed)
+    with capsys.disabled():
+        print(f"\n[work folder] first run: {failure}; {time.perf_counter() - start:.1f}s")
+
+
+@pytest.mark.parametrize("how", ["read-only", "parent-is-a-file"])
+def test_an_unwritable_release_folder(tiny_capture, tmp_path, capsys, how):
+    """A published release on a file system turned read-only (a read-only bind mount), or a release path under a
+    regular file: the run stops before any work with exit 4 and an error naming the path and the reason."""
+    start = time.perf_counter()
+    work = tmp_path / "work"
+    (tmp_path / "o.yaml").write_text(OVERRIDE)
+    changed = ("--config", str(tmp_path / "o.yaml"))
+    if how == "parent-is-a-file":
+        (tmp_path / "afile").write_text("not a folder")
+        release = tmp_path / "afile" / "release"
+        code, out, err = _cli(capsys, tiny_capture, release, work, *changed)
+        assert code == 4, out[-2000:] + err
+        assert f"{release}: cannot create the release folder: {tmp_path / 'afile'} is a file, not a folder" in err
+        assert not (work / "artifacts").exists()  # refused before any work
+    else:
+        source = tmp_path / "source"
+        code, out, err = _cli(capsys, tiny_capture, source / "release", work)
+        assert code == 0, err
+        before, store = _files(source / "release"), _files(work / "artifacts")
+        with _mounted(tmp_path / "ro", "--bind", str(source)) as ro:
+            if subprocess.run(["mount", "-o", "remount,ro,bind", str(ro)], capture_output=True).returncode != 0:
+                pytest.skip("cannot remount the bind mount read-only here")
+            release = ro / "release"
+            code, out, err = _cli(capsys, tiny_capture, release, work, *changed)
+            assert code == 4, out[-2000:] + err
+            assert f"{release}: Read-only file system (EROFS) while checking that the release folder can be written" in err
+            assert _files(release) == before and _files(work / "artifacts") == store  # nothing done
+            assert "executing" not in out
+    with capsys.disabled():
+        print(f"\n[{how}] {err.strip()}\ntest_an_unwritable_release_folder[{how}]: {time.perf_counter() - start:.1f}s")
