@@ -472,8 +472,12 @@ def write_release_page(release: str | Path) -> Path:
     text = page_html(root, actions, assets, summary, metrics, examples, run, make_thumb)
     _remove_stale_thumbnails(root, {p for p, _, _ in made})
     tmp = root / f".{PAGE}.{os.getpid()}.tmp"
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, root / PAGE)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, root / PAGE)
+    except BaseException:  # e.g. a full disk: leave no half-written page behind
+        tmp.unlink(missing_ok=True)
+        raise
     rows = [asset_row(root, PAGE, "page")]
     rows += [asset_row(root, path, "page_thumbnail", action_id=a, camera_id=c) for path, a, c in made]
     replace_rows(root, "assets", rows, drop=lambda r: r["kind"] in page_kinds)

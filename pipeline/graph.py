@@ -15,6 +15,7 @@ retry" for a task whose key failed last time.
 from __future__ import annotations
 
 import logging
+import secrets
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
@@ -273,8 +274,12 @@ def _upstream_failed(results: Sequence[dict[str, Any]]) -> dict[str, Any] | None
     return None
 
 
-def run_view_task(stage: Stage, ctx: StageContext, view: str, *upstream: dict[str, Any]) -> dict[str, Any]:
+def run_view_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, attempt: str, view: str,
+                  *upstream: dict[str, Any]) -> dict[str, Any]:
     """One camera of a per-view stage (runs on a worker)."""
+    if store.committed_by(ctx.stage, ctx.scope_id, key, attempt) is not None:
+        # recomputed after its worker died, but the stage is committed already: nothing to write
+        return {"ok": True, "view": view, "stats": {}, "seconds": 0.0, "recomputed": True}
     skipped = _upstream_failed(upstream)
     if skipped:
         return skipped
@@ -289,13 +294,26 @@ def run_view_task(stage: Stage, ctx: StageContext, view: str, *upstream: dict[st
 
 
 def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
-                *parts: dict[str, Any]) -> dict[str, Any]:
-    """Finalize a per-view stage, or run a whole-scope stage, then commit its folder (runs on a worker)."""
+                attempt: str, *parts: dict[str, Any]) -> dict[str, Any]:
+    """Finalize a per-view stage, or run a whole-scope stage, then commit its folder (runs on a worker).
+
+    ``attempt`` names this execution of the plan. dask runs a task again when the worker that ran it died:
+    before it finished (the task starts over: a whole-scope stage in a fresh folder, a camera rewrites its
+    files) or after (its result was lost with the worker's memory). In the second case the folder is committed
+    already, by this execution, and the task returns that commit's record instead of redoing it (a second
+    finalize would write into a folder that is gone, or commit only the recomputed cameras' files).
+    """
+    done = store.committed_by(ctx.stage, ctx.scope_id, key, attempt)
+    if done is not None:
+        store.note_committed(ctx.stage, ctx.scope_id, key, record)  # in case the worker died inside commit
+        return {"ok": True, "stats": done.get("stats", {}), "seconds": float(done.get("seconds", 0.0)),
+                "started_at": done.get("started_at"), "recomputed": True}
     if not stage.per_view:  # its parts are upstream results: a failure there means "not run"
         skipped = _upstream_failed(parts)
         if skipped:
             store.discard(ctx.stage, ctx.scope_id, key)
             return skipped
+        store.begin(ctx.stage, ctx.scope_id, key)  # a fresh folder: an attempt on a lost worker may have left files
     start = time.perf_counter()
     view_seconds = sum(p.get("seconds", 0.0) for p in parts if "view" in p)
     started_at = min([p["started_at"] for p in parts if "view" in p and "started_at" in p] + [time.time()])
@@ -313,7 +331,7 @@ def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str,
         else:
             stats = stage.run(ctx)
         seconds = view_seconds + time.perf_counter() - start
-        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds)
+        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds, attempt=attempt, started_at=started_at)
         return {"ok": True, "stats": stats, "seconds": seconds, "started_at": started_at}
     except Exception as exc:  # noqa: BLE001
         store.discard(ctx.stage, ctx.scope_id, key)
@@ -389,10 +407,17 @@ class DaskExecutor:
             self.client.subscribe_topic(PROGRESS_TOPIC, lambda event: callback(event[1]))
 
     def as_completed(self, handles: list[Any]) -> Iterable[tuple[Any, Any]]:
+        """(future, result) as each finishes. A task that raised in dask itself (our tasks never raise) gives a
+        failure record instead: ``KilledWorker`` when workers died running it more often than the scheduler's
+        ``allowed-failures``, or the error of an upstream task that did; the run goes on and records it."""
         from distributed import as_completed
 
         for future in as_completed(handles):
-            yield future, future.result()
+            try:
+                result = future.result()
+            except Exception as exc:  # noqa: BLE001
+                result = {"ok": False, "error": f"{type(exc).__name__}: {exc}", "executor_error": True}
+            yield future, result
 
     def close(self) -> None:
         self.client.close()
@@ -413,6 +438,7 @@ def execute(plan: Plan, capture: Capture, executor: Any,
     if on_progress is not None and hasattr(executor, "subscribe_progress"):
         executor.subscribe_progress(on_progress)
     store = plan.store
+    attempt = secrets.token_hex(8)  # this execution; a task recomputed after its worker died checks it
     handles: dict[tuple[str, str], Any] = {}
     owner: dict[int, Task] = {}
     view_owner: dict[int, Task] = {}
@@ -425,19 +451,21 @@ def execute(plan: Plan, capture: Capture, executor: Any,
         res = task.stage.resources
         if task.stage.per_view:
             views = task.stage.views(ctx)
-            parts = [executor.submit(run_view_task, task.stage, ctx, v, *ups, key=f"{tag}-{v}", resources=res)
+            parts = [executor.submit(run_view_task, task.stage, ctx, store, task.key, attempt, v, *ups,
+                                     key=f"{tag}-{v}", resources=res)
                      for v in views]
             view_owner.update({id(p): task for p in parts})
             view_handles += parts
         else:
             parts = list(ups)
-        handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, *parts,
+        handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, attempt, *parts,
                                  key=f"{tag}-commit")
         handles[(task.stage.name, task.scope_id)] = handle
         owner[id(handle)] = task
     total = len(handles)
     done = views_done = 0
     watched = (view_handles if on_view else []) + list(handles.values())
+    lost: list[Task] = []
     for handle, result in executor.as_completed(watched):
         if id(handle) in view_owner:
             views_done += 1
@@ -452,7 +480,9 @@ def execute(plan: Plan, capture: Capture, executor: Any,
         else:
             task.status = "skipped" if result.get("skipped") else "failed"
             task.error = result.get("error")
-            if task.status == "skipped":
+            if result.get("executor_error"):
+                lost.append(task)  # classified below, once every upstream task's outcome is known
+            elif task.status == "skipped":
                 task.failed_stage = result.get("failed_stage")
             else:
                 store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
@@ -460,3 +490,11 @@ def execute(plan: Plan, capture: Capture, executor: Any,
                     log.debug("%s failed:\n%s", task.name, result["traceback"])
         if on_done:
             on_done(task, result, done, total)
+    # dask passes a task's error on to the tasks that depend on it: those were not run, the first one failed
+    for task in sorted(lost, key=plan.tasks.index):  # plan order: upstream before downstream
+        bad = next((t for t in task.upstream.values() if t.status in ("failed", "skipped")), None)
+        if bad is not None:
+            task.status, task.failed_stage = "skipped", bad.failed_stage or bad.stage.name
+            task.error = f"not run: upstream {task.failed_stage} failed"
+        else:
+            store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")

@@ -5,6 +5,7 @@ the release layout, but nothing about what the stages compute.
 """
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import logging
@@ -22,9 +23,11 @@ from pipeline.capture import Capture, open_capture
 from pipeline.config import Documented, dump_yaml
 from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of, execute, make_plan
 from pipeline.hashing import DigestCache
+from pipeline.errors import WriteError
+from pipeline.release_txn import ReleaseTransaction, recover
 from pipeline.runlock import hold_run_lock
 from pipeline.stage import Stage
-from pipeline.store import ArtifactStore, link_or_copy, swap_into_place
+from pipeline.store import ArtifactStore, link_or_copy
 
 log = logging.getLogger("ultrastage.run")
 CONVENTIONS = Path(__file__).with_name("conventions.md")
@@ -76,15 +79,33 @@ def _root_units(entries: list[tuple[Path, str, str]]) -> list[str]:
     return sorted({"/".join(rel.split("/")[:2]) for _, rel, _ in entries})
 
 
-def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task],
-                   echo: Callable[[str], None]) -> tuple[list[dict[str, Any]], dict[str, list[dict[str, Any]]]]:
-    """Hard-link an action's release files from the store into ``release/actions/<id>`` atomically, and the
-    files its stages publish at the release root (``release_root_files``, e.g. ``relight/<example>/``), each
-    folder swapped into place whole.
+@dataclass
+class PreparedAction:
+    """One action's release files staged beside the release by :func:`prepare_action`, ready to be swapped in."""
 
-    Skipped when the same stage keys were already published (one log line says so). Returns the asset
-    rows (path, bytes, sha256) of the action, hashed once at publish time, and the rows its stages add to
-    other manifest tables (``manifest_rows``).
+    action_id: str
+    rows: list[dict[str, Any]]
+    """Asset rows (path, bytes, sha256), hashed once, in the staging folder."""
+    tables: dict[str, list[dict[str, Any]]]
+    """Rows its stages add to other manifest tables (``manifest_rows``)."""
+    record: dict[str, Any]
+    """What ``<work>/published/<id>.json`` says once the release holds it."""
+    cached: bool
+    """The same stage keys are published already: nothing to swap in."""
+    tmp: Path | None = None
+    staging: Path | None = None
+    old_units: list[str] = field(default_factory=list)
+
+
+def prepare_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task]) -> PreparedAction:
+    """Stage an action's release files: hard-linked (or copied, across file systems) from the store into
+    ``release/actions/.tmp-<id>``, and the files its stages publish at the release root (``release_root_files``,
+    e.g. ``relight/<example>/``) into ``release/.tmp-root-<id>``, and hash them. Nothing the release shows changes
+    yet (:func:`swap_in` does that). An action whose stage keys are published already is not
+    staged again (``cached``).
+
+    Raises:
+        OSError: the staging could not be written (full disk, read-only folder); what was staged is removed.
     """
     from manifests import asset_row
 
@@ -94,50 +115,61 @@ def publish_action(release: Path, work: Path, store: ArtifactStore, action_id: s
     old_record = json.loads(record_path.read_text()) if record_path.exists() else {}
     if old_record and final.is_dir() and old_record.get("keys") == keys and \
             all((release / unit).is_dir() for unit in old_record.get("root_units", [])):
-        echo(f"{'release':<12} {action_id:<8} cached  same stage keys already published")
-        return old_record["assets"], old_record.get("tables", {})
+        return PreparedAction(action_id, old_record["assets"], old_record.get("tables", {}), old_record, cached=True)
     tmp = release / "actions" / f".tmp-{action_id}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    entries, root_entries, tables = [], [], {}
-    for task in tasks:
-        artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
-        for src, rel, kind, camera in (task.stage.release_files(artifact) if hasattr(task.stage, "release_files")
-                                       else []):
-            link_or_copy(src, tmp / rel)
-            entries.append((rel, kind, camera))
-        if hasattr(task.stage, "release_root_files"):
-            root_entries += task.stage.release_root_files(artifact)
-        if hasattr(task.stage, "manifest_rows"):
-            for table, rows in task.stage.manifest_rows(artifact).items():
-                tables.setdefault(table, []).extend(rows)
-    rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera) for rel, kind, camera in entries]
-    prefix = f"actions/.tmp-{action_id}/"
-    for row in rows:  # rows were hashed in the temporary folder; record their final paths
-        row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
-    units = _root_units(root_entries)
     staging = release / f".tmp-root-{action_id}"
-    shutil.rmtree(staging, ignore_errors=True)
-    for src, rel, kind in root_entries:
-        link_or_copy(src, staging / rel)
-        row = asset_row(release, staging / rel, kind, action_id=action_id)
-        row["path"] = rel
-        rows.append(row)
-    swap_into_place(tmp, final)
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(staging, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        entries, root_entries, tables = [], [], {}
+        for task in tasks:
+            artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
+            for src, rel, kind, camera in (task.stage.release_files(artifact) if hasattr(task.stage, "release_files")
+                                           else []):
+                link_or_copy(src, tmp / rel)
+                entries.append((rel, kind, camera))
+            if hasattr(task.stage, "release_root_files"):
+                root_entries += task.stage.release_root_files(artifact)
+            if hasattr(task.stage, "manifest_rows"):
+                for table, rows in task.stage.manifest_rows(artifact).items():
+                    tables.setdefault(table, []).extend(rows)
+        rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera)
+                for rel, kind, camera in entries]
+        prefix = f"actions/.tmp-{action_id}/"
+        for row in rows:  # rows were hashed in the temporary folder; record their final paths
+            row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
+        for src, rel, kind in root_entries:
+            link_or_copy(src, staging / rel)
+            row = asset_row(release, staging / rel, kind, action_id=action_id)
+            row["path"] = rel
+            rows.append(row)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    record = {"keys": keys, "assets": rows, "root_units": _root_units(root_entries), "tables": tables}
+    return PreparedAction(action_id, rows, tables, record, cached=False, tmp=tmp, staging=staging,
+                          old_units=list(old_record.get("root_units", [])))
+
+
+def swap_in(prepared: PreparedAction, release: Path, txn: ReleaseTransaction) -> None:
+    """Swap a staged action into the release: its folder and each of its root folders whole (renames, under
+    ``txn``); root folders it no longer has are taken out."""
+    if prepared.cached:
+        return
+    txn.put_dir(prepared.tmp, release / "actions" / prepared.action_id)
+    units = prepared.record["root_units"]
     for unit in units:
-        (release / unit).parent.mkdir(parents=True, exist_ok=True)
-        swap_into_place(staging / unit, release / unit)
-    for unit in set(old_record.get("root_units", [])) - set(units):  # folders the action no longer has
-        shutil.rmtree(release / unit, ignore_errors=True)
-    shutil.rmtree(staging, ignore_errors=True)
-    record_path.parent.mkdir(parents=True, exist_ok=True)
-    record_path.write_text(json.dumps({"keys": keys, "assets": rows, "root_units": units, "tables": tables}))
-    echo(f"{'release':<12} {action_id:<8} written {len(rows)} files")
-    return rows, tables
+        txn.put_dir(prepared.staging / unit, release / unit)
+    for unit in sorted(set(prepared.old_units) - set(units)):  # folders the action no longer has
+        txn.remove_dir(release / unit)
+    shutil.rmtree(prepared.staging, ignore_errors=True)
 
 
-def unpublish_action(release: Path, work: Path, action_id: str) -> bool:
-    """Remove a failed action from the release (nothing of a failed action may appear there)."""
+def unpublish_action(release: Path, work: Path, action_id: str, txn: ReleaseTransaction) -> bool:
+    """Take a failed action out of the release (nothing of a failed action may appear there), under ``txn``;
+    its ``<work>/published`` record is deleted by the caller once ``txn`` commits."""
     record_path = work / "published" / f"{action_id}.json"
     removed = False
     if record_path.exists():
@@ -146,15 +178,49 @@ def unpublish_action(release: Path, work: Path, action_id: str) -> bool:
         except (OSError, json.JSONDecodeError):
             units = []
         for unit in units:
-            if (release / unit).exists():
-                shutil.rmtree(release / unit)
-                removed = True
-    record_path.unlink(missing_ok=True)
-    final = release / "actions" / action_id
-    if final.exists():
-        shutil.rmtree(final)
-        return True
-    return removed
+            removed |= txn.remove_dir(release / unit)
+    return txn.remove_dir(release / "actions" / action_id) or removed
+
+
+def check_writable(folder: Path, role: str) -> None:
+    """Create ``folder`` (and its parents) if needed and write a file in it, before any work is done.
+
+    Raises:
+        WriteError: naming the folder and the reason: a file where a folder should be, a read-only file
+            system, no permission, no space.
+    """
+    folder = Path(folder)
+    blocking = next((p for p in [folder, *folder.parents] if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise WriteError(folder, f"cannot create {role}: {blocking} is a file, not a folder")
+    probe = folder / f".write-probe-{os.getpid()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise WriteError.from_os_error(folder, exc, f"checking that {role} can be written") from exc
+
+
+def _write_atomically(path: Path, content: str | bytes) -> None:
+    """Write a file by renaming a complete new one over it (a rollback keeps the old one by a hard link)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(content if isinstance(content, bytes) else content.encode())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.filename is None:  # a failed write() names no file: name the one it was for
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        raise
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+RELEASE_FILES_REWRITTEN = ("CONVENTIONS.md", "DATASHEET.md", "config.yaml", "run.json", "index.html", "manifests",
+                           "page", "relight/splits")
+"""What a run rewrites in the release besides the action folders: kept for a rollback by every publication."""
 
 
 def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
@@ -171,6 +237,7 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
     release gets ``run.json`` (:func:`write_run_record`, with ``record``'s fields, e.g. the preset name), its
     manifests and its page (``index.html``, :func:`manifests.page.write_release_page`).
     """
+    check_writable(Path(work), "the work folder")
     with hold_run_lock(work, echo=echo):
         return _run_pipeline_locked(capture_dir, release, work, stages, config, execution, only, from_stage,
                                     actions, echo, progress, view_progress, stage_progress, record)
@@ -186,8 +253,8 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
     start = time.perf_counter()
     capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
     capture = open_capture(capture_dir)
-    release.mkdir(parents=True, exist_ok=True)
-    work.mkdir(parents=True, exist_ok=True)
+    check_writable(release, "the release folder")
+    recover(release, echo)  # a publication a killed run left unfinished is rolled back
     store = ArtifactStore(work / "artifacts")
     digests = DigestCache(work / "digests.json")
     run_id = new_run_id()
@@ -217,33 +284,77 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
     asset_rows: list[dict[str, Any]] = []
     table_rows: dict[str, list[dict[str, Any]]] = {}
     wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
-    for action_id in wanted:
-        session_id = capture.action(action_id).session_id
-        tasks = [t for t in plan.tasks if t.scope_id in (action_id, session_id)]
-        bad = [t for t in tasks if t.status not in ("ran", "cached")]
-        if bad:
-            first = next((t for t in bad if t.status == "failed"), bad[0])
-            action_status[action_id] = "failed"
-            action_errors[action_id] = f"{first.stage.name}: {first.error}"
-            if unpublish_action(release, work, action_id):
-                echo(f"{'release':<12} {action_id:<8} removed (action failed)")
-            continue
-        action_status[action_id] = "ok"
-        assets, tables = publish_action(release, work, store, action_id, tasks, echo)
-        asset_rows += assets
-        for table, rows in tables.items():
-            table_rows.setdefault(table, []).extend(rows)
-        published.append(action_id)
+    # Publishing is one transaction: the action folders are staged beside the release first (where the bytes
+    # are written), then swapped in, then the documents, manifests and page are rewritten; any failure rolls
+    # all of it back, so the release is either this run's or the one before it.
+    txn = ReleaseTransaction(release)
+    had_actions_folder = (release / "actions").is_dir()
+    prepared: list[PreparedAction] = []
+    removed: list[str] = []
+    step = "staging the action files beside the release"
+    try:
+        for action_id in wanted:
+            session_id = capture.action(action_id).session_id
+            tasks = [t for t in plan.tasks if t.scope_id in (action_id, session_id)]
+            bad = [t for t in tasks if t.status not in ("ran", "cached")]
+            if bad:
+                first = next((t for t in bad if t.status == "failed"), bad[0])
+                action_status[action_id] = "failed"
+                action_errors[action_id] = f"{first.stage.name}: {first.error}"
+                removed.append(action_id)
+                continue
+            action_status[action_id] = "ok"
+            prepared.append(prepare_action(release, work, store, action_id, tasks))
+            asset_rows += prepared[-1].rows
+            for table, rows in prepared[-1].tables.items():
+                table_rows.setdefault(table, []).extend(rows)
+            published.append(action_id)
+        step = "swapping the actions in"
+        txn.keep_root_listing()
+        for name in RELEASE_FILES_REWRITTEN:
+            txn.keep_files(release / name)
+        for prep in prepared:
+            swap_in(prep, release, txn)
+        unpublished = [a for a in removed if unpublish_action(release, work, a, txn)]
+        step = "writing the documents"
+        _write_release_docs(release, config, capture)
+        write_run_record(release, run_id, capture_dir, work, record or {})
+        step = "writing the manifests"
+        places = {capture_dir: "<capture>", work: "<work>", release: "<release>"}
+        _write_manifests(release, capture, plan, digests, run_id, action_status,
+                         {a: portable_message(e, places) for a, e in action_errors.items()}, asset_rows, places,
+                         table_rows)
+        from manifests.page import write_release_page
 
-    _write_release_docs(release, config, capture)
-    write_run_record(release, run_id, capture_dir, work, record or {})
-    places = {capture_dir: "<capture>", work: "<work>", release: "<release>"}
-    _write_manifests(release, capture, plan, digests, run_id, action_status,
-                     {a: portable_message(e, places) for a, e in action_errors.items()}, asset_rows, places,
-                     table_rows)
-    from manifests.page import write_release_page
-
-    write_release_page(release)
+        step = "writing the release page"
+        write_release_page(release)
+    except BaseException as exc:
+        for prep in prepared:
+            for folder in (prep.tmp, prep.staging):
+                if folder is not None:
+                    shutil.rmtree(folder, ignore_errors=True)
+        txn.rollback()
+        if not had_actions_folder:
+            with contextlib.suppress(OSError):
+                (release / "actions").rmdir()  # made for the staging folders, empty again
+        if isinstance(exc, OSError):
+            raise WriteError.from_os_error(release, exc, f"publishing the release ({step}); it is left as it was "
+                                                         "before this run") from exc
+        raise
+    txn.commit()
+    for prep in prepared:
+        echo(f"{'release':<12} {prep.action_id:<8} " + ("cached  same stage keys already published" if prep.cached
+                                                          else f"written {len(prep.rows)} files"))
+    for action_id in unpublished:
+        echo(f"{'release':<12} {action_id:<8} removed (action failed)")
+    # what <work>/published says follows the release, once it holds this run's actions
+    for action_id in removed:
+        (work / "published" / f"{action_id}.json").unlink(missing_ok=True)
+    for prep in prepared:
+        if not prep.cached:
+            record_path = work / "published" / f"{prep.action_id}.json"
+            record_path.parent.mkdir(parents=True, exist_ok=True)
+            _write_atomically(record_path, json.dumps(prep.record))
     (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
     (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
     return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
@@ -257,8 +368,8 @@ def write_run_record(release: Path, run_id: str, capture: Path, work: Path, extr
     """``RELEASE/run.json``: the run id and the capture and work folders as paths relative to the release (no
     absolute path of this machine goes into a release), plus ``extra`` (e.g. ``{"preset": "default"}``)."""
     path = release / RUN_RECORD
-    path.write_text(json.dumps({"run_id": run_id, "capture": os.path.relpath(capture, release),
-                                "work": os.path.relpath(work, release), **extra}, indent=1) + "\n")
+    _write_atomically(path, json.dumps({"run_id": run_id, "capture": os.path.relpath(capture, release),
+                                        "work": os.path.relpath(work, release), **extra}, indent=1) + "\n")
     return path
 
 
@@ -298,8 +409,8 @@ def _utc(epoch: float | None) -> datetime.datetime | None:
 
 
 def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
-    shutil.copyfile(CONVENTIONS, release / "CONVENTIONS.md")
-    (release / "config.yaml").write_text(dump_yaml(config))
+    _write_atomically(release / "CONVENTIONS.md", CONVENTIONS.read_bytes())
+    _write_atomically(release / "config.yaml", dump_yaml(config))
     sim = capture.meta.get("simulator")
     lines = ["# Datasheet", "",
              f"- Capture: `{capture.root.name}` ({len(capture.actions)} actions, "
@@ -326,7 +437,7 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "everywhere; relit views have no "
              "interreflections; see metrics.parquet.",
              "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
-    (release / "DATASHEET.md").write_text("\n".join(lines))
+    _write_atomically(release / "DATASHEET.md", "\n".join(lines))
 
 
 def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,

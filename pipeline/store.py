@@ -9,6 +9,7 @@ failure of a key (its error), so a plan can say that a task failed last time and
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import time
@@ -90,28 +91,58 @@ class ArtifactStore:
         return tmp
 
     def commit(self, stage: str, scope_id: str, key: str, record: dict[str, Any],
-               stats: dict[str, Any], seconds: float) -> Path:
-        """Write the success record into the temporary folder and rename it into place."""
+               stats: dict[str, Any], seconds: float, attempt: str | None = None,
+               started_at: float | None = None) -> Path:
+        """Write the success record into the temporary folder and rename it into place.
+
+        ``attempt`` names the execution that commits (:func:`committed_by`). Hidden ``*.tmp`` files left in the
+        folder by a writer that died before renaming them (the codecs write ``.<name>.<pid>.tmp``, then rename:
+        a worker killed mid-write leaves one behind) are removed first: a committed folder holds outputs only.
+        """
         tmp = self.tmp_dir(stage, scope_id, key)
         final = self.final_dir(stage, scope_id, key)
+        for leftover in [p for p in tmp.rglob(".*.tmp") if p.is_file()]:
+            leftover.unlink()
         success = {"stage": stage, "scope_id": scope_id, "key": key, "record": record, "stats": stats,
-                   "seconds": seconds, "committed_at": time.time()}
+                   "seconds": seconds, "committed_at": time.time(), "attempt": attempt,
+                   "started_at": started_at}
         (tmp / SUCCESS).write_text(json.dumps(success, indent=1, sort_keys=True))
         swap_into_place(tmp, final)  # a forced rerun of the same key replaces the old copy
-        latest = final.parent / "latest.json"
-        latest_tmp = final.parent / f".latest.{os.getpid()}.tmp"
-        latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
-        os.replace(latest_tmp, latest)
-        (final.parent / FAILURE).unlink(missing_ok=True)
+        self.note_committed(stage, scope_id, key, record)
         return final
+
+    def note_committed(self, stage: str, scope_id: str, key: str, record: dict[str, Any]) -> None:
+        """``latest.json`` names this key, and its last failure is forgotten (idempotent: the tail of a commit)."""
+        folder = self.root / stage / scope_id
+        latest_tmp = folder / f".latest.{os.getpid()}.tmp"
+        latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
+        os.replace(latest_tmp, folder / "latest.json")
+        (folder / FAILURE).unlink(missing_ok=True)
+
+    def committed_by(self, stage: str, scope_id: str, key: str, attempt: str) -> dict[str, Any] | None:
+        """The success record of this key if the execution ``attempt`` committed it, else None.
+
+        dask recomputes a finished task whose result was held only by a worker that died; a task that finds its
+        folder committed by its own execution returns that record instead of running (and committing) again.
+        """
+        try:
+            success = self.success_record(stage, scope_id, key)
+        except (OSError, json.JSONDecodeError):
+            return None
+        return success if success.get("attempt") == attempt else None
 
     def record_failure(self, stage: str, scope_id: str, key: str, error: str) -> None:
         """Remember that this key's last run failed, and why (replaced by the next failure, removed by a commit)."""
         folder = self.root / stage / scope_id
-        folder.mkdir(parents=True, exist_ok=True)
         tmp = folder / f".failed.{os.getpid()}.tmp"
-        tmp.write_text(json.dumps({"key": key, "error": error, "failed_at": time.time()}, sort_keys=True))
-        os.replace(tmp, folder / FAILURE)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(json.dumps({"key": key, "error": error, "failed_at": time.time()}, sort_keys=True))
+            os.replace(tmp, folder / FAILURE)
+        except OSError as exc:  # e.g. the work folder is full (often the very failure): the memo only helps a message
+            tmp.unlink(missing_ok=True)
+            logging.getLogger("ultrastage.store").warning("%s: could not record the failure of %s %s: %s", folder,
+                                                          stage, scope_id, exc)
 
     def last_failure(self, stage: str, scope_id: str, key: str) -> str | None:
         """The error of this key's last run when that run failed (and nothing committed since), else None."""

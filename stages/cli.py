@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import ConfigError, InputError
+from pipeline.errors import ConfigError, InputError, WriteError
 
 
 def _resolve_config(preset: str, config_file: str | None, scheduler: str | None) -> Any:
@@ -172,7 +172,7 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
     config = _resolve_config(args.preset, args.config, args.scheduler)
     release = Path(args.release)
     work = _work_dir(args, release)
-    stages = build_stages(config)
+    stages = build_stages(config, through=args.through)
     actions = args.actions.split(",") if args.actions else None
     if plan_only:
         from pipeline.capture import open_capture
@@ -191,7 +191,7 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
     result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
                           only=args.only, from_stage=args.from_stage, actions=actions,
                           progress=on_done, view_progress=on_view, stage_progress=on_progress,
-                          record={"preset": args.preset})
+                          record={"preset": args.preset, **({"through": args.through} if args.through else {})})
     metrics = None
     truth = Path(args.capture) / "ground_truth"
     if not args.no_evaluate and truth.is_dir() and result.published:
@@ -219,7 +219,7 @@ def cmd_rerun(args: argparse.Namespace) -> int:
     ns = argparse.Namespace(capture=info["capture"], release=str(release), work=info["work"],
                             preset=info.get("preset", "default"), config=args.config or None,
                             scheduler=args.scheduler, only=args.only, from_stage=args.from_stage,
-                            actions=args.actions, no_evaluate=args.no_evaluate)
+                            actions=args.actions, no_evaluate=args.no_evaluate, through=info.get("through"))
     if args.config is None and (release / "config.yaml").exists():
         ns.config = str(release / "config.yaml")
     if args.failed or args.where or args.subject or args.session:
@@ -334,6 +334,9 @@ def _add_run_args(p: argparse.ArgumentParser, stage_names: list[str], release_he
     p.add_argument("--scheduler", help="'local' (a dask cluster on this machine, the default), 'sync' (in this process) "
                                        "or the address of a running dask scheduler, e.g. tcp://10.0.0.5:8786")
     _add_stage_choice(p, stage_names)
+    p.add_argument("--through", metavar="STAGE", choices=stage_names,
+                   help="run only this stage and the stages it needs (e.g. photometric: no neural stages); "
+                        f"`rerun` keeps it; one of {', '.join(stage_names)}")
     p.add_argument("--actions", help="comma-separated action ids (default: all)")
     p.add_argument("--no-evaluate", action="store_true", help="skip the accuracy summary against ground truth")
 
@@ -444,6 +447,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"ultrastage {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except (WriteError, OSError) as exc:  # a folder that cannot take the output: full, read-only, not a folder
+        if args.verbose:
+            raise
+        print(f"ultrastage {args.command}: error: {exc}", file=sys.stderr)
+        return 4
 
 
 if __name__ == "__main__":
