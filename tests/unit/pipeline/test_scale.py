@@ -1,0 +1,54 @@
+"""What keeps the engine linear at release size (issue 23, bench/bench_scale.py): lookups by index instead of
+scans, and the same answers as before."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from pipeline.capture import open_capture
+from pipeline.hashing import DigestCache
+from tests.unit.pipeline.conftest import make_toy_capture
+
+ACTIONS = tuple(f"A{i:04d}" for i in range(6))
+
+
+def test_capture_lookups_and_listing_agree_with_the_folder(tmp_path):
+    capture = open_capture(make_toy_capture(tmp_path / "capture", actions=ACTIONS))
+    assert [capture.action(a).action_id for a in ACTIONS] == list(ACTIONS)
+    with pytest.raises(KeyError, match="no action A9999"):
+        capture.action("A9999")
+    folder = tmp_path / "capture" / "actions" / "A0001" / "pos"
+    (folder / "00001.DNG").write_text("second file of a camera")
+    (folder / "notes.txt").write_text("not a raw file")
+    (folder / "00002.dng").unlink()
+    cams = ["00000", "00001", "00002"]
+    assert capture.raw_paths("A0001", "pos", cams) == {c: capture.raw_path("A0001", "pos", c) for c in cams}
+    assert capture.raw_paths("A0001", "pos", cams)["00002"] is None
+    frames, errors = capture.action_frames("A0001")
+    assert sorted(e.reason.split(":")[0] for e in errors) == ["camera 00001 has 2 raw files for 'pos' (['00001.DNG', "
+                                                              "'00001.dng'])", "camera 00002 has no raw file for 'pos'"]
+    assert ("pos", "00000") in frames and ("pos", "00001") not in frames
+    capture.actions.append(capture.actions[0].__class__("A0100", "S000", "toy"))  # a grown list is seen
+    assert capture.action("A0100").action_id == "A0100"
+
+
+def test_digest_keys_are_resolved_paths(tmp_path, monkeypatch):
+    real = tmp_path / "real"
+    real.mkdir()
+    (real / "a.dng").write_bytes(b"frame")
+    (real / "target.dng").write_bytes(b"other")
+    os.symlink(real, tmp_path / "linked")
+    os.symlink(real / "target.dng", real / "b.dng")
+    monkeypatch.chdir(tmp_path)
+    cache = DigestCache(tmp_path / "digests.json")
+    for path in (tmp_path / "linked" / "a.dng", Path("linked/a.dng"), Path("real/../linked/a.dng"),
+                 real / "b.dng", tmp_path / "linked" / "b.dng"):
+        assert cache._resolved(path) == str(Path(path).resolve())
+        assert cache.digest(path)["bytes"] == Path(path).stat().st_size
+    assert cache.hashed == 2 and set(cache._entries) == {str(real / "a.dng"), str(real / "target.dng")}
+    with pytest.raises(FileNotFoundError):
+        cache.digest(real / "missing.dng")
+
+
