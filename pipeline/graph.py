@@ -69,7 +69,21 @@ class Plan:
     store: ArtifactStore
 
     def for_scope(self, scope_id: str) -> list[Task]:
-        return [t for t in self.tasks if t.scope_id == scope_id]
+        return self.of_scopes(scope_id)
+
+    def of_scopes(self, *scope_ids: str) -> list[Task]:
+        """The tasks of these scopes (e.g. an action and its session), in plan order, from an index by scope
+        built once: a release-size run asks once per action, and a scan of every task each time is quadratic."""
+        index = self.__dict__.get("_by_scope")
+        if index is None or index[0] != len(self.tasks):
+            groups: dict[str, list[tuple[int, Task]]] = {}
+            for position, task in enumerate(self.tasks):
+                groups.setdefault(task.scope_id, []).append((position, task))
+            index = self.__dict__["_by_scope"] = (len(self.tasks), groups)
+        found = [pt for scope in dict.fromkeys(scope_ids) for pt in index[1].get(scope, [])]
+        if len(scope_ids) > 1:
+            found.sort(key=lambda pt: pt[0])
+        return [task for _, task in found]
 
     def to_run(self) -> list[Task]:
         return [t for t in self.tasks if t.status == "run"]

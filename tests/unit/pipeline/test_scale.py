@@ -52,3 +52,16 @@ def test_digest_keys_are_resolved_paths(tmp_path, monkeypatch):
         cache.digest(real / "missing.dng")
 
 
+
+
+def test_tasks_of_scopes_come_in_plan_order(tmp_path):
+    from pipeline.graph import make_plan
+    from pipeline.store import ArtifactStore
+    from tests.unit.pipeline.conftest import toy_stages
+
+    capture = open_capture(make_toy_capture(tmp_path / "capture", actions=ACTIONS))
+    plan = make_plan(capture, toy_stages(), ArtifactStore(tmp_path / "work" / "artifacts"),
+                     DigestCache(tmp_path / "work" / "digests.json"), echo=lambda line: None)
+    for scopes in (("A0003",), ("S000", "A0003"), ("A0003", "S000"), ("A0001", "A0000"), ("nope",)):
+        assert plan.of_scopes(*scopes) == [t for t in plan.tasks if t.scope_id in scopes]
+    assert plan.for_scope("A0002") == [t for t in plan.tasks if t.scope_id == "A0002"]
