@@ -65,3 +65,31 @@ def test_tasks_of_scopes_come_in_plan_order(tmp_path):
     for scopes in (("A0003",), ("S000", "A0003"), ("A0003", "S000"), ("A0001", "A0000"), ("nope",)):
         assert plan.of_scopes(*scopes) == [t for t in plan.tasks if t.scope_id in scopes]
     assert plan.for_scope("A0002") == [t for t in plan.tasks if t.scope_id == "A0002"]
+
+
+def test_validated_rows_are_the_same_whichever_path_checks_them():
+    import datetime
+
+    import numpy as np
+
+    from manifests.writer import _checked_columns, _fast_columns, validate_rows
+    from manifests.schemas import spec
+
+    rows = [{"action_id": f"A{i:04d}", "camera_id": f"{i % 3:05d}", "metric": "decode_mean", "region": None,
+             "environment": None, "value": v, "unit": "1", "source": "decode", "run_id": "r1"}
+            for i, v in enumerate([0.5, 1, 2.25, 3])]
+    ts = spec("metrics")
+    assert _fast_columns("metrics", ts, rows) == _checked_columns("metrics", ts, rows)
+    assert validate_rows("metrics", rows).column("value").to_pylist() == [0.5, 1.0, 2.25, 3.0]
+    # numpy scalars take the row-by-row path, which converts them: the same table
+    mixed = [dict(r, value=np.float32(r["value"])) for r in rows]
+    assert validate_rows("metrics", mixed).equals(validate_rows("metrics", rows))
+    # and errors are named as before: the first bad row in row order
+    bad = [dict(rows[0], value=float("nan")), dict(rows[1], camera_id="7")]
+    with pytest.raises(ValueError, match=r"metrics row 0: column 'value' is nan"):
+        validate_rows("metrics", bad)
+    stage_row = {"run_id": "r1", "stage": "decode", "version": "1", "scope": "action", "scope_id": "A0000",
+                 "cache_key": "0" * 64, "status": "ran", "seconds": 1.0, "error": "not allowed",
+                 "started_at": datetime.datetime.now(datetime.timezone.utc), "config_json": "{}"}
+    with pytest.raises(ValueError, match="row 0: column 'error' must be null when status is 'ran'"):
+        validate_rows("stage_runs", [stage_row])
