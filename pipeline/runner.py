@@ -39,12 +39,17 @@ class ExecutionConfig(Documented):
     """Worker processes of the local cluster; 0 = one per CPU core (at most 8)."""
     memory_limit: str = "auto"
     """Memory limit per local worker (dask syntax, e.g. "4GiB")."""
+    scopes_in_flight: int = 0
+    """At most this many actions (or sessions) submitted to the executor and not finished; the next goes in as
+    one finishes, so the scheduler holds a few actions' tasks, not the release's. 0 = twice the executor's
+    worker threads, at least 4."""
 
-    not_in_key = ("scheduler", "workers", "memory_limit")
+    not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight")
 
     def __post_init__(self) -> None:
-        if self.workers < 0 or not self.scheduler:
-            raise ValueError(f"execution: need workers >= 0 and a scheduler, got {self.workers!r}, {self.scheduler!r}")
+        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0:
+            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0 and a scheduler, got "
+                             f"{self.workers!r}, {self.scopes_in_flight!r}, {self.scheduler!r}")
 
 
 @dataclass
@@ -206,7 +211,8 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
         executor_name = executor.name
         echo(f"executing {len(plan.to_run())} stage task(s) on {executor_name}")
         try:
-            execute(plan, capture, executor, on_done=progress, on_view=view_progress, on_progress=stage_progress)
+            execute(plan, capture, executor, on_done=progress, on_view=view_progress, on_progress=stage_progress,
+                    window=execution.scopes_in_flight)
         finally:
             executor.close()
     for task in plan.tasks:  # cached results carry the stats they were committed with
