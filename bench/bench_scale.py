@@ -16,7 +16,8 @@ is found in the store; what a rerun costs before any work). Phases, in seconds a
   stage plus one per stage and scope); with the in-process executor this includes running the stubs;
 - ``execute``: all of ``execute`` (submission and waiting for results), per executor task;
 - ``bookkeeping``: the rest of the run after execution (stats of cached tasks, publishing, manifests,
-  release page), per plan task; ``publish``/``manifests``/``page`` are its main parts.
+  release page), per plan task and per graph task (plan tasks plus camera pieces: what a cold run submits,
+  and one published file each); ``publish``/``manifests``/``page`` are its main parts.
 
 ``max_in_flight`` is the largest number of executor tasks submitted and not yet finished at any moment:
 how much of the graph the scheduler holds. Each configuration runs in its own process (``peak_rss_mib``
@@ -41,8 +42,10 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-# dask's worker processes import the stages from this tree too
-os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
+# dask's worker processes import the stages from this tree too, and the stub classes from this module (by
+# reference, as they import a real stage's class: pickled by value they would cost the submission ~1 ms a task)
+os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "bench")] + [
+    p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
 
 CAMERAS = 32
 ACTIONS_PER_SESSION = 50
@@ -124,21 +127,34 @@ class _Stub:
         return {}
 
 
+def _stub_classes() -> list[type]:
+    """A stub class per registry stage, made at import as attributes of this module (so that a worker process
+    unpickles them by name, importing this module, as it does a real stage's class)."""
+    from stages.registry import STAGE_CLASSES
+
+    made = []
+    for cls in STAGE_CLASSES:
+        name = f"Stub{cls.__name__}"
+        globals()[name] = stub = type(name, (_Stub, cls), {"real": cls, "__module__": __name__, "__qualname__": name})
+        made.append(stub)
+    return made
+
+
+STUB_CLASSES = _stub_classes()
+
+
 def stub_stages() -> list[Any]:
     """The registry's stages (default preset, procedural environments so no HDR file is needed) as stubs."""
     import dataclasses
 
-    from stages.registry import CODE_PACKAGES, PRESETS, STAGE_CLASSES
+    from stages.registry import CODE_PACKAGES, PRESETS
 
     config = PRESETS["default"]
     envs = ("procedural:sky", "procedural:studio")
     config = dataclasses.replace(config, relight=dataclasses.replace(config.relight, environments=envs),
                                  relightset=dataclasses.replace(config.relightset, environments=envs))
-    stages = []
-    for cls in STAGE_CLASSES:
-        stub = type(f"Stub{cls.__name__}", (_Stub, cls), {"real": cls, "__module__": __name__})
-        stages.append(stub(getattr(config, cls.config_section or cls.name), code_packages=CODE_PACKAGES))
-    return stages
+    return [stub(getattr(config, stub.real.config_section or stub.real.name), code_packages=CODE_PACKAGES)
+            for stub in STUB_CLASSES]
 
 
 # --- timing ----------------------------------------------------------------------------------------
@@ -255,6 +271,7 @@ def run_once(capture: Path, work: Path, release: Path, scheduler: str, workers: 
         raise RuntimeError(f"the stub run did not complete: {ran} ran, {cached} cached of {plan_tasks}; "
                            f"{result.action_errors}")
     executor_tasks = executor.submitted if executor else 0
+    graph_tasks = plan_tasks + sum(len(t.views) for t in result.plan.tasks if t.stage.per_view)
     after = total - timers.get("plan", 0.0) - timers.get("executor_start", 0.0) - timers.get("execute", 0.0) \
         - timers.get("executor_close", 0.0)
     phases = {"plan_s": timers.get("plan", 0.0), "executor_start_s": timers.get("executor_start", 0.0),
@@ -263,11 +280,12 @@ def run_once(capture: Path, work: Path, release: Path, scheduler: str, workers: 
               "publish_s": timers.get("publish", 0.0), "manifests_s": timers.get("manifests", 0.0),
               "page_s": timers.get("page", 0.0), "docs_s": timers.get("docs", 0.0), "total_s": total}
     per_task = {"plan_ms": 1e3 * phases["plan_s"] / plan_tasks,
-                "bookkeeping_ms": 1e3 * after / plan_tasks}
+                "bookkeeping_ms": 1e3 * after / plan_tasks, "bookkeeping_per_graph_task_ms": 1e3 * after / graph_tasks}
     if executor_tasks:
         per_task |= {"submit_ms": 1e3 * phases["submit_s"] / executor_tasks,
                      "execute_ms": 1e3 * phases["execute_s"] / executor_tasks}
-    return {"plan_tasks": plan_tasks, "executor_tasks": executor_tasks, "ran": ran, "cached": cached,
+    return {"plan_tasks": plan_tasks, "graph_tasks": graph_tasks, "executor_tasks": executor_tasks, "ran": ran,
+            "cached": cached,
             "max_in_flight": executor.max_in_flight if executor else 0, "executor": result.executor,
             "phases_s": phases, "per_task": per_task}
 
@@ -305,17 +323,19 @@ def table(results: list[dict[str, Any]]) -> str:
              f"Stub stages on the real engine ({CAMERAS} cameras, 3 illuminations, one session per "
              f"{ACTIONS_PER_SESSION} actions; one published file per executor task). Milliseconds per task: "
              "plan and bookkeeping per plan task (stage x scope), submission and the whole execution per "
-             "executor task (camera pieces + commits). Goal: under 1 ms. `in flight`: most executor tasks "
+             "executor task (camera pieces + commits); bookkeeping also per graph task (plan tasks + camera "
+             "pieces, one published file each). Goal: under 1 ms. `in flight`: most executor tasks "
              "submitted and not finished at once.", "",
              "| actions | executor | run | plan tasks | exec tasks | plan ms | submit ms | execute ms | "
-             "bookkeeping ms | in flight | total s | peak RSS MiB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "bookkeeping ms | bookkeeping ms / graph task | in flight | total s | peak RSS MiB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         for label, run in r["runs"].items():
             p = run["per_task"]
             fmt = lambda k: f"{p[k]:.3f}" if k in p else "-"  # noqa: E731
             lines.append(f"| {r['actions']} | {r['executor']} | {label} | {run['plan_tasks']} | {run['executor_tasks']} | "
                          f"{fmt('plan_ms')} | {fmt('submit_ms')} | {fmt('execute_ms')} | {fmt('bookkeeping_ms')} | "
+                         f"{fmt('bookkeeping_per_graph_task_ms')} | "
                          f"{run['max_in_flight']} | {run['phases_s']['total_s']:.1f} | {r['peak_rss_mib']:.0f} |")
     lines += ["", "Bookkeeping split (seconds: publish / manifests / page):", ""]
     for r in results:
@@ -378,4 +398,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.path.insert(0, str(ROOT / "bench"))
+    import bench_scale  # this file under its own name: the stub classes pickle by reference
+
+    raise SystemExit(bench_scale.main())
