@@ -15,6 +15,7 @@ are UTC.
 """
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -404,6 +405,7 @@ _UNIT_SUFFIXES = (("_deg", "deg"), ("_db", "dB"), ("_pct", "%"), ("_mm", "mm"), 
                   ("width", "px"), ("height", "px"))
 
 
+@functools.lru_cache(maxsize=4096)  # asked once per metric row: a release has few names and many rows
 def metric_unit(metric: str) -> str:
     """The unit of a metric from its name: the name ends with it ('_deg', '_db', '_pct', '_mm', '_px', '_s' or
     'seconds'), or counts things ('_faces', '_pixels', '_views', ...); anything else is dimensionless ('1':

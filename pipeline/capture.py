@@ -6,6 +6,7 @@ is missing, so a planning step can fail one action with a clear message and go o
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -60,14 +61,29 @@ class Capture:
         return gt if gt.is_dir() else None
 
     def action(self, action_id: str) -> ActionInfo:
-        for info in self.actions:
-            if info.action_id == action_id:
-                return info
-        raise KeyError(f"{self.root}: no action {action_id}")
+        """The action's entry, looked up by id in a dict (a release-size capture is asked once per task)."""
+        index = self.__dict__.get("_action_index")
+        if index is None or index[0] is not self.actions or len(index[1]) != len(self.actions):
+            index = (self.actions, {info.action_id: info for info in reversed(self.actions)})  # the first wins
+            self.__dict__["_action_index"] = index
+        info = index[1].get(action_id)
+        if info is None:
+            raise KeyError(f"{self.root}: no action {action_id}")
+        return info
 
     def raw_path(self, action_id: str, illumination: str, camera_id: str) -> Path | None:
         """The raw file of one frame (any extension LibRaw reads), or None when it is missing."""
         return _find_raw(self.root / "actions" / action_id / illumination, camera_id)
+
+    def raw_paths(self, action_id: str, illumination: str, camera_ids: list[str]) -> dict[str, Path | None]:
+        """:meth:`raw_path` of several cameras of one illumination, from one listing of its folder."""
+        folder = self.root / "actions" / action_id / illumination
+        names = _raw_names(folder)
+        found = {}
+        for cam in camera_ids:
+            matches = _raw_files(folder, cam, names)
+            found[cam] = matches[0] if matches else None
+        return found
 
     def background_path(self, session_id: str, camera_id: str) -> Path | None:
         return _find_raw(self.root / "sessions" / session_id / "background", camera_id)
@@ -89,8 +105,9 @@ class Capture:
                 errors.append(InputError(folder, f"illumination '{illum}' is missing (no folder)"))
                 continue
             expected = set(session.camera_ids)
+            names = _raw_names(folder)  # one listing of the folder for all its cameras
             for cam in session.camera_ids:
-                found = _raw_files(folder, cam)
+                found = _raw_files(folder, cam, names)
                 if not found:
                     errors.append(InputError(folder / f"{cam}.*", f"camera {cam} has no raw file for '{illum}'"))
                 elif len(found) > 1:  # e.g. 00002.dng beside 00002.DNG: which one is the frame is anyone's guess
@@ -98,19 +115,29 @@ class Capture:
                                                        f"({[p.name for p in found]}): a duplicate frame"))
                 else:
                     frames[(illum, cam)] = found[0]
-            extra = sorted(p.name for p in folder.iterdir()
-                           if p.suffix.lower() in RAW_EXTENSIONS and p.stem not in expected)
+            extra = sorted(n for n in names if Path(n).stem not in expected)
             if extra:
                 errors.append(InputError(folder, f"{len(extra)} raw file(s) for cameras not in the rig: {extra[:5]}"
                                                  f" (expected {len(expected)} cameras)"))
         return frames, errors
 
 
-def _raw_files(folder: Path, camera_id: str) -> list[Path]:
-    """The raw files of one camera in a folder (``<camera_id>.<raw extension>``), sorted by name."""
-    if not folder.is_dir():
+def _raw_names(folder: Path) -> list[str]:
+    """The names in a folder with a raw extension (any case), sorted; empty when it is not a folder."""
+    try:
+        with os.scandir(folder) as entries:
+            return sorted(e.name for e in entries if Path(e.name).suffix.lower() in RAW_EXTENSIONS)
+    except (FileNotFoundError, NotADirectoryError, PermissionError):
         return []
-    return sorted(p for p in folder.glob(f"{camera_id}.*") if p.suffix.lower() in RAW_EXTENSIONS)
+
+
+def _raw_files(folder: Path, camera_id: str, names: list[str] | None = None) -> list[Path]:
+    """The raw files of one camera in a folder (``<camera_id>.<raw extension>``), sorted by name; ``names``:
+    the folder's :func:`_raw_names` when the caller listed it already (one listing for every camera)."""
+    if names is None:
+        names = _raw_names(folder)
+    prefix = f"{camera_id}."
+    return [folder / n for n in names if n.startswith(prefix)]
 
 
 def _find_raw(folder: Path, camera_id: str) -> Path | None:

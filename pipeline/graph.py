@@ -4,7 +4,8 @@ Planning computes every task's cache key from an explicit record (stage, version
 stage's code, scope, the config fields that change output, upstream keys, raw-input digests). A task whose
 key is already committed in the store is resolved while planning and never reaches the scheduler; each
 decision is logged as one line with its reason. Execution submits the remaining tasks to an executor (in-process, or
-dask.distributed), one task per (stage, scope) or per (stage, action, camera) for per-view stages.
+dask.distributed), one task per (stage, scope) or per (stage, action, camera) for per-view stages, a few
+scopes at a time (a window: the scheduler holds a few actions' tasks, not the release's).
 
 A task never raises into the scheduler: it returns a result record, and a failed upstream turns its
 downstream tasks into "skipped", so one bad action never stops the others. A skipped task names the stage
@@ -14,6 +15,7 @@ retry" for a task whose key failed last time.
 """
 from __future__ import annotations
 
+import collections
 import logging
 import secrets
 import time
@@ -70,7 +72,21 @@ class Plan:
     store: ArtifactStore
 
     def for_scope(self, scope_id: str) -> list[Task]:
-        return [t for t in self.tasks if t.scope_id == scope_id]
+        return self.of_scopes(scope_id)
+
+    def of_scopes(self, *scope_ids: str) -> list[Task]:
+        """The tasks of these scopes (e.g. an action and its session), in plan order, from an index by scope
+        built once: a release-size run asks once per action, and a scan of every task each time is quadratic."""
+        index = self.__dict__.get("_by_scope")
+        if index is None or index[0] != len(self.tasks):
+            groups: dict[str, list[tuple[int, Task]]] = {}
+            for position, task in enumerate(self.tasks):
+                groups.setdefault(task.scope_id, []).append((position, task))
+            index = self.__dict__["_by_scope"] = (len(self.tasks), groups)
+        found = [pt for scope in dict.fromkeys(scope_ids) for pt in index[1].get(scope, [])]
+        if len(scope_ids) > 1:
+            found.sort(key=lambda pt: pt[0])
+        return [task for _, task in found]
 
     def to_run(self) -> list[Task]:
         return [t for t in self.tasks if t.status == "run"]
@@ -350,12 +366,34 @@ class SyncExecutor:
     def subscribe_progress(self, callback: Callable[[dict[str, Any]], None] | None) -> None:
         set_local_progress(callback)
 
+    slots = 1
+    """Tasks it runs at once."""
+
     def as_completed(self, handles: list[Any]) -> Iterable[tuple[Any, Any]]:
         for handle in handles:
             yield handle, handle
 
+    def completions(self, handles: Iterable[Any] = ()) -> "_InOrder":
+        """(handle, result) of each handle as it completes, including handles ``add``-ed while iterating."""
+        return _InOrder(handles)
+
     def close(self) -> None:
         set_local_progress(None)
+
+
+class _InOrder:
+    """The in-process executor's completions: its handles are its results, yielded in the order added."""
+
+    def __init__(self, handles: Iterable[Any]):
+        self._queue = collections.deque(handles)
+
+    def add(self, handle: Any) -> None:
+        self._queue.append(handle)
+
+    def __iter__(self) -> Iterable[tuple[Any, Any]]:
+        while self._queue:
+            handle = self._queue.popleft()
+            yield handle, handle
 
 
 class DaskExecutor:
@@ -396,6 +434,8 @@ class DaskExecutor:
         self._resources = set()
         for worker in info.get("workers", {}).values():
             self._resources |= set(worker.get("resources", {}))
+        self.slots = max(1, sum(int(w.get("nthreads", 1)) for w in info.get("workers", {}).values()))
+        """Tasks the cluster runs at once (its workers' threads when it started)."""
 
     def submit(self, fn: Callable[..., Any], *args: Any, key: str, resources: dict | None = None) -> Any:
         # Only annotate resources the cluster has: a GPU stage on a CPU-only cluster still runs.
@@ -413,11 +453,11 @@ class DaskExecutor:
         from distributed import as_completed
 
         for future in as_completed(handles):
-            try:
-                result = future.result()
-            except Exception as exc:  # noqa: BLE001
-                result = {"ok": False, "error": f"{type(exc).__name__}: {exc}", "executor_error": True}
-            yield future, result
+            yield future, _dask_result(future)
+
+    def completions(self, handles: Iterable[Any] = ()) -> "_DaskCompletions":
+        """(future, result) of each future as it completes, including futures ``add``-ed while iterating."""
+        return _DaskCompletions(handles)
 
     def close(self) -> None:
         self.client.close()
@@ -425,53 +465,129 @@ class DaskExecutor:
             self.cluster.close()
 
 
+class _DaskCompletions:
+    def __init__(self, futures: Iterable[Any]):
+        from distributed import as_completed
+
+        self._futures = as_completed(list(futures))
+
+    def add(self, future: Any) -> None:
+        self._futures.add(future)
+
+    def __iter__(self) -> Iterable[tuple[Any, Any]]:
+        for future in self._futures:
+            yield future, _dask_result(future)
+
+
+def _dask_result(future: Any) -> dict[str, Any]:
+    """A finished future's result; a task that raised in dask itself (our tasks never raise) gives a failure
+    record instead: ``KilledWorker`` when workers died running it more often than the scheduler's
+    ``allowed-failures``, or the error of an upstream task that did; the run goes on and records it."""
+    try:
+        return future.result()
+    except Exception as exc:  # noqa: BLE001
+        return {"ok": False, "error": f"{type(exc).__name__}: {exc}", "executor_error": True}
+
+
+def default_window(executor: Any) -> int:
+    """Scopes in flight when the configuration does not say: twice the tasks the executor runs at once, at
+    least 4 (each action in flight has a runnable task most of the time, and per-camera stages have 32)."""
+    return max(4, 2 * int(getattr(executor, "slots", 1) or 1))
+
+
+def _outcome(result: dict[str, Any]) -> dict[str, Any]:
+    """What a downstream task needs of a finished upstream result (:func:`_upstream_failed`): passed instead of
+    the finished task's handle, so the executor can let go of it."""
+    return {k: result[k] for k in ("ok", "stage", "skipped", "failed_stage", "error") if k in result}
+
+
 def execute(plan: Plan, capture: Capture, executor: Any,
             on_done: Callable[[Task, dict[str, Any], int, int], None] | None = None,
             on_view: Callable[[Task, dict[str, Any], int, int], None] | None = None,
-            on_progress: Callable[[dict[str, Any]], None] | None = None) -> None:
+            on_progress: Callable[[dict[str, Any]], None] | None = None, window: int = 0) -> None:
     """Run every task the plan marked "run"; fill in each task's status, seconds, stats and error.
 
     ``on_done(task, result, done, total)`` is called as each (stage, scope) completes and
     ``on_view(task, result, done, total)`` as each camera of a per-view stage does (progress display);
     ``on_progress(record)`` receives what long tasks report through ``StageContext.progress``.
+
+    Tasks are submitted a scope (a session, an action) at a time, in plan order, with at most ``window``
+    scopes submitted and not finished (0: :func:`default_window`); the next scope goes in as one finishes. A
+    finished task's handle is let go: downstream tasks submitted later get its outcome instead, so the
+    executor holds the tasks of a few scopes, never the whole release's graph. An executor without
+    ``completions`` gets every task at once.
     """
     if on_progress is not None and hasattr(executor, "subscribe_progress"):
         executor.subscribe_progress(on_progress)
     store = plan.store
     attempt = secrets.token_hex(8)  # this execution; a task recomputed after its worker died checks it
-    handles: dict[tuple[str, str], Any] = {}
-    owner: dict[int, Task] = {}
-    view_owner: dict[int, Task] = {}
-    view_handles: list[Any] = []
-    for task in plan.to_run():
-        ctx = _context(task, store, capture)
-        ups = [handles[(n, t.scope_id)] for n, t in task.upstream.items() if (n, t.scope_id) in handles]
-        store.begin(task.stage.name, task.scope_id, task.key)
-        tag = f"{task.stage.name}-{task.scope_id}-{short(task.key)}"
-        res = task.stage.resources
-        if task.stage.per_view:
-            views = task.stage.views(ctx)
-            parts = [executor.submit(run_view_task, task.stage, ctx, store, task.key, attempt, v, *ups,
-                                     key=f"{tag}-{v}", resources=res)
-                     for v in views]
-            view_owner.update({id(p): task for p in parts})
-            view_handles += parts
+    todo = plan.to_run()
+    total = len(todo)
+    scopes: dict[str, list[Task]] = {}
+    for task in todo:
+        scopes.setdefault(task.scope_id, []).append(task)
+    contexts = {id(task): _context(task, store, capture) for task in todo}
+    views = {id(task): task.stage.views(contexts[id(task)]) for task in todo if task.stage.per_view}
+    total_views = sum(len(v) for v in views.values())
+    dynamic = hasattr(executor, "completions")
+    limit = (window if window > 0 else default_window(executor)) if dynamic else max(1, len(scopes))
+    pending = collections.deque(scopes.values())
+    handles: dict[tuple[str, str], Any] = {}  # submitted, not finished
+    outcomes: dict[tuple[str, str], dict[str, Any]] = {}  # finished
+    owner: dict[int, tuple[Any, Task]] = {}  # the handle is held with its task, so its id stays its own
+    view_owner: dict[int, tuple[Any, Task]] = {}
+    left: dict[str, int] = {}
+    watched: list[Any] = []
+    completions = executor.completions() if dynamic else None
+
+    def watch(handle: Any) -> None:
+        if completions is not None:
+            completions.add(handle)
         else:
-            parts = list(ups)
-        handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, attempt, *parts,
-                                 key=f"{tag}-commit")
-        handles[(task.stage.name, task.scope_id)] = handle
-        owner[id(handle)] = task
-    total = len(handles)
+            watched.append(handle)
+
+    def submit_scope(tasks: list[Task]) -> None:
+        left[tasks[0].scope_id] = len(tasks)
+        for task in tasks:
+            ctx = contexts.pop(id(task))
+            ups = []
+            for n, t in task.upstream.items():
+                if (n, t.scope_id) in handles:
+                    ups.append(handles[(n, t.scope_id)])
+                elif (n, t.scope_id) in outcomes:
+                    ups.append(outcomes[(n, t.scope_id)])
+            store.begin(task.stage.name, task.scope_id, task.key)
+            tag = f"{task.stage.name}-{task.scope_id}-{short(task.key)}"
+            res = task.stage.resources
+            if task.stage.per_view:
+                parts = [executor.submit(run_view_task, task.stage, ctx, store, task.key, attempt, v, *ups,
+                                         key=f"{tag}-{v}", resources=res)
+                         for v in views.pop(id(task))]
+                if on_view:
+                    for p in parts:
+                        view_owner[id(p)] = (p, task)
+                        watch(p)
+            else:
+                parts = list(ups)
+            handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, attempt, *parts,
+                                     key=f"{tag}-commit")
+            handles[(task.stage.name, task.scope_id)] = handle
+            owner[id(handle)] = (handle, task)
+            watch(handle)
+
+    in_flight = 0
+    while pending and in_flight < limit:
+        submit_scope(pending.popleft())
+        in_flight += 1
     done = views_done = 0
-    watched = (view_handles if on_view else []) + list(handles.values())
     lost: list[Task] = []
-    for handle, result in executor.as_completed(watched):
+    for handle, result in (completions if completions is not None else executor.as_completed(watched)):
         if id(handle) in view_owner:
+            _, task = view_owner.pop(id(handle))
             views_done += 1
-            on_view(view_owner[id(handle)], result, views_done, len(view_handles))
+            on_view(task, result, views_done, total_views)
             continue
-        task = owner[id(handle)]
+        _, task = owner.pop(id(handle))
         done += 1
         task.seconds = float(result.get("seconds", 0.0))
         task.started_at = result.get("started_at")
@@ -488,8 +604,16 @@ def execute(plan: Plan, capture: Capture, executor: Any,
                 store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
                 if result.get("traceback"):
                     log.debug("%s failed:\n%s", task.name, result["traceback"])
+        handles.pop((task.stage.name, task.scope_id), None)
+        outcomes[(task.stage.name, task.scope_id)] = _outcome(result)
         if on_done:
             on_done(task, result, done, total)
+        left[task.scope_id] -= 1
+        if left[task.scope_id] == 0:  # a scope finished: the next one goes in
+            in_flight -= 1
+            while pending and in_flight < limit:
+                submit_scope(pending.popleft())
+                in_flight += 1
     # dask passes a task's error on to the tasks that depend on it: those were not run, the first one failed
     for task in sorted(lost, key=plan.tasks.index):  # plan order: upstream before downstream
         bad = next((t for t in task.upstream.values() if t.status in ("failed", "skipped")), None)

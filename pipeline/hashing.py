@@ -62,18 +62,34 @@ class DigestCache:
                 self._entries = {}
         self.hashed = 0
         self.reused = 0
+        self._real_dirs: dict[str, str] = {}
+
+    def _resolved(self, path: str | Path) -> str:
+        """``Path(path).resolve()`` as a string, with the folders' real paths remembered: a capture's frames
+        share a few folders, so each file costs one ``lstat`` instead of one per path component. (A folder
+        link changed while this cache lives is not seen; a cache lives for one run.)"""
+        text = os.fspath(path)
+        if not os.path.isabs(text):
+            text = os.path.join(os.getcwd(), text)
+        folder, name = os.path.split(text)
+        if name in ("", ".", ".."):
+            return os.path.realpath(text)
+        real = self._real_dirs.get(folder)
+        if real is None:
+            real = self._real_dirs[folder] = os.path.realpath(folder)
+        full = os.path.join(real, name)
+        return os.path.realpath(full) if os.path.islink(full) else full
 
     def digest(self, path: str | Path) -> dict[str, Any]:
         """``{"sha256", "bytes"}`` for a file; raises FileNotFoundError when it is missing."""
-        path = Path(path).resolve()
-        stat = path.stat()
-        key = str(path)
+        key = self._resolved(path)
+        stat = os.stat(key)
         with self._lock:
             entry = self._entries.get(key)
             if entry and entry["bytes"] == stat.st_size and entry["mtime_ns"] == stat.st_mtime_ns:
                 self.reused += 1
                 return {"sha256": entry["sha256"], "bytes": entry["bytes"]}
-        sha = file_sha256(path)
+        sha = file_sha256(key)
         with self._lock:
             self._entries[key] = {"sha256": sha, "bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}
             self._dirty = True

@@ -42,12 +42,17 @@ class ExecutionConfig(Documented):
     """Worker processes of the local cluster; 0 = one per CPU core (at most 8)."""
     memory_limit: str = "auto"
     """Memory limit per local worker (dask syntax, e.g. "4GiB")."""
+    scopes_in_flight: int = 0
+    """At most this many actions (or sessions) submitted to the executor and not finished; the next goes in as
+    one finishes, so the scheduler holds a few actions' tasks, not the release's. 0 = twice the executor's
+    worker threads, at least 4."""
 
-    not_in_key = ("scheduler", "workers", "memory_limit")
+    not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight")
 
     def __post_init__(self) -> None:
-        if self.workers < 0 or not self.scheduler:
-            raise ValueError(f"execution: need workers >= 0 and a scheduler, got {self.workers!r}, {self.scheduler!r}")
+        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0:
+            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0 and a scheduler, got "
+                             f"{self.workers!r}, {self.scopes_in_flight!r}, {self.scheduler!r}")
 
 
 @dataclass
@@ -273,7 +278,8 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
         executor_name = executor.name
         echo(f"executing {len(plan.to_run())} stage task(s) on {executor_name}")
         try:
-            execute(plan, capture, executor, on_done=progress, on_view=view_progress, on_progress=stage_progress)
+            execute(plan, capture, executor, on_done=progress, on_view=view_progress, on_progress=stage_progress,
+                    window=execution.scopes_in_flight)
         finally:
             executor.close()
     for task in plan.tasks:  # cached results carry the stats they were committed with
@@ -295,7 +301,7 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
     try:
         for action_id in wanted:
             session_id = capture.action(action_id).session_id
-            tasks = [t for t in plan.tasks if t.scope_id in (action_id, session_id)]
+            tasks = plan.of_scopes(session_id, action_id)
             bad = [t for t in tasks if t.status not in ("ran", "cached")]
             if bad:
                 first = next((t for t in bad if t.status == "failed"), bad[0])
@@ -456,7 +462,7 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
     for action_id, status in action_status.items():
         info = capture.action(action_id)
         session = capture.sessions[info.session_id]
-        tasks = [t for t in plan.tasks if t.scope_id == action_id]
+        tasks = plan.of_scopes(action_id)
         decode = next((t for t in tasks if t.stage.name == "decode"), None)
         views = (decode.stats.get("views", {}) if decode else {}) or {}
         first_view = next(iter(views.values()), {})
@@ -471,12 +477,12 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
         error = action_errors.get(action_id, "")
         # Stages may report cameras they had to leave out (e.g. not calibrated): those frames failed.
         missing_views: dict[str, str] = {}
-        for task in plan.tasks:
-            if task.scope_id in (action_id, info.session_id):
-                missing_views |= task.stats.get("missing_views", {}) or {}
+        for task in plan.of_scopes(info.session_id, action_id):
+            missing_views |= task.stats.get("missing_views", {}) or {}
         for illum in capture.illuminations:
+            paths = capture.raw_paths(action_id, illum, [cam["camera_id"] for cam in cams])  # one folder listing
             for cam in cams:
-                path = capture.raw_path(action_id, illum, cam["camera_id"])
+                path = paths[cam["camera_id"]]
                 row = {"action_id": action_id, "camera_id": cam["camera_id"], "illumination": illum,
                        "raw_path": None, "raw_bytes": None, "raw_sha256": None,
                        "exposure_s": cam.get("exposure_s"), "width": cam["width"], "height": cam["height"],
@@ -491,13 +497,12 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                 frame_rows.append(row)
         # Calibration frames a session stage left out (its stats' "calibration_left_out": camera -> file and
         # reason, also logged): one row per camera and stage for every action the calibration feeds.
-        for task in plan.tasks:
-            if task.scope_id == info.session_id:
-                for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
-                    metric_rows.append({"action_id": action_id, "camera_id": cam,
-                                        "metric": f"{task.stage.name}_calibration_frame_left_out", "region": None,
-                                        "environment": None, "value": 1.0, "unit": "count",
-                                        "source": task.stage.name, "run_id": run_id})
+        for task in plan.of_scopes(info.session_id):
+            for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
+                metric_rows.append({"action_id": action_id, "camera_id": cam,
+                                    "metric": f"{task.stage.name}_calibration_frame_left_out", "region": None,
+                                    "environment": None, "value": 1.0, "unit": "count",
+                                    "source": task.stage.name, "run_id": run_id})
         for task in tasks:
             if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
                 continue

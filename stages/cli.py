@@ -103,9 +103,11 @@ def summary_table(result: Any, metrics: dict[str, dict[str, float]] | None) -> A
     if metrics:
         for _, title in SUMMARY_METRICS:
             table.add_column(title, justify="right")
-    scopes = list(dict.fromkeys(t.scope_id for t in result.plan.tasks))
-    for scope in scopes:
-        outcome, seconds = _scope_outcome([t for t in result.plan.tasks if t.scope_id == scope])
+    scopes: dict[str, list[Any]] = {}  # in plan order, grouped in one pass (a release has thousands of scopes)
+    for t in result.plan.tasks:
+        scopes.setdefault(t.scope_id, []).append(t)
+    for scope, scope_tasks in scopes.items():
+        outcome, seconds = _scope_outcome(scope_tasks)
         cells = [scope, outcome, f"{seconds:.0f}s"]
         if metrics:
             m = metrics.get(scope, {})
