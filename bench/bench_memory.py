@@ -15,9 +15,9 @@ peak resident set of that one child (``resource.getrusage(RUSAGE_CHILDREN).ru_ma
 - ``sdf_production_<k>``: :func:`stages.numerics.sdf.train_sdf` with ``SDF_PRESETS["production"]``'s sizes
   (hash grid of 16 levels x 2^19 entries, 4096 rays x 16 samples a step, 2048 eikonal points, hull of 192^3,
   proposal grid of 8 mm) for a few steps on the CPU, from 32 views of an ellipsoid at 1/k of the production map
-  size (3008 x 2008) per axis: what grows with the views' pixels (the views themselves and the bank of rays
-  worth drawing) is measured at k = 4 and 2 and extrapolated linearly in pixels to k = 1, the geometry stage's
-  input at production size (``--sdf-full`` measures k = 1 itself).
+  size (3008 x 2008) per axis, k = 4, 2 and 1 (k = 1 is the geometry stage's input at production size; what
+  grows with the views' pixels, the views themselves and the bank of rays worth drawing, is also extrapolated
+  linearly in pixels from k = 4 and 2, a check of the k = 1 row).
 
 Writes bench_memory.json and bench_memory.md. ``python bench/bench_memory.py --out bench/out [--quick]``
 (``--quick``: a 1/8-size camera and SDF views, seconds; for checking the bench, not for the figures).
@@ -285,7 +285,7 @@ def table(report: dict[str, Any]) -> str:
                      f"{run['wall_s']:.1f} |")
     if "sdf_full_extrapolated_mib" in report:
         lines += ["", f"SDF with 32 views at the production map size ({w // 2} x {h // 2}), extrapolated linearly in "
-                      f"the views' pixels from the rows above: **{report['sdf_full_extrapolated_mib'] / 1024:.1f} GiB**."]
+                      f"the views' pixels from k = 4 and 2 (a check of the measured row): **{report['sdf_full_extrapolated_mib'] / 1024:.1f} GiB**."]
     lines += ["", f"What a worker needs: {report['worker_needs']}"]
     return "\n".join(lines) + "\n"
 
@@ -294,7 +294,6 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     parser.add_argument("--quick", action="store_true", help="1/8-size frames and SDF views (checks the bench only)")
-    parser.add_argument("--sdf-full", action="store_true", help="also measure the SDF on production-size views")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--variant", help=argparse.SUPPRESS)
     parser.add_argument("--folder", help=argparse.SUPPRESS)
@@ -308,7 +307,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     scale = 8 if args.quick else 1
     width, height = SENSOR[0] // scale, SENSOR[1] // scale
-    sdf_ks = [16, 8] if args.quick else ([4, 2, 1] if args.sdf_full else [4, 2])
+    sdf_ks = [16, 8] if args.quick else [4, 2, 1]
     runs: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:
         folder = Path(tmp)

@@ -52,8 +52,8 @@ ACTIONS_PER_SESSION = 50
 """Assumed: a capture session (its calibration frames and clean plates) per 50 actions."""
 RAW_BYTES_PER_PIXEL = 2
 """The raw frames as the simulator writes them: uncompressed 16-bit DNG (a camera's compressed raw is smaller)."""
-WORKERS = (16, 64, 256, 1024)
-GPUS = (1, 4, 8, 32)
+CPU_WORKERS = (16, 64, 256, 1024)
+GPU_COUNTS = (1, 4, 8, 32)
 
 
 def sdf_samples(geometry: Any) -> float:
@@ -197,8 +197,8 @@ def project(stage_s: dict[str, float], per_session: set[str], rules: dict[str, t
         return path + tail
 
     walls = {}
-    for n in WORKERS:
-        for m in GPUS:
+    for n in CPU_WORKERS:
+        for m in GPU_COUNTS:
             work = max(cpu_total / n, gpu_total / m)
             walls[f"{n},{m}"] = {"workers": n, "gpus": m, "hours": (raw_hash_s + work + critical(n) + publish_hash_s
                                                                     + engine_s) / 3600,
@@ -310,10 +310,10 @@ def table(r: dict[str, Any]) -> str:
                   f"{r['sha256_bytes_per_s'] / 1e9:.2f} GB/s, disk not counted); engine {r['engine_h']:.2f} h "
                   f"({r['engine']}).", "",
               "Wall time, days (CPU- or GPU-bound):", "",
-              "| N CPU workers | " + " | ".join(f"M = {g} GPU" for g in GPUS) + " |",
-              "|---|" + "---|" * len(GPUS)]
-    for n in WORKERS:
-        cells = [f"{r['walls'][f'{n},{g}']['hours'] / 24:.1f} ({r['walls'][f'{n},{g}']['bound']})" for g in GPUS]
+              "| N CPU workers | " + " | ".join(f"M = {g} GPU" for g in GPU_COUNTS) + " |",
+              "|---|" + "---|" * len(GPU_COUNTS)]
+    for n in CPU_WORKERS:
+        cells = [f"{r['walls'][f'{n},{g}']['hours'] / 24:.1f} ({r['walls'][f'{n},{g}']['bound']})" for g in GPU_COUNTS]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     st = r["storage_tb"]
     lines += ["", f"Storage: raw capture {st['raw_capture']:.1f} TB (uncompressed 16-bit DNG), release files "
@@ -334,8 +334,8 @@ def plot(r: dict[str, Any], path: Path) -> bool:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    for g in GPUS:
-        ax.plot(WORKERS, [r["walls"][f"{n},{g}"]["hours"] / 24 for n in WORKERS], "o-", label=f"{g} GPU")
+    for g in GPU_COUNTS:
+        ax.plot(CPU_WORKERS, [r["walls"][f"{n},{g}"]["hours"] / 24 for n in CPU_WORKERS], "o-", label=f"{g} GPU")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("CPU workers (cores)")
