@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 RUN ?= runs/default
 ARGS ?=
 
-.PHONY: setup dataset test bench lint clean-runs compat
+.PHONY: setup dataset test bench bench-quick lint clean-runs compat
 
 setup: $(STAMP)
 
@@ -37,6 +37,10 @@ test: setup
 
 bench: setup
 	$(PY) bench/run_all.py --out bench/out
+
+# Every bench on the smallest inputs that run its code (the tests run it too): checks, not measurements.
+bench-quick: setup
+	$(PY) bench/run_all.py --quick --out bench/out-quick
 
 # Other tools' own loaders on a release (nerfstudio's dataparsers, COLMAP's reader), in their own environment
 # .venv-compat (never the main one). torch 2.13.0 goes in first from the CPU build the machine's pip finds

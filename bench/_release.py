@@ -4,21 +4,38 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from _quick import QUICK_HELP, quick_run
+
 ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_RUN = ROOT / "runs" / "default"
 
 
 def release_parser(description: str | None, actions: str | None = None, threads: int | None = None) -> argparse.ArgumentParser:
-    """A parser with ``--out``, ``--release`` and ``--capture`` (defaults: bench/out and runs/default); with
-    ``actions`` also ``--actions`` (that default; "" = every action), with ``threads`` also ``--threads``."""
+    """A parser with ``--out``, ``--release``, ``--capture`` (defaults: bench/out and runs/default) and ``--quick``
+    (the release and capture of :func:`_quick.quick_run` unless given); with ``actions`` also ``--actions`` (that
+    default; "" = every action), with ``threads`` also ``--threads``. Parse with :func:`parse_release_args`."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
-    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
+    parser.add_argument("--release", help=f"default {DEFAULT_RUN / 'release'}; with --quick the tiny run's")
+    parser.add_argument("--capture", help=f"default {DEFAULT_RUN / 'capture'}; with --quick the tiny run's")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     if actions is not None:
         parser.add_argument("--actions", default=actions, help="comma-separated action ids (empty: every action)")
     if threads is not None:
         parser.add_argument("--threads", type=int, default=threads, help="torch and Embree threads")
     return parser
+
+
+def parse_release_args(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
+    """``parser.parse_args`` with ``release`` and ``capture`` filled in: runs/default's, or with ``--quick`` (and
+    neither given) the tiny run's under ``--out``, made on first use."""
+    args = parser.parse_args(argv)
+    if args.quick and args.release is None and args.capture is None:
+        run = quick_run(Path(args.out))
+        args.release, args.capture = str(run / "release"), str(run / "capture")
+    args.release = args.release or str(DEFAULT_RUN / "release")
+    args.capture = args.capture or str(DEFAULT_RUN / "capture")
+    return args
 
 
 def check_inputs(name: str, release: Path, capture: Path, need_truth: bool) -> tuple[bool, Path | None]:

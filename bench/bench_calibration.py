@@ -12,7 +12,11 @@ reprojection error (px), registered cameras and wall time. The capture and the P
 ``OUT/cache``.
 
     python bench/bench_calibration.py --out bench/out [--width 640] [--sizes 480,640,-1] [--centre-noise-mm 0]
+    python bench/bench_calibration.py --out bench/out --quick   # the tests' mode: not measurements
     python bench/bench_calibration.py --rig-prior --widths 320,640   # calibrate_rig: nominal vs refined
+
+``--quick`` runs the default mode on a capture 240 px wide (128 LEDs, the subject unsubdivided) at full
+resolution only.
 
 ``--rig-prior`` benchmarks :func:`calibration.geometric.calibrate_rig` instead: it starts from the rig
 spec's NOMINAL cameras and is measured against the TRUE cameras (ground_truth/cameras/S000.json), in the
@@ -53,28 +57,34 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
+from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 from calibration.geometric import GeometricConfig, calibrate_images, camera_centre, pose_errors  # noqa: E402
 
 
-def capture(cache: Path, width: int) -> Path:
-    """Simulated capture (one action) at ``width``, rendered once and reused."""
+QUICK_CALIBRATION_WIDTH = 240
+
+
+def capture(cache: Path, width: int, quick: bool = False) -> Path:
+    """Simulated capture (one action) at ``width``, rendered once and reused; ``quick``: with
+    :func:`_quick.quick_sim_changes` (cached apart)."""
     from synthetic import SimConfig, simulate
 
-    out = cache / f"capture_w{width}"
+    out = cache / (f"capture_w{width}" + ("_quick" if quick else ""))
     if not (out / "sessions" / "S000" / "rig.json").is_file():
         t0 = time.perf_counter()
-        simulate(out, SimConfig(actions=1, width=width, background=False))
+        simulate(out, SimConfig(actions=1, width=width, background=False, **(quick_sim_changes() if quick else {})))
         print(f"simulated {out} in {time.perf_counter() - t0:.1f} s", flush=True)
     return out
 
 
-def pngs(capture_dir: Path, cache: Path, width: int) -> list[Path]:
+def pngs(capture_dir: Path, cache: Path, width: int, quick: bool = False) -> list[Path]:
     """full_on frames of action A0000 as 8-bit sRGB PNGs (auto exposure), cached."""
     from pipeline.codecs.image import preview_linear, write_png
     from pipeline.codecs.raw import decode_raw
 
-    out = cache / f"png_w{width}"
+    out = cache / (f"png_w{width}" + ("_quick" if quick else ""))
     paths = []
     for dng in sorted((capture_dir / "actions" / "A0000" / "full_on").glob("*.dng")):
         png = out / f"{dng.stem}.png"
@@ -315,8 +325,11 @@ def main() -> None:
                     help="calibrate on the simulated marker frame (rig spec vs calibrate_markers variants)")
     ap.add_argument("--capture", type=Path, default=None, help="--markers: an existing capture to use at width 320")
     ap.add_argument("--widths", default="320,640", help="simulated widths for --rig-prior, --target and --markers")
+    ap.add_argument("--quick", action="store_true", help=QUICK_HELP + "; the default mode only")
     args = ap.parse_args()
     out = args.out
+    if args.quick:
+        args.width, args.sizes = QUICK_CALIBRATION_WIDTH, "-1"
     if args.markers:
         out.mkdir(parents=True, exist_ok=True)
         markers_bench(out, [int(w) for w in args.widths.split(",")], args.capture)
@@ -331,8 +344,8 @@ def main() -> None:
         return
     cache = out / "cache"
     cache.mkdir(parents=True, exist_ok=True)
-    cap = capture(cache, args.width)
-    images = pngs(cap, cache, args.width)
+    cap = capture(cache, args.width, args.quick)
+    images = pngs(cap, cache, args.width, args.quick)
     rig = json.loads((cap / "sessions" / "S000" / "rig.json").read_text())
     K = {f"{c['camera_id']}.png": np.asarray(c["K"], float) for c in rig["cameras"]}
     truth = {f"{c['camera_id']}.png": np.asarray(c["cam_from_world"], float) for c in rig["cameras"]}
@@ -371,7 +384,7 @@ def main() -> None:
             rows.append(row)
             print(json.dumps({k: v for k, v in row.items() if k not in ("timings", "notes", "unregistered")}), flush=True)
 
-    report = {"bench": "calibration", "width": args.width, "centre_noise_mm": args.centre_noise_mm,
+    report = {"bench": "calibration", "width": args.width, "centre_noise_mm": args.centre_noise_mm, "quick": args.quick,
               "goal": "rotation < 0.05 deg and centre < 1 mm at the default resolution", "rows": rows,
               "default_max_image_size": GeometricConfig().max_image_size}
     (out / "bench_calibration.json").write_text(json.dumps(report, indent=1))

@@ -11,7 +11,9 @@ best of a few decodes of the file (file read and checks included), in ms per meg
 When ../shared/data holds the real Blackmagic DNG (lossless-JPEG compressed), its decode time is reported
 too (no ground truth there).
 
-    python bench/bench_decode.py --out bench/out
+    python bench/bench_decode.py --out bench/out [--quick]
+
+``--quick`` (the tests' mode): a 384 x 256 frame, one decode per algorithm; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -26,7 +28,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
+from _quick import QUICK_HELP  # noqa: E402
 from pipeline.codecs.raw import decode_raw, supported_demosaic  # noqa: E402
 from stages.numerics.metrics import downsample_to, psnr, ssim  # noqa: E402
 
@@ -150,11 +154,13 @@ def main() -> int:
     parser.add_argument("--height", type=int, default=1024)
     parser.add_argument("--width", type=int, default=1536)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    h, w = args.height, args.width
+    h, w = (256, 384) if args.quick else (args.height, args.width)
+    repeats = 1 if args.quick else args.repeats
     truth = truth_image(h, w)
     mp = h * w / 1e6
     inner = (slice(BORDER, h - BORDER), slice(BORDER, w - BORDER))
@@ -165,12 +171,12 @@ def main() -> int:
         decode_raw(path, demosaic="LINEAR")  # warm up (imports, page cache)
         regs = regions(h, w)
         for alg in supported_demosaic():
-            sec, frame = _time(lambda a=alg: decode_raw(path, demosaic=a), args.repeats)
+            sec, frame = _time(lambda a=alg: decode_raw(path, demosaic=a), repeats)
             rows.append({"algorithm": alg, "half_size": False, "ms_per_mp": 1e3 * sec / mp,
                          "psnr_db": psnr(frame.rgb[inner], truth[inner]),
                          "ssim": ssim(frame.rgb[inner], truth[inner]),
                          "psnr_db_by_region": {k: psnr(frame.rgb, truth, m) for k, m in regs.items()}})
-        sec, frame = _time(lambda: decode_raw(path, half_size=True), args.repeats)
+        sec, frame = _time(lambda: decode_raw(path, half_size=True), repeats)
         hs = frame.rgb.shape[:2]
         half_truth = downsample_to(truth, hs)
         hi = (slice(BORDER // 2, -BORDER // 2), slice(BORDER // 2, -BORDER // 2))
@@ -184,10 +190,10 @@ def main() -> int:
         for alg in ("LINEAR", "AHD", "DCB"):
             if alg not in supported_demosaic():
                 continue
-            sec, frame = _time(lambda a=alg: decode_raw(SHARED_RAW, demosaic=a), 2)
+            sec, frame = _time(lambda a=alg: decode_raw(SHARED_RAW, demosaic=a), min(repeats, 2))
             real.append({"algorithm": alg, "half_size": False, "ms_per_mp": 1e3 * sec / (frame.raw_size[0] *
                          frame.raw_size[1] / 1e6)})
-        sec, frame = _time(lambda: decode_raw(SHARED_RAW, half_size=True), 2)
+        sec, frame = _time(lambda: decode_raw(SHARED_RAW, half_size=True), min(repeats, 2))
         real.append({"algorithm": "HALF (any)", "half_size": True,
                      "ms_per_mp": 1e3 * sec / (frame.raw_size[0] * frame.raw_size[1] / 1e6)})
 
@@ -206,7 +212,8 @@ def main() -> int:
         "bench": "decode",
         "what": "decode_raw time per megapixel of the raw frame vs PSNR against a known linear sRGB truth",
         "frame": {"width": w, "height": h, "bits": 14, "black": BLACK, "white": WHITE, "noise": "none"},
-        "repeats": args.repeats,
+        "repeats": repeats,
+        "quick": args.quick,
         "rows": rows,
         "real_dng": real,
         "notes": "half-size decodes do not demosaic (LibRaw ignores the algorithm); their PSNR is against the "

@@ -18,7 +18,8 @@ every ``--stride``-th camera it reports per variant:
    seconds per camera of taking the specular light out (:func:`stages.diffuse_normals.diffuse_albedo`, which
    must reproduce the released map).
 
-Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant).
+Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant). ``--quick`` (the
+tests' mode): the tiny run of ``bench/_quick.py`` (its release and work folder); the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -196,11 +197,11 @@ def figure(report: dict, path: Path) -> None:
 
 
 def main() -> int:
-    from _release import check_inputs, release_parser
+    from _release import check_inputs, parse_release_args, release_parser
 
     parser = release_parser(__doc__, threads=2)
     parser.add_argument("--stride", type=int, default=4, help="every stride-th camera (default 4: 8 of 32)")
-    args = parser.parse_args()
+    args = parse_release_args(parser)
     release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
     go_on, truth = check_inputs("bench_diffuse_normals", release, capture, need_truth=True)
     if not go_on:
@@ -217,7 +218,7 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     capture_json = json.loads((capture / "capture.json").read_text())
     session_of = {a["action_id"]: a["session_id"] for a in capture_json["actions"]}
-    report = {"stride": args.stride, "threads": args.threads, "actions": {}}
+    report = {"stride": args.stride, "threads": args.threads, "quick": args.quick, "actions": {}}
     for action in sorted(session_of):
         if not (work / "artifacts" / "diffuse_normals" / action).is_dir():
             continue

@@ -12,7 +12,8 @@ of ``--repeats``) in three places:
   tensors' pages in again.
 
 Reports seconds and the ratio of each worker to the in-process run (goal: close to 1). Writes
-bench_executor.json. ``python bench/bench_executor.py --out bench/out [--steps 150 --points 4096]``
+bench_executor.json. ``python bench/bench_executor.py --out bench/out [--steps 150 --points 4096] [--quick]``;
+``--quick`` (the tests' mode): 5 steps on 512 points, once in each place; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -24,6 +25,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _quick import QUICK_HELP  # noqa: E402
 
 
 def sdf_steps(steps: int, points: int, seed: int = 0) -> float:
@@ -62,7 +66,10 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=150)
     parser.add_argument("--points", type=int, default=4096)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    if args.quick:
+        args.steps, args.points, args.repeats = 5, 512, 1
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -82,7 +89,7 @@ def main() -> int:
             Client(cluster) as client:
         seconds["worker_dask_default"] = _best(lambda: client.submit(sdf_steps, args.steps, args.points,
                                                                      pure=False).result(), args.repeats)
-    report = {"steps": args.steps, "points": args.points, "repeats": args.repeats,
+    report = {"steps": args.steps, "points": args.points, "repeats": args.repeats, "quick": args.quick,
               "seconds": {k: round(v, 3) for k, v in seconds.items()},
               "ratio_to_in_process": {k: round(v / seconds["in_process"], 3) for k, v in seconds.items()}}
     (out / "bench_executor.json").write_text(json.dumps(report, indent=1))

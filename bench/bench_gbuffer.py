@@ -31,12 +31,15 @@ normal and albedo reprojected from the other 30 cameras) this reports
    for both; and with the simulator's depth for the held-out (target) views only, everywhere or only where
    the mesh is more than 16 mm off (the sources' depth tests stay on the mesh).
 
-``python bench/bench_gbuffer.py --out bench/out [--release DIR --capture DIR]``; defaults
+``python bench/bench_gbuffer.py --out bench/out [--release DIR --capture DIR] [--quick]``; defaults
 runs/default/release and runs/default/capture (``make dataset``); without them it prints why and exits 0.
-Writes bench_gbuffer.json, bench_gbuffer.png and bench_gbuffer_budget.png.
+Writes bench_gbuffer.json, bench_gbuffer.png and bench_gbuffer_budget.png. ``--quick`` (the tests' mode): the
+tiny run of ``bench/_quick.py``, two points of each sweep (the default among them) and the learned blend
+trained for 20 steps; the numbers are not measurements.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -369,9 +372,9 @@ def figure(result: dict, path: Path) -> None:
 
 
 def main() -> int:
-    from _release import check_inputs, release_parser
+    from _release import check_inputs, parse_release_args, release_parser
 
-    args = release_parser(__doc__).parse_args()
+    args = parse_release_args(release_parser(__doc__))
     out = Path(args.out)
     release, capture = Path(args.release), Path(args.capture)
     go_on, truth_dir = check_inputs("bench_gbuffer", release, capture, need_truth=False)
@@ -384,7 +387,15 @@ def main() -> int:
     from stages.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics
     from stages.numerics.learned_blend import LearnedBlendConfig
 
-    report: dict = {"paper_table1": PAPER_TABLE1, "actions": {}}
+    quick = args.quick
+    ks = (1, 6) if quick else (1, 2, 4, 6, 8)  # heldout_metrics' default k is 6
+    edge_samples = (1, 3) if quick else (1, 2, 3, 4)  # stages.heldout.EDGE_SAMPLES is 3
+    weightings = ("uniform", "angle_distance_grazing") if quick else ("uniform", "angle", "angle_distance",
+                                                                      "angle_distance_grazing")
+    blend = LearnedBlendConfig(enabled=True)
+    if quick:
+        blend = dataclasses.replace(blend, steps=20)
+    report: dict = {"paper_table1": PAPER_TABLE1, "quick": quick, "actions": {}}
     first_maps = None
     for action in open_release(release).action_ids:
         t0 = time.perf_counter()
@@ -406,7 +417,7 @@ def main() -> int:
         if first_maps is None:
             first_maps = res
         entry["vs_k"] = {}
-        for k in (1, 2, 4, 6, 8):
+        for k in ks:
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, k=k)
             entry["vs_k"][str(k)] = _short(r) | {"seconds_per_view": round(r["heldout_seconds_per_view"], 4)}
         entry["vs_interpolation"] = {}
@@ -420,7 +431,7 @@ def main() -> int:
         # pixels at the mesh's occlusion edges from 1 (centres only), 2, 3 or 4 rays per side (the sub-pixel rays
         # are cast on the first call per camera: that call's time includes them, a repeat's does not)
         entry["vs_edge_samples"] = {}
-        for samples in (1, 2, 3, 4):
+        for samples in edge_samples:
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, edge_samples=samples)
             entry["vs_edge_samples"][str(samples)] = _short(r) | {
                 "seconds_per_view": round(r["heldout_seconds_per_view"], 4)}
@@ -433,13 +444,13 @@ def main() -> int:
         print(action, "albedo model", json.dumps(entry["vs_albedo_model"]), flush=True)
         # the learned blend (trained leave one out on the 30 training cameras) against the heuristic weights
         learned = heldout_metrics(release, action, truth_dir=truth_dir, data=data,
-                                  learned_blend=LearnedBlendConfig(enabled=True))
+                                  learned_blend=blend)
         entry["vs_blend"] = {"weighted": _short(res), "learned": _short(learned),
                              "learned_fit_s": round(learned["heldout_blend_fit_s"], 2),
                              "learned_record": learned["blend"]}
         print(action, "blend", json.dumps(entry["vs_blend"], default=float), flush=True)
         entry["vs_weighting"] = {}
-        for weighting in ("uniform", "angle", "angle_distance", "angle_distance_grazing"):
+        for weighting in weightings:
             r = heldout_metrics(release, action, truth_dir=truth_dir, data=data, weighting=weighting)
             entry["vs_weighting"][weighting] = _short(r)
         if truth_dir is not None:

@@ -26,7 +26,11 @@ sees (mouth, soles on the floor): look at both directions.
 
 ``python bench/bench_geometry.py --out bench/out [--capture DIR --release DIR --action A0000]`` writes
 bench_geometry.json, bench_geometry.png and bench_geometry.md; defaults are runs/default/capture and
-runs/default/release (``make dataset``); without them it prints why and exits 0.
+runs/default/release (``make dataset``); without them it prints why and exits 0. ``--quick`` (the tests' mode):
+the tiny run of ``bench/_quick.py`` unless ``--capture``/``--release`` are given, 30 steps per training (after 20
+of the fit to a hull of 48 cells), 2 checkpoints, meshes at 64 and 96 cells (the first field's mesh the second pass
+is de-occluded with at 96, the visual hull alone at 64), 10k surface samples, gradients timed once on 512 points;
+the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -41,6 +45,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _quick import QUICK_HELP  # noqa: E402
+from _release import parse_release_args  # noqa: E402
 
 
 # ------------------------------------------------------------------------------------------------ inputs
@@ -240,7 +248,7 @@ def plot(path: Path, report: dict) -> None:
     ax = axes[2]
     modes = report["gradient_ms"]
     ax.bar(list(modes), list(modes.values()), color=["C0", "C1", "C2"])
-    ax.set_ylabel("ms per forward + backward (4096 points)")
+    ax.set_ylabel(f"ms per forward + backward ({report['gradient_points']} points)")
     ax.set_title("SDF gradients")
     fig.tight_layout()
     fig.savefig(path)
@@ -284,7 +292,7 @@ def markdown(report: dict) -> str:
     lines += ["", f"Empty space: {100 * s['samples_skipped_fraction']:.2f}% of the naive uniform samples skipped "
               f"(rays worth drawing: {100 * s['candidate_ray_fraction']:.1f}% of the pixels; hull occupies "
               f"{100 * s['hull_occupied_fraction']:.1f}% of its box).", "",
-              "SDF gradients, ms per forward + backward on 4096 points: " + ", ".join(
+              f"SDF gradients, ms per forward + backward on {report['gradient_points']} points: " + ", ".join(
                   f"{k} {v:.1f}" for k, v in report["gradient_ms"].items()), ""]
     return "\n".join(lines)
 
@@ -292,8 +300,8 @@ def markdown(report: dict) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--capture", default=str(ROOT / "runs" / "default" / "capture"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
+    parser.add_argument("--capture", help="default runs/default/capture; with --quick the tiny run's")
+    parser.add_argument("--release", help="default runs/default/release; with --quick the tiny run's")
     parser.add_argument("--action", default="A0000")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--iterations", type=int, help="override the preset's iterations (quick checks)")
@@ -304,7 +312,13 @@ def main() -> int:
     parser.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh for the metrics")
     parser.add_argument("--no-ablation", action="store_true", help="skip the mask-only run")
     parser.add_argument("--no-deocclude", action="store_true", help="skip the second pass on de-occluded normals")
-    args = parser.parse_args()
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    args = parse_release_args(parser)
+    marching = (128, 192, 256, 384, 512)
+    hull_resolution, stage_mesh_resolution, gradient_points, gradient_repeats = 256, None, 4096, 3
+    if args.quick:
+        args.iterations, args.checkpoints, args.eval_resolution, args.samples = 30, 2, 64, 10_000
+        marching, hull_resolution, stage_mesh_resolution, gradient_points, gradient_repeats = (64, 96), 64, 96, 512, 1
 
     out = Path(args.out)
     capture, release = Path(args.capture), Path(args.release)
@@ -326,6 +340,8 @@ def main() -> int:
     config = dataclasses.replace(SDF_PRESETS[args.preset], device="cpu")
     if args.iterations:
         config = dataclasses.replace(config, iterations=args.iterations)
+    if args.quick:
+        config = dataclasses.replace(config, hull_resolution=48, hull_init_steps=20)
     for item in args.set:
         name, _, value = item.partition("=")
         if name not in {f.name for f in dataclasses.fields(config)} or not value:
@@ -337,7 +353,7 @@ def main() -> int:
     gt_v, gt_f = read_mesh(gt_mesh)
     print(f"bench_geometry: {len(views)} views of {args.action}, preset {args.preset}", flush=True)
 
-    report: dict = {"action": args.action, "views": len(views), "preset": args.preset,
+    report: dict = {"action": args.action, "views": len(views), "preset": args.preset, "quick": args.quick,
                     "image_size": "x".join(str(s) for s in views[0].mask.shape[::-1]),
                     "config": dataclasses.asdict(config), "curves": {}, "final": {}}
 
@@ -357,6 +373,8 @@ def main() -> int:
         from stages.numerics.mesh import decimate, extract_mesh, largest_component
 
         stage = GeometryConfig()
+        if stage_mesh_resolution:
+            stage = dataclasses.replace(stage, mesh_resolution=stage_mesh_resolution)
         start = time.perf_counter()
         v, f, _ = extract_mesh(result.field.sdf_numpy, bounds, stage.mesh_resolution)
         v, f = largest_component(v, f)
@@ -377,7 +395,7 @@ def main() -> int:
         report["deocclusion"] = deocclusion | {"mesh_and_visibility_s": between}
 
     report["marching"] = []
-    for resolution in (128, 192, 256, 384, 512):
+    for resolution in marching:
         v, f, seconds = mesh_of(result.field.sdf_numpy, bounds, resolution)
         report["marching"].append({"resolution": resolution, "seconds": seconds, "faces": int(len(f)),
                                    **metrics_of(v, f, gt_v, gt_f, args.samples)})
@@ -395,14 +413,15 @@ def main() -> int:
 
     start = time.perf_counter()
     hull = visual_hull([v.mask for v in views], [v.K for v in views], [v.cam_from_world for v in views], bounds,
-                       256, max_misses=1, dilate_px=0, conservative=False)
+                       hull_resolution, max_misses=1, dilate_px=0, conservative=False)
     sd = hull.signed_distance()
     hull_s = time.perf_counter() - start
-    v, f, _ = mesh_of(lambda p: hull.sample(sd, p), hull.bounds, 256)
+    v, f, _ = mesh_of(lambda p: hull.sample(sd, p), hull.bounds, hull_resolution)
     report["hull_alone"] = {"time_s": hull_s, **metrics_of(v, f, gt_v, gt_f, args.samples)}
-    report["final"]["visual hull alone (256^3)"] = report["hull_alone"]
+    report["final"][f"visual hull alone ({hull_resolution}^3)"] = report["hull_alone"]
 
-    report["gradient_ms"] = gradient_timing(config, bounds)
+    report["gradient_ms"] = gradient_timing(config, bounds, gradient_points, gradient_repeats)
+    report["gradient_points"] = gradient_points
 
     (out / "bench_geometry.json").write_text(json.dumps(report, indent=1, default=float))
     plot(out / "bench_geometry.png", report)

@@ -15,7 +15,9 @@ diffuse sphere per session). Then, as the stage wiring would:
 4. the correction is timed on 1 MP of ratios for 2, 4 (default) and 6 Gauss-Newton iterations (best of 3) against
    the plain ``normalize(d)``, with the error each reaches on the held-out sphere pixels.
 
-``python bench/bench_light.py --out bench/out`` writes bench_light.json and bench_light.png.
+``python bench/bench_light.py --out bench/out [--quick]`` writes bench_light.json and bench_light.png. ``--quick``
+(the tests' mode): 4 cameras 96 px wide, 128 LEDs, the subject unsubdivided, the correction timed once on 16k
+ratios; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -30,6 +32,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 
 from calibration.colour import (apply_colour_matrix, chart_patch_means, delta_e_2000,  # noqa: E402
                                 fit_colour_matrix, reference_chart_srgb)
@@ -50,7 +55,7 @@ def ratio(folder: Path, cid: str, M: np.ndarray) -> np.ndarray:
     return (frames[0] - frames[1]) / np.maximum(frames[0] + frames[1], 1e-6)
 
 
-def run_level(led_error: float, width: int, cameras: int, work: Path) -> dict:
+def run_level(led_error: float, width: int, cameras: int, work: Path, **sim_changes) -> dict:
     from scipy import ndimage
 
     from pipeline.codecs.exr import read_exr
@@ -58,7 +63,8 @@ def run_level(led_error: float, width: int, cameras: int, work: Path) -> dict:
     from synthetic import SimConfig, simulate
     from synthetic.calibration import CalibrationConfig
 
-    config = SimConfig(actions=1, width=width, n_cameras=cameras, led_error=led_error, background=False)
+    config = SimConfig(actions=1, width=width, n_cameras=cameras, led_error=led_error, background=False,
+                       **sim_changes)
     started = time.perf_counter()
     capture = simulate(work / f"cap_{led_error}", config, calibration=CalibrationConfig())
     sim_s = time.perf_counter() - started
@@ -131,30 +137,35 @@ def main() -> int:
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--cameras", type=int, default=16)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    if args.quick:
+        args.width, args.cameras = 96, 4
+    pixels, repeats = (1 << 14, 1) if args.quick else (1 << 20, 3)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
     levels = []
     with tempfile.TemporaryDirectory() as tmp:
         for led_error in (0.03, 0.1):
-            levels.append(run_level(led_error, args.width, args.cameras, Path(tmp)))
+            levels.append(run_level(led_error, args.width, args.cameras, Path(tmp),
+                                    **(quick_sim_changes() if args.quick else {})))
             print(json.dumps({k: v for k, v in levels[-1].items() if not k.startswith("_") and k != "light_model"}),
                   flush=True)
 
     model = levels[-1]["_model"]
     d_test, n_test = levels[-1]["_test"]
     rng = np.random.default_rng(0)
-    d_big = d_test[rng.integers(0, len(d_test), 1 << 20)]
-    timing = {"pixels": len(d_big), "normalize_s": best_of(lambda: normalize(d_big))}
+    d_big = d_test[rng.integers(0, len(d_test), pixels)]
+    timing = {"pixels": len(d_big), "normalize_s": best_of(lambda: normalize(d_big), repeats)}
     iterations = (2, 4, 6)
     for it in iterations:
-        timing[f"gauss_newton_{it}_s"] = best_of(lambda: correct_normals(d_big, model, iterations=it))
+        timing[f"gauss_newton_{it}_s"] = best_of(lambda: correct_normals(d_big, model, iterations=it), repeats)
         timing[f"gauss_newton_{it}_heldout_deg"] = float(
             angular_error_deg(correct_normals(d_test, model, iterations=it), n_test).mean())
     print(json.dumps(timing), flush=True)
 
-    result = {"bench": "light", "width": args.width, "cameras": args.cameras,
+    result = {"bench": "light", "width": args.width, "cameras": args.cameras, "quick": args.quick,
               "levels": [{k: v for k, v in level.items() if not k.startswith("_")} for level in levels],
               "correction_timing": timing}
     (out / "bench_light.json").write_text(json.dumps(result, indent=1))

@@ -30,7 +30,9 @@ is hit) and compared with the simulator's roughness and albedo maps.
 ``python bench/bench_materials.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
 writes DIR/bench_materials.json, DIR/bench_materials.md (tables) and DIR/bench_materials.png (roughness MAE
 against fit seconds; albedo PSNR against occlusion seconds). Defaults: runs/default/release and
-runs/default/capture; without them (or without ground truth) it prints why and exits 0.
+runs/default/capture; without them (or without ground truth) it prints why and exits 0. ``--quick`` (the tests'
+mode): the tiny run of ``bench/_quick.py``, the roughness texture at 64 and the occlusion at 128 texels a side
+(every other setting the stage's); the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -410,9 +412,9 @@ def figure(report: dict, path: Path) -> None:
 
 
 def main() -> int:
-    from _release import check_inputs, release_parser
+    from _release import check_inputs, parse_release_args, release_parser
 
-    args = release_parser(__doc__, actions="", threads=2).parse_args()
+    args = parse_release_args(release_parser(__doc__, actions="", threads=2))
     release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
     go_on, truth_dir = check_inputs("bench_materials", release, capture, need_truth=True)
     if not go_on:
@@ -430,8 +432,10 @@ def main() -> int:
         return 0
     out.mkdir(parents=True, exist_ok=True)
     base = default_config()
-    report = {"threads": args.threads, "texture_size": base.texture_size, "defaults": dataclasses.asdict(base),
-              "actions": {}}
+    if args.quick:  # a lower resolution: the texels are the inputs of the fits and of the occlusion
+        base = dataclasses.replace(base, texture_size=64, occlusion_size=128)
+    report = {"threads": args.threads, "quick": args.quick, "texture_size": base.texture_size,
+              "defaults": dataclasses.asdict(base), "actions": {}}
     started = time.perf_counter()
     for action in actions:
         t0 = time.perf_counter()

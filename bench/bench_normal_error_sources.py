@@ -6,6 +6,9 @@ no noise, no folds, and "ideal" (none of these and no LED errors). Each goes thr
 visibility of the lit hemisphere. The pre-sensor error (the ratio of eq. 1 on the rendered radiance,
 before mosaicing, noise and demosaicing) of the ideal variant shows what the optics alone allow.
 Writes bench_normal_error_sources.json and .png.
+
+``--quick`` (the tests' mode): 4 cameras 64 px wide, 128 LEDs, the subject unsubdivided, and the pipeline only
+through ``photometric`` (whose maps are what is measured); the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -13,9 +16,14 @@ import argparse
 import dataclasses
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 
 VARIANTS = {"default": {}, "no_specular": {"specular": False}, "no_noise": {"noise": False},
             "no_folds": {"fold_amplitude_m": 0.0},
@@ -43,21 +51,27 @@ def main() -> int:
     parser.add_argument("--out", default="bench/out")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--cameras", type=int, default=8)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    if args.quick:
+        args.width, args.cameras = 64, 4
+    sim_changes = quick_sim_changes() if args.quick else {}
+    through = "photometric" if args.quick else None
     out = Path(args.out)
     from pipeline.runner import ExecutionConfig, run_pipeline
     from stages.evaluate import evaluate_release
     from stages.registry import PRESETS, build_stages
     from synthetic import SimConfig, simulate
 
-    report = {}
+    report = {"quick": args.quick}
     for name, overrides in VARIANTS.items():
         root = out / "normal_error_sources" / name
         shutil.rmtree(root, ignore_errors=True)
-        config = dataclasses.replace(SimConfig(actions=1, n_cameras=args.cameras, width=args.width), **overrides)
+        config = dataclasses.replace(SimConfig(actions=1, n_cameras=args.cameras, width=args.width, **sim_changes),
+                                     **overrides)
         simulate(root / "capture", config)
         preset = PRESETS["default"]
-        run_pipeline(root / "capture", root / "release", root / "work", build_stages(preset), preset,
+        run_pipeline(root / "capture", root / "release", root / "work", build_stages(preset, through=through), preset,
                      ExecutionConfig(scheduler="sync"), echo=lambda line: None)
         o = evaluate_release(root / "release", root / "capture" / "ground_truth").overall
         report[name] = {k: o[k] for k in ("normal_mean_deg", "normal_median_deg", "normal_mean_deg_unoccluded",
@@ -74,7 +88,7 @@ def main() -> int:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
-    names = list(report)
+    names = [n for n in report if n != "quick"]
     x = np.arange(len(names))
     ax.bar(x - 0.2, [report[n]["normal_mean_deg_unoccluded"] for n in names], 0.4, label="unoccluded")
     ax.bar(x + 0.2, [report[n]["normal_mean_deg_occluded"] for n in names], 0.4, label="occluded")

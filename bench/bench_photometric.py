@@ -12,7 +12,8 @@ a foreground mask covering ~60%, a few clipped pixels). Timed, best of several r
   separately.
 
 Goal: ``ours / memcpy < 3``. The copy is single-threaded; the ratio with one thread is the like-for-like
-one. ``python bench/bench_photometric.py --out bench/out``
+one. ``python bench/bench_photometric.py --out bench/out [--quick]``; ``--quick`` (the tests' mode): 256 x 256
+frames, one run of each; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -27,7 +28,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
+from _quick import QUICK_HELP  # noqa: E402
 from stages.numerics import numeric_threads  # noqa: E402
 from stages.numerics.photometric import (  # noqa: E402
     PhotometricParams,
@@ -87,9 +90,12 @@ def main() -> int:
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     parser.add_argument("--size", type=int, default=2000, help="frame side (default 2000: 4 MP)")
     parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.quick:
+        args.size, args.repeats = 256, 1
 
     h = w = args.size
     mp = h * w / 1e6
@@ -153,6 +159,7 @@ def main() -> int:
         "threads": threads,
         "cpus": os.cpu_count(),
         "repeats": args.repeats,
+        "quick": args.quick,
         "rows": rows,
         "ratio_to_memcpy": t_ours / t_copy,
         "ratio_to_memcpy_1thread": t_ours1 / t_copy,

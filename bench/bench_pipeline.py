@@ -2,7 +2,8 @@
 
 Reports wall time per run and per stage, the ratio of a fully cached rerun to the cold run (goal: close
 to 0, the rerun only plans), and the accuracy the cold run reached. Writes bench_pipeline.json and
-bench_pipeline.png.
+bench_pipeline.png. ``--quick`` (the tests' mode): 1 action, 4 cameras 64 px wide, 128 LEDs, the subject
+unsubdivided, the pipeline only through ``photometric``; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -10,8 +11,13 @@ import argparse
 import dataclasses
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 
 
 def main() -> int:
@@ -20,7 +26,12 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--actions", type=int, default=2)
     parser.add_argument("--scheduler", default="local")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    if args.quick:
+        args.width, args.actions = 64, 1
+    sim_changes = {"n_cameras": 4, **quick_sim_changes()} if args.quick else {}
+    through = "photometric" if args.quick else None
     out = Path(args.out)
     root = out / "pipeline_run"
     shutil.rmtree(root, ignore_errors=True)
@@ -32,7 +43,7 @@ def main() -> int:
     from synthetic import SimConfig, simulate
 
     start = time.perf_counter()
-    simulate(root / "capture", SimConfig(actions=args.actions, width=args.width))
+    simulate(root / "capture", SimConfig(actions=args.actions, width=args.width, **sim_changes))
     simulate_s = time.perf_counter() - start
     execution = ExecutionConfig(scheduler=args.scheduler)
     config = PRESETS["default"]
@@ -41,8 +52,8 @@ def main() -> int:
     runs = {}
     for label, cfg in (("cold", config), ("cached", config), ("photometric_changed", changed)):
         t0 = time.perf_counter()
-        result = run_pipeline(root / "capture", root / "release", root / "work", build_stages(cfg), cfg,
-                              execution, echo=lambda line: None)
+        result = run_pipeline(root / "capture", root / "release", root / "work", build_stages(cfg, through=through),
+                              cfg, execution, echo=lambda line: None)
         wall = time.perf_counter() - t0
         per_stage: dict[str, float] = {}
         for task in result.plan.tasks:
@@ -53,10 +64,10 @@ def main() -> int:
         print(f"{label:<20} wall {wall:7.2f}s  ran {runs[label]['ran']:>2}  cached {runs[label]['cached']:>2}  "
               f"stage cpu {json.dumps({k: round(v, 1) for k, v in per_stage.items()})}", flush=True)
     # re-run the original config so the release evaluated is the default one
-    run_pipeline(root / "capture", root / "release", root / "work", build_stages(config), config, execution,
-                 echo=lambda line: None)
+    run_pipeline(root / "capture", root / "release", root / "work", build_stages(config, through=through), config,
+                 execution, echo=lambda line: None)
     accuracy = evaluate_release(root / "release", root / "capture" / "ground_truth").overall
-    report = {"width": args.width, "actions": args.actions, "simulate_s": simulate_s, "runs": runs,
+    report = {"quick": args.quick, "width": args.width, "actions": args.actions, "simulate_s": simulate_s, "runs": runs,
               "cached_over_cold": runs["cached"]["wall_s"] / runs["cold"]["wall_s"],
               "accuracy": accuracy}
     (out / "bench_pipeline.json").write_text(json.dumps(report, indent=1))

@@ -36,7 +36,9 @@ rendering of the true subject (common exposure from the truth's 99th percentile,
 ``python bench/bench_relight.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
 writes DIR/bench_relight.json, DIR/bench_relight.md (tables) and DIR/bench_relight.png (PSNR against
 seconds per view; PSNR and SG fit seconds against lobe count). Defaults runs/default/release and
-runs/default/capture; without them, the ground truth or the maps it prints why and exits 0.
+runs/default/capture; without them, the ground truth or the maps it prints why and exits 0. ``--quick`` (the
+tests' mode): the tiny run of ``bench/_quick.py``, the stage's first environment only, two points of each sweep
+(:func:`sweeps`), the truth lit by 256 lights; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -45,6 +47,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -92,6 +95,27 @@ VARIANTS = ([("default", {})]
             + [(f"normals fused {width * 1000:g} mm", {"normals": f"fused_{width:g}"}) for width in FUSION_WIDTHS_M]
             + [("white-light sources x diffuse ratio", {"sources": "white"}),
                ("white-light sources, no diffuse ratio", {"sources": "white", "diffuse_ratio": False})])
+
+
+class Sweeps(NamedTuple):
+    """What one run of the bench covers: the lobe counts fitted, the visibility directions traced and the variants."""
+    lobes: tuple
+    directions: tuple
+    variants: list
+
+
+def sweeps(quick: bool = False) -> Sweeps:
+    """Every sweep point and variant; ``quick``: the smallest point and the stage's default of each sweep, and the
+    variants within them."""
+    if not quick:
+        return Sweeps(LOBES_SWEEP, DIRECTIONS_SWEEP, VARIANTS)
+    lobes = sweep((min(LOBES_SWEEP),), CONFIG.sg_lobes)
+    directions = sweep((min(DIRECTIONS_SWEEP),), CONFIG.visibility_directions)
+    return Sweeps(lobes, directions, [(label, change) for label, change in VARIANTS
+                                      if (DEFAULT | change)["lobes"] in lobes
+                                      and (DEFAULT | change)["directions"] in directions])
+
+
 DECOMPOSITION = ("truth G-buffers (SG floor)", "truth G-buffers, no shadows", "truth + our normal",
                  "truth + our reprojected normal", "truth + our albedo", "truth + our albedo, not de-occluded",
                  "truth + our roughness",
@@ -99,7 +123,8 @@ DECOMPOSITION = ("truth G-buffers (SG floor)", "truth G-buffers, no shadows", "t
                  "our default render")
 
 
-def fit_environments(names: list[str], capture: Path, progress) -> tuple[dict, list]:
+def fit_environments(names: list[str], capture: Path, progress, lobes_sweep: tuple = LOBES_SWEEP
+                     ) -> tuple[dict, list]:
     """(name -> {"env", lobes -> SGLobes}, rows of fit time and errors per environment and lobe count)."""
     from stages.numerics.sg import fit_sg_environment, sg_fit_errors
     from stages.relight import find_environment, load_environment
@@ -112,7 +137,7 @@ def fit_environments(names: list[str], capture: Path, progress) -> tuple[dict, l
             continue
         env, _ = load_environment(name, path)
         fits[name] = {"env": env}
-        for count in LOBES_SWEEP:
+        for count in lobes_sweep:
             t0 = time.perf_counter()
             lobes = fit_sg_environment(env, count, fit_height=CONFIG.fit_height)
             fit_s = time.perf_counter() - t0
@@ -215,7 +240,8 @@ def shade(normals, view_dirs, albedo, roughness, lobes, visibility=None, directi
     return shade_sg_visible(normals, view_dirs, albedo, roughness, lobes, visibility, directions, f0=CONFIG.f0)["rgb"]
 
 
-def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, threads: int, progress) -> dict:
+def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, threads: int, progress,
+               plan: Sweeps | None = None) -> dict:
     """Every variant and the decomposition for one novel camera under every environment."""
     from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.numerics.raycast import camera_rays
@@ -223,12 +249,13 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
     from stages.numerics.shadowing import direction_visibility
     from stages.relight import premultiply_edges, shading_albedo
 
+    plan = plan or sweeps()
     gb = scene.gbuffer(cam)
     gbuffer_s = gb["stage_seconds"]
-    directions = {d: fibonacci_sphere(d) for d in DIRECTIONS_SWEEP}
+    directions = {d: fibonacci_sphere(d) for d in plan.directions}
     visibility, vis_s = {}, {}
     for normals_kind in gb["normals"]:
-        for d in (DIRECTIONS_SWEEP if normals_kind == DEFAULT["normals"] else (DEFAULT["directions"],)):
+        for d in (plan.directions if normals_kind == DEFAULT["normals"] else (DEFAULT["directions"],)):
             t0 = time.perf_counter()
             visibility[(normals_kind, d)] = direction_visibility(gb["points"], gb["normals"][normals_kind],
                                                                  scene.scene, directions[d], threads=threads)
@@ -239,7 +266,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
                                                   gb["occlusion"] if kind == "deoccluded" else None)
                for kind in ("deoccluded", "photometric") for ratio in (True, False) for src in ("stage", "white")}
 
-    rows = {label: {"psnr_db": {}, "shade_s": {}} for label, _ in VARIANTS}
+    rows = {label: {"psnr_db": {}, "shade_s": {}} for label, _ in plan.variants}
     rows["released"] = {"psnr_db": {}}
     decomposition = {label: {} for label in DECOMPOSITION}
     default_images = {}
@@ -248,7 +275,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
         t0 = time.perf_counter()
         true = truth.render(K, pose, h, w, fit["env"])
         truth_s = time.perf_counter() - t0
-        for label, change in VARIANTS:
+        for label, change in plan.variants:
             cfg = DEFAULT | change
             vis = visibility[(cfg["normals"], cfg["directions"])] if cfg["shadows"] else None
             t0 = time.perf_counter()
@@ -317,7 +344,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
                                                                    target, both)["psnr_db"]
         rows["released"].setdefault("truth_render_s", {})[env_name] = truth_s
     variants = {}
-    for label, change in VARIANTS:
+    for label, change in plan.variants:
         cfg = DEFAULT | change
         vis_time = vis_s[(cfg["normals"], cfg["directions"])] if cfg["shadows"] else 0.0
         seconds = gbuffer_s + vis_time + sum(rows[label]["shade_s"].values())
@@ -333,14 +360,15 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
             "decomposition": decomposition}
 
 
-def summarise(report: dict) -> dict:
+def summarise(report: dict, plan: Sweeps | None = None) -> dict:
     """Means over actions, views and environments (and per environment) of every variant and decomposition
     row; seconds per view averaged over views (the first view of an action also renders the sources)."""
+    plan = plan or sweeps()
     views = [v for a in report["actions"].values() for v in a["views"]]
     envs = list(report["environments"])
     out = {"variants": {}, "decomposition": {}}
     base_s = np.mean([v["variants"][BASELINE]["seconds_per_view"] for v in views])
-    for label in [lab for lab, _ in VARIANTS] + ["released"]:
+    for label in [lab for lab, _ in plan.variants] + ["released"]:
         per_env = {e: float(np.mean([v["variants"][label]["psnr_db"][e] for v in views
                                      if e in v["variants"][label]["psnr_db"]])) for e in envs
                    if any(e in v["variants"][label]["psnr_db"] for v in views)}
@@ -364,7 +392,7 @@ def summarise(report: dict) -> dict:
     out["normal_error_deg"] = {kind: round(float(np.mean([v["normal_error_deg"][kind] for v in views])), 3)
                                for kind in views[0]["normal_error_deg"]}
     lobes_psnr = {}
-    for count in LOBES_SWEEP:
+    for count in plan.lobes:
         label = "default" if count == DEFAULT["lobes"] else f"sg_lobes {count}"
         lobes_psnr[str(count)] = out["variants"][label]["per_environment"]
     out["psnr_by_lobes"] = lobes_psnr
@@ -446,9 +474,9 @@ def figure(report: dict, path: Path) -> None:
 
 
 def main() -> int:
-    from _release import check_inputs, release_parser
+    from _release import check_inputs, parse_release_args, release_parser
 
-    args = release_parser(__doc__, actions="", threads=2).parse_args()
+    args = parse_release_args(release_parser(__doc__, actions="", threads=2))
     release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
     if not check_inputs("bench_relight", release, capture, need_truth=True)[0]:
         return 0
@@ -475,12 +503,15 @@ def main() -> int:
               "the heuristic source weights only")
         return 1
     started = time.perf_counter()
-    fits, fit_rows = fit_environments(list(CONFIG.environments), capture, progress)
+    plan = sweeps(args.quick)
+    environments = list(CONFIG.environments)[:1] if args.quick else list(CONFIG.environments)
+    fits, fit_rows = fit_environments(environments, capture, progress, plan.lobes)
     if not fits:
         print("bench_relight: none of the environments was found (../shared/data/hdri); skipped")
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    report = {"threads": args.threads, "defaults": DEFAULT, "f0": CONFIG.f0, "fit_height": CONFIG.fit_height,
+    report = {"threads": args.threads, "quick": args.quick, "defaults": DEFAULT, "f0": CONFIG.f0,
+              "fit_height": CONFIG.fit_height,
               "stage_config": dataclasses.asdict(CONFIG), "environments": list(fits),
               "sg_fits": fit_rows, "actions": {}}
     for action in actions:
@@ -488,7 +519,7 @@ def main() -> int:
         scene = ActionScene(release, action)
         load_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        truth = TruthRelighter(capture, action)
+        truth = TruthRelighter(capture, action, **({"lights": 256} if args.quick else {}))
         true_scene = mesh_scene(*read_ply(capture / "ground_truth" / action / "mesh.ply"))
         truth_s = time.perf_counter() - t0
         progress(f"{action}: release loaded in {load_s:.1f} s, truth relighter built in {truth_s:.1f} s")
@@ -498,11 +529,10 @@ def main() -> int:
             shading = scene.view.release.load(scene.view.asset("render_environments", None)).get("shading")
         except (KeyError, FileNotFoundError):
             shading = None
+        views = [bench_view(scene, truth, true_scene, cam, fits, args.threads, progress, plan) for cam in cams]
         report["actions"][action] = {"load_s": round(load_s, 2), "truth_relighter_s": round(truth_s, 2),
-                                     "released_shading": shading,
-                                     "views": [bench_view(scene, truth, true_scene, cam, fits, args.threads, progress)
-                                               for cam in cams]}
-    report["summary"] = summarise(report)
+                                     "released_shading": shading, "views": views}
+    report["summary"] = summarise(report, plan)
     report["total_s"] = round(time.perf_counter() - started, 1)
     (out / "bench_relight.json").write_text(json.dumps(report, indent=1, default=_json_default))
     (out / "bench_relight.md").write_text(markdown(report))

@@ -16,7 +16,9 @@ exposure, camera-frame normal angle, albedo PSNR), and timed:
 - ``x_truth``: truth_s / render_s in the same process (above 1: the stage renders faster than the simulator).
 
 ``python bench/bench_relightset.py --out DIR [--release DIR --capture DIR --actions A0000 --examples 3]``
-writes DIR/bench_relightset.json, .md and .png (PSNR against seconds per example).
+writes DIR/bench_relightset.json, .md and .png (PSNR against seconds per example). ``--quick`` (the tests' mode):
+the tiny run of ``bench/_quick.py``, one example, the default and one change (``QUICK_VARIANTS``), the truth
+lit by 256 lights; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -44,10 +46,16 @@ VARIANT_CHANGES: tuple[tuple[str, dict], ...] = (("size 128", {"size": 128}), ("
                                                  ("sg_lobes 16", {"sg_lobes": 16}), ("sg_lobes 64", {"sg_lobes": 64}))
 
 
-def variant_configs() -> list[tuple[str, RelightSetConfig]]:
+QUICK_VARIANTS = ("size 128",)
+"""The change ``--quick`` keeps (one that needs no other SG fit)."""
+
+
+def variant_configs(quick: bool = False) -> list[tuple[str, RelightSetConfig]]:
     base = default_config()
     rows = [(f"default (size {base.size}, {base.sg_lobes} lobes)", base)]
     for label, change in VARIANT_CHANGES:
+        if quick and label not in QUICK_VARIANTS:
+            continue
         cfg = dataclasses.replace(base, **change)
         if cfg != base:
             rows.append((label, cfg))
@@ -55,12 +63,15 @@ def variant_configs() -> list[tuple[str, RelightSetConfig]]:
 
 
 def main() -> int:
-    from _release import check_inputs, release_parser
+    from _release import check_inputs, parse_release_args, release_parser
 
     parser = release_parser(__doc__, actions="A0000")
     parser.add_argument("--examples", type=int, default=3)
     parser.add_argument("--work", default=None, help="work folder of the release (default: RELEASE.work)")
-    args = parser.parse_args()
+    args = parse_release_args(parser)
+    truth_lights = 2048
+    if args.quick:
+        args.examples, truth_lights = 1, 256
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     release, capture = Path(args.release), Path(args.capture)
@@ -79,7 +90,7 @@ def main() -> int:
     from synthetic.relight import TruthRelighter
 
     cap = open_capture(capture)
-    report: dict = {"variants": [], "examples": args.examples}
+    report: dict = {"variants": [], "examples": args.examples, "quick": args.quick}
     rows_md = ["| variant | image PSNR dB | normal deg | albedo PSNR dB | render s/example | truth s | x_truth |",
                "|---|---|---|---|---|---|---|"]
     for action_id in [a for a in args.actions.split(",") if a]:
@@ -95,10 +106,10 @@ def main() -> int:
         asset, cameras = load_relightable_asset(artifacts)
         centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
         t0 = time.perf_counter()
-        truth = TruthRelighter(capture, action_id, lights=2048)
+        truth = TruthRelighter(capture, action_id, lights=truth_lights)
         report["truth_setup_s"] = time.perf_counter() - t0
         fits: dict = {}
-        for label, cfg in variant_configs():
+        for label, cfg in variant_configs(args.quick):
             scores, render_s, truth_s = {"image": [], "normal": [], "albedo": []}, [], []
             for index in range(args.examples):
                 example_id = example_name(action_id, index)
@@ -137,7 +148,7 @@ def main() -> int:
             print(rows_md[-1], flush=True)
     (out / "bench_relightset.json").write_text(json.dumps(report, indent=1))
     (out / "bench_relightset.md").write_text("\n".join(["# bench_relightset", "", f"truth setup (visibility of "
-                                                        f"2048 lights, once per action): "
+                                                        f"{truth_lights} lights, once per action): "
                                                         f"{report.get('truth_setup_s', 0):.1f} s", ""] + rows_md) + "\n")
     import matplotlib
 

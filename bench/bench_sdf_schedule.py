@@ -12,7 +12,10 @@ row is the stage default.
 Different schedules take different random paths through training: on the default capture two seeds of the
 same schedule differ by about 0.05 mm, so read differences below that as noise.
 
-``python bench/bench_sdf_schedule.py --out bench/out [--action A0000] [--workers 2] [--quick]``
+``python bench/bench_sdf_schedule.py --out bench/out [--action A0000] [--workers 2] [--quick]``; ``--quick`` (the
+tests' mode): the default and one short schedule on the tiny run of ``bench/_quick.py`` (unless ``--run`` is
+given), each with its steps divided by ``QUICK_STEP_DIVISOR``, a coarser hull, fewer steps of the fit to it and the
+meshes at 64 and 96 cells (:func:`quick_schedule_config`); the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -27,10 +30,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _quick import QUICK_HELP, quick_run  # noqa: E402
 
 # (first pass steps, second pass steps); the stage default is inserted first.
 SCHEDULES = ((1800, 1800), (600, 1500), (600, 1200), (400, 1200))
 QUICK_SCHEDULES = ((300, 400),)
+QUICK_STEP_DIVISOR = 60
 
 
 def default_config():
@@ -44,6 +51,14 @@ def schedule_config(first: int, second: int):
     base = default_config()
     return dataclasses.replace(base, first_pass_iterations=int(first),
                                sdf=dataclasses.replace(base.sdf, iterations=int(second)))
+
+
+def quick_schedule_config(first: int, second: int):
+    """``--quick``: :func:`schedule_config` with both step counts divided by ``QUICK_STEP_DIVISOR``, the visual
+    hull at 48 cells and 20 steps of the fit to it, the first and published meshes at 64 and 96 cells."""
+    cfg = schedule_config(max(1, first // QUICK_STEP_DIVISOR), max(1, second // QUICK_STEP_DIVISOR))
+    return dataclasses.replace(cfg, first_pass_mesh_resolution=64, mesh_resolution=96,
+                               sdf=dataclasses.replace(cfg.sdf, hull_resolution=48, hull_init_steps=20))
 
 
 def schedules(quick: bool) -> list[tuple[int, int]]:
@@ -63,7 +78,7 @@ def latest_artifact(work: Path, stage: str, action: str) -> Path:
     return path
 
 
-def run_schedule(args: tuple[str, str, str, int, int]) -> dict:
+def run_schedule(args: tuple[str, str, str, int, int, bool]) -> dict:
     """One schedule: the geometry stage on ``action``, timed, its mesh measured against the truth."""
     import os
 
@@ -73,9 +88,10 @@ def run_schedule(args: tuple[str, str, str, int, int]) -> dict:
     from stages.geometry import GeometryStage
     from stages.numerics.meshmetrics import mesh_metrics
 
-    work, capture, action, first, second = args
+    work, capture, action, first, second, quick = args
     work, capture = Path(work), Path(capture)
-    stage = GeometryStage(schedule_config(first, second))
+    config = quick_schedule_config(first, second) if quick else schedule_config(first, second)
+    stage = GeometryStage(config)
     with tempfile.TemporaryDirectory(prefix="bench_sdf_schedule_") as tmp:
         ctx = StageContext(stage="geometry", scope_id=action, session_id="", action_id=action, out_dir=Path(tmp),
                            upstream={"decode": latest_artifact(work, "decode", action),
@@ -88,6 +104,7 @@ def run_schedule(args: tuple[str, str, str, int, int]) -> dict:
     gv, gf = read_ply(capture / "ground_truth" / action / "mesh.ply")
     m = mesh_metrics(v, f, gv, gf)
     return {"first_pass": first, "second_pass": second, "cpu_s": cpu, "wall_s": wall,
+            "steps_run": [config.first_pass_iterations, config.sdf.iterations],
             "chamfer_mm": float(m["chamfer_mm"]), "normal_consistency": float(m["normal_consistency"]),
             "fscore_1mm": float(m["fscore_1mm"]), "train_s": float(stats["train_seconds"])}
 
@@ -129,6 +146,8 @@ def markdown(report: dict) -> str:
     for r in report["rows"]:
         ratio = f"{r['cpu_s'] / ref['cpu_s']:.2f}x" if ref else "-"
         name = f"{r['first_pass']}+{r['second_pass']}" + (" (default)" if r["default"] else "")
+        if list(r["steps_run"]) != [r["first_pass"], r["second_pass"]]:
+            name += " (--quick: ran {}+{})".format(*r["steps_run"])
         lines.append(f"| {name} | {r['cpu_s']:.0f} | {ratio} | {r['chamfer_mm']:.3f} | "
                      f"{r['normal_consistency']:.4f} | {100 * r['fscore_1mm']:.1f}% | {'yes' if r['pareto'] else ''} |")
     return "\n".join(lines) + "\n"
@@ -137,25 +156,27 @@ def markdown(report: dict) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--run", default=str(ROOT / "runs" / "default"), help="a make dataset run folder")
+    parser.add_argument("--run", help="a make dataset run folder (default runs/default; with --quick the tiny run)")
     parser.add_argument("--action", default="A0000")
     parser.add_argument("--workers", type=int, default=2, help="schedules measured side by side (one thread each)")
-    parser.add_argument("--quick", action="store_true", help="the default and one short schedule")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP + "; the default and one short schedule")
     args = parser.parse_args()
+    if args.run is None:
+        args.run = str(quick_run(Path(args.out)) if args.quick else ROOT / "runs" / "default")
     run = Path(args.run)
     work, capture = run / "release.work", run / "capture"
     if not (work / "artifacts").is_dir() or not (capture / "ground_truth" / args.action / "mesh.ply").exists():
         print(f"bench_sdf_schedule: needs {run} with a work folder and ground truth (make dataset first); skipped")
         return 0
     todo = schedules(args.quick)
-    jobs = [(str(work), str(capture), args.action, first, second) for first, second in todo]
+    jobs = [(str(work), str(capture), args.action, first, second, args.quick) for first, second in todo]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         rows = list(pool.map(run_schedule, jobs))
     for row, flag in zip(rows, pareto(rows)):
         row["pareto"] = flag
     for i, row in enumerate(rows):
         row["default"] = i == 0
-    report = {"action": args.action, "rows": rows}
+    report = {"action": args.action, "quick": args.quick, "rows": rows}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_sdf_schedule.json").write_text(json.dumps(report, indent=1))

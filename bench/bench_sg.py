@@ -17,7 +17,9 @@ and the exact GGX moment table) with the simulator's per-LED GGX under 512 LEDs,
 
 ``python bench/bench_sg.py --out DIR`` writes DIR/bench_sg.json, DIR/bench_sg.png (errors and time against
 lobe count) and DIR/bench_sg_previews.png (tone-mapped map vs SG reconstructions). Without the shared
-maps it writes a JSON saying so and exits 0.
+maps it writes a JSON saying so and exits 0. ``--quick`` (the tests' mode): one map, 8 and 32 lobes, 30 fit
+iterations, 6 shading points against a 128-row quadrature, roughness fits on 200 points; the numbers are not
+measurements.
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 HDRI = ROOT.parent / "shared" / "data" / "hdri"
 
 
@@ -67,7 +70,7 @@ def summary(rows: list[dict], lobe_counts: list[int]) -> dict:
     return out
 
 
-def shading_check(lobes, n_points: int = 24, seed: int = 0, max_view_deg: float = 60.0) -> dict:
+def shading_check(lobes, n_points: int = 24, seed: int = 0, max_view_deg: float = 60.0, h: int = 512) -> dict:
     """shade_sg against quadrature of the same BRDF (GGX D, Schlick F, the chosen shadowing) under the
     lobes' own map, for random normals, views within max_view_deg of the normal and r in {0.3, 0.45, 0.7}."""
     import torch
@@ -75,7 +78,6 @@ def shading_check(lobes, n_points: int = 24, seed: int = 0, max_view_deg: float 
     from stages.numerics import sg
 
     rng = np.random.default_rng(seed)
-    h = 512
     env = sg.render_sg_environment(lobes, h, 2 * h)
     dirs = sg.equirect_directions(h, 2 * h).reshape(-1, 3).astype(np.float64)
     radiance = env.reshape(-1, 3).astype(np.float64) * sg.equirect_solid_angles(h, 2 * h).reshape(-1, 1)
@@ -262,6 +264,7 @@ def previews(maps: list[Path], fits: dict, counts: list[int], path: Path) -> Non
 
 
 def main() -> int:
+    from _quick import QUICK_HELP
     from stages.relight import RelightConfig
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -272,7 +275,11 @@ def main() -> int:
     parser.add_argument("--fit-height", type=int, default=RelightConfig().fit_height,
                         help="rows of the map the fit works on (default: the relight stage's)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    fit_points, shading_points, quadrature_rows = 2000, 24, 512
+    if args.quick:
+        args.lobes, args.iterations, fit_points, shading_points, quadrature_rows = "8,32", 30, 200, 6, 128
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     result_path = out / "bench_sg.json"
@@ -280,8 +287,10 @@ def main() -> int:
     if args.maps:
         wanted = set(args.maps.split(","))
         maps = [m for m in maps if m.stem in wanted]
+    if args.quick:
+        maps = [next((m for m in maps if m.stem == "lebombo_1k"), maps[0])] if maps else []
     if not maps:
-        result_path.write_text(json.dumps({"skipped": f"no HDR maps at {HDRI}"}, indent=1))
+        result_path.write_text(json.dumps({"skipped": f"no HDR maps at {HDRI}", "quick": args.quick}, indent=1))
         print(f"skipped: no HDR maps at {HDRI}")
         return 0
 
@@ -294,9 +303,11 @@ def main() -> int:
     rows, fits = fit_table(maps, lobe_counts, args.iterations, args.fit_height)
     shading_map = next((m for m in maps if m.stem == "lebombo_1k"), maps[0])
     shading_lobes = fits[(shading_map.stem, 32 if 32 in lobe_counts else lobe_counts[-1])]
-    shading = {f"views_within_{deg}deg": shading_check(shading_lobes, max_view_deg=deg) for deg in (60, 80)}
-    stage = stage_check()
+    shading = {f"views_within_{deg}deg": shading_check(shading_lobes, shading_points, max_view_deg=deg,
+                                                       h=quadrature_rows) for deg in (60, 80)}
+    stage = stage_check(points=fit_points)
     result = {
+        "quick": args.quick,
         "stage_illuminations_vs_simulator": stage,
         "maps": [m.name for m in maps], "lobe_counts": lobe_counts, "iterations": args.iterations,
         "fit_height": args.fit_height, "threads": args.threads,

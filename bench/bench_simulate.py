@@ -12,7 +12,10 @@
    normals with 1 ray per pixel and with the default s x s, against 4 x 4 rays per pixel (the pixel
    integral, nearly converged), one action, 8 cameras.
 
-    python bench/bench_simulate.py --out bench/out
+    python bench/bench_simulate.py --out bench/out [--quick]
+
+``--quick`` (the tests' mode): every part on a capture of 1 action, 8 cameras 64 px wide, 128 LEDs and the
+subject unsubdivided, cameras 0 and 4; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -28,7 +31,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
 
+from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 from synthetic import SimConfig, simulate  # noqa: E402
 from synthetic import geometry, shading  # noqa: E402
 from synthetic.simulate import make_session, prepare_action  # noqa: E402
@@ -44,16 +49,16 @@ def angular_error_deg(radiance: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(np.sum(d * normals, axis=-1), -1.0, 1.0)))
 
 
-def time_default_capture(work: Path) -> dict:
+def time_default_capture(work: Path, config: SimConfig) -> dict:
     stamps: list[tuple[float, str]] = []
     start = time.perf_counter()
-    simulate(work / "capture", SimConfig(), progress=lambda m: stamps.append((time.perf_counter() - start, m)))
+    simulate(work / "capture", config, progress=lambda m: stamps.append((time.perf_counter() - start, m)))
     total = time.perf_counter() - start
     phases, previous = [], 0.0
     for t, message in stamps:
         phases.append({"until_s": round(t, 2), "took_s": round(t - previous, 2), "message": message})
         previous = t
-    return {"config": SimConfig().to_json(), "total_s": round(total, 2), "phases": phases}
+    return {"config": config.to_json(), "total_s": round(total, 2), "phases": phases}
 
 
 def specular_clusters_vs_exact(config: SimConfig, cameras: list[int]) -> dict:
@@ -192,23 +197,27 @@ def plot(result: dict, out: Path) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    cameras = list(range(0, 32, 4))
+    config = SimConfig()
+    if args.quick:
+        config = dataclasses.replace(config, actions=1, n_cameras=8, width=64, **quick_sim_changes())
+    cameras = list(range(0, config.n_cameras, 4))
     with tempfile.TemporaryDirectory() as tmp:
-        result = {"default_capture": time_default_capture(Path(tmp))}
+        result = {"quick": args.quick, "default_capture": time_default_capture(Path(tmp), config)}
         print(f"default simulate(): {result['default_capture']['total_s']} s", flush=True)
         result["ratio_normals_decoded"] = decoded_capture_errors(Path(tmp) / "capture", cameras)
     with limit_blas_threads(1):  # as simulate() runs
-        result["specular_clusters_vs_exact"] = specular_clusters_vs_exact(SimConfig(), cameras)
+        result["specular_clusters_vs_exact"] = specular_clusters_vs_exact(config, cameras)
         print(f"specular clusters vs exact: {result['specular_clusters_vs_exact']}", flush=True)
-        result["ratio_normals_presensor"] = ratio_normal_errors(SimConfig(), cameras)
-        result["pixel_integration"] = pixel_integration(SimConfig(), cameras)
+        result["ratio_normals_presensor"] = ratio_normal_errors(config, cameras)
+        result["pixel_integration"] = pixel_integration(config, cameras)
         print(f"pixel integration: {result['pixel_integration']}", flush=True)
     (out / "bench_simulate.json").write_text(json.dumps(result, indent=1) + "\n")
     plot(result, out)
-    print(json.dumps({k: v for k, v in result.items() if k != "default_capture"}, indent=1))
+    print(json.dumps({k: v for k, v in result.items() if k not in ("default_capture", "quick")}, indent=1))
     return 0
 
 

@@ -14,7 +14,8 @@ from the same decoded frames:
 
 Errors against the simulator's normals over the pixels the release calls valid, with the share of the
 error on the shiny leather (roughness < 0.35) and at grazing views (n.v < 0.3). Writes
-bench_specular_normals.json/.md/.png.
+bench_specular_normals.json/.md/.png. ``--quick`` (the tests' mode): seed 0 only, 2 cameras 64 px wide, 128 LEDs,
+the subject unsubdivided; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -29,17 +30,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 from _threads import set_numeric_threads  # noqa: E402
 
 
-def prepare(root: Path, seed: int, width: int, cameras: int) -> Path:
+def prepare(root: Path, seed: int, width: int, cameras: int, **sim_changes) -> Path:
     """Simulate and run through photometric; returns the work folder."""
     from pipeline.runner import ExecutionConfig, run_pipeline
     from stages.registry import PRESETS, build_stages
     from synthetic import SimConfig, simulate
 
     shutil.rmtree(root, ignore_errors=True)
-    simulate(root / "capture", SimConfig(actions=1, n_cameras=cameras, width=width, seed=seed))
+    simulate(root / "capture", SimConfig(actions=1, n_cameras=cameras, width=width, seed=seed, **sim_changes))
     preset = PRESETS["default"]
     run_pipeline(root / "capture", root / "release", root / "work", build_stages(preset, through="photometric"),
                  preset, ExecutionConfig(scheduler="sync"), echo=lambda line: None)
@@ -141,7 +143,10 @@ def main() -> int:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--cameras", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
+    if args.quick:
+        args.seeds, args.width, args.cameras = [0], 64, 2
     set_numeric_threads(args.threads)
     from stages.photometric import SpecularConfig
 
@@ -150,7 +155,8 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     report = {}
     for seed in args.seeds:
-        root = prepare(out / "specular_normals" / f"seed{seed}", seed, args.width, args.cameras)
+        root = prepare(out / "specular_normals" / f"seed{seed}", seed, args.width, args.cameras,
+                       **(quick_sim_changes() if args.quick else {}))
         report[f"seed{seed}"] = evaluate(root, default_r)
         base = report[f"seed{seed}"]["eq1"]
         for name, row in report[f"seed{seed}"].items():
@@ -158,7 +164,7 @@ def main() -> int:
                   f"leather {row['leather_deg']:6.2f} grazing {row['grazing_deg']:6.2f} "
                   f"s/10k px {row['seconds_per_10k_px']:6.3f} (x{row['seconds_per_10k_px'] / max(base['seconds_per_10k_px'], 1e-9):.0f})",
                   flush=True)
-    (out / "bench_specular_normals.json").write_text(json.dumps(report, indent=1))
+    (out / "bench_specular_normals.json").write_text(json.dumps(report | {"quick": args.quick}, indent=1))
     names = list(next(iter(report.values())))
     lines = ["| variant | " + " | ".join(f"seed {s} mean / median deg" for s in args.seeds) + " | s per 10k px |",
              "|---|" + "---|" * len(args.seeds) + "---|"]

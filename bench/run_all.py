@@ -2,11 +2,17 @@
 
 Benchmarks measure time against error, and speed as ratios against a simple baseline run in the same
 process; they are never timed tests.
+
+``--quick`` (``make bench-quick``, and tests/unit/bench/test_bench_quick.py) runs every bench in its quick mode:
+the same code on the smallest inputs that run it (the benches that read a release share a tiny simulated run
+made once under ``--out``, see bench/_quick.py), so that the benches cannot rot; its numbers are not
+measurements.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -51,6 +57,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default=str(HERE / "out"))
     parser.add_argument("--only", help="comma-separated bench names (e.g. decode,photometric)")
+    parser.add_argument("--quick", action="store_true",
+                        help="every bench in its quick mode (the tests' mode): checks they run; not measurements")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -58,13 +66,25 @@ def main() -> int:
     if args.only:
         wanted = {f"bench_{n}.py" for n in args.only.split(",")}
         scripts = [s for s in scripts if s.name in wanted]
-    failures = []
-    report = ["# Benchmark report", "", "## Machine", "", *machine_lines(), ""]
+    failures, times = [], {}
+    report = ["# Benchmark report", ""]
+    env = None
+    if args.quick:
+        report += ["**Quick run** (`run_all.py --quick`, `make bench-quick`): every bench on the smallest inputs that "
+                   "run its code, to check that it runs. **Its numbers are not measurements**; `make bench` measures.",
+                   ""]
+        # numeric threads that sleep rather than spin while they wait: the tests run this beside other work
+        env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+    report += ["## Machine", "", *machine_lines(), ""]
+    started = time.perf_counter()
     for script in scripts:
         print(f"== {script.name}", flush=True)
         start = time.perf_counter()
-        proc = subprocess.run([sys.executable, str(script), "--out", str(out)], cwd=HERE.parent)
+        proc = subprocess.run([sys.executable, str(script), "--out", str(out)] + (["--quick"] if args.quick else []),
+                              cwd=HERE.parent, env=env)
         seconds = time.perf_counter() - start
+        times[script.stem] = seconds
+        print(f"== {script.name}: exit {proc.returncode}, {seconds:.1f} s", flush=True)
         if proc.returncode:
             failures.append(script.name)
         report += [f"## {script.stem}", "", f"exit {proc.returncode}, {seconds:.1f}s", ""]
@@ -77,8 +97,13 @@ def main() -> int:
         for png in sorted(out.glob(f"{script.stem}*.png")):
             report.append(f"![{png.stem}]({png.name})")
         report.append("")
+    total = time.perf_counter() - started
+    report[report.index("## Machine"):report.index("## Machine")] = [
+        f"{len(scripts)} benches in {total:.0f} s: " + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} s"
+                                                              for k, v in times.items()), ""]
     (out / "REPORT.md").write_text("\n".join(report))
-    print(f"report: {out / 'REPORT.md'}")
+    print("times: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
+    print(f"total {total:.1f} s; report: {out / 'REPORT.md'}")
     if failures:
         print(f"failed: {failures}", file=sys.stderr)
     return 1 if failures else 0
