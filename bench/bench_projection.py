@@ -211,13 +211,23 @@ def project(stage_s: dict[str, float], per_session: set[str], rules: dict[str, t
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--release", default=str(ROOT / "runs" / "default" / "release"))
+    parser.add_argument("--release", default=None, help="default: runs/default/release (--quick: the tiny run's)")
     parser.add_argument("--work", default=None, help="the release's work folder (default: RELEASE.work)")
     parser.add_argument("--gpu-speedup", type=float, default=100.0,
                         help="ASSUMED: one GPU trains the SDF this many times as fast as one CPU core")
+    parser.add_argument("--quick", action="store_true",
+                        help="project from bench/_quick.py's tiny run (checks the bench; not the figures)")
     args = parser.parse_args()
-    out, release = Path(args.out), Path(args.release)
+    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.release is None:
+        if args.quick:
+            from _quick import quick_run
+
+            args.release = str(quick_run(out) / "release")
+        else:
+            args.release = str(ROOT / "runs" / "default" / "release")
+    release = Path(args.release)
     if not (release / "manifests" / "stage_runs.parquet").is_file():
         print(f"bench_projection: no release with stage runs at {release} (run `make dataset`); skipped")
         return 0
@@ -273,7 +283,8 @@ def main() -> int:
     memory = None
     if (out / "bench_memory.json").is_file():
         memory = json.loads((out / "bench_memory.json").read_text()).get("worker_needs")
-    report = {"measured_from": {"release": str(release), **info}, "sensor": list(SENSOR), "actions": ACTIONS,
+    report = {"quick": bool(args.quick), "measured_from": {"release": str(release), **info}, "sensor": list(SENSOR),
+              "actions": ACTIONS,
               "examples": EXAMPLES, "actions_per_session": ACTIONS_PER_SESSION, "gpu_speedup_assumed": args.gpu_speedup,
               "sha256_bytes_per_s": rate, "engine": engine_note, **result,
               "storage_tb": {"raw_capture": raw_bytes / 1e12, "release_files": release_total / 1e12,
