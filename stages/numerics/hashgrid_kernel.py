@@ -7,7 +7,9 @@ training step. This module's C source is compiled once per machine with the syst
 ``$ULTRASTAGE_KERNEL_CACHE`` (default ``~/.cache/ultrastage/kernels``), loaded with :mod:`ctypes`, and wrapped
 in an autograd function. Where no C compiler is found (or ``ULTRASTAGE_HASHGRID_KERNEL=torch``), for CUDA
 tensors, and where torch runs on more than :data:`MAX_TORCH_THREADS` threads, the encoding keeps its torch
-path; :func:`kernel_available` says whether the kernel is there.
+path; :func:`kernel_available` says whether the kernel is there. The two paths agree to float rounding
+(relative differences about 1e-7, tests/unit/numerics/test_hashgrid_kernel.py), so which one ran is not part
+of a stage's cache key.
 
 The gradient flows to the table only: the encoded points are data (ray samples and random points), never
 parameters, and :func:`encode` refuses points that require a gradient.
@@ -156,20 +158,24 @@ def _library() -> ctypes.CDLL | None:
         return None
     digest = hashlib.sha256((_SOURCE + " ".join(_FLAGS) + sys.platform).encode()).hexdigest()[:16]
     target = _cache_dir() / f"hashgrid_{digest}.so"
-    if not target.exists():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-            source = Path(tmp) / "hashgrid.c"
-            source.write_text(_SOURCE)
-            built = Path(tmp) / target.name
-            proc = subprocess.run([compiler, *_FLAGS, "-o", str(built), str(source), "-lm"], capture_output=True,
-                                  text=True)
-            if proc.returncode != 0:
-                print(f"hash-grid kernel: {compiler} failed ({proc.stderr.strip()[:300]}); the torch path is used",
-                      file=sys.stderr)
-                return None
-            os.replace(built, target)  # atomic: processes compiling side by side each install a whole file
-    lib = ctypes.CDLL(str(target))
+    try:
+        if not target.exists():
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+                source = Path(tmp) / "hashgrid.c"
+                source.write_text(_SOURCE)
+                built = Path(tmp) / target.name
+                proc = subprocess.run([compiler, *_FLAGS, "-o", str(built), str(source), "-lm"],
+                                      capture_output=True, text=True)
+                if proc.returncode != 0:
+                    print(f"hash-grid kernel: {compiler} failed ({proc.stderr.strip()[:300]}); the torch path is "
+                          "used", file=sys.stderr)
+                    return None
+                os.replace(built, target)  # atomic: processes compiling side by side each install a whole file
+        lib = ctypes.CDLL(str(target))
+    except OSError as exc:  # an unwritable cache folder, a library that does not load: torch's path still works
+        print(f"hash-grid kernel: {target}: {exc}; the torch path is used", file=sys.stderr)
+        return None
     i64, f32p, i64p = ctypes.c_int64, ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_int64)
     lib.hashgrid_forward.argtypes = [f32p, i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p,
                                      f32p]

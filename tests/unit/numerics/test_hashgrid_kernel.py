@@ -112,8 +112,15 @@ def test_points_with_a_gradient_are_refused():
     assert not enc._use_kernel(x)  # the encoding takes its torch path for such points
 
 
-def test_the_torch_path_can_be_forced():
+@pytest.mark.parametrize("setting", ["forced", "unwritable cache"])
+def test_the_torch_path_is_taken_when_forced_or_when_the_kernel_cannot_be_built(setting, tmp_path):
     code = "from stages.numerics import hashgrid_kernel as k; print(k.kernel_available())"
-    env = os.environ | {"ULTRASTAGE_HASHGRID_KERNEL": "torch"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    extra = ({"ULTRASTAGE_HASHGRID_KERNEL": "torch"} if setting == "forced"
+             else {"ULTRASTAGE_KERNEL_CACHE": str(blocker / "kernels")})  # a folder under a regular file
+    out = subprocess.run([sys.executable, "-c", code], env=os.environ | extra, capture_output=True, text=True,
+                         check=True)
     assert out.stdout.strip() == "False"
+    if setting != "forced":
+        assert "the torch path is used" in out.stderr and "a_file" in out.stderr
