@@ -16,7 +16,9 @@ every ``--stride``-th camera it reports per variant:
 4. the released ``albedo_diffuse`` against the white-light ``albedo``: the median difference to the
    simulator's albedo per band of n.v (true normal, view direction) and the PSNR over the valid pixels, and the
    seconds per camera of taking the specular light out (:func:`stages.diffuse_normals.diffuse_albedo`, which
-   must reproduce the released map).
+   must reproduce the released map);
+5. the released fit's de-occlusion over :data:`DIRECTION_SWEEP` and the stage's occlusion directions: error
+   against the simulator's normals and seconds per camera (the stage's knob, time against error).
 
 Writes bench_diffuse_normals.json and bench_diffuse_normals.png (error and time per variant). ``--quick`` (the
 tests' mode): the tiny run of ``bench/_quick.py`` (its release and work folder); the numbers are not measurements.
@@ -42,6 +44,10 @@ def _artifact(work: Path, stage: str, scope: str) -> Path:
 
 def _scalar(image: np.ndarray) -> np.ndarray:
     return image[..., 0] if image.ndim == 3 else image
+
+
+DIRECTION_SWEEP = (64, 128)
+"""Occlusion directions measured besides the stage's ``occlusion_directions`` (time against normal error)."""
 
 
 def measure_action(work: Path, truth: Path, action: str, session: str, stride: int) -> dict:
@@ -76,6 +82,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     f0 = fitted_f0(_artifact(work, "materials", action))
     albedo_rows: list[tuple[np.ndarray, ...]] = []
     albedo_s, albedo_reproduced = 0.0, 0.0
+    sweep: dict[int, dict] = {}  # occlusion directions -> errors and seconds of the de-occlusion
     for cam_id in sorted(cameras)[::stride]:
         normal_alpha_path = photometric / "normal_alpha" / f"{cam_id}.exr"
         if not normal_alpha_path.exists():
@@ -128,6 +135,15 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
                 n_dot_v = (true_normals * view_directions(cam["K"], cam["cam_from_world"], h, w)).sum(-1)
                 albedo_rows.append((n_dot_v[scored], (albedo - true_albedo)[scored],
                                     (released_albedo - true_albedo)[scored]))
+        if cfg.occlusion:  # the released fit's occlusion traced over fewer directions than the stage's
+            fitted = fits["materials"][0]
+            for n_dirs in DIRECTION_SWEEP + (cfg.occlusion_directions,):
+                t1 = time.perf_counter()
+                swept, _ = deocclude_view(scene, cam["K"], cam["cam_from_world"], fitted, n_dirs,
+                                          cfg.occlusion_min_visible)
+                row = sweep.setdefault(n_dirs, {"errors": [], "seconds": 0.0})
+                row["seconds"] += time.perf_counter() - t1
+                row["errors"].append(angular_error_deg(swept, true_normals)[scored])
         shiny.append(true_rough[scored] < 0.3)
         count += 1
     shiny_all = np.concatenate(shiny)
@@ -148,6 +164,12 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
         out["albedo"] = {"f0": f0, "by_n_dot_v": bands, "psnr_white_db": psnr(white), "psnr_diffuse_db": psnr(diffuse),
                          "seconds_per_camera": round(albedo_s / len(albedo_rows), 3),
                          "released_max_abs_difference": albedo_reproduced}
+    out["occlusion_directions"] = {
+        str(n_dirs): {"mean_deg": round(float(np.concatenate(r["errors"]).mean()), 3),
+                      "under5_pct": round(float(100 * np.mean(np.concatenate(r["errors"]) <= 5)), 2),
+                      "deocclusion_s_per_camera": round(r["seconds"] / max(count, 1), 3),
+                      "stage_default": n_dirs == cfg.occlusion_directions}
+        for n_dirs, r in sorted(sweep.items())}
     base_s = seconds["one prior"]
     for variant in variants:
         e = np.concatenate(errors[variant])
