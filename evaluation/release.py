@@ -401,10 +401,10 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                      textured: dict[str, dict] | None = None) -> dict[str, float]:
     """The paper's table-1 protocol on every action with a mesh: two held-out cameras' albedo and normal
     maps synthesised from the other cameras, against the held-out photometric maps and (``_truth``)
-    against the simulator's maps (:mod:`stages.heldout`). ``textured``: receives action id -> the
+    against the simulator's maps (:mod:`evaluation.heldout`). ``textured``: receives action id -> the
     ray-casting scene and atlas of the textured mesh where the protocol loaded it (the ``scene_cache`` of
     :func:`texture_in_camera`)."""
-    from stages.heldout import ActionGBuffers, heldout_metrics
+    from evaluation.heldout import ActionGBuffers, heldout_metrics
 
     values: dict[str, list[float]] = {}
     for action_id in ok_ids:
@@ -416,7 +416,7 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
         if textured is not None and "atlas" in data._shared:
             scene, atlas = data._shared["atlas"][:2]
             textured[action_id] = {"scene": scene, "atlas": atlas}
-        # 1 where the white-light albedo was predicted per view (stages.heldout), 0 where blended as it is
+        # 1 where the white-light albedo was predicted per view (evaluation.heldout), 0 where blended as it is
         values.setdefault("heldout_albedo_view_dependent", []).append(
             float(metrics.get("heldout_albedo_model") == "view_dependent"))
         for base in HELDOUT_METRICS:
