@@ -413,8 +413,8 @@ def evaluated(first_run, capture):
 def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
     """The relit parts measured action by action in worker processes give the numbers and the metrics rows
     (in the same order) of an all-in-one-process run."""
-    from pipeline.runner import new_run_id
     from evaluation.release import evaluate_release, evaluate_workers
+    from pipeline.runner import new_run_id
 
     out, _ = first_run
     run_id = new_run_id()
