@@ -1364,13 +1364,12 @@ def calibrate_rig(image_paths: list[Path], work_dir: Path, nominal_K: dict[str, 
     image_paths: one image per camera (PNG/JPEG or raw; raws are decoded to 8-bit sRGB PNG), names unique.
     nominal_K, nominal_cam_from_world: image name (``path.name``) -> OpenCV (3, 3) K and (3, 4)
         cam_from_world in the stage frame, for every image.
-    Status (simulated stage, 32 cameras): the refined cameras are NOT yet closer to the truth than the
-    nominal ones (width 320: rotation 0.13 -> 0.23 deg, centre 4.8 -> 4.7 mm; width 640: rotation
-    0.13 -> 0.14 deg, centre 4.8 -> 4.9 mm, focal error 0.38 -> 0.21 %). Started from the TRUE cameras the
-    points triangulate with ~1.4 px reprojection error and the adjustment moves away from the truth by
-    ~0.16 deg, so the observations carry a systematic error (repetitive LED-sphere grid matches, or a
-    pixel convention mismatch between renderer and decode) that is not resolved yet. Use the nominal rig
-    unless a capture shows otherwise.
+    Status (simulated stage, 32 cameras): the refined cameras are NOT closer to the truth than the nominal
+    ones (``bench/bench_calibration.py --rig-prior`` measures both against the true cameras). Started from
+    the TRUE cameras the points triangulate with more than a pixel of reprojection error and the adjustment
+    moves away from the truth, so the observations carry a systematic error (repetitive LED-sphere grid
+    matches, or a pixel convention mismatch between renderer and decode) that is not resolved. Use the
+    nominal rig unless a capture shows otherwise.
 
     Returns a :class:`CalibrationResult` with ``aligned`` True; ``cameras`` holds the refined cameras
     (dist zero), ``unregistered`` the images that kept no refined pose (too few observations or a

@@ -16,37 +16,31 @@ paper says so); the simulator's albedo does not, so the ``_truth`` albedo scores
 bench reports the held-out photometric map's own score against the truth beside it).
 
 **View-dependent albedo** (``albedo_model="view_dependent"``, the default). The white-light albedo a camera
-measures is the diffuse albedo plus the specular reflection of the white light, which depends on the view:
-on the default capture it lies 0.017-0.020 above the simulator's albedo head-on and 0.057-0.060 at grazing
-views (stages.diffuse_normals.DiffuseNormalsConfig.albedo), and near a held-out view's silhouette that view sees
-the surface at grazing angles that the nearest sources, weighted to the ones that see it head-on, do not.
-So the held-out white-light albedo is predicted (:func:`predict_white_albedo`) as the blend of the other
-cameras' ``albedo_diffuse`` (their white-light albedo less their own specular light) plus the GGX
-reflection of the white light for the held-out camera's view directions, with the blended
+measures is the diffuse albedo plus the specular reflection of the white light, which depends on the view
+(larger at grazing views; stages.diffuse_normals.DiffuseNormalsConfig.albedo), and near a held-out view's
+silhouette that view sees the surface at grazing angles that the nearest sources, weighted to the ones that
+see it head-on, do not. So the held-out white-light albedo is predicted (:func:`predict_white_albedo`) as the
+blend of the other cameras' ``albedo_diffuse`` (their white-light albedo less their own specular light) plus
+the GGX reflection of the white light for the held-out camera's view directions, with the blended
 ``normal_diffuse``, the materials' roughness texture seen through the textured mesh and the materials' F0
-(:func:`stages.numerics.specular_normals.white_light_specular`, the model that fitted them). Default capture,
-both actions, the protocol's albedo: SSIM 0.9680 -> 0.9728, PSNR 33.18 -> 33.94 dB (pooled); with F0 0.04
-instead of the materials' 0.02: 0.9685; the specular times the ambient occlusion: 0.9725; with eq. 1's
-blended normals: 0.9651. The roughness texture, like the mesh, is fitted from every camera of the action;
-fitted again without the two held-out cameras (a one-off script, default capture) it gives SSIM 0.9725, PSNR
-33.88 dB. ``albedo_model="white"`` blends the sources' white-light albedo as they are (the former protocol);
-releases without ``albedo_diffuse``, ``normal_diffuse``, the roughness texture or the textured mesh fall back
-to it. Against the simulator's albedo (``_truth``) the prediction scores lower than the plain blend (it adds
-the specular light the truth lacks: 26.9 vs 27.9 dB); the ``albedo_diffuse`` protocol is the one to compare
-with the truth (evaluate's ``heldout_albedo_*_diffuse_truth``).
+(:func:`stages.numerics.specular_normals.white_light_specular`, the model that fitted them). The roughness
+texture, like the mesh, is fitted from every camera of the action, the held-out ones included.
+``albedo_model="white"`` blends the sources' white-light albedo as they are; releases without
+``albedo_diffuse``, ``normal_diffuse``, the roughness texture or the textured mesh fall back to it.
+bench/bench_gbuffer.py reports both models. Against the simulator's albedo (``_truth``) the prediction
+scores lower than the plain blend (it adds the specular light the truth lacks); the ``albedo_diffuse``
+protocol is the one to compare with the truth (:mod:`evaluation.release`'s
+``heldout_albedo_*_diffuse_truth``).
 
 **Occlusion edges.** A camera pixel integrates the light over its square: where an arm passes in front of
 the torso the held-out photometric pixel mixes both sides, while a G-buffer sampled at the pixel centre
 takes one side wholly. The pixels at an occlusion edge of the mesh (their 3 x 3 neighbourhood on the
 surface and more than ``edge_jump_m`` deep; :func:`stages.numerics.raycast.occlusion_edges`, which also
 takes in surfaces seen obliquely enough) are synthesised from ``edge_samples`` x ``edge_samples`` sub-pixel
-rays, averaged over those that hit (:func:`stages.numerics.gbuffer.reproject_gbuffer`'s ``subpixel``).
-Default capture, mean of both actions, the plain white-light blend (``albedo_model="white"``; 6,404 of
-17,732 subject pixels per view at an edge): albedo SSIM 0.9662 -> 0.9680, PSNR 32.82 -> 33.26 dB, normals
-6.85 -> 6.71 deg (``normal_diffuse`` 3.90 -> 3.77 deg). 2 rays per side: 0.9679; 4: 0.9680; a 2 cm jump
-(2,470 pixels): 0.9680, normals 6.74 deg. Silhouette pixels are left at their centre: sub-sampled too, their
-rays graze the surface where the photometric maps are worst (SSIM 0.9676); so is the interior (every pixel
-from 3 x 3 rays: 0.9675, one more low-pass of the texture).
+rays, averaged over those that hit (:func:`stages.numerics.gbuffer.reproject_gbuffer`'s ``subpixel``);
+bench/bench_gbuffer.py reports the metrics against the rays per side. Silhouette pixels and the interior are
+left at their centre: sub-sampled, silhouette rays graze the surface where the photometric maps are worst,
+and the interior's texture is low-passed once more.
 
 **Blend.** With an enabled ``learned_blend`` the sources are blended by a network trained leave one out
 on the action's other cameras (:mod:`stages.numerics.learned_blend`; the held-out cameras are neither targets nor
