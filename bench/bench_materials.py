@@ -105,7 +105,7 @@ def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig)
     the baked albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
     ``cfg.min_alpha`` inside the mask, as the stage's), with the cameras' white references."""
     from manifests import open_release
-    from stages.heldout import release_cameras
+    from evaluation.heldout import release_cameras
     from stages.materials import load_atlas_mesh
     from stages.numerics.bake import BakeView
 
@@ -136,7 +136,7 @@ class TruthProbe:
     def __init__(self, data: dict, truth_dir: Path, action: str):
         from pipeline.codecs.exr import read_exr
         from pipeline.codecs.image import read_png
-        from stages.evaluate import true_cameras
+        from evaluation.release import true_cameras
         from stages.numerics.raycast import mesh_scene, render_uvs
 
         scene = mesh_scene(data["vertices"], data["faces"])

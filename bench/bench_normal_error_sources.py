@@ -59,7 +59,7 @@ def main() -> int:
     through = "photometric" if args.quick else None
     out = Path(args.out)
     from pipeline.runner import ExecutionConfig, run_pipeline
-    from stages.evaluate import evaluate_release
+    from evaluation.release import evaluate_release
     from stages.registry import PRESETS, build_stages
     from synthetic import SimConfig, simulate
 

@@ -37,7 +37,7 @@ def main() -> int:
     shutil.rmtree(root, ignore_errors=True)
 
     from pipeline.runner import ExecutionConfig, run_pipeline
-    from stages.evaluate import evaluate_release
+    from evaluation.release import evaluate_release
     from stages.numerics.photometric import PhotometricParams
     from stages.registry import PRESETS, build_stages
     from synthetic import SimConfig, simulate

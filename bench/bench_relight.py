@@ -156,7 +156,7 @@ class ActionScene:
     sources with lazily rendered depth, the atlas and its textures), as the stage's ActionAsset."""
 
     def __init__(self, release: Path, action: str):
-        from stages.heldout import ActionGBuffers
+        from evaluation.heldout import ActionGBuffers
         from stages.materials import load_atlas_mesh
         from stages.numerics.mesh import vertex_normals
         from stages.numerics.raycast import mesh_scene

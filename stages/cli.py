@@ -197,7 +197,7 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
     metrics = None
     truth = Path(args.capture) / "ground_truth"
     if not args.no_evaluate and truth.is_dir() and result.published:
-        from stages.evaluate import evaluate_release_cached
+        from evaluation.release import evaluate_release_cached
 
         summary, cached = evaluate_release_cached(release, truth, work, run_id=result.run_id)
         print(f"{'evaluate':<12} {'release':<8} {'cached  release unchanged since its last evaluation' if cached else 'ran'}")
@@ -205,7 +205,7 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         result.metrics = metrics
     _summary(result, metrics)
     if metrics:
-        from stages.evaluate import print_overall
+        from evaluation.release import print_overall
 
         print_overall(summary)
     return 0 if all(s == "ok" for s in result.action_status.values()) else 3
@@ -246,7 +246,7 @@ def cmd_rerun(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from stages.evaluate import evaluate_release, print_overall
+    from evaluation.release import evaluate_release, print_overall
 
     summary = evaluate_release(Path(args.release), Path(args.truth))
     print_overall(summary)

@@ -71,10 +71,10 @@ class GeometryConfig(Documented):
     second_pass_importance: float = 0.2
     """Share of the second pass's rays drawn where the first mesh's normal is more than
     ``second_pass_error_floor_deg`` off the de-occluded normal, in proportion to the excess (the fingers, the
-    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. Default
-    capture, second pass alone, A0000: Chamfer 1.51 -> 1.29 mm together with the cpu preset's table size and
-    grazing/outlier settings (without the share 1.52; the share alone with the former settings 1.49; a share of
-    0.5: 1.88, too few rays left for the rest). The mask loss counts only the uniform rays."""
+    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. On the
+    default capture the share lowers the second pass's Chamfer together with the cpu SDF preset's table size
+    and grazing/outlier settings; a share of 0.5 leaves too few rays for the rest. The mask loss counts only
+    the uniform rays."""
     second_pass_error_floor_deg: float = 10.0
     """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
     previews: bool = True

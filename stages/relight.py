@@ -95,12 +95,13 @@ class RelightConfig(Documented):
     at each novel view's median depth; 3 px on the default capture)."""
     diffuse_normals: bool = True
     """Reproject the normal maps with the specular reflection fitted out (``normal_diffuse`` of the
-    diffuse_normals stage, when there are any) rather than eq. 1's (relit 22.48 vs 22.24 dB, bench_relight)."""
+    diffuse_normals stage, when there are any) rather than eq. 1's: the relit novel views came closer to the
+    simulator's with them when this default was chosen."""
     diffuse_albedo: bool = True
     """Reproject the sources' ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view,
     when the diffuse_normals stage wrote it) and shade it as is, rather than the white-light albedo times the
-    materials' diffuse ratio (one share per texel for every view). On the default capture the relit novel
-    views came 23.12 -> 23.30 dB closer to the simulator's renders (A0000 and A0001, `make dataset`)."""
+    materials' diffuse ratio (one share per texel for every view): closer relit novel views on the default
+    capture (bench/bench_relight.py scores the white-light albedo sources beside the default)."""
     shadows: bool = True
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
     visibility_directions: int = 256
@@ -113,8 +114,8 @@ class RelightConfig(Documented):
     """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
     whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
     still sampled at pixel centres; a covered pixel whose centre misses the mesh takes the mean of its shaded
-    neighbours'. 1 = hard edges (alpha = the centres' mask). On the default capture relit novel views 24.13 ->
-    24.80 dB against the simulator (2 rays per side: 24.83; the simulator's camera averages 2 x 2). The grid is
+    neighbours'. 1 = hard edges (alpha = the centres' mask; bench/bench_relight.py scores it beside the
+    default: the simulator's camera averages 2 x 2 rays, and hard edges score lower). The grid is
     cast only at the silhouette (:func:`stages.numerics.raycast.pixel_coverage`, ``edges_only``): 0.1-0.7 s
     per 320 x 480 view instead of 0.9-2.0 s for every pixel's, 0-3 pixels' coverage different, the same masks."""
     min_alpha: float = 0.5
@@ -124,7 +125,8 @@ class RelightConfig(Documented):
     learned_blend: LearnedBlendConfig = field(default_factory=LearnedBlendConfig)
     """With ``enabled: true``, blend the sources with weights learned leave one out on the action's captured
     views (the paper's blending network, :mod:`stages.numerics.learned_blend`) instead of the heuristic
-    weights. Off by default: relit novel views 23.12 -> 23.04 dB against the simulator (default capture)."""
+    weights. Off by default: on the default capture the relit novel views came no closer to the simulator's
+    with it (:class:`stages.numerics.learned_blend.LearnedBlendConfig`)."""
 
     def __post_init__(self) -> None:
         if not self.environments:

@@ -29,10 +29,9 @@ The contributions are blended with per-source weights (``weighting``):
 A source map is read at the point's projection with Keys' cubic convolution (Catmull-Rom) where all 16
 taps of the 4 x 4 neighbourhood are visible and valid, bilinearly elsewhere (``interpolation="bilinear"``
 everywhere): the bilinear kernel low-passes the source texture once more. On the default capture's held-out
-views (bench/bench_gbuffer.py) cubic raises the albedo SSIM 0.958 -> 0.960 on A0001 (0.965 on A0000 both
-ways) and against the simulator's truth 0.896 -> 0.901, PSNR 26.96 -> 27.09 dB, for 2.1x the lookup time
-(0.15 -> 0.32 s per 320 x 480 view, six sources, source depth renders cached). Negative lobes can
-overshoot: the albedo sample is clamped at 0 (the blended normal is renormalised anyway).
+views cubic raises the albedo SSIM, against the photometric maps and the simulator's truth, for about twice
+the lookup time (bench/bench_gbuffer.py measures both lookups). Negative lobes can overshoot: the albedo
+sample is clamped at 0 (the blended normal is renormalised anyway).
 
 A trained :class:`stages.numerics.learned_blend.LearnedBlend` (``blend``) replaces the heuristic weights by
 learned ones per pixel; :func:`source_candidates` gives its input, each source's samples and terms before

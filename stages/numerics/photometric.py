@@ -480,7 +480,7 @@ def albedo_from_white(
     Returns:
         float32 (H, W, 3) in [0, albedo_max]; NaN and negative inputs give 0, +Inf gives ``albedo_max``.
 
-    The white image still holds ambient occlusion (the DESIGN's note): this is albedo times visibility.
+    The white image still holds ambient occlusion (../shared/DESIGN.md, the physics): this is albedo times visibility.
     """
     full_on = _as_rgb("full_on", full_on)
     H, W = full_on.shape[:2]

@@ -17,10 +17,9 @@ mirror-like pixel's normal lies; the lower residual wins.
 
 **Solver.** Levenberg-Marquardt in the tangent plane of the current normal (two parameters per pixel, the
 Jacobian of the six residuals by forward differences, a 2 x 2 solve, steps of at most 0.5 rad, the damping
-per pixel), or Adam on an unnormalised 3-vector (the former default). On the default capture (16 cameras,
-the materials' roughness) 6 Levenberg-Marquardt steps reach 6.78 deg against the simulator's normals where
-40 Adam steps reached 6.83, at a third of the time (0.76 vs 2.39 s per camera with the edge-preserving
-filter, one thread); 12 steps give 6.78 too.
+per pixel), or Adam on an unnormalised 3-vector. On the default capture 6 Levenberg-Marquardt steps reach
+the error against the simulator's normals that 40 Adam steps do, in about a third of the time; more steps
+do not lower it.
 
 Conventions of docs/CONTRACTS.md: stage frame, OpenCV cameras ``x_cam = R x_world + t``, images
 ``(H, W, 3)`` float32; radiance in white units (decoded value / ``white_reference``). Pure numerics:

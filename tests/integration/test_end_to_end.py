@@ -261,7 +261,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
 def test_relit_truth_renders_are_kept_by_their_inputs(first_run, capture, tmp_path, monkeypatch):
     import synthetic.relight
     from manifests import open_release
-    from stages.evaluate import RelitTruthCache, _relit_overall
+    from evaluation.release import RelitTruthCache, _relit_overall
 
     out, _ = first_run
     release = open_release(out / "release")
@@ -350,7 +350,7 @@ def test_heldout_white_albedo_is_predicted_view_dependent(first_run):
     """The held-out white-light albedo: the other cameras' albedo_diffuse blended plus the held-out view's own
     white-light specular from the materials' roughness and F0; the plain blend and the diffuse maps on
     request; a release without the inputs falls back to the plain blend."""
-    from stages.heldout import ActionGBuffers, heldout_metrics, predict_white_albedo, synthesise_heldout
+    from evaluation.heldout import ActionGBuffers, heldout_metrics, predict_white_albedo, synthesise_heldout
     from stages.numerics.specular_normals import view_directions
 
     out, _ = first_run
@@ -404,7 +404,7 @@ def test_outputs_are_finite_and_normals_unit(first_run):
 @pytest.fixture(scope="module")
 def evaluated(first_run, capture):
     """The first run's release evaluated against the truth (once; later tests change the release)."""
-    from stages.evaluate import evaluate_release
+    from evaluation.release import evaluate_release
 
     out, _ = first_run
     return evaluate_release(out / "release", capture / "ground_truth")
@@ -413,8 +413,8 @@ def evaluated(first_run, capture):
 def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
     """The relit parts measured action by action in worker processes give the numbers and the metrics rows
     (in the same order) of an all-in-one-process run."""
+    from evaluation.release import evaluate_release, evaluate_workers
     from pipeline.runner import new_run_id
-    from stages.evaluate import evaluate_release, evaluate_workers
 
     out, _ = first_run
     run_id = new_run_id()
