@@ -605,6 +605,11 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
     return {k: float(np.mean(v)) for k, v in values.items() if v}
 
 
+RELIT_CACHE = Path("cache") / "relit_truth"
+"""Where in a work folder ``ultrastage run``'s evaluation keeps the simulator's renders (and, beside them,
+:func:`truth_visibility_folder`)."""
+
+
 def relit_truth_lights(cameras: list[dict]) -> int:
     """Directional lights the ground-truth relighting uses for these views: 2048 for images of 256 px and
     more (converged: 2048 vs 4096 lights differ by 45 dB PSNR at 320 x 480, 1024 vs 2048 by 34-36 dB), 512
@@ -715,7 +720,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                 true = cache.load(key) if cache is not None else None
                 if true is None:
                     if truth is None:
-                        truth = _relighter(relighters, capture_root, action_id, lights)
+                        truth = _relighter(relighters, capture_root, action_id, lights, cache_dir)
                     true = truth.render(*args)
                     if cache is not None:
                         cache.save(key, true)
@@ -743,14 +748,24 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     return out
 
 
-def _relighter(relighters: dict[tuple[str, int], Any] | None, capture_root: Path, action_id: str, lights: int) -> Any:
-    """The simulator's subject of an action for ground-truth relighting, built once per (action, lights)."""
+def truth_visibility_folder(relit_cache: Path) -> Path:
+    """Where the ground-truth relighter keeps its traced visibility beside the renders of ``relit_cache``
+    (``ultrastage run`` prefetches it there while the pipeline runs)."""
+    return Path(relit_cache).parent / "truth_visibility"
+
+
+def _relighter(relighters: dict[tuple[str, int], Any] | None, capture_root: Path, action_id: str, lights: int,
+               relit_cache: Path | None = None) -> Any:
+    """The simulator's subject of an action for ground-truth relighting, built once per (action, lights);
+    its traced visibility kept beside ``relit_cache`` when given."""
     from synthetic.relight import TruthRelighter
 
+    folder = truth_visibility_folder(relit_cache) if relit_cache is not None else None
     if relighters is None:
-        return TruthRelighter(capture_root, action_id, lights=lights)
+        return TruthRelighter(capture_root, action_id, lights=lights, visibility_cache=folder)
     if (action_id, lights) not in relighters:
-        relighters[(action_id, lights)] = TruthRelighter(capture_root, action_id, lights=lights)
+        relighters[(action_id, lights)] = TruthRelighter(capture_root, action_id, lights=lights,
+                                                         visibility_cache=folder)
     return relighters[(action_id, lights)]
 
 
@@ -806,7 +821,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             true = cache.load(key) if cache is not None else None
             if true is None or "albedo" not in true:
                 if truth is None:
-                    truth = _relighter(relighters, capture_root, action_id, lights)
+                    truth = _relighter(relighters, capture_root, action_id, lights, cache_dir)
                 true = truth.render(*args)
                 if cache is not None:
                     cache.save(key, true)
@@ -877,7 +892,7 @@ def evaluate_release_cached(release: Path, truth_dir: Path, work: Path,
         saved = json.loads(record.read_text())
         if saved.get("key") == key:
             return EvaluationSummary(saved["overall"], saved["per_action"]), True
-    summary = evaluate_release(release, truth_dir, run_id=run_id, relit_cache=work / "cache" / "relit_truth")
+    summary = evaluate_release(release, truth_dir, run_id=run_id, relit_cache=work / RELIT_CACHE)
     record.write_text(json.dumps({"key": key, "overall": summary.overall, "per_action": summary.per_action}))
     return summary, False
 

@@ -894,6 +894,11 @@ class _ProposalGrid:
         R = dirs.shape[0]
         step = self.step
         n_steps = int(math.ceil(float((far - near).max()) / step)) + 1 if R else 1
+        if self.values.device.type == "cpu" and hashgrid_kernel.kernel_available():
+            # One ray after another, each stopping at its crossing: the chunked march below samples every ray
+            # until the last one crosses.
+            return hashgrid_kernel.march_first_crossing(self.values[0, 0], self.lo, self.ext, step, n_steps,
+                                                        origins, dirs, near, far)
         t_hit = torch.full((R,), float("nan"), device=dirs.device)
         best_t = near.clone()
         best_s = torch.full((R,), float("inf"), device=dirs.device)
