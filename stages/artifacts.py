@@ -2,11 +2,13 @@
 
 A stage's upstream artifacts are folders of the work store (``ctx.upstream[name]``); :class:`ActionArtifacts`
 wraps them and reads each product by what it is (cameras, normal maps, mesh, atlas, textures) instead of by
-path, so the stages that consume a product do not repeat its layout. :func:`load_relightable_asset` builds
+path, so the stages that consume a product do not repeat its layout; :func:`colour_matrix` and
+:func:`load_light_model` read the session stages' products. :func:`load_relightable_asset` builds
 the :class:`stages.numerics.novel_view.ActionAsset` that the ``relight`` and ``relightset`` stages render from.
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -14,7 +16,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr
+from pipeline.codecs.image import read_png
 from pipeline.errors import InputError
+from stages.cameras import load_cameras
 
 #: Where each product lives inside its stage's artifact folder: (stage, relative path).
 PRODUCTS: dict[str, tuple[str, str]] = {
@@ -31,6 +35,39 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     "occlusion_texture": ("materials", "textures/occlusion.exr"),
     "diffuse_ratio_texture": ("materials", "textures/diffuse_ratio.exr"),
 }
+
+
+def colour_matrix(colour_dir: Path, camera_id: str) -> np.ndarray | None:
+    """The fitted matrix (3, 3) float32 of one camera from a ``colour`` artifact, or None (identity)."""
+    path = Path(colour_dir) / "colour" / f"{camera_id}.json"
+    return np.asarray(json.loads(path.read_text())["matrix"], np.float32) if path.exists() else None
+
+
+def load_light_model(lights_dir: Path) -> Any:
+    """The fitted :class:`calibration.light.LightModel` of a ``lights`` artifact, or None when the session uses
+    the ideal one."""
+    from calibration.light import LightModel
+
+    record = json.loads((Path(lights_dir) / "light_model.json").read_text())
+    return None if record.get("ideal") else LightModel.from_json(record["model"])
+
+
+def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, dict[str, Any]]:
+    """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
+    missing camera, with no calibration or failed frames, has none)."""
+    cameras = load_cameras(Path(decode_dir) / "cameras.json")
+    return {c: cameras[c] for c in sorted(cameras) if (Path(photometric_dir) / "normal_alpha" / f"{c}.exr").exists()}
+
+
+def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
+    """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
+    :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
+    photometric_dir = Path(photometric_dir)
+    for cam_id, cam in mapped_cameras(decode_dir, photometric_dir).items():
+        normal_alpha = read_exr(photometric_dir / "normal_alpha" / f"{cam_id}.exr")
+        mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
+        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+        yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
 
 
 class ActionArtifacts:
@@ -74,15 +111,11 @@ class ActionArtifacts:
     def cameras(self) -> dict[str, dict[str, Any]]:
         """camera_id -> camera (K, cam_from_world, width, height, ...) of the calibrated cameras that have a
         photometric normal map, sorted by id."""
-        from stages.geometry import mapped_cameras
-
         return mapped_cameras(self.upstream["decode"], self.upstream["photometric"])
 
     def camera_maps(self, min_alpha: float) -> Iterator[tuple[str, dict[str, Any], np.ndarray, np.ndarray,
                                                               np.ndarray]]:
         """``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W), valid (H, W))`` per mapped camera."""
-        from stages.geometry import camera_maps
-
         return camera_maps(self.upstream["decode"], self.upstream["photometric"], min_alpha)
 
     def map(self, product: str, camera: str, channels: int = 3) -> np.ndarray:

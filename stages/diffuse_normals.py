@@ -20,7 +20,7 @@ from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
 from stages.exr_headers import EXR_HEADERS
-from stages.lightcolour import load_light_model
+from stages.artifacts import load_light_model
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import joint_bilateral

@@ -1,8 +1,8 @@
-"""Action stages ``geometry`` (normal-supervised neural SDF -> mesh) and ``textures`` (UV atlas + baking).
+"""Action stage ``geometry``: the normal-supervised neural SDF and its mesh.
 
 Wiring only: the numerics are :mod:`stages.numerics.sdf` (NeuS with a hash encoding, trained from the
 photometric normal maps), :mod:`stages.numerics.mesh` (narrow-band marching cubes, components,
-decimation, xatlas) and :mod:`stages.numerics.bake` (texel reprojection into the cameras that see it).
+decimation).
 
 The SDF is trained twice (``deocclude``): eq. 1's normals lean away from whatever hides part of the LED
 sphere, so a mesh fitted to them bulges where the body occludes itself (inner thighs, armpits, neck). A short
@@ -23,13 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.codecs.exr import read_exr, write_exr
-from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, read_png, write_png
+from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
-from stages.exr_headers import EXR_HEADERS
+from stages.artifacts import camera_maps
 from stages.numerics import numeric_threads
 from stages.numerics.sdf import SDF_PRESETS, SDFConfig
 
@@ -162,43 +160,6 @@ def second_pass_views(cfg: GeometryConfig, views: list[Any], vertices: np.ndarra
     with sample weights when ``cfg.second_pass_importance`` draws a share of the rays by them."""
     return deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions, cfg.deocclude_min_visible,
                                 cfg.second_pass_error_floor_deg if cfg.second_pass_importance > 0 else None)
-
-
-@dataclass(frozen=True)
-class TexturesConfig(Documented):
-    atlas_faces: int = 40_000
-    """Faces of the textured mesh (xatlas time grows faster than linearly with faces)."""
-    texture_size: int = 1024
-    """Width and height of the texture atlas in texels."""
-    atlas_padding: int = 2
-    """Texels between charts in the atlas."""
-    max_views: int = 3
-    """A texel blends at most this many of the cameras that see it (the most frontal)."""
-    depth_tolerance_m: float = 0.01
-    """A texel is visible in a camera when its depth is within this of the mesh's depth there."""
-    min_cos: float = 0.2
-    """Cameras seeing a texel at more grazing angles than this cosine are not used."""
-    min_alpha: float = 0.5
-    """Map pixels with a lower validity alpha are not baked."""
-    previews: bool = True
-    """Write PNG previews of the textures."""
-
-
-def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, dict[str, Any]]:
-    """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
-    missing camera, with no calibration or failed frames, has none)."""
-    cameras = load_cameras(decode_dir / "cameras.json")
-    return {c: cameras[c] for c in sorted(cameras) if (photometric_dir / "normal_alpha" / f"{c}.exr").exists()}
-
-
-def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
-    """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
-    :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
-    for cam_id, cam in mapped_cameras(decode_dir, photometric_dir).items():
-        normal_alpha = read_exr(photometric_dir / "normal_alpha" / f"{cam_id}.exr")
-        mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
 
 
 def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:
@@ -342,69 +303,4 @@ class GeometryStage(Stage):
         for name, kind in (("sdf_losses.png", "preview_sdf_losses"), ("mesh_normals.png", "preview_mesh_normals")):
             if (artifact / "previews" / name).exists():
                 files.append((artifact / "previews" / name, f"previews/{name}", kind, None))
-        return files
-
-
-class TexturesStage(Stage):
-    """UV atlas of the decimated mesh and albedo/normal textures baked from the photometric maps."""
-
-    name = "textures"
-    version = "3"
-    scope = "action"
-    requires = ("geometry", "photometric", "decode")
-    outputs = ("mesh", "textures", "previews")
-
-    def run(self, ctx: StageContext) -> dict[str, Any]:
-        from pipeline.codecs.mesh import read_ply, write_obj
-        from stages.numerics.bake import BakeView, bake_textures
-        from stages.numerics.mesh import decimate, uv_atlas, vertex_normals
-
-        cfg: TexturesConfig = self.config
-        start = time.perf_counter()
-        vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")
-        vertices, faces = decimate(vertices, faces, cfg.atlas_faces)
-        atlas = uv_atlas(vertices, faces, resolution=cfg.texture_size, padding=cfg.atlas_padding)
-        atlas_s = time.perf_counter() - start
-
-        photometric = ctx.upstream["photometric"]
-        views = [BakeView(images={"albedo": read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3],
-                                  "normal": np.ascontiguousarray(normal_alpha[..., :3])},
-                          valid=valid, K=np.asarray(cam["K"], np.float64),
-                          cam_from_world=np.asarray(cam["cam_from_world"], np.float64))
-                 for cam_id, cam, normal_alpha, _, valid in camera_maps(ctx.upstream["decode"], photometric,
-                                                                         cfg.min_alpha)]
-        start = time.perf_counter()
-        baked = bake_textures(vertices, faces, atlas, views, cfg.texture_size, max_views=cfg.max_views,
-                              depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
-        bake_s = time.perf_counter() - start
-
-        out = ctx.out_dir
-        tex = out / "textures"
-        write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
-        write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
-        write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
-        write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
-        # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
-        write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
-        atlas_vertices = np.asarray(vertices)[atlas.vmapping]
-        write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
-                  normals=vertex_normals(atlas_vertices, atlas.faces),
-                  material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
-        if cfg.previews:
-            covered = baked.covered.astype(np.float32)
-            write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
-            write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
-        return {"atlas_faces": int(len(faces)), "atlas_seconds": atlas_s, "bake_seconds": bake_s,
-                "cameras": len(views),
-                "bake": {k: v for k, v in baked.stats.items() if isinstance(v, (int, float, str))}}
-
-    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        # mesh/textured.obj is published by the exports stage, with its texture beside it (this artifact's
-        # MTL points at ../textures/albedo.png, a path some loaders refuse) and a GLB.
-        files = []
-        for p in sorted((artifact / "textures").iterdir()):
-            kind = f"texture_{p.stem}" if p.suffix == ".exr" else f"texture_{p.stem}_preview"
-            files.append((p, f"textures/{p.name}", kind, None))
-        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
-            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
         return files

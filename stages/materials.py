@@ -48,7 +48,7 @@ from pipeline.codecs.image import preview_linear, preview_scalar, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.geometry import camera_maps
+from stages.artifacts import camera_maps
 from stages.numerics import numeric_threads
 
 ILLUMINATION_DIRS = ("full_on", "pos", "neg")

@@ -191,7 +191,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
     from stages.cameras import load_cameras
-    from stages.lightcolour import load_light_model
+    from stages.artifacts import load_light_model
     from stages.diffuse_normals import refit_diffuse_normals
 
     out, _ = first_run
