@@ -612,7 +612,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     (``renders/<view>/normal.exr``) against the true subject's, mean angle over the pixels both masks cover,
     averaged over views."""
     from stages.numerics.metrics import angular_error_deg, relit_psnr
-    from stages.relight import find_environment, load_environment
+    from stages.environments import find_environment, load_environment
 
     capture_root = Path(truth_dir).parent
     if not (capture_root / "capture.json").exists():

@@ -259,3 +259,14 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
         images.append(premultiply_edges(scatter_pixels(pix, rgb, h, w), mask, alpha))
     return {"maps": maps, "mask": out_mask, "alpha": alpha, "images": images, "pixels": int(len(pix)),
             "coverage": gb["coverage"], "normal_fusion_px": gb["normal_fusion_px"]}
+
+
+def fit_blend(asset: ActionAsset, config: Any, k: int, depth_tolerance_m: float) -> Any:
+    """The learned source blend of :mod:`stages.numerics.learned_blend` fitted leave one out on the asset's
+    captured views when ``config.enabled`` (a :class:`LearnedBlendConfig`) and there are at least 3 of them;
+    None otherwise (the heuristic weights)."""
+    if not config.enabled or len(asset.sources) < 3:
+        return None
+    from stages.numerics.learned_blend import fit_learned_blend
+
+    return fit_learned_blend(asset.sources, config, k=k, depth_tolerance_m=depth_tolerance_m)

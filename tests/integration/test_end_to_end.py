@@ -329,7 +329,7 @@ def test_relit_view_matches_the_truth_under_its_own_environment(first_run, captu
     from manifests import open_release
     from stages.numerics.metrics import relit_psnr
     from stages.numerics.sg import rotate_environment
-    from stages.relight import load_environment
+    from stages.environments import load_environment
     from synthetic.relight import TruthRelighter
 
     out, _ = first_run

@@ -7,8 +7,8 @@ import pytest
 
 from pipeline.codecs.exr import write_exr
 from pipeline.errors import InputError
-from stages.relight import (RelightConfig, environment_label, find_environment, load_environment, novel_cameras,
-                            raw_environment_inputs)
+from stages.environments import environment_label, find_environment, load_environment, raw_environment_inputs
+from stages.relight import RelightConfig, novel_cameras
 from synthetic.rig import look_at
 
 
@@ -113,7 +113,7 @@ def test_config_checks():
 
 
 def test_silhouette_alpha_and_premultiplied_edges_by_hand():
-    from stages.relight import premultiply_edges, silhouette_alpha
+    from stages.numerics.novel_view import premultiply_edges, silhouette_alpha
 
     shaded = np.zeros((1, 6), bool)
     shaded[0, 1:3] = True  # two pixels whose centres see the subject
