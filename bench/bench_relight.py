@@ -157,7 +157,7 @@ class ActionScene:
 
     def __init__(self, release: Path, action: str):
         from stages.heldout import ActionGBuffers
-        from stages.materials import load_atlas_mesh
+        from stages.artifacts import load_atlas_mesh
         from stages.numerics.mesh import vertex_normals
         from stages.numerics.raycast import mesh_scene
         from manifests import open_release

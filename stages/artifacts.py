@@ -3,7 +3,8 @@
 A stage's upstream artifacts are folders of the work store (``ctx.upstream[name]``); :class:`ActionArtifacts`
 wraps them and reads each product by what it is (cameras, normal maps, mesh, atlas, textures) instead of by
 path, so the stages that consume a product do not repeat its layout; :func:`colour_matrix` and
-:func:`load_light_model` read the session stages' products. :func:`load_relightable_asset` builds
+:func:`load_light_model` read the session stages' products, :func:`load_atlas_mesh` and :func:`fitted_f0` the
+textures and materials stages'. :func:`load_relightable_asset` builds
 the :class:`stages.numerics.novel_view.ActionAsset` that the ``relight`` and ``relightset`` stages render from.
 """
 from __future__ import annotations
@@ -23,6 +24,9 @@ from stages.cameras import load_cameras
 #: Where each product lives inside its stage's artifact folder: (stage, relative path).
 PRODUCTS: dict[str, tuple[str, str]] = {
     "cameras": ("decode", "cameras.json"),
+    "full_on": ("decode", "full_on/{camera}.exr"),
+    "pos": ("decode", "pos/{camera}.exr"),
+    "neg": ("decode", "neg/{camera}.exr"),
     "normal_alpha": ("photometric", "normal_alpha/{camera}.exr"),
     "albedo": ("photometric", "albedo/{camera}.exr"),
     "mask": ("photometric", "mask/{camera}.png"),
@@ -68,6 +72,37 @@ def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
         mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
         mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
         yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
+
+
+def fitted_f0(artifact: Path) -> float:
+    """The Fresnel F0 a materials artifact's roughness texture was fitted with (its record's config): roughness
+    and F0 trade off under broad light, so whoever models the specular light with that texture uses this F0."""
+    path = Path(artifact) / "_SUCCESS.json"
+    try:
+        f0 = float(json.loads(path.read_text())["record"]["config"]["f0"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"no materials f0 in the artifact's record ({type(exc).__name__}: {exc})") from exc
+    if not 0.0 <= f0 <= 1.0:
+        raise InputError(path, f"materials f0 {f0} is outside [0, 1]")
+    return f0
+
+
+def load_atlas_mesh(obj_path: Path):
+    """The textured OBJ of the textures stage as ``(vertices (V, 3) welded, faces (F, 3) into them,
+    Atlas)``: the OBJ splits vertices along chart seams; welding identical positions gives back one
+    surface, so normals and depth maps are continuous across seams."""
+    from pipeline.codecs.mesh import read_obj
+    from stages.numerics.mesh import Atlas
+
+    obj = read_obj(obj_path)
+    if obj["uvs"] is None or obj["uv_faces"] is None or not np.array_equal(obj["uv_faces"], obj["faces"]):
+        raise InputError(obj_path, "the textured mesh has no per-vertex UVs (uv faces must equal faces)")
+    vertices, inverse = np.unique(np.asarray(obj["vertices"], np.float64), axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1).astype(np.int64)
+    faces = inverse[obj["faces"]]
+    atlas = Atlas(vmapping=inverse, faces=np.asarray(obj["faces"], np.int32), uvs=np.asarray(obj["uvs"], np.float32),
+                  width=1, height=1, stats={})
+    return vertices, faces, atlas
 
 
 class ActionArtifacts:
@@ -130,8 +165,6 @@ class ActionArtifacts:
 
     def atlas_mesh(self) -> tuple[np.ndarray, np.ndarray, Any]:
         """The textured mesh welded (vertices, faces, :class:`stages.numerics.mesh.Atlas`)."""
-        from stages.materials import load_atlas_mesh
-
         return load_atlas_mesh(self.path("textured_mesh"))
 
     def texture(self, product: str, channels: int = 3) -> np.ndarray:
