@@ -18,16 +18,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from calibration.colour import apply_colour_matrix
-from calibration.light import correct_normals, fit_light_model, ideal_light_model, sphere_normals
+from calibration.light import ideal_light_model
 from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import colour_matrix
 from stages.cameras import load_cameras
+from stages.numerics.light_model import sphere_samples, validated_light_model
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 
@@ -49,10 +49,6 @@ class LightsConfig(Documented):
         if self.degree not in (1, 2, 3) or self.iterations < 0 or self.erode_px < 0 or not 0.0 <= self.min_gain < 1.0:
             raise ValueError(f"lights: need degree 1, 2 or 3, iterations >= 0, erode_px >= 0 and 0 <= min_gain < 1; "
                              f"got {self.degree!r}, {self.iterations!r}, {self.erode_px!r}, {self.min_gain!r}")
-
-
-def _mean_angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1.0, 1.0))).mean())
 
 
 class LightsStage(Stage):
@@ -80,6 +76,25 @@ class LightsStage(Stage):
         if not ctx.raw_inputs:
             out.write_text(json.dumps({"ideal": True, "model": ideal_light_model(self.config.degree).to_json()}))
             return {"ideal": True}
+        ratios, truths, left_out = self._sphere_samples(ctx)
+        for cam_id, why in sorted(left_out.items()):
+            ctx.log.warning("session %s: camera %s left out of the LED calibration: %s", ctx.scope_id, cam_id, why)
+        fit = validated_light_model(ratios, truths, self.config.degree, self.config.iterations, self.config.min_gain)
+        stats: dict[str, Any] = {"sphere_pixels": int(sum(len(r) for r in ratios)), "cameras_used": len(ratios),
+                                 "calibration_left_out": left_out} | fit.stats
+        if fit.reason is not None:
+            ctx.log.warning("session %s: %s; using the ideal LED model", ctx.scope_id, fit.reason)
+        elif fit.model is None:
+            ctx.log.warning("session %s: LED model rejected (held-out sphere %.3f -> %.3f deg)", ctx.scope_id,
+                            stats["heldout_err_deg_uncorrected"], stats["heldout_err_deg_corrected"])
+        model = fit.model if fit.model is not None else ideal_light_model(self.config.degree)
+        out.write_text(json.dumps({"ideal": fit.model is None, "model": model.to_json(), "fit": stats}, indent=1))
+        return stats
+
+    def _sphere_samples(self, ctx: StageContext) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, str]]:
+        """Per camera with usable sphere frames (sorted by id), its ratios and true normals
+        (:func:`stages.numerics.light_model.sphere_samples`); and camera -> why it was left out (a frame missing
+        or unreadable: one broken frame costs that camera's samples, not the session's calibration)."""
         sphere = ctx.rig["calibration_objects"]["sphere"]
         cameras = load_cameras(ctx.upstream["cameras"] / "cameras.json")
         folder = ctx.capture_root / "sessions" / ctx.scope_id / "calibration" / "sphere"
@@ -90,7 +105,6 @@ class LightsStage(Stage):
                 left_out[cam_id] = f"{folder / absent[0]}/{cam_id}.*: no sphere frame for camera {cam_id}"
                 continue
             try:
-                # one broken sphere frame costs that camera's samples, not the session's calibration
                 pos, neg = (decode_raw(ctx.raw_inputs[f"{i}/{cam_id}"],
                                        expected_size=(int(cam["height"]), int(cam["width"]))).rgb
                             for i in ("pos", "neg"))
@@ -101,45 +115,8 @@ class LightsStage(Stage):
             if matrix is not None:
                 apply_colour_matrix(pos, matrix, out=pos)
                 apply_colour_matrix(neg, matrix, out=neg)
-            normals, mask = sphere_normals(np.asarray(cam["K"]), np.asarray(cam["cam_from_world"]), pos.shape[1],
-                                           pos.shape[0], np.asarray(sphere["centre"]), float(sphere["radius_m"]))
-            mask = ndimage.binary_erosion(mask, iterations=self.config.erode_px)
-            total = pos + neg
-            good = mask & np.all(total > 1e-3, axis=-1) & np.all(np.isfinite(total), axis=-1)
-            ratios.append(((pos - neg) / np.maximum(total, 1e-6))[good])
-            truths.append(normals[good])
-        for cam_id, why in sorted(left_out.items()):
-            ctx.log.warning("session %s: camera %s left out of the LED calibration: %s", ctx.scope_id, cam_id, why)
-        stats: dict[str, Any] = {"sphere_pixels": int(sum(len(r) for r in ratios)), "cameras_used": len(ratios),
-                                 "calibration_left_out": left_out}
-        # Validate before trusting: fit on the even cameras, test on the odd ones (they see other sides
-        # of the sphere). A model that does not beat the plain ratio there is not used.
-        reason = "fewer than 2 cameras with usable sphere frames" if len(ratios) < 2 else None
-        if reason is None:
-            fit_d, fit_n = np.concatenate(ratios[0::2]), np.concatenate(truths[0::2])
-            test_d, test_n = np.concatenate(ratios[1::2]), np.concatenate(truths[1::2])
-            try:
-                trial = fit_light_model(fit_d, fit_n, degree=self.config.degree)
-            except ValueError as exc:  # too few sphere pixels left to fit
-                reason = f"LED model not fitted: {exc}"
-        if reason is not None:
-            ctx.log.warning("session %s: %s; using the ideal LED model", ctx.scope_id, reason)
-            stats |= {"ideal": True, "accepted": False, "fallback_reason": reason}
-            out.write_text(json.dumps({"ideal": True, "model": ideal_light_model(self.config.degree).to_json(),
-                                       "fit": stats}, indent=1))
-            return stats
-        naive_err = _mean_angle(test_d / np.maximum(np.linalg.norm(test_d, axis=-1, keepdims=True), 1e-9), test_n)
-        fixed_err = _mean_angle(correct_normals(test_d, trial, iterations=self.config.iterations), test_n)
-        accepted = fixed_err < (1.0 - self.config.min_gain) * naive_err
-        stats |= {"ideal": not accepted, "heldout_err_deg_uncorrected": naive_err,
-                  "heldout_err_deg_corrected": fixed_err, "accepted": bool(accepted)}
-        if not accepted:
-            ctx.log.warning("session %s: LED model rejected (held-out sphere %.3f -> %.3f deg)", ctx.scope_id,
-                            naive_err, fixed_err)
-            out.write_text(json.dumps({"ideal": True, "model": ideal_light_model(self.config.degree).to_json(),
-                                       "fit": stats}, indent=1))
-            return stats
-        model = fit_light_model(np.concatenate(ratios), np.concatenate(truths), degree=self.config.degree)
-        stats["rms_residual"] = float(model.rms_residual)
-        out.write_text(json.dumps({"ideal": False, "model": model.to_json(), "fit": stats}, indent=1))
-        return stats
+            d, n = sphere_samples(pos, neg, cam["K"], cam["cam_from_world"], sphere["centre"], sphere["radius_m"],
+                                  self.config.erode_px)
+            ratios.append(d)
+            truths.append(n)
+        return ratios, truths, left_out
