@@ -5,18 +5,17 @@ Wiring only: the numerics are :mod:`stages.numerics.mesh` (decimation, xatlas) a
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, write_png
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import camera_maps
+from stages.artifacts import ActionArtifacts
 from stages.exr_headers import EXR_HEADERS
 
 
@@ -50,48 +49,22 @@ class TexturesStage(Stage):
     outputs = ("mesh", "textures", "previews")
 
     def run(self, ctx: StageContext) -> dict[str, Any]:
-        from pipeline.codecs.mesh import read_ply, write_obj
-        from stages.numerics.bake import BakeView, bake_textures
-        from stages.numerics.mesh import decimate, uv_atlas, vertex_normals
+        from stages.numerics.bake import BakeView, atlas_textures
 
         cfg: TexturesConfig = self.config
-        start = time.perf_counter()
-        vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")
-        vertices, faces = decimate(vertices, faces, cfg.atlas_faces)
-        atlas = uv_atlas(vertices, faces, resolution=cfg.texture_size, padding=cfg.atlas_padding)
-        atlas_s = time.perf_counter() - start
-
-        photometric = ctx.upstream["photometric"]
-        views = [BakeView(images={"albedo": read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3],
+        artifacts = ActionArtifacts(ctx.upstream)
+        vertices, faces = artifacts.mesh()
+        views = [BakeView(images={"albedo": artifacts.map("albedo", cam_id),
                                   "normal": np.ascontiguousarray(normal_alpha[..., :3])},
                           valid=valid, K=np.asarray(cam["K"], np.float64),
                           cam_from_world=np.asarray(cam["cam_from_world"], np.float64))
-                 for cam_id, cam, normal_alpha, _, valid in camera_maps(ctx.upstream["decode"], photometric,
-                                                                         cfg.min_alpha)]
-        start = time.perf_counter()
-        baked = bake_textures(vertices, faces, atlas, views, cfg.texture_size, max_views=cfg.max_views,
-                              depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
-        bake_s = time.perf_counter() - start
-
-        out = ctx.out_dir
-        tex = out / "textures"
-        write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
-        write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
-        write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
-        write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
-        # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
-        write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
-        atlas_vertices = np.asarray(vertices)[atlas.vmapping]
-        write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
-                  normals=vertex_normals(atlas_vertices, atlas.faces),
-                  material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
-        if cfg.previews:
-            covered = baked.covered.astype(np.float32)
-            write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
-            write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
-        return {"atlas_faces": int(len(faces)), "atlas_seconds": atlas_s, "bake_seconds": bake_s,
-                "cameras": len(views),
-                "bake": {k: v for k, v in baked.stats.items() if isinstance(v, (int, float, str))}}
+                 for cam_id, cam, normal_alpha, _, valid in artifacts.camera_maps(cfg.min_alpha)]
+        result = atlas_textures(vertices, faces, views, cfg.atlas_faces, cfg.texture_size, cfg.atlas_padding,
+                                cfg.max_views, cfg.depth_tolerance_m, cfg.min_cos)
+        _write_textures(ctx.out_dir, result, cfg.previews)
+        return {"atlas_faces": int(len(result.faces)), "atlas_seconds": result.atlas_seconds,
+                "bake_seconds": result.bake_seconds, "cameras": len(views),
+                "bake": {k: v for k, v in result.baked.stats.items() if isinstance(v, (int, float, str))}}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
         # mesh/textured.obj is published by the exports stage, with its texture beside it (this artifact's
@@ -103,3 +76,27 @@ class TexturesStage(Stage):
         for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
             files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
         return files
+
+
+def _write_textures(out: Path, result: Any, previews: bool) -> None:
+    """The textures (EXR, and the albedo as PNG for the OBJ's material), the textured OBJ and the previews of a
+    :class:`stages.numerics.bake.AtlasTextures`."""
+    from pipeline.codecs.mesh import write_obj
+    from stages.numerics.mesh import vertex_normals
+
+    baked, atlas = result.baked, result.atlas
+    tex = out / "textures"
+    write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
+    write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
+    write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
+    write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
+    # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
+    write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
+    atlas_vertices = np.asarray(result.vertices)[atlas.vmapping]
+    write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
+              normals=vertex_normals(atlas_vertices, atlas.faces),
+              material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
+    if previews:
+        covered = baked.covered.astype(np.float32)
+        write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
+        write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
