@@ -390,5 +390,6 @@ def example_name(action_id: str, index: int) -> str:
 
 def camera_centres(cameras: dict[str, dict[str, Any]]) -> np.ndarray:
     """World centres (C, 3) of camera records with ``cam_from_world``."""
-    poses = [np.asarray(c["cam_from_world"], np.float64) for c in cameras.values()]
-    return np.array([-p[:, :3].T @ p[:, 3] for p in poses]).reshape(-1, 3)
+    from stages.numerics.camera import camera_centre
+
+    return np.array([camera_centre(c["cam_from_world"]) for c in cameras.values()]).reshape(-1, 3)
