@@ -9,6 +9,7 @@ the :class:`stages.numerics.novel_view.ActionAsset` that the ``relight`` and ``r
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -20,6 +21,7 @@ from pipeline.codecs.exr import read_exr
 from pipeline.codecs.image import read_png
 from pipeline.errors import InputError
 from stages.cameras import load_cameras
+from stages.numerics.camera import Camera
 
 #: Where each product lives inside its stage's artifact folder: (stage, relative path).
 PRODUCTS: dict[str, tuple[str, str]] = {
@@ -56,15 +58,21 @@ def load_light_model(lights_dir: Path) -> Any:
     return None if record.get("ideal") else LightModel.from_json(record["model"])
 
 
-def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, dict[str, Any]]:
+def read_cameras(cameras_json: Path) -> dict[str, Camera]:
+    """camera_id -> :class:`Camera` of the calibrated cameras of a ``cameras.json`` (their records, with
+    ``white_reference`` and the rest, in ``Camera.record``)."""
+    return {cam_id: Camera.from_json(record) for cam_id, record in load_cameras(cameras_json).items()}
+
+
+def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, Camera]:
     """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
     missing camera, with no calibration or failed frames, has none)."""
-    cameras = load_cameras(Path(decode_dir) / "cameras.json")
+    cameras = read_cameras(Path(decode_dir) / "cameras.json")
     return {c: cameras[c] for c in sorted(cameras) if (Path(photometric_dir) / "normal_alpha" / f"{c}.exr").exists()}
 
 
 def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
-    """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
+    """Yield ``(camera_id, Camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
     :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
     photometric_dir = Path(photometric_dir)
     for cam_id, cam in mapped_cameras(decode_dir, photometric_dir).items():
@@ -143,13 +151,12 @@ class ActionArtifacts:
         except KeyError:
             return False
 
-    def cameras(self) -> dict[str, dict[str, Any]]:
-        """camera_id -> camera (K, cam_from_world, width, height, ...) of the calibrated cameras that have a
-        photometric normal map, sorted by id."""
+    def cameras(self) -> dict[str, Camera]:
+        """camera_id -> :class:`Camera` of the calibrated cameras that have a photometric normal map, sorted by
+        id."""
         return mapped_cameras(self.upstream["decode"], self.upstream["photometric"])
 
-    def camera_maps(self, min_alpha: float) -> Iterator[tuple[str, dict[str, Any], np.ndarray, np.ndarray,
-                                                              np.ndarray]]:
+    def camera_maps(self, min_alpha: float) -> Iterator[tuple[str, Camera, np.ndarray, np.ndarray, np.ndarray]]:
         """``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W), valid (H, W))`` per mapped camera."""
         return camera_maps(self.upstream["decode"], self.upstream["photometric"], min_alpha)
 
@@ -176,8 +183,8 @@ class ActionArtifacts:
 
 
 def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, diffuse_normals: bool = True,
-                           diffuse_albedo: bool = True) -> tuple[Any, dict[str, dict[str, Any]]]:
-    """The action's relightable asset and its mapped cameras (with ``width``, ``height``).
+                           diffuse_albedo: bool = True) -> tuple[Any, dict[str, Camera]]:
+    """The action's relightable asset and its mapped cameras (sized as their maps).
 
     The captured views become reprojection sources with their mesh depth; their normals are
     ``normal_diffuse`` when ``diffuse_normals`` and present (else eq. 1's), their albedo ``albedo_diffuse``
@@ -199,15 +206,14 @@ def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, d
     sources, cameras = [], {}
     for cam_id, cam, normal_alpha, _, valid in artifacts.camera_maps(min_alpha):
         h, w = valid.shape
-        depth = render_mesh(None, None, cam["K"], cam["cam_from_world"], h, w, scene=scene)["depth_m"]
+        depth = render_mesh(None, None, cam.K, cam.cam_from_world, h, w, scene=scene)["depth_m"]
         albedo = artifacts.map("albedo_diffuse" if use_diffuse_albedo else "albedo", cam_id)
         normals = normal_alpha[..., :3]
         if diffuse_normals and artifacts.has("normal_diffuse", cam_id):
             normals = artifacts.map("normal_diffuse", cam_id)
         sources.append(SourceView(normal=np.ascontiguousarray(normals), albedo=albedo, valid=valid,
-                                  K=np.asarray(cam["K"], np.float64),
-                                  cam_from_world=np.asarray(cam["cam_from_world"], np.float64), depth_m=depth))
-        cameras[cam_id] = {**cam, "width": w, "height": h}
+                                  K=cam.K, cam_from_world=cam.cam_from_world, depth_m=depth))
+        cameras[cam_id] = dataclasses.replace(cam, width=w, height=h)
     if len(sources) < 2:
         raise InputError(artifacts.path("normal_alpha", "00000").parent,
                          f"{len(sources)} camera(s) have maps; novel views need at least 2")

@@ -100,8 +100,7 @@ def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) ->
     ids, views = [], []
     for cam_id, cam, normal_alpha, mask, valid in camera_maps(decode_dir, photometric_dir, min_alpha):
         views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]), normal_valid=valid,
-                             mask=mask, K=np.asarray(cam["K"], np.float64),
-                             cam_from_world=np.asarray(cam["cam_from_world"], np.float64)))
+                             mask=mask, K=cam.K, cam_from_world=cam.cam_from_world))
         ids.append(cam_id)
     return ids, views
 

@@ -138,9 +138,8 @@ class MaterialsStage(Stage):
         for cam_id, cam, _, _, valid in artifacts.camera_maps(cfg.min_alpha):
             images = [artifacts.map(illumination, cam_id) for illumination in ILLUMINATION_DIRS]
             views.append(BakeView(images={"obs": np.concatenate(images, axis=2)}, valid=valid,
-                                  K=np.asarray(cam["K"], np.float64),
-                                  cam_from_world=np.asarray(cam["cam_from_world"], np.float64)))
-            white.append(np.asarray(cam["white_reference"], np.float32))
+                                  K=cam.K, cam_from_world=cam.cam_from_world))
+            white.append(np.asarray(cam.record["white_reference"], np.float32))
         if not views:
             raise InputError(artifacts.path("normal_alpha", "00000").parent, "no camera has photometric maps")
         load_s = time.perf_counter() - t0

@@ -46,6 +46,7 @@ from stages.exr_headers import EXR_HEADERS
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.numerics import numeric_threads
+from stages.numerics.camera import Camera
 from stages.numerics.learned_blend import LearnedBlendConfig
 from stages.environments import fit_environments, raw_environment_inputs
 from stages.numerics.novel_view import ViewShading, auto_exposure, relight_view
@@ -129,18 +130,19 @@ class RelightConfig(Documented):
                 raise ValueError(f"relight.{name} must be >= 1")
 
 
-def novel_cameras(cameras: dict[str, dict[str, Any]], count: int) -> list[dict[str, Any]]:
-    """Novel camera records halfway between ``count`` pairs of neighbouring captured cameras."""
+def novel_cameras(cameras: dict[str, Camera], count: int) -> list[Camera]:
+    """Novel cameras ``N000``, ``N001``, ... halfway between ``count`` pairs of neighbouring captured cameras, each
+    sized as the first of its pair; their records also say which pair (``between``)."""
     from stages.numerics.gbuffer import interpolate_camera, novel_camera_pairs
 
     ids = sorted(cameras)
-    poses = [np.asarray(cameras[c]["cam_from_world"], np.float64) for c in ids]
+    poses = [cameras[c].cam_from_world for c in ids]
     out = []
     for i, (a, b) in enumerate(novel_camera_pairs(poses, count)):
         ca, cb = cameras[ids[a]], cameras[ids[b]]
-        K, pose = interpolate_camera(ca["K"], poses[a], cb["K"], poses[b], 0.5)
-        out.append({"camera_id": f"N{i:03d}", "between": [ids[a], ids[b]], "K": K.tolist(),
-                    "cam_from_world": pose.tolist(), "width": int(ca["width"]), "height": int(ca["height"])})
+        K, pose = interpolate_camera(ca.K, poses[a], cb.K, poses[b], 0.5)
+        out.append(Camera(K, pose, ca.width, ca.height, camera_id=f"N{i:03d}",
+                          record={"camera_id": f"N{i:03d}", "between": [ids[a], ids[b]]}))
     return out
 
 
@@ -195,14 +197,14 @@ class RelightStage(Stage):
         records, sheet_rows = [], []
         for index, view in enumerate(views):
             t0 = time.perf_counter()
-            rendered = relight_view(asset, view["K"], view["cam_from_world"], view["height"], view["width"],
+            rendered = relight_view(asset, view.K, view.cam_from_world, view.height, view.width,
                                     [env["lobes"] for env in environments], view_shading(cfg), blend=blend,
                                     directions=directions)
-            sheet_rows.append(_write_view(renders / view["camera_id"], view["camera_id"], rendered, environments))
-            records.append({**view, "pixels": rendered["pixels"], "mask_pixels": int(rendered["mask"].sum()),
+            sheet_rows.append(_write_view(renders / view.camera_id, view.camera_id, rendered, environments))
+            records.append({**view.to_json(), "pixels": rendered["pixels"], "mask_pixels": int(rendered["mask"].sum()),
                             "coverage": rendered["coverage"], "normal_fusion_px": rendered["normal_fusion_px"],
                             "seconds": time.perf_counter() - t0})
-            ctx.progress(index + 1, len(views), f"view {view['camera_id']} relit under {len(environments)} "
+            ctx.progress(index + 1, len(views), f"view {view.camera_id} relit under {len(environments)} "
                                                 f"environment(s)")
         (renders / "cameras.json").write_text(json.dumps({"camera_convention": "opencv", "units": "metres",
                                                           "cameras": records}, indent=1))

@@ -388,8 +388,6 @@ def example_name(action_id: str, index: int) -> str:
     return f"{action_id}_{index:02d}"
 
 
-def camera_centres(cameras: dict[str, dict[str, Any]]) -> np.ndarray:
-    """World centres (C, 3) of camera records with ``cam_from_world``."""
-    from stages.numerics.camera import camera_centre
-
-    return np.array([camera_centre(c["cam_from_world"]) for c in cameras.values()]).reshape(-1, 3)
+def camera_centres(cameras: dict[str, Any]) -> np.ndarray:
+    """World centres (C, 3) of :class:`stages.numerics.camera.Camera` s."""
+    return np.array([c.centre for c in cameras.values()]).reshape(-1, 3)

@@ -56,8 +56,7 @@ class TexturesStage(Stage):
         vertices, faces = artifacts.mesh()
         views = [BakeView(images={"albedo": artifacts.map("albedo", cam_id),
                                   "normal": np.ascontiguousarray(normal_alpha[..., :3])},
-                          valid=valid, K=np.asarray(cam["K"], np.float64),
-                          cam_from_world=np.asarray(cam["cam_from_world"], np.float64))
+                          valid=valid, K=cam.K, cam_from_world=cam.cam_from_world)
                  for cam_id, cam, normal_alpha, _, valid in artifacts.camera_maps(cfg.min_alpha)]
         result = atlas_textures(vertices, faces, views, cfg.atlas_faces, cfg.texture_size, cfg.atlas_padding,
                                 cfg.max_views, cfg.depth_tolerance_m, cfg.min_cos)

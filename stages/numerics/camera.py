@@ -104,10 +104,12 @@ class Camera:
                    height=record["height"], camera_id=str(record.get("camera_id", "")), record=dict(record))
 
     def to_json(self) -> dict[str, Any]:
-        """The ``cameras.json`` record: the fields of :attr:`record` in their order, with this camera's id, size,
-        ``K`` and ``cam_from_world`` (as nested lists)."""
-        return dict(self.record) | {"camera_id": self.camera_id, "width": self.width, "height": self.height,
-                                    "K": self.K.tolist(), "cam_from_world": self.cam_from_world.tolist()}
+        """The ``cameras.json`` record: the fields of :attr:`record` in their order, with this camera's id, ``K``,
+        ``cam_from_world`` (as nested lists) and size (after the record's fields, in that order, where the record
+        lacks them)."""
+        return dict(self.record) | {"camera_id": self.camera_id, "K": self.K.tolist(),
+                                    "cam_from_world": self.cam_from_world.tolist(), "width": self.width,
+                                    "height": self.height}
 
     @property
     def R(self) -> np.ndarray:

@@ -103,8 +103,8 @@ def test_json_round_trip_keeps_the_record_and_its_order():
     # a (4, 4) pose is cut to its top rows
     square = Camera(K, np.vstack([camera.cam_from_world, [0.0, 0.0, 0.0, 1.0]]), 64, 48)
     np.testing.assert_array_equal(square.cam_from_world, camera.cam_from_world)
-    assert list(Camera(K, camera.cam_from_world, 64, 48).to_json()) == ["camera_id", "width", "height", "K",
-                                                                        "cam_from_world"]
+    assert list(Camera(K, camera.cam_from_world, 64, 48).to_json()) == ["camera_id", "K", "cam_from_world", "width",
+                                                                        "height"]
 
 
 @pytest.mark.parametrize("kwargs, match", [
