@@ -212,12 +212,7 @@ class RelightStage(Stage):
                                                               indent=1, default=float))
         if cfg.previews:
             _write_previews(ctx.out_dir / "previews", sheet_rows, asset)
-        return {"novel_views": len(views), "environments": [e["label"] for e in environments],
-                "source_albedo": "albedo_diffuse" if asset.sources_diffuse_albedo else "albedo x diffuse_ratio",
-                "fallbacks": [e["name"] for e in environments if e["source"].startswith("FALLBACK")],
-                "sg_fit_seconds": float(sum(e["fit_seconds"] for e in environments)),
-                "blend_seconds": float(blend.record["gather_s"] + blend.record["train_s"]) if blend is not None else 0.0,
-                "seconds": time.perf_counter() - started}
+        return _run_stats(views, environments, asset, blend) | {"seconds": time.perf_counter() - started}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
         files = []
@@ -264,6 +259,15 @@ def _environments_record(environments: list[dict[str, Any]], cfg: RelightConfig,
                         "alpha": (f"pixel coverage of {cfg.coverage_samples} x {cfg.coverage_samples} rays, radiance "
                                   "premultiplied" if cfg.coverage_samples > 1 else "mask (pixel centres)")},
             "blend": blend.record if blend is not None else "heuristic"}
+
+
+def _run_stats(views: list[Camera], environments: list[dict[str, Any]], asset: Any, blend: Any) -> dict[str, Any]:
+    """The stage's statistics: views, environments (and which fell back), the sources' albedo, fit times."""
+    return {"novel_views": len(views), "environments": [e["label"] for e in environments],
+            "source_albedo": "albedo_diffuse" if asset.sources_diffuse_albedo else "albedo x diffuse_ratio",
+            "fallbacks": [e["name"] for e in environments if e["source"].startswith("FALLBACK")],
+            "sg_fit_seconds": float(sum(e["fit_seconds"] for e in environments)),
+            "blend_seconds": float(blend.record["gather_s"] + blend.record["train_s"]) if blend is not None else 0.0}
 
 
 def _write_previews(folder: Path, sheet_rows: list[np.ndarray], asset: Any) -> None:

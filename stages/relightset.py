@@ -245,6 +245,15 @@ def _example_row(ctx: StageContext, cfg: RelightSetConfig, example_id: str, inde
     return row | {f"{name.replace('.', '_')}": f"relight/{example_id}/{name}" for name in EXAMPLE_FILES}
 
 
+def _reuse_example(old: tuple[dict[str, Any], Path], folder: Path) -> dict[str, Any]:
+    """Links (or copies) an earlier result's files of the same example into ``folder``; returns their row's
+    ``png_exposure`` and ``mask_pixels``."""
+    row, old_folder = old
+    for name in EXAMPLE_FILES:
+        link_or_copy(old_folder / name, folder / name)
+    return {"png_exposure": row["png_exposure"], "mask_pixels": row["mask_pixels"]}
+
+
 def _render_example(folder: Path, asset: Any, draw: dict[str, Any], pool: _ActionPool, cfg: RelightSetConfig,
                     directions: np.ndarray | None) -> dict[str, Any]:
     """Renders one drawn example and writes its files; returns the row's ``png_exposure`` and ``mask_pixels``."""
@@ -313,11 +322,7 @@ class RelightSetStage(Stage):
         asset, cameras = load_relightable_asset(ActionArtifacts(ctx.upstream))
         centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
         directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
-        # the code that renders enters every example's key: a renderer change re-renders, never links stale files
-        render_record = {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
-                         "code": code_digests(self.code_module, self.code_packages),
-                         "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
-                         "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
+        render_record = self._render_record(ctx)
         previous = self._previous_examples(ctx)
         out = ctx.out_dir / "relight"
         out.mkdir(parents=True, exist_ok=True)
@@ -329,10 +334,8 @@ class RelightSetStage(Stage):
             row = _example_row(ctx, cfg, example_id, index, subject, split, draw, pool, render_record)
             folder = out / example_id
             old = previous.get(row["example_key"])
-            if old is not None:
-                for name in EXAMPLE_FILES:
-                    link_or_copy(old[1] / name, folder / name)
-                row |= {"png_exposure": old[0]["png_exposure"], "mask_pixels": old[0]["mask_pixels"]}
+            if old is not None:  # rendered before with the same inputs and code: link its files
+                row |= _reuse_example(old, folder)
                 reused += 1
             else:
                 t0 = time.perf_counter()
@@ -346,6 +349,15 @@ class RelightSetStage(Stage):
                 "pool": [m.name for m in maps], "skipped_environments": skipped,
                 "seconds_per_example": float(np.mean(seconds)) if seconds else 0.0,
                 "seconds": time.perf_counter() - started}
+
+    def _render_record(self, ctx: StageContext) -> dict[str, Any]:
+        """What every example's key holds besides its own draw: the renderer's format, version, code and settings
+        and the upstream keys (a renderer change re-renders, never links stale files)."""
+        cfg: RelightSetConfig = self.config
+        return {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
+                "code": code_digests(self.code_module, self.code_packages),
+                "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
+                "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
 
     @staticmethod
     def _previous_examples(ctx: StageContext) -> dict[str, tuple[dict[str, Any], Path]]:
