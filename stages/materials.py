@@ -1,9 +1,10 @@
 """Action stage ``materials``: roughness by inverse rendering under the stage's own illuminations, and an
 albedo with the ambient occlusion divided out, both as textures over the action's UV atlas.
 
-Wiring only; the numerics are :func:`stages.numerics.bake.gather_observations` (each texel's values in the
-cameras that see it best, depth-tested against the mesh), :func:`stages.numerics.materials.fit_roughness`
-(GGX under full_on / pos / neg in closed form, F0 fixed) and :func:`stages.numerics.shadowing.ambient_occlusion`.
+Wiring only; the action is :func:`stages.numerics.material_textures.material_textures` over
+:func:`stages.numerics.bake.gather_observations` (each texel's values in the cameras that see it best,
+depth-tested against the mesh), :func:`stages.numerics.materials.fit_roughness` (GGX under full_on / pos / neg
+in closed form, F0 fixed) and :func:`stages.numerics.shadowing.ambient_occlusion`.
 
 Method (measured on the simulator's default capture, ``python bench/bench_materials.py``; MAE of the
 roughness seen from the 32 true cameras, A0000 / A0001, with the other steps at their defaults):

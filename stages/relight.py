@@ -1,6 +1,7 @@
 """Action stage ``relight``: novel views of the asset under HDR environments.
 
-For each novel camera (placed between neighbouring captured cameras, :func:`novel_camera_pairs`):
+For each novel camera (placed between neighbouring captured cameras,
+:func:`stages.numerics.gbuffer.novel_camera_pairs`):
 
 1. depth from the action's mesh (Embree), the G-buffer (normal, albedo) reprojected from the ``sources``
    nearest captured views with depth tests (:func:`stages.numerics.gbuffer.reproject_gbuffer`, the paper's
@@ -22,7 +23,7 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
    background. ``coverage_samples`` rays per pixel side measure the share the mesh covers
    (:func:`stages.numerics.raycast.pixel_coverage`); it is the relit images' alpha and their radiance is
    premultiplied by it. Covered pixels whose centre misses the mesh take the mean of their shaded neighbours
-   (:func:`grow_edges`). The masks are alpha >= 0.5.
+   (:func:`stages.numerics.novel_view.grow_edges`). The masks are alpha >= 0.5.
 
 Outputs per action (release ``renders/``): ``cameras.json`` (the novel cameras, OpenCV, and the captured
 pair each lies between), ``<view>/normal.exr``, ``albedo.exr``, ``roughness.exr``, ``mask.png`` and
@@ -233,7 +234,8 @@ class RelightStage(Stage):
         return files
 
 
-def _write_view(folder: Path, camera_id: str, rendered: dict[str, Any], environments: list[dict[str, Any]]) -> np.ndarray:
+def _write_view(folder: Path, camera_id: str, rendered: dict[str, Any],
+                environments: list[dict[str, Any]]) -> np.ndarray:
     """Writes one novel view's G-buffer maps, mask and relit images (RGBA, premultiplied) into ``folder``;
     returns its row of the preview sheet (normals, then each environment tone-mapped)."""
     maps, out_mask, alpha = rendered["maps"], rendered["mask"], rendered["alpha"]

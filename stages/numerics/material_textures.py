@@ -56,8 +56,8 @@ def texel_samples(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_te
                   views: list[Any], cfg: MaterialsConfig) -> dict[str, Any]:
     """Step 1 of the roughness: the texels of a ``cfg.texture_size`` atlas and their observations.
 
-    vertices (V, 3), faces (F, 3) and atlas: :func:`load_atlas_mesh`; albedo_texture (T', T', 3): the baked
-    white-light albedo; views: :class:`stages.numerics.bake.BakeView` with ``images["obs"]`` (H, W, 9) =
+    vertices (V, 3), faces (F, 3) and atlas: :func:`stages.artifacts.load_atlas_mesh`; albedo_texture (T', T', 3):
+    the baked white-light albedo; views: :class:`stages.numerics.bake.BakeView` with ``images["obs"]`` (H, W, 9) =
     full_on | pos | neg. Returns ``covered`` (T, T) bool, per covered texel in row-major order ``points`` and
     ``normals`` (N, 3) float64 and ``albedo`` (N, 3), and ``obs``: :func:`stages.numerics.bake.gather_observations`
     of the ``cfg.max_views`` best views (best first), with the config's depth tolerance and grazing limit."""
