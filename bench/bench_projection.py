@@ -58,7 +58,7 @@ GPU_COUNTS = (1, 4, 8, 32)
 
 def sdf_samples(geometry: Any) -> float:
     """Network samples of the geometry stage's SDF training: both passes' steps x (rays x samples + eikonal points)."""
-    from stages.geometry import pass_configs
+    from stages.numerics.sdf_mesh import pass_configs
 
     return sum(c.iterations * (c.rays_per_batch * c.samples_per_ray + c.eikonal_points)
                for c in pass_configs(geometry) if c is not None)

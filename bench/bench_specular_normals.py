@@ -63,9 +63,9 @@ def variants(default_roughness: float) -> dict[str, dict]:
 def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]]:
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.lightcolour import corrected_normals, load_light_model
+    from stages.artifacts import load_light_model
     from stages.numerics.metrics import angular_error_deg
-    from stages.numerics.photometric import photometric_maps
+    from stages.numerics.photometric import corrected_normals, photometric_maps
     from stages.numerics.specular_normals import fit_diffuse_normals, view_directions
     from stages.photometric import SpecularConfig
 

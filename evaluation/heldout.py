@@ -196,7 +196,7 @@ class ActionGBuffers:
     def roughness(self, cam: str) -> np.ndarray:
         """(H, W) float32 roughness of the materials' texture seen by camera ``cam`` through the textured mesh;
         the texture's median where that mesh misses a pixel."""
-        from stages.materials import load_atlas_mesh
+        from stages.artifacts import load_atlas_mesh
         from stages.numerics.raycast import mesh_scene
         from stages.diffuse_normals import materials_roughness
 

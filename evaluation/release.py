@@ -525,7 +525,7 @@ def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.nda
     """Textures of the atlas seen by a camera through the textured mesh: name -> (H, W[, C]) and the hit
     mask (H, W). ``where``: (H, W) bool, the only pixels the textures are looked up at (0 elsewhere); None:
     every pixel."""
-    from stages.materials import load_atlas_mesh
+    from stages.artifacts import load_atlas_mesh
     from stages.numerics.bake import sample_texture
     from stages.numerics.raycast import mesh_scene, render_uvs
 
@@ -692,7 +692,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     (``renders/<view>/normal.exr``) against the true subject's, mean angle over the pixels both masks cover,
     averaged over views."""
     from stages.numerics.metrics import angular_error_deg, relit_psnr
-    from stages.relight import find_environment, load_environment
+    from stages.environments import find_environment, load_environment
 
     capture_root = Path(truth_dir).parent
     if not (capture_root / "capture.json").exists():

@@ -20,7 +20,7 @@ from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
 from stages.exr_headers import EXR_HEADERS
-from stages.lightcolour import load_light_model
+from stages.artifacts import load_light_model
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import joint_bilateral
@@ -86,7 +86,7 @@ class DiffuseNormalsConfig(Documented):
 @functools.lru_cache(maxsize=2)
 def _roughness_atlas(textures_dir: str, materials_dir: str) -> tuple[Any, Any, np.ndarray]:
     """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process)."""
-    from stages.materials import load_atlas_mesh
+    from stages.artifacts import load_atlas_mesh
     from stages.numerics.raycast import mesh_scene
 
     vertices, faces, atlas = load_atlas_mesh(Path(textures_dir) / "mesh" / "textured.obj")
@@ -185,7 +185,7 @@ class DiffuseNormalsStage(Stage):
         fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
         stats = {}
         if cfg.albedo:
-            from stages.materials import fitted_f0
+            from stages.artifacts import fitted_f0
 
             f0 = fitted_f0(ctx.upstream["materials"]) if cfg.use_materials_roughness else cfg.fit.f0
             albedo_diffuse = diffuse_albedo(albedo, normals, cam, roughness, f0)

@@ -17,11 +17,11 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
-from stages.lightcolour import corrected_normals, load_light_model
+from stages.artifacts import load_light_model
 from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
-from stages.numerics.photometric import (PhotometricParams, facing_away_fraction, normals_with_alpha,
-                                         photometric_maps)
+from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
+                                         normals_with_alpha, photometric_maps)
 from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions
 
 

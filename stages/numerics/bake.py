@@ -37,7 +37,7 @@ from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normal
 from stages.numerics.raycast import mesh_scene, render_mesh
 
 __all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "gather_observations",
-           "sample_texture", "texture_in_camera", "dilate_texture"]
+           "sample_texture", "texture_in_camera", "dilate_texture", "AtlasTextures", "atlas_textures"]
 
 _MIN_TAP_SUPPORT = 0.5  # a view needs valid, depth-consistent pixels under half its bilinear weight
 
@@ -645,3 +645,40 @@ def _texture_images(mean: np.ndarray, seen_mask: np.ndarray, texel: np.ndarray, 
     for name in channels:  # belt and braces: nothing non-finite leaves
         textures[name] = np.nan_to_num(textures[name], nan=0.0, posinf=0.0, neginf=0.0)
     return textures, filled, grown
+
+
+@dataclass(frozen=True)
+class AtlasTextures:
+    """The textures stage's mesh, its UV atlas and the textures baked into it."""
+
+    vertices: np.ndarray
+    """(V, 3) the decimated mesh's vertices."""
+    faces: np.ndarray
+    """(F, 3) its faces."""
+    atlas: Atlas
+    """Its UV atlas (xatlas)."""
+    baked: BakeResult
+    """The albedo and normal textures with their view counts, confidence and coverage."""
+    atlas_seconds: float
+    """Time of the decimation and the atlas."""
+    bake_seconds: float
+    """Time of the baking."""
+
+
+def atlas_textures(vertices: np.ndarray, faces: np.ndarray, views: list[BakeView], atlas_faces: int,
+                   texture_size: int, padding: int, max_views: int, depth_tolerance_m: float,
+                   min_cos: float) -> AtlasTextures:
+    """The mesh (V, 3) / (F, 3) decimated to ``atlas_faces``, its UV atlas of ``texture_size`` texels with
+    ``padding`` between charts, and the views' images baked into it (:func:`bake_textures`: each texel blends its
+    ``max_views`` most frontal views within ``depth_tolerance_m`` of the mesh and above ``min_cos``)."""
+    from stages.numerics.mesh import decimate, uv_atlas
+
+    start = time.perf_counter()
+    vertices, faces = decimate(vertices, faces, atlas_faces)
+    atlas = uv_atlas(vertices, faces, resolution=texture_size, padding=padding)
+    atlas_s = time.perf_counter() - start
+    start = time.perf_counter()
+    baked = bake_textures(vertices, faces, atlas, views, texture_size, max_views=max_views,
+                          depth_tolerance_m=depth_tolerance_m, min_cos=min_cos)
+    return AtlasTextures(vertices=vertices, faces=faces, atlas=atlas, baked=baked, atlas_seconds=atlas_s,
+                         bake_seconds=time.perf_counter() - start)

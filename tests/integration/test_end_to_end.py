@@ -191,7 +191,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
     from stages.cameras import load_cameras
-    from stages.lightcolour import load_light_model
+    from stages.artifacts import load_light_model
     from stages.diffuse_normals import refit_diffuse_normals
 
     out, _ = first_run
@@ -329,7 +329,7 @@ def test_relit_view_matches_the_truth_under_its_own_environment(first_run, captu
     from manifests import open_release
     from stages.numerics.metrics import relit_psnr
     from stages.numerics.sg import rotate_environment
-    from stages.relight import load_environment
+    from stages.environments import load_environment
     from synthetic.relight import TruthRelighter
 
     out, _ = first_run
