@@ -39,6 +39,8 @@ same seed on the CPU gives the same weights bit for bit (torch's CPU kernels use
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 import time
 from dataclasses import dataclass
@@ -667,6 +669,8 @@ class SDFResult:
             that the hull (rays worth drawing: ``candidate_ray_fraction``) and the cached SDF grid (window
             around the crossing) skipped, and ``samples_skipped_vs_neus_128`` against 128 samples on every
             pixel's ray; hull and pre-fit timings, ``time_breakdown_s``.
+        start: what training started from (:class:`SDFStart`): a later :func:`train_sdf` on views with the
+            same masks and cameras and a config that differs only in its schedule reuses it.
     """
 
     field: SDFField
@@ -674,6 +678,42 @@ class SDFResult:
     hull: HullGrid
     history: dict[str, list]
     stats: dict[str, Any]
+    start: "SDFStart | None" = None
+
+
+@dataclass(frozen=True)
+class SDFStart:
+    """A training's start: the visual hull and its signed distance, the bounds, the hull-pre-fitted field and
+    the random generators' states after it, and the key of what made them (:func:`_start_key`)."""
+
+    key: str
+    hull: HullGrid
+    hull_sd: np.ndarray
+    sdf_bounds: np.ndarray
+    stage_box: np.ndarray
+    field_state: dict[str, Any]
+    prefit_losses: list[float]
+    generator_state: torch.Tensor
+    torch_rng_state: torch.Tensor
+
+
+_SCHEDULE_FIELDS = ("iterations", "warmup_iterations", "importance_fraction", "log_every")
+"""SDFConfig fields that act after the start (the two passes of the geometry stage differ in these)."""
+
+
+def _start_key(masks: list[np.ndarray], cams: list, config: "SDFConfig", bounds: np.ndarray | None,
+               device: torch.device) -> str:
+    """sha256 of what the hull, the bounds and the pre-fitted field depend on: the masks, the cameras, the
+    caller's bounds, the device and every config field but the schedule's."""
+    digest = hashlib.sha256()
+    for mask, (K, T) in zip(masks, cams):
+        digest.update(np.packbits(mask).tobytes() + repr(mask.shape).encode())
+        digest.update(np.ascontiguousarray(K, np.float64).tobytes() + np.ascontiguousarray(T, np.float64).tobytes())
+    digest.update(b"none" if bounds is None else np.ascontiguousarray(bounds, np.float64).tobytes())
+    neutral = dataclasses.replace(config, **{name: SDFConfig.__dataclass_fields__[name].default
+                                             for name in _SCHEDULE_FIELDS})
+    digest.update(repr((to_dict(neutral), str(device))).encode())
+    return digest.hexdigest()
 
 
 def _check_views(views: Sequence[SDFView], normal_supervision: bool) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -1079,7 +1119,7 @@ def fit_to_signed_distance(field_: SDFField, grid: HullGrid, signed_distance: np
 def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], bounds: np.ndarray | None = None,
               progress: Callable[[int, dict], None] | None = None,
               checkpoint: Callable[[int, "SDFField"], None] | None = None,
-              init: "SDFField | None" = None) -> SDFResult:
+              init: "SDFField | None" = None, start: "SDFStart | None" = None) -> SDFResult:
     """Train a neural SDF of the subject from photometric normal maps and masks.
 
     Args:
@@ -1093,6 +1133,9 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
             device: copy its ``state_dict`` to keep it), e.g. to measure error over time.
         init: a trained field to continue from (a copy; its bounds are kept and the hull pre-fit is skipped).
             Pair it with a schedule that starts sharp: ``inv_s_start = inv_s_end`` and ``coarse_to_fine = 0``.
+        start: an earlier result's :attr:`SDFResult.start`: used when its key is this call's (same masks,
+            cameras, bounds, device and config but for the schedule), so the hull and the pre-fit are not
+            computed again; the training is then the same as without it, bit for bit.
 
     Returns:
         :class:`SDFResult`.
@@ -1107,26 +1150,41 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
         raise ValueError("init was trained with another encoding or network than config's")
     device = resolve_device(config.device)
     with torch_threads(config.threads):
-        return _train(views, cams, config, bounds, progress, checkpoint, device, init)
+        return _train(views, cams, config, bounds, progress, checkpoint, device, init, start)
 
 
-def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device, init=None) -> SDFResult:
+def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device, init=None,
+           start: SDFStart | None = None) -> SDFResult:
     t_start = time.perf_counter()
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     masks = [np.asarray(v.mask, bool) for v in views]
-    Ks = [K for K, _ in cams]
-    Ts = [T for _, T in cams]
-
-    hull, sdf_bounds, stage_box = _hull_and_bounds(masks, Ks, Ts, cams, config, bounds, init)
-    hull_sd = hull.signed_distance()
-    prefit_hull, prefit_sd = _prefit_target(masks, Ks, Ts, hull, hull_sd, config, init)
-    stats: dict[str, Any] = {"device": str(device), "hull_time_s": time.perf_counter() - t_start,
-                             "hull_occupied_fraction": hull.occupied_fraction}
-    t0 = time.perf_counter()
-    field_, prefit_losses = _initial_field(sdf_bounds, prefit_hull, prefit_sd, config, device, generator, init)
-    stats["hull_init_time_s"] = time.perf_counter() - t0
+    key = _start_key(masks, cams, config, bounds, device) if init is None else None
+    if start is not None and key is not None and start.key == key:
+        hull, hull_sd, sdf_bounds, stage_box = start.hull, start.hull_sd, start.sdf_bounds, start.stage_box
+        field_ = SDFField.from_state(start.field_state).to(device)
+        field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
+        prefit_losses = list(start.prefit_losses)
+        generator.set_state(start.generator_state)
+        torch.set_rng_state(start.torch_rng_state)
+        stats: dict[str, Any] = {"device": str(device), "hull_time_s": 0.0, "start_reused": True,
+                                 "hull_occupied_fraction": hull.occupied_fraction, "hull_init_time_s": 0.0}
+    else:
+        Ks = [K for K, _ in cams]
+        Ts = [T for _, T in cams]
+        hull, sdf_bounds, stage_box = _hull_and_bounds(masks, Ks, Ts, cams, config, bounds, init)
+        hull_sd = hull.signed_distance()
+        prefit_hull, prefit_sd = _prefit_target(masks, Ks, Ts, hull, hull_sd, config, init)
+        stats = {"device": str(device), "hull_time_s": time.perf_counter() - t_start,
+                 "hull_occupied_fraction": hull.occupied_fraction}
+        t0 = time.perf_counter()
+        field_, prefit_losses = _initial_field(sdf_bounds, prefit_hull, prefit_sd, config, device, generator, init)
+        stats["hull_init_time_s"] = time.perf_counter() - t0
+        start = None if key is None else SDFStart(
+            key=key, hull=hull, hull_sd=hull_sd, sdf_bounds=sdf_bounds, stage_box=stage_box,
+            field_state=field_.to_state(), prefit_losses=list(prefit_losses),
+            generator_state=generator.get_state(), torch_rng_state=torch.get_rng_state())
     stats["hull_init_final_l1_m"] = prefit_losses[-1] if prefit_losses else None
 
     bank = _build_ray_bank(views, cams, hull, sdf_bounds, stage_box, config.grazing_cos_min, device, rng)
@@ -1182,7 +1240,7 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
     average.finish(config.iterations - 1)
     field_ = field_.cpu().eval()
     stats.update(_training_stats(config, bank, n_important, counts, timing, t_start, t_train))
-    return SDFResult(field=field_, bounds=sdf_bounds, hull=hull, history=history, stats=stats)
+    return SDFResult(field=field_, bounds=sdf_bounds, hull=hull, history=history, stats=stats, start=start)
 
 
 def _hull_and_bounds(masks, Ks, Ts, cams, config: SDFConfig, bounds: np.ndarray | None,

@@ -136,8 +136,9 @@ def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
             reported["tenth"] = tenth
             progress(step, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
 
-    def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution):
-        result = train_sdf(sdf_views, config, progress=on_log, init=init)
+    def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution,
+            start: Any = None):
+        result = train_sdf(sdf_views, config, progress=on_log, init=init, start=start)
         reported["done"] += config.iterations
         vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds), resolution)
         extracted = len(faces)
@@ -162,7 +163,9 @@ def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
             log(f"second SDF pass on de-occluded normals (mean turn "
                 f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s{weighted})")
         first_pass = {"stats": result.stats, "history": result.history, "mesh_faces": int(len(faces))}
+        # the same masks and cameras: the first pass's hull and pre-fitted field are the second's start
         result, vertices, faces, mesh_stats = fit(sdf_views, second,
-                                                  result.field if cfg.deocclude_iterations > 0 else None)
+                                                  result.field if cfg.deocclude_iterations > 0 else None,
+                                                  start=result.start)
     return SDFMesh(result=result, vertices=vertices, faces=faces, mesh_stats=mesh_stats, deocclusion=deocclusion,
                    first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start)
