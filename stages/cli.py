@@ -188,9 +188,12 @@ def _start_truth_prefetch(capture: Path, work: Path, stages: list[Any]) -> Any:
 
     lights = relit_truth_lights(rig.get("cameras", []))
     folder = truth_visibility_folder(work / RELIT_CACHE)
-    return subprocess.Popen([sys.executable, "-m", "synthetic.relight", str(capture), str(folder), str(lights)],
+    # os.nice in the child itself: a preexec_fn is not safe once the parent runs threads
+    script = ("import os, sys; os.nice(19); from synthetic.relight import prefetch_visibility; "
+              "prefetch_visibility(sys.argv[1], sys.argv[2], int(sys.argv[3]))")
+    return subprocess.Popen([sys.executable, "-c", script, str(capture), str(folder), str(lights)],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            preexec_fn=lambda: os.nice(19), env=os.environ | {"OMP_NUM_THREADS": "1"})
+                            env=os.environ | {"OMP_NUM_THREADS": "1"})
 
 
 def _stop(process: Any) -> None:

@@ -421,9 +421,3 @@ class TruthRelighter:
         rgb = np.nan_to_num(view.radiance, nan=0.0, posinf=0.0, neginf=0.0)
         return {"radiance": rgb, "mask": view.mask, "normals_world": view.normals_world, "albedo": view.albedo,
                 "roughness": view.roughness, "depth_m": view.depth_m, "visibility": view.visibility}
-
-
-if __name__ == "__main__":  # python -m synthetic.relight CAPTURE FOLDER [LIGHTS]: prefetch_visibility
-    import sys
-
-    prefetch_visibility(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else DEFAULT_LIGHTS)
