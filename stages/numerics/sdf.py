@@ -221,51 +221,8 @@ class SDFConfig(Documented):
     log_every: int = 50
     """Steps between history entries (and progress calls)."""
 
-
-SDF_PRESETS: dict[str, SDFConfig] = {
-    # `make dataset` on a 2-core machine: one action (32 views, 320x480) on one thread while the other action
-    # trains on the other core. The geometry stage runs this schedule as its second pass, after a shorter first
-    # one (geometry.first_pass_iterations); bench/bench_sdf_schedule.py measures Chamfer against time over both
-    # passes' steps, bench/bench_geometry.py the pass's curve over iterations. Pixel-exact calibrated silhouettes
-    # earn the mask loss a weight of 0.5; a 2^18 table, normals down to 3 deg from grazing and 2% outliers
-    # keep the finger and contour pixels the second pass's importance-drawn rays are for.
-    "cpu": SDFConfig(
-        encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
-                                base_resolution=16, finest_resolution=512),
-        hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
-        hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5,
-        grazing_cos_min=0.05, outlier_fraction=0.02,
-    ),
-    # Full-resolution captures on a GPU.
-    "production": SDFConfig(
-        encoding=HashGridConfig(levels=16, features_per_level=2, log2_table_size=19,
-                                base_resolution=16, finest_resolution=2048),
-        hidden_width=64, hidden_layers=2, iterations=20000, rays_per_batch=4096, samples_per_ray=16,
-        hull_resolution=192, hull_init_steps=1000, hull_init_points=16384, eikonal_points=2048,
-        proposal_voxel_m=0.008, proposal_update_every=200, window_min_m=0.004, inv_s_end=2000.0,
-        learning_rate=1e-2, log_every=200,
-    ),
-    # Unit tests: seconds on one CPU thread.
-    "test": SDFConfig(
-        encoding=HashGridConfig(levels=6, features_per_level=2, log2_table_size=12,
-                                base_resolution=4, finest_resolution=48),
-        hidden_width=32, hidden_layers=1, iterations=160, rays_per_batch=256, samples_per_ray=8,
-        hull_resolution=32, hull_dilate_px=1.0, hull_init_steps=60, hull_init_points=1024, eikonal_points=64,
-        proposal_voxel_m=0.04, proposal_update_every=20, window_m=0.08, window_min_m=0.03,
-        inv_s_start=30.0, inv_s_end=150.0, initial_levels=2, log_every=10, warmup_iterations=5,
-    ),
-}
-
-
-def resolve_device(device: str) -> torch.device:
-    """``auto`` -> CUDA when available else CPU; ``cuda`` without CUDA raises ValueError."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device='cuda' but torch sees no CUDA device; use 'auto' or 'cpu'")
-    if device not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
-    return torch.device(device)
+    def __post_init__(self) -> None:
+        _check_config(self)
 
 
 def _check_config(config: SDFConfig) -> None:
@@ -311,6 +268,52 @@ def _check_config(config: SDFConfig) -> None:
         problems.append(f"gradient={config.gradient!r}")
     if problems:
         raise ValueError("invalid SDFConfig: " + "; ".join(problems))
+
+
+SDF_PRESETS: dict[str, SDFConfig] = {
+    # `make dataset` on a 2-core machine: one action (32 views, 320x480) on one thread while the other action
+    # trains on the other core. The geometry stage runs this schedule as its second pass, after a shorter first
+    # one (geometry.first_pass_iterations); bench/bench_sdf_schedule.py measures Chamfer against time over both
+    # passes' steps, bench/bench_geometry.py the pass's curve over iterations. Pixel-exact calibrated silhouettes
+    # earn the mask loss a weight of 0.5; a 2^18 table, normals down to 3 deg from grazing and 2% outliers
+    # keep the finger and contour pixels the second pass's importance-drawn rays are for.
+    "cpu": SDFConfig(
+        encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
+                                base_resolution=16, finest_resolution=512),
+        hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
+        hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5,
+        grazing_cos_min=0.05, outlier_fraction=0.02,
+    ),
+    # Full-resolution captures on a GPU.
+    "production": SDFConfig(
+        encoding=HashGridConfig(levels=16, features_per_level=2, log2_table_size=19,
+                                base_resolution=16, finest_resolution=2048),
+        hidden_width=64, hidden_layers=2, iterations=20000, rays_per_batch=4096, samples_per_ray=16,
+        hull_resolution=192, hull_init_steps=1000, hull_init_points=16384, eikonal_points=2048,
+        proposal_voxel_m=0.008, proposal_update_every=200, window_min_m=0.004, inv_s_end=2000.0,
+        learning_rate=1e-2, log_every=200,
+    ),
+    # Unit tests: seconds on one CPU thread.
+    "test": SDFConfig(
+        encoding=HashGridConfig(levels=6, features_per_level=2, log2_table_size=12,
+                                base_resolution=4, finest_resolution=48),
+        hidden_width=32, hidden_layers=1, iterations=160, rays_per_batch=256, samples_per_ray=8,
+        hull_resolution=32, hull_dilate_px=1.0, hull_init_steps=60, hull_init_points=1024, eikonal_points=64,
+        proposal_voxel_m=0.04, proposal_update_every=20, window_m=0.08, window_min_m=0.03,
+        inv_s_start=30.0, inv_s_end=150.0, initial_levels=2, log_every=10, warmup_iterations=5,
+    ),
+}
+
+
+def resolve_device(device: str) -> torch.device:
+    """``auto`` -> CUDA when available else CPU; ``cuda`` without CUDA raises ValueError."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device='cuda' but torch sees no CUDA device; use 'auto' or 'cpu'")
+    if device not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
+    return torch.device(device)
 
 
 # ------------------------------------------------------------------------------------------------ field
@@ -1145,9 +1148,9 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
         :class:`SDFResult`.
 
     Raises:
-        ValueError: bad views (shapes, cameras, all masks empty), a bad config, or an empty hull.
+        ValueError: bad views (shapes, cameras, all masks empty) or an empty hull (a bad config is refused when
+            it is built).
     """
-    _check_config(config)
     cams = _check_views(views, config.normal_supervision)
     if init is not None and (to_dict(init.encoding_config) != to_dict(config.encoding)
                              or (init.hidden_width, init.hidden_layers) != (config.hidden_width, config.hidden_layers)):
