@@ -44,16 +44,12 @@ class SpecularConfig(Documented):
     """Iterations of the per-pixel fit per start (Adam needs about 40)."""
     lr: float = 0.03
     """Adam's step size (``solver: adam`` only)."""
-    retry_residual: float = 1e-5
-    """Pixels the first start leaves with a larger relative residual also get the half-way start."""
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
             raise ValueError(f"diffuse_normals.fit.solver must be one of {SOLVERS}, got {self.solver!r}")
-        if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0
-                and self.retry_residual >= 0):
-            raise ValueError("diffuse_normals.fit: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0, "
-                             "retry_residual >= 0")
+        if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0):
+            raise ValueError("diffuse_normals.fit: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0")
 
 
 @dataclass(frozen=True)
@@ -125,7 +121,7 @@ def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
     white = np.asarray(cam["white_reference"], np.float32)
     views = view_directions(cam["K"], cam["cam_from_world"], pos.shape[0], pos.shape[1])
     fit = fit_diffuse_normals(pos, neg, white, views, normals_init, defined, roughness=roughness, f0=spec.f0,
-                              steps=spec.steps, lr=spec.lr, retry_residual=spec.retry_residual, solver=spec.solver)
+                              steps=spec.steps, lr=spec.lr, solver=spec.solver)
     if model is None:
         return fit.normals
     return corrected_normals(pos - fit.specular_pos, neg - fit.specular_neg, model, defined, light_iterations)

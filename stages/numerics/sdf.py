@@ -73,6 +73,32 @@ __all__ = [
 _PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's spatial hash
 _SOFTPLUS_BETA = 100.0  # NeuS / IDR: a smooth ReLU whose curvature does not blur a metre-scale SDF
 
+# Schedule and sampling constants of the SDF's training. They are not settings: no preset, test, bench or user
+# turns them, and every preset's schedule (cpu, production, test) runs with these values.
+_MLP_LR_FACTOR = 0.1
+"""The MLP's learning rate is the hash table's times this (Adam moves every parameter by about its learning rate
+per step: the output layer's bias is a global offset of the surface, keep it slow)."""
+_EMA_DECAY = 0.99
+"""Exponential moving average of the parameters over the last steps (Polyak averaging); the result is the
+averaged field. Adam's per-step moves make the surface jitter by about a millimetre from one step to the next;
+the average removes it."""
+_EMA_START = 0.5
+"""Fraction of the steps after which the average starts (all hash levels are on by then)."""
+_FINAL_LR_FRACTION = 0.1
+"""The learning rate decays (cosine) to this fraction of ``learning_rate`` at the last step."""
+_CURVATURE_STEP_M = 0.005
+"""Offset of the smoothness term's second point, metres (used only when ``weight_curvature`` > 0)."""
+_HULL_INIT_LR = 1e-2
+"""Adam learning rate of the hull regression (the default ``learning_rate`` of the rendering losses)."""
+_PROPOSAL_BAND_M = 0.06
+"""A refresh of the cached SDF grid re-evaluates only the cells whose cached |SDF| is below this (metres); the
+surface must not move farther than that between two refreshes."""
+_WINDOW_SHARPNESS = 8.0
+"""Sampling-window half-width in units of the NeuS transition width ``1 / inv_s``: the logistic density is
+about 1.3e-3 of its peak there (``4 exp(-8)``)."""
+_INV_S_RAMP = 0.7
+"""Fraction of the steps over which ``inv_s`` ramps to ``inv_s_end``; then kept there to the end."""
+
 
 # ------------------------------------------------------------------------------------------------ config
 
@@ -114,19 +140,8 @@ class SDFConfig(Documented):
     """Network samples per ray, stratified over the window around the ray's first zero crossing."""
     learning_rate: float = 1e-2
     """Adam learning rate (hash table and MLP) after warm-up."""
-    mlp_lr_factor: float = 0.1
-    """The MLP's learning rate is ``learning_rate`` times this (Adam moves every parameter by about its learning
-    rate per step: the output layer's bias is a global offset of the surface, keep it slow)."""
-    ema_decay: float = 0.99
-    """Exponential moving average of the parameters over the last steps (Polyak averaging); the result is the
-    averaged field. Adam's per-step moves make the surface jitter by about a millimetre from one step to the
-    next; the average removes it. 0 = the last step's parameters."""
-    ema_start: float = 0.5
-    """Fraction of the steps after which the average starts (all hash levels are on by then)."""
     warmup_iterations: int = 50
     """Linear learning-rate warm-up (steps)."""
-    final_lr_fraction: float = 0.1
-    """The learning rate decays (cosine) to this fraction of ``learning_rate`` at the last step."""
     weight_normal: float = 1.0
     """Weight of the normal loss ``|n_r - n|_1 + (1 - cos)`` (mean over the valid rays kept)."""
     weight_mask: float = 0.1
@@ -135,10 +150,8 @@ class SDFConfig(Documented):
     """Weight of the eikonal term ``(|grad f| - 1)^2`` (mean over ray samples and random points)."""
     weight_curvature: float = 0.0
     """Weight of a smoothness term ``|n(x) - n(x + e)|^2`` between unit SDF normals at each opaque ray's surface
-    sample ``x`` and at a random offset ``|e| = curvature_step_m`` (0 = off). It damps the photometric normals'
+    sample ``x`` and at a random offset ``|e| = _CURVATURE_STEP_M`` (0 = off). It damps the photometric normals'
     noise and the surface's high frequencies; one extra gradient evaluation per ray."""
-    curvature_step_m: float = 0.005
-    """Offset of the smoothness term's second point, metres."""
     importance_fraction: float = 0.0
     """Share of each batch's rays drawn in proportion to the views' :attr:`SDFView.sample_weight` (the rest
     uniformly from every ray worth drawing); 0 = uniform only. Views without weights count as weight 0."""
@@ -175,29 +188,20 @@ class SDFConfig(Documented):
     """Regression steps of the network to the hull's signed distance before the rendering losses."""
     hull_init_points: int = 2048
     """Points per regression step (half near the hull surface, half uniform in the bounds)."""
-    hull_init_lr: float = 1e-2
-    """Adam learning rate of the hull regression."""
     proposal_voxel_m: float = 0.015
     """Voxel size of the cached SDF grid that proposes each ray's window, metres (0 is refused)."""
     proposal_update_every: int = 100
     """Steps between refreshes of the cached SDF grid from the network."""
-    proposal_band_m: float = 0.06
-    """A refresh re-evaluates only the cells whose cached |SDF| is below this (metres); the surface must not
-    move farther than that between two refreshes."""
     window_m: float = 0.03
     """Half-width of the sampling window (metres along the ray) around the proposed crossing at the start;
-    it shrinks with the NeuS sharpness to ``max(window_min_m, window_sharpness / inv_s)``."""
+    it shrinks with the NeuS sharpness to ``max(window_min_m, _WINDOW_SHARPNESS / inv_s)``."""
     window_min_m: float = 0.008
     """Smallest half-width of the sampling window, metres (covers the cached grid's crossing error)."""
-    window_sharpness: float = 8.0
-    """Window half-width in units of the NeuS transition width ``1 / inv_s``."""
     inv_s_start: float = 50.0
     """NeuS sharpness ``inv_s`` (1 / metres) at the first step; the logistic density of NeuS is
     ``s exp(-s f) / (1 + exp(-s f))^2`` with ``s = inv_s``."""
     inv_s_end: float = 800.0
-    """``inv_s`` reached (geometrically) at ``inv_s_ramp`` of the steps, kept to the end."""
-    inv_s_ramp: float = 0.7
-    """Fraction of the steps over which ``inv_s`` ramps."""
+    """``inv_s`` reached (geometrically) at ``_INV_S_RAMP`` of the steps, kept to the end."""
     coarse_to_fine: float = 0.5
     """Fraction of the steps over which the hash levels are switched on one by one (from
     ``initial_levels``), as Neuralangelo; 0 = all levels from the start."""
@@ -216,6 +220,54 @@ class SDFConfig(Documented):
     """torch CPU threads while training (restored afterwards); 0 leaves torch's setting alone."""
     log_every: int = 50
     """Steps between history entries (and progress calls)."""
+
+    def __post_init__(self) -> None:
+        _check_config(self)
+
+
+def _check_config(config: SDFConfig) -> None:
+    enc = config.encoding
+    problems = []
+    if not 1 <= enc.levels <= 32:
+        problems.append(f"encoding.levels={enc.levels} (1..32)")
+    if not 1 <= enc.features_per_level <= 8:
+        problems.append(f"encoding.features_per_level={enc.features_per_level} (1..8)")
+    if not 8 <= enc.log2_table_size <= 24:
+        problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
+    if not 1 <= enc.base_resolution <= enc.finest_resolution:
+        problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
+    for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "hull_resolution",
+                 "proposal_update_every", "log_every", "initial_levels"):
+        if getattr(config, name) < 1:
+            problems.append(f"{name}={getattr(config, name)} (must be >= 1)")
+    for name in ("hidden_layers", "hull_init_steps", "eikonal_points", "warmup_iterations", "hull_max_misses",
+                 "threads"):
+        if getattr(config, name) < 0:
+            problems.append(f"{name}={getattr(config, name)} (must be >= 0)")
+    for name in ("learning_rate", "proposal_voxel_m", "window_m", "window_min_m", "inv_s_start", "inv_s_end",
+                 "fd_step_m"):
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value > 0):
+            problems.append(f"{name}={value} (must be > 0)")
+    for name in ("outlier_fraction", "coarse_to_fine"):
+        value = getattr(config, name)
+        if not 0 <= value <= 1:
+            problems.append(f"{name}={value} (must be in [0, 1])")
+    if not 0 <= config.importance_fraction < 1:
+        problems.append(f"importance_fraction={config.importance_fraction} (must be in [0, 1))")
+    if not 0 <= config.outlier_fraction < 1:
+        problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
+    if not 0 <= config.grazing_cos_min < 1:
+        problems.append(f"grazing_cos_min={config.grazing_cos_min} (must be in [0, 1))")
+    for name in ("weight_normal", "weight_mask", "weight_eikonal", "weight_curvature", "weight_hull", "hull_margin_m",
+                 "hull_dilate_px", "hull_init_dilate_px"):
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value >= 0):
+            problems.append(f"{name}={value} (must be >= 0)")
+    if config.gradient not in ("analytic", "finite_difference", "autograd"):
+        problems.append(f"gradient={config.gradient!r}")
+    if problems:
+        raise ValueError("invalid SDFConfig: " + "; ".join(problems))
 
 
 SDF_PRESETS: dict[str, SDFConfig] = {
@@ -262,51 +314,6 @@ def resolve_device(device: str) -> torch.device:
     if device not in ("cpu", "cuda"):
         raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
     return torch.device(device)
-
-
-def _check_config(config: SDFConfig) -> None:
-    enc = config.encoding
-    problems = []
-    if not 1 <= enc.levels <= 32:
-        problems.append(f"encoding.levels={enc.levels} (1..32)")
-    if not 1 <= enc.features_per_level <= 8:
-        problems.append(f"encoding.features_per_level={enc.features_per_level} (1..8)")
-    if not 8 <= enc.log2_table_size <= 24:
-        problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
-    if not 1 <= enc.base_resolution <= enc.finest_resolution:
-        problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
-    for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "hull_resolution",
-                 "proposal_update_every", "log_every", "initial_levels"):
-        if getattr(config, name) < 1:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 1)")
-    for name in ("hidden_layers", "hull_init_steps", "eikonal_points", "warmup_iterations", "hull_max_misses",
-                 "threads"):
-        if getattr(config, name) < 0:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 0)")
-    for name in ("learning_rate", "mlp_lr_factor", "proposal_voxel_m", "proposal_band_m", "window_m", "window_min_m", "inv_s_start", "inv_s_end",
-                 "fd_step_m", "hull_init_lr", "window_sharpness"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value > 0):
-            problems.append(f"{name}={value} (must be > 0)")
-    for name in ("outlier_fraction", "coarse_to_fine", "final_lr_fraction", "inv_s_ramp", "ema_decay", "ema_start"):
-        value = getattr(config, name)
-        if not 0 <= value <= 1:
-            problems.append(f"{name}={value} (must be in [0, 1])")
-    if not 0 <= config.importance_fraction < 1:
-        problems.append(f"importance_fraction={config.importance_fraction} (must be in [0, 1))")
-    if not 0 <= config.outlier_fraction < 1:
-        problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
-    if not 0 <= config.grazing_cos_min < 1:
-        problems.append(f"grazing_cos_min={config.grazing_cos_min} (must be in [0, 1))")
-    for name in ("weight_normal", "weight_mask", "weight_eikonal", "weight_curvature", "weight_hull", "hull_margin_m",
-                 "hull_dilate_px", "hull_init_dilate_px", "curvature_step_m"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value >= 0):
-            problems.append(f"{name}={value} (must be >= 0)")
-    if config.gradient not in ("analytic", "finite_difference", "autograd"):
-        problems.append(f"gradient={config.gradient!r}")
-    if problems:
-        raise ValueError("invalid SDFConfig: " + "; ".join(problems))
 
 
 # ------------------------------------------------------------------------------------------------ field
@@ -1025,12 +1032,12 @@ def _lr_factor(it: int, config: SDFConfig) -> float:
         return (it + 1) / config.warmup_iterations
     span = max(config.iterations - config.warmup_iterations, 1)
     p = min((it - config.warmup_iterations) / span, 1.0)
-    f = config.final_lr_fraction
+    f = _FINAL_LR_FRACTION
     return f + (1 - f) * 0.5 * (1 + math.cos(math.pi * p))
 
 
 def _inv_s(it: int, config: SDFConfig) -> float:
-    ramp = max(config.inv_s_ramp * config.iterations, 1.0)
+    ramp = max(_INV_S_RAMP * config.iterations, 1.0)
     p = min(it / ramp, 1.0)
     return config.inv_s_start * (config.inv_s_end / config.inv_s_start) ** p
 
@@ -1141,9 +1148,9 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
         :class:`SDFResult`.
 
     Raises:
-        ValueError: bad views (shapes, cameras, all masks empty), a bad config, or an empty hull.
+        ValueError: bad views (shapes, cameras, all masks empty) or an empty hull (a bad config is refused when
+            it is built).
     """
-    _check_config(config)
     cams = _check_views(views, config.normal_supervision)
     if init is not None and (to_dict(init.encoding_config) != to_dict(config.encoding)
                              or (init.hidden_width, init.hidden_layers) != (config.hidden_width, config.hidden_layers)):
@@ -1209,9 +1216,9 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
         if it > 0 and it % config.proposal_update_every == 0:
             tick = time.perf_counter()
             # Only cells near the surface: the rest keep their (large, correctly signed) values.
-            proposal.refresh(field_, band_m=config.proposal_band_m)
+            proposal.refresh(field_, band_m=_PROPOSAL_BAND_M)
             timing["refresh"] += time.perf_counter() - tick
-        window = max(config.window_min_m, min(config.window_m, config.window_sharpness / inv_s))
+        window = max(config.window_min_m, min(config.window_m, _WINDOW_SHARPNESS / inv_s))
 
         tick = time.perf_counter()
         batch = _draw_batch(bank, proposal, config.rays_per_batch, n_important, generator, device)
@@ -1298,7 +1305,7 @@ def _initial_field(sdf_bounds: np.ndarray, prefit_hull: HullGrid, prefit_sd: np.
     field_ = SDFField(sdf_bounds, config.encoding, config.hidden_width, config.hidden_layers).to(device)
     field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
     losses = fit_to_signed_distance(field_, prefit_hull, prefit_sd, config.hull_init_steps,
-                                    config.hull_init_points, config.hull_init_lr, generator=generator)
+                                    config.hull_init_points, _HULL_INIT_LR, generator=generator)
     return field_, losses
 
 
@@ -1310,7 +1317,7 @@ def _apply_schedule(it: int, config: SDFConfig, field_: SDFField,
     field_.set_active_levels(_active_levels(it, config))
     lr = config.learning_rate * _lr_factor(it, config)
     optimiser.param_groups[0]["lr"] = lr
-    optimiser.param_groups[1]["lr"] = lr * config.mlp_lr_factor
+    optimiser.param_groups[1]["lr"] = lr * _MLP_LR_FACTOR
     return inv_s, lr
 
 
@@ -1460,7 +1467,7 @@ def _curvature_loss(field_: SDFField, points: torch.Tensor, unit: torch.Tensor, 
                     device: torch.device) -> torch.Tensor | None:
     """Smoothness ``|n(x) - n(x + e)|^2`` between the unit SDF normal at each opaque ray's sample of largest
     weight (points, unit (R, K, 3); weights (R, K); opacity (R,)) and at a random offset
-    ``|e| = curvature_step_m``; None when no ray is opaque. One point per opaque ray, on the surface: 1/K of
+    ``|e| = _CURVATURE_STEP_M``; None when no ray is opaque. One point per opaque ray, on the surface: 1/K of
     the samples' cost, where the surface is."""
     R = points.shape[0]
     offsets = F.normalize(torch.randn((R, 3), generator=generator).to(device), dim=1)
@@ -1470,7 +1477,7 @@ def _curvature_loss(field_: SDFField, points: torch.Tensor, unit: torch.Tensor, 
         return None
     rows = torch.nonzero(on_surface).view(-1)
     base_pts = points[rows, best[rows]]
-    _, g_near = field_.sdf_and_gradient(base_pts.detach() + offsets[rows] * config.curvature_step_m,
+    _, g_near = field_.sdf_and_gradient(base_pts.detach() + offsets[rows] * _CURVATURE_STEP_M,
                                         config.gradient, config.fd_step_m)
     n0 = unit[rows, best[rows]]
     n1 = F.normalize(g_near, dim=-1, eps=1e-8)
@@ -1478,27 +1485,26 @@ def _curvature_loss(field_: SDFField, points: torch.Tensor, unit: torch.Tensor, 
 
 
 class _ParameterAverage:
-    """Exponential moving average of the field's parameters (``SDFConfig.ema_decay``) from step
-    ``ema_start * iterations`` on; inactive when the decay is 0."""
+    """Exponential moving average of the field's parameters (decay ``_EMA_DECAY``) from step
+    ``_EMA_START * iterations`` on."""
 
     def __init__(self, params: list[torch.Tensor], config: SDFConfig):
         self.params = params
-        self.decay = config.ema_decay
-        self.first = int(config.ema_start * config.iterations)
-        self.average = [p.detach().clone() for p in params] if config.ema_decay > 0 else None
+        self.first = int(_EMA_START * config.iterations)
+        self.average = [p.detach().clone() for p in params]
 
     def update(self, it: int) -> None:
         """Take in the parameters after step ``it``: the first step copies them."""
-        if self.average is None or it < self.first:
+        if it < self.first:
             return
         if it == self.first:
             torch._foreach_copy_(self.average, self.params)
         else:
-            torch._foreach_lerp_(self.average, self.params, 1.0 - self.decay)
+            torch._foreach_lerp_(self.average, self.params, 1.0 - _EMA_DECAY)
 
     def differs_after(self, it: int) -> bool:
         """Whether the average after step ``it`` holds more than that step's parameters."""
-        return self.average is not None and it > self.first
+        return it > self.first
 
     def call_with_average(self, fn: Callable[[], None]) -> None:
         """Call ``fn`` with the averaged values in the parameters, then put the live ones back."""
@@ -1510,7 +1516,7 @@ class _ParameterAverage:
 
     def finish(self, last: int) -> None:
         """Leave the average in the parameters if it started by step ``last``."""
-        if self.average is not None and last >= self.first:
+        if last >= self.first:
             with torch.no_grad():
                 torch._foreach_copy_(self.params, self.average)
 

@@ -381,6 +381,18 @@ def test_presets_are_valid_configs():
     assert SDF_PRESETS["production"].encoding.finest_resolution > SDF_PRESETS["cpu"].encoding.finest_resolution
 
 
+def test_a_bad_setting_is_refused_when_the_config_is_built_not_when_training_starts():
+    from pipeline.config import merge
+    from pipeline.errors import ConfigError
+    from stages.registry import PRESETS
+
+    with pytest.raises(ValueError, match=r"iterations=0 \(must be >= 1\)"):
+        SDFConfig(iterations=0)
+    # a YAML override is refused as it is merged, naming the file and the section, before any stage runs
+    with pytest.raises(ConfigError, match=r"o\.yaml\.geometry\.sdf: invalid SDFConfig: .*encoding\.levels=0"):
+        merge(PRESETS["default"], {"geometry": {"sdf": {"encoding": {"levels": 0}}}}, where="o.yaml")
+
+
 def test_a_second_pass_reuses_the_first_ones_start_bit_for_bit():
     views = sphere_views(n=4, size=24)
     first = train_sdf(views, TINY, bounds=BOUNDS)
