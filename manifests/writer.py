@@ -556,13 +556,15 @@ def release_relpath(release_dir: str | Path, path: str | Path) -> str:
 
 
 def asset_row(release_dir: str | Path, path: str | Path, kind: str,
-              action_id: str | None = None, camera_id: str | None = None) -> dict:
+              action_id: str | None = None, camera_id: str | None = None, digest: dict | None = None) -> dict:
     """The ``assets`` row of a file of the release: relative path, bytes, sha256 and media type.
 
     Args:
         release_dir: the release root.
         path: the file, absolute or relative to the release root.
         kind: what the file is ('normal_alpha', 'mask', 'preview', 'transforms', ...).
+        digest: ``{"bytes", "sha256"}`` of the file when the task that wrote it hashed it already; None: the
+            file is read and hashed here.
 
     Raises:
         ValueError: the path lies outside the release.
@@ -578,7 +580,7 @@ def asset_row(release_dir: str | Path, path: str | Path, kind: str,
         "camera_id": camera_id,
         "kind": kind,
         "path": rel,
-        "bytes": full.stat().st_size,
-        "sha256": file_sha256(full),
+        "bytes": int(digest["bytes"]) if digest else full.stat().st_size,
+        "sha256": digest["sha256"] if digest else file_sha256(full),
         "media_type": media_type(rel),
     }

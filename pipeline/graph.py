@@ -28,7 +28,7 @@ from typing import Any
 from pipeline.capture import Capture
 from pipeline.config import key_fields
 from pipeline.errors import InputError
-from pipeline.hashing import DigestCache, code_digests, record_key
+from pipeline.hashing import DigestCache, code_digests, file_sha256, record_key
 from pipeline.stage import PROGRESS_TOPIC, Stage, StageContext, set_local_progress
 from pipeline.store import ArtifactStore, short
 
@@ -170,8 +170,12 @@ def _why(record: dict[str, Any], previous: dict[str, Any] | None) -> str:
 
 def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, digests: DigestCache,
               actions: Iterable[str] | None = None, force: set[str] | None = None,
-              echo: Callable[[str], None] | None = None) -> Plan:
-    """Resolve every (stage, scope) task: its key, and whether it is cached, to run, or failed."""
+              echo: Callable[[str], None] | None = None, hash_threads: int = 0) -> Plan:
+    """Resolve every (stage, scope) task: its key, and whether it is cached, to run, or failed.
+
+    The raw inputs of every task are listed first and the ones whose digest is not known yet hashed together,
+    ``hash_threads`` files at a time (:meth:`DigestCache.digest_all`; 0 = one per CPU core), before any key is
+    computed."""
     force = force or set()
     ordered = topo_order(stages)
     by_name = {s.name: s for s in ordered}
@@ -191,20 +195,35 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     for stage in ordered:
         stage.preflight(capture, emit)
 
+    sessions_needed = sorted({capture.action(a).session_id for a in wanted})
+    scopes = [(stage, session_id, session_id, None) for session_id in sessions_needed
+              for stage in ordered if stage.scope == "session"]
+    scopes += [(stage, action_id, capture.action(action_id).session_id, action_id) for action_id in wanted
+               for stage in ordered if stage.scope == "action"]
+    raw_of: dict[tuple[str, str], dict[str, Path] | str] = {}  # the raw inputs, or why they cannot be had
+    for stage, scope_id, _, _ in scopes:
+        try:
+            raw_of[(stage.name, scope_id)] = stage.raw_inputs(capture, scope_id)
+        except InputError as exc:
+            raw_of[(stage.name, scope_id)] = str(exc)
+        except FileNotFoundError as exc:
+            raw_of[(stage.name, scope_id)] = f"{exc.filename}: file disappeared while planning"
+    digests.digest_all((path for raw in raw_of.values() if isinstance(raw, dict) for path in raw.values()),
+                       threads=hash_threads)
+
     def plan_one(stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
         upstream = {}
         for req in stage.requires:
             req_scope = session_id if by_name[req].scope == "session" else scope_id
             upstream[req] = index[(req, req_scope)]
         error = None
-        raw: dict[str, Path] = {}
+        raw = raw_of.pop((stage.name, scope_id))
         inputs: dict[str, str] = {}
+        if isinstance(raw, str):
+            error, raw = raw, {}
         try:
-            raw = stage.raw_inputs(capture, scope_id)
             for name, path in sorted(raw.items()):
                 inputs[name] = digests.digest(path)["sha256"]
-        except InputError as exc:
-            error = str(exc)
         except FileNotFoundError as exc:
             error = f"{exc.filename}: file disappeared while planning"
         views = list(capture.sessions[session_id].camera_ids)
@@ -243,16 +262,8 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
         tasks.append(task)
         return task
 
-    sessions_needed = sorted({capture.action(a).session_id for a in wanted})
-    for session_id in sessions_needed:
-        for stage in ordered:
-            if stage.scope == "session":
-                plan_one(stage, session_id, session_id, None)
-    for action_id in wanted:
-        session_id = capture.action(action_id).session_id
-        for stage in ordered:
-            if stage.scope == "action":
-                plan_one(stage, action_id, session_id, action_id)
+    for stage, scope_id, session_id, action_id in scopes:
+        plan_one(stage, scope_id, session_id, action_id)
     return Plan(tasks, store)
 
 
@@ -309,6 +320,23 @@ def run_view_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: st
                 "seconds": time.perf_counter() - start, "started_at": started_at, "traceback": traceback.format_exc()}
 
 
+def published_digests(stage: Stage, folder: Path) -> dict[str, dict[str, Any]]:
+    """Path in ``folder`` -> ``{"bytes", "sha256", "mtime_ns"}`` of each file the stage publishes from it
+    (``release_files``, ``release_root_files``): hashed by the task that wrote them, on its worker, so that
+    publishing reads the digests from the success record instead of re-reading every file in the driver."""
+    listed = [src for src, *_ in (stage.release_files(folder) if hasattr(stage, "release_files") else [])]
+    listed += [src for src, *_ in (stage.release_root_files(folder) if hasattr(stage, "release_root_files") else [])]
+    files: dict[str, dict[str, Any]] = {}
+    for src in listed:
+        src = Path(src)
+        rel = src.relative_to(folder).as_posix()
+        if rel in files or not src.is_file():
+            continue  # a file the stage did not write is reported when it is published
+        stat = src.stat()
+        files[rel] = {"bytes": stat.st_size, "sha256": file_sha256(src), "mtime_ns": stat.st_mtime_ns}
+    return files
+
+
 def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
                 attempt: str, *parts: dict[str, Any]) -> dict[str, Any]:
     """Finalize a per-view stage, or run a whole-scope stage, then commit its folder (runs on a worker).
@@ -346,8 +374,10 @@ def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str,
             stats = stage.finalize(ctx, {p["view"]: p["stats"] for p in parts})
         else:
             stats = stage.run(ctx)
+        files = published_digests(stage, ctx.out_dir)
         seconds = view_seconds + time.perf_counter() - start
-        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds, attempt=attempt, started_at=started_at)
+        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds, attempt=attempt, started_at=started_at,
+                     files=files)
         return {"ok": True, "stats": stats, "seconds": seconds, "started_at": started_at}
     except Exception as exc:  # noqa: BLE001
         store.discard(ctx.stage, ctx.scope_id, key)

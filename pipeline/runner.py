@@ -47,12 +47,17 @@ class ExecutionConfig(Documented):
     one finishes, so the scheduler holds a few actions' tasks, not the release's. 0 = twice the executor's
     worker threads, at least 4."""
 
-    not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight")
+    hash_threads: int = 0
+    """Threads that hash the raw frames not hashed before (their digests enter the cache keys) while planning;
+    0 = one per CPU core of the machine that runs the plan."""
+
+    not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight", "hash_threads")
 
     def __post_init__(self) -> None:
-        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0:
-            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0 and a scheduler, got "
-                             f"{self.workers!r}, {self.scopes_in_flight!r}, {self.scheduler!r}")
+        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0 or self.hash_threads < 0:
+            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0, hash_threads >= 0 and a "
+                             f"scheduler, got {self.workers!r}, {self.scopes_in_flight!r}, {self.hash_threads!r}, "
+                             f"{self.scheduler!r}")
 
 
 @dataclass
@@ -130,30 +135,35 @@ def prepare_action(release: Path, work: Path, store: ArtifactStore, action_id: s
         entries, root_entries, tables = [], [], {}
         for task in tasks:
             artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
+            success = store.success_record(task.stage.name, task.scope_id, task.key)
             for src, rel, kind, camera in (task.stage.release_files(artifact) if hasattr(task.stage, "release_files")
                                            else []):
                 link_or_copy(src, tmp / rel)
-                entries.append((rel, kind, camera))
+                entries.append((rel, kind, camera, store.file_digest(success, artifact, src)))
             if hasattr(task.stage, "release_root_files"):
-                root_entries += task.stage.release_root_files(artifact)
+                root_entries += [(src, rel, kind, store.file_digest(success, artifact, src))
+                                 for src, rel, kind in task.stage.release_root_files(artifact)]
             if hasattr(task.stage, "manifest_rows"):
                 for table, rows in task.stage.manifest_rows(artifact).items():
                     tables.setdefault(table, []).extend(rows)
-        rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera)
-                for rel, kind, camera in entries]
+        # the digests come from the success records (hashed by the tasks that wrote the files); a file without
+        # one (a result committed before the records held digests) is hashed here
+        rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera, digest=digest)
+                for rel, kind, camera, digest in entries]
         prefix = f"actions/.tmp-{action_id}/"
-        for row in rows:  # rows were hashed in the temporary folder; record their final paths
+        for row in rows:  # rows were made in the temporary folder; record their final paths
             row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
-        for src, rel, kind in root_entries:
+        for src, rel, kind, digest in root_entries:
             link_or_copy(src, staging / rel)
-            row = asset_row(release, staging / rel, kind, action_id=action_id)
+            row = asset_row(release, staging / rel, kind, action_id=action_id, digest=digest)
             row["path"] = rel
             rows.append(row)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    record = {"keys": keys, "assets": rows, "root_units": _root_units(root_entries), "tables": tables}
+    record = {"keys": keys, "assets": rows, "root_units": _root_units([e[:3] for e in root_entries]),
+              "tables": tables}
     return PreparedAction(action_id, rows, tables, record, cached=False, tmp=tmp, staging=staging,
                           old_units=list(old_record.get("root_units", [])))
 
@@ -270,7 +280,8 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
     force = {only} if only else (downstream_of(stages, from_stage) if from_stage else set())
 
     echo(f"run {run_id}: capture {capture_dir} -> release {release}")
-    plan = make_plan(capture, stages, store, digests, actions=actions, force=force, echo=echo)
+    plan = make_plan(capture, stages, store, digests, actions=actions, force=force, echo=echo,
+                     hash_threads=execution.hash_threads)
     digests.save()
     executor_name = "none (everything cached)"
     if plan.to_run():
