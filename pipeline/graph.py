@@ -184,6 +184,7 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     if unknown:
         raise InputError(capture.root / "capture.json", f"unknown action(s) {unknown}")
     stage_code: dict[str, dict[str, str]] = {}
+    stage_config = {stage.name: key_fields(stage.config) for stage in ordered}  # one record, shared by its tasks
     for stage in ordered:
         try:
             stage_code[stage.name] = code_digests(stage.code_module, stage.code_packages)
@@ -228,7 +229,7 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
             error = f"{exc.filename}: file disappeared while planning"
         views = list(capture.sessions[session_id].camera_ids)
         record = {"stage": stage.name, "version": stage.version, "code": stage_code[stage.name], "scope": scope_id,
-                  "config": key_fields(stage.config), "upstream": {n: t.key for n, t in sorted(upstream.items())},
+                  "config": stage_config[stage.name], "upstream": {n: t.key for n, t in sorted(upstream.items())},
                   "inputs": inputs}
         key = record_key(record)
         bad_up = [t for t in upstream.values() if t.status in ("failed", "blocked")]
@@ -556,9 +557,13 @@ def execute(plan: Plan, capture: Capture, executor: Any,
     scopes: dict[str, list[Task]] = {}
     for task in todo:
         scopes.setdefault(task.scope_id, []).append(task)
-    contexts = {id(task): _context(task, store, capture) for task in todo}
-    views = {id(task): task.stage.views(contexts[id(task)]) for task in todo if task.stage.per_view}
-    total_views = sum(len(v) for v in views.values())
+    # A task's context (and its view list) is made when its scope is submitted, not for the whole plan here: the
+    # driver holds a window of contexts, and lists a task's earlier results only when it runs.
+    views: dict[int, list[str]] = {}
+    for task in todo:
+        if task.stage.per_view and type(task.stage).views is not Stage.views:  # a stage that picks its own views
+            views[id(task)] = task.stage.views(_context(task, store, capture))
+    total_views = sum(len(views[id(t)]) if id(t) in views else len(t.views) for t in todo if t.stage.per_view)
     dynamic = hasattr(executor, "completions")
     limit = (window if window > 0 else default_window(executor)) if dynamic else max(1, len(scopes))
     pending = collections.deque(scopes.values())
@@ -579,7 +584,7 @@ def execute(plan: Plan, capture: Capture, executor: Any,
     def submit_scope(tasks: list[Task]) -> None:
         left[tasks[0].scope_id] = len(tasks)
         for task in tasks:
-            ctx = contexts.pop(id(task))
+            ctx = _context(task, store, capture)
             ups = []
             for n, t in task.upstream.items():
                 if (n, t.scope_id) in handles:
@@ -592,7 +597,7 @@ def execute(plan: Plan, capture: Capture, executor: Any,
             if task.stage.per_view:
                 parts = [executor.submit(run_view_task, task.stage, ctx, store, task.key, attempt, v, *ups,
                                          key=f"{tag}-{v}", resources=res)
-                         for v in views.pop(id(task))]
+                         for v in (views.pop(id(task)) if id(task) in views else task.stage.views(ctx))]
                 if on_view:
                     for p in parts:
                         view_owner[id(p)] = (p, task)

@@ -467,10 +467,11 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
     errors are made so with ``places`` (:func:`portable_message`)."""
     from manifests import append_rows, asset_row
     from manifests.schemas import metric_unit
-    from manifests.writer import replace_rows, write_table_keeping
+    from manifests.writer import concat_validated, replace_rows, validate_rows, write_table_keeping
 
-    action_rows, frame_rows, metric_rows = [], [], []
+    action_rows, frame_tables, metric_tables = [], [], []
     for action_id, status in action_status.items():
+        frame_rows, metric_rows = [], []  # made into Arrow one action at a time: never the release's as dicts
         info = capture.action(action_id)
         session = capture.sessions[info.session_id]
         tasks = plan.of_scopes(action_id)
@@ -526,10 +527,15 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
                                             "region": None, "environment": None, "value": float(value),
                                             "unit": metric_unit(metric), "source": task.stage.name,
                                             "run_id": run_id})
+        frame_tables.append(validate_rows("frames", frame_rows))
+        metric_tables.append(validate_rows("metrics", metric_rows))
+    config_json: dict[str, str] = {}  # one string per stage, not per task (its tasks share the config record)
     stage_rows = [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
                    "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
                    "seconds": float(t.seconds), "error": portable_message(t.error, places),
-                   "started_at": _utc(t.started_at), "config_json": json.dumps(t.record["config"], sort_keys=True)}
+                   "started_at": _utc(t.started_at),
+                   "config_json": config_json.get(t.stage.name) or config_json.setdefault(
+                       t.stage.name, json.dumps(t.record["config"], sort_keys=True))}
                   for t in plan.tasks]
     for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml", RUN_RECORD):
         asset_rows.append(asset_row(release, release / name, "document"))
@@ -545,12 +551,12 @@ def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: Diges
         write_table_keeping(release, table, rows, keep)
     asset_rows += _write_split_lists(release)
     write_table_keeping(release, "actions", action_rows, keep)
-    write_table_keeping(release, "frames", frame_rows, keep)
+    write_table_keeping(release, "frames", concat_validated("frames", frame_tables), keep)
     write_table_keeping(release, "assets", asset_rows, keep)
     append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
     # This run's actions get their stage statistics anew; a failed action keeps no numbers at all (its
     # accuracy rows described files that are gone); evaluate owns the other rows of the published ones.
-    replace_rows(release, "metrics", metric_rows,
+    replace_rows(release, "metrics", concat_validated("metrics", metric_tables),
                  drop=lambda row: row["action_id"] in action_status and (
                      row["source"] != "evaluate" or action_status[row["action_id"]] != "ok"))
 
