@@ -550,80 +550,111 @@ def execute(plan: Plan, capture: Capture, executor: Any,
     """
     if on_progress is not None and hasattr(executor, "subscribe_progress"):
         executor.subscribe_progress(on_progress)
-    store = plan.store
-    attempt = secrets.token_hex(8)  # this execution; a task recomputed after its worker died checks it
-    todo = plan.to_run()
-    total = len(todo)
-    scopes: dict[str, list[Task]] = {}
-    for task in todo:
-        scopes.setdefault(task.scope_id, []).append(task)
-    # A task's context (and its view list) is made when its scope is submitted, not for the whole plan here: the
-    # driver holds a window of contexts, and lists a task's earlier results only when it runs.
-    views: dict[int, list[str]] = {}
-    for task in todo:
-        if task.stage.per_view and type(task.stage).views is not Stage.views:  # a stage that picks its own views
-            views[id(task)] = task.stage.views(_context(task, store, capture))
-    total_views = sum(len(views[id(t)]) if id(t) in views else len(t.views) for t in todo if t.stage.per_view)
+    run = _Execution(plan, capture, executor, on_view is not None)
     dynamic = hasattr(executor, "completions")
-    limit = (window if window > 0 else default_window(executor)) if dynamic else max(1, len(scopes))
-    pending = collections.deque(scopes.values())
-    handles: dict[tuple[str, str], Any] = {}  # submitted, not finished
-    outcomes: dict[tuple[str, str], dict[str, Any]] = {}  # finished
-    owner: dict[int, tuple[Any, Task]] = {}  # the handle is held with its task, so its id stays its own
-    view_owner: dict[int, tuple[Any, Task]] = {}
-    left: dict[str, int] = {}
-    watched: list[Any] = []
-    completions = executor.completions() if dynamic else None
+    limit = (window if window > 0 else default_window(executor)) if dynamic else max(1, len(run.pending))
+    run.fill(limit)
+    done = views_done = 0
+    for handle, result in run.completed():
+        if id(handle) in run.view_owner:
+            _, task = run.view_owner.pop(id(handle))
+            views_done += 1
+            on_view(task, result, views_done, run.total_views)
+            continue
+        task = run.finished(handle, result)
+        done += 1
+        if on_done:
+            on_done(task, result, done, run.total)
+        run.scope_left[task.scope_id] -= 1
+        if run.scope_left[task.scope_id] == 0:  # a scope finished: the next one goes in
+            run.in_flight -= 1
+            run.fill(limit)
+    run.classify_lost()
 
-    def watch(handle: Any) -> None:
-        if completions is not None:
-            completions.add(handle)
+
+class _Execution:
+    """The state of one :func:`execute`: the scopes still to submit, the handles in flight and the outcomes of
+    the finished tasks (what downstream tasks submitted later get instead of a handle)."""
+
+    def __init__(self, plan: Plan, capture: Capture, executor: Any, watch_views: bool):
+        self.plan, self.capture, self.executor, self.store = plan, capture, executor, plan.store
+        self.attempt = secrets.token_hex(8)  # this execution; a task recomputed after its worker died checks it
+        todo = plan.to_run()
+        self.total = len(todo)
+        scopes: dict[str, list[Task]] = {}
+        for task in todo:
+            scopes.setdefault(task.scope_id, []).append(task)
+        self.pending = collections.deque(scopes.values())
+        # A task's context (and its view list) is made when its scope is submitted, not for the whole plan here:
+        # the driver holds a window of contexts, and lists a task's earlier results only when it runs.
+        self.views: dict[int, list[str]] = {}
+        for task in todo:
+            if task.stage.per_view and type(task.stage).views is not Stage.views:  # a stage that picks its views
+                self.views[id(task)] = task.stage.views(_context(task, self.store, capture))
+        self.total_views = sum(len(self.views[id(t)]) if id(t) in self.views else len(t.views)
+                               for t in todo if t.stage.per_view)
+        self.watch_views = watch_views
+        self.handles: dict[tuple[str, str], Any] = {}  # submitted, not finished
+        self.outcomes: dict[tuple[str, str], dict[str, Any]] = {}  # finished
+        self.owner: dict[int, tuple[Any, Task]] = {}  # the handle is held with its task, so its id stays its own
+        self.view_owner: dict[int, tuple[Any, Task]] = {}
+        self.scope_left: dict[str, int] = {}
+        self.in_flight = 0
+        self.lost: list[Task] = []
+        self._watched: list[Any] = []
+        self._completions = executor.completions() if hasattr(executor, "completions") else None
+
+    def fill(self, limit: int) -> None:
+        """Submit pending scopes until ``limit`` are in flight."""
+        while self.pending and self.in_flight < limit:
+            self._submit_scope(self.pending.popleft())
+            self.in_flight += 1
+
+    def completed(self) -> Iterable[tuple[Any, dict[str, Any]]]:
+        """(handle, result) of each watched handle as it finishes, including those submitted meanwhile."""
+        if self._completions is not None:
+            return self._completions
+        return self.executor.as_completed(self._watched)
+
+    def _watch(self, handle: Any) -> None:
+        if self._completions is not None:
+            self._completions.add(handle)
         else:
-            watched.append(handle)
+            self._watched.append(handle)
 
-    def submit_scope(tasks: list[Task]) -> None:
-        left[tasks[0].scope_id] = len(tasks)
+    def _submit_scope(self, tasks: list[Task]) -> None:
+        self.scope_left[tasks[0].scope_id] = len(tasks)
         for task in tasks:
-            ctx = _context(task, store, capture)
+            ctx = _context(task, self.store, self.capture)
             ups = []
             for n, t in task.upstream.items():
-                if (n, t.scope_id) in handles:
-                    ups.append(handles[(n, t.scope_id)])
-                elif (n, t.scope_id) in outcomes:
-                    ups.append(outcomes[(n, t.scope_id)])
-            store.begin(task.stage.name, task.scope_id, task.key)
+                if (n, t.scope_id) in self.handles:
+                    ups.append(self.handles[(n, t.scope_id)])
+                elif (n, t.scope_id) in self.outcomes:
+                    ups.append(self.outcomes[(n, t.scope_id)])
+            self.store.begin(task.stage.name, task.scope_id, task.key)
             tag = f"{task.stage.name}-{task.scope_id}-{short(task.key)}"
             res = task.stage.resources
             if task.stage.per_view:
-                parts = [executor.submit(run_view_task, task.stage, ctx, store, task.key, attempt, v, *ups,
-                                         key=f"{tag}-{v}", resources=res)
-                         for v in (views.pop(id(task)) if id(task) in views else task.stage.views(ctx))]
-                if on_view:
+                views = self.views.pop(id(task)) if id(task) in self.views else task.stage.views(ctx)
+                parts = [self.executor.submit(run_view_task, task.stage, ctx, self.store, task.key, self.attempt, v,
+                                              *ups, key=f"{tag}-{v}", resources=res)
+                         for v in views]
+                if self.watch_views:
                     for p in parts:
-                        view_owner[id(p)] = (p, task)
-                        watch(p)
+                        self.view_owner[id(p)] = (p, task)
+                        self._watch(p)
             else:
                 parts = list(ups)
-            handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, attempt, *parts,
-                                     key=f"{tag}-commit")
-            handles[(task.stage.name, task.scope_id)] = handle
-            owner[id(handle)] = (handle, task)
-            watch(handle)
+            handle = self.executor.submit(finish_task, task.stage, ctx, self.store, task.key, task.record,
+                                          self.attempt, *parts, key=f"{tag}-commit")
+            self.handles[(task.stage.name, task.scope_id)] = handle
+            self.owner[id(handle)] = (handle, task)
+            self._watch(handle)
 
-    in_flight = 0
-    while pending and in_flight < limit:
-        submit_scope(pending.popleft())
-        in_flight += 1
-    done = views_done = 0
-    lost: list[Task] = []
-    for handle, result in (completions if completions is not None else executor.as_completed(watched)):
-        if id(handle) in view_owner:
-            _, task = view_owner.pop(id(handle))
-            views_done += 1
-            on_view(task, result, views_done, total_views)
-            continue
-        _, task = owner.pop(id(handle))
-        done += 1
+    def finished(self, handle: Any, result: dict[str, Any]) -> Task:
+        """Record a (stage, scope) task's result in its task and the store; its outcome replaces its handle."""
+        _, task = self.owner.pop(id(handle))
         task.seconds = float(result.get("seconds", 0.0))
         task.started_at = result.get("started_at")
         if result.get("ok"):
@@ -632,28 +663,24 @@ def execute(plan: Plan, capture: Capture, executor: Any,
             task.status = "skipped" if result.get("skipped") else "failed"
             task.error = result.get("error")
             if result.get("executor_error"):
-                lost.append(task)  # classified below, once every upstream task's outcome is known
+                self.lost.append(task)  # classified by classify_lost, once every upstream task's outcome is known
             elif task.status == "skipped":
                 task.failed_stage = result.get("failed_stage")
             else:
-                store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
+                self.store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
                 if result.get("traceback"):
                     log.debug("%s failed:\n%s", task.name, result["traceback"])
-        handles.pop((task.stage.name, task.scope_id), None)
-        outcomes[(task.stage.name, task.scope_id)] = _outcome(result)
-        if on_done:
-            on_done(task, result, done, total)
-        left[task.scope_id] -= 1
-        if left[task.scope_id] == 0:  # a scope finished: the next one goes in
-            in_flight -= 1
-            while pending and in_flight < limit:
-                submit_scope(pending.popleft())
-                in_flight += 1
-    # dask passes a task's error on to the tasks that depend on it: those were not run, the first one failed
-    for task in sorted(lost, key=plan.tasks.index):  # plan order: upstream before downstream
-        bad = next((t for t in task.upstream.values() if t.status in ("failed", "skipped")), None)
-        if bad is not None:
-            task.status, task.failed_stage = "skipped", bad.failed_stage or bad.stage.name
-            task.error = f"not run: upstream {task.failed_stage} failed"
-        else:
-            store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
+        self.handles.pop((task.stage.name, task.scope_id), None)
+        self.outcomes[(task.stage.name, task.scope_id)] = _outcome(result)
+        return task
+
+    def classify_lost(self) -> None:
+        """dask passes a task's error on to the tasks that depend on it: those were not run, the first one
+        failed."""
+        for task in sorted(self.lost, key=self.plan.tasks.index):  # plan order: upstream before downstream
+            bad = next((t for t in task.upstream.values() if t.status in ("failed", "skipped")), None)
+            if bad is not None:
+                task.status, task.failed_stage = "skipped", bad.failed_stage or bad.stage.name
+                task.error = f"not run: upstream {task.failed_stage} failed"
+            else:
+                self.store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")

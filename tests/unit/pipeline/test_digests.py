@@ -11,8 +11,9 @@ import pytest
 
 import manifests.writer
 from pipeline.hashing import DigestCache
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from pipeline.store import SUCCESS
+from stages.run import run_pipeline
 from tests.unit.pipeline.conftest import toy_stages
 
 SYNC = ExecutionConfig(scheduler="sync")
