@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import secrets
 import time
 import traceback
@@ -49,7 +50,10 @@ class Task:
     """"cached", "run", or "failed" (bad input found while planning) / "blocked" (upstream failed)."""
     reason: str
     upstream: dict[str, "Task"]
-    raw_inputs: dict[str, Path]
+    raw_paths: dict[str, str]
+    """The raw input files by name, as strings: a release-size plan holds some 200,000 of them, and a Path object
+    costs about three times its string (314 against 95 bytes for a frame's path; :attr:`raw_inputs` makes the
+    Paths)."""
     views: list[str] = field(default_factory=list)
     error: str | None = None
     seconds: float = 0.0
@@ -64,6 +68,11 @@ class Task:
     @property
     def name(self) -> str:
         return f"{self.stage.name} {self.scope_id}"
+
+    @property
+    def raw_inputs(self) -> dict[str, Path]:
+        """The raw input files by name (what ``Stage.raw_inputs`` gave)."""
+        return {name: Path(path) for name, path in self.raw_paths.items()}
 
 
 @dataclass
@@ -201,16 +210,20 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
               for stage in ordered if stage.scope == "session"]
     scopes += [(stage, action_id, capture.action(action_id).session_id, action_id) for action_id in wanted
                for stage in ordered if stage.scope == "action"]
-    raw_of: dict[tuple[str, str], dict[str, Path] | str] = {}  # the raw inputs, or why they cannot be had
+    # the raw inputs as strings (the Paths made by raw_inputs are let go scope by scope), or why they cannot be had
+    raw_of: dict[tuple[str, str], dict[str, str] | str] = {}
     for stage, scope_id, _, _ in scopes:
         try:
-            raw_of[(stage.name, scope_id)] = stage.raw_inputs(capture, scope_id)
+            raw_of[(stage.name, scope_id)] = {name: os.fspath(path)
+                                              for name, path in stage.raw_inputs(capture, scope_id).items()}
         except InputError as exc:
             raw_of[(stage.name, scope_id)] = str(exc)
         except FileNotFoundError as exc:
             raw_of[(stage.name, scope_id)] = f"{exc.filename}: file disappeared while planning"
     digests.digest_all((path for raw in raw_of.values() if isinstance(raw, dict) for path in raw.values()),
                        threads=hash_threads)
+
+    session_views: dict[str, list[str]] = {}
 
     def plan_one(stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
         upstream = {}
@@ -227,7 +240,7 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
                 inputs[name] = digests.digest(path)["sha256"]
         except FileNotFoundError as exc:
             error = f"{exc.filename}: file disappeared while planning"
-        views = list(capture.sessions[session_id].camera_ids)
+        views = session_views.setdefault(session_id, list(capture.sessions[session_id].camera_ids))  # one list
         record = {"stage": stage.name, "version": stage.version, "code": stage_code[stage.name], "scope": scope_id,
                   "config": stage_config[stage.name], "upstream": {n: t.key for n, t in sorted(upstream.items())},
                   "inputs": inputs}
@@ -277,7 +290,7 @@ def _context(task: Task, store: ArtifactStore, capture: Capture) -> StageContext
     return StageContext(stage=task.stage.name, scope_id=task.scope_id, session_id=task.session_id,
                         action_id=task.action_id, out_dir=store.tmp_dir(task.stage.name, task.scope_id, task.key),
                         upstream=upstream_dirs, raw_inputs=task.raw_inputs,
-                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=task.views,
+                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=list(task.views),
                         subject=capture.action(task.action_id).subject if task.action_id else None,
                         upstream_keys={n: t.key for n, t in sorted(task.upstream.items())},
                         previous=previous, cache_dir=store.root.parent / "cache")
