@@ -3,8 +3,9 @@
 A capture of N actions x 32 cameras x 3 illuminations (tiny raw files, one session per 50 actions) goes
 through the real engine, ``pipeline.runner.run_pipeline`` with the manifests' catalog: the plan (cache-key
 records and hashing, raw-file digests, store lookups), submission to the executor, the tasks' store folders
-and commits, publishing into the release, the manifests and the release page. The stages are the real stage list (names, scopes,
-requirements, per-camera splits, resources, configs and code digests) with their work replaced by a stub:
+and commits (with the digests of the files each task publishes), publishing into the release, the manifests
+and the release page. The stages are the real stage list (names, scopes, requirements, per-camera splits,
+resources, configs and code digests) with their work replaced by a stub:
 each camera piece writes one small file, each whole-scope stage one file, and every file is published
 (so the release holds one file per executor task). What is timed is therefore only what the engine adds.
 
