@@ -36,8 +36,9 @@ from _threads import set_numeric_threads  # noqa: E402
 
 def prepare(root: Path, seed: int, width: int, cameras: int, **sim_changes) -> Path:
     """Simulate and run through photometric; returns the work folder."""
-    from pipeline.runner import ExecutionConfig, run_pipeline
+    from pipeline.runner import ExecutionConfig
     from stages.registry import PRESETS, build_stages
+    from stages.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     shutil.rmtree(root, ignore_errors=True)

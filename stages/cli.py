@@ -207,7 +207,7 @@ def _stop(process: Any) -> None:
 
 
 def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
-    from pipeline.runner import run_pipeline
+    from stages.run import run_pipeline
     from stages.registry import build_stages
 
     config = _resolve_config(args.preset, args.config, args.scheduler)

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.cameras import CamerasConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from synthetic import SimConfig, simulate
 from synthetic.calibration import CalibrationConfig
 

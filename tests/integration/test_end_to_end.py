@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from stages.cli import main as cli
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from synthetic import SimConfig, simulate
 
 SYNC = ExecutionConfig(scheduler="sync")
