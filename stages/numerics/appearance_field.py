@@ -51,6 +51,7 @@ from stages.numerics.sdf import (
     HashEncoding,
     HashGridConfig,
     SDFField,
+    hash_grid_problems,
     _adam,
     _lr_factor,
     _neus_composite,
@@ -167,16 +168,7 @@ APPEARANCE_PRESETS: dict[str, AppearanceFieldConfig] = {
 def _check_config(config: AppearanceFieldConfig) -> None:
     if not isinstance(config, AppearanceFieldConfig):
         raise ValueError(f"config must be an AppearanceFieldConfig, got {type(config).__name__}")
-    enc = config.encoding
-    problems = []
-    if not 1 <= enc.levels <= 32:
-        problems.append(f"encoding.levels={enc.levels} (1..32)")
-    if not 1 <= enc.features_per_level <= 8:
-        problems.append(f"encoding.features_per_level={enc.features_per_level} (1..8)")
-    if not 8 <= enc.log2_table_size <= 24:
-        problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
-    if not 1 <= enc.base_resolution <= enc.finest_resolution:
-        problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
+    problems = hash_grid_problems(config.encoding)
     for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "samples_kept", "log_every"):
         if getattr(config, name) < 1:
             problems.append(f"{name}={getattr(config, name)} (must be >= 1)")

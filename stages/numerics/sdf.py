@@ -225,8 +225,8 @@ class SDFConfig(Documented):
         _check_config(self)
 
 
-def _check_config(config: SDFConfig) -> None:
-    enc = config.encoding
+def hash_grid_problems(enc: HashGridConfig) -> list[str]:
+    """What is out of range in a hash-grid encoding's config (empty when nothing is)."""
     problems = []
     if not 1 <= enc.levels <= 32:
         problems.append(f"encoding.levels={enc.levels} (1..32)")
@@ -236,6 +236,11 @@ def _check_config(config: SDFConfig) -> None:
         problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
     if not 1 <= enc.base_resolution <= enc.finest_resolution:
         problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
+    return problems
+
+
+def _check_config(config: SDFConfig) -> None:
+    problems = hash_grid_problems(config.encoding)
     for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "hull_resolution",
                  "proposal_update_every", "log_every", "initial_levels"):
         if getattr(config, name) < 1:
