@@ -53,6 +53,15 @@ def machine_lines() -> list[str]:
     return lines
 
 
+def tradeoff_section(out: Path) -> list[str]:
+    """The per-stage time-against-error tables and plots (bench/_tradeoffs.py) from the benches' JSON in ``out``."""
+    sys.path.insert(0, str(HERE))
+    sys.path.insert(0, str(HERE.parent))
+    from _tradeoffs import report_section
+
+    return report_section(out)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default=str(HERE / "out"))
@@ -98,6 +107,8 @@ def main() -> int:
             report.append(f"![{png.stem}]({png.name})")
         report.append("")
     total = time.perf_counter() - started
+    first_bench = next((i for i, line in enumerate(report) if line.startswith("## bench_")), len(report))
+    report[first_bench:first_bench] = tradeoff_section(out)
     report[report.index("## Machine"):report.index("## Machine")] = [
         f"{len(scripts)} benches in {total:.0f} s: " + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} s"
                                                               for k, v in times.items()), ""]
