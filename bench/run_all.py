@@ -19,6 +19,36 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+SPEED_BASELINES: dict[str, str | None] = {
+    "calibration": None,
+    "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
+              "decode reads and writes (`x_rawpy_default`, `x_memcpy`)",
+    "diffuse_normals": "the fit with one roughness prior (`time_vs_one_prior`)",
+    "executor": "the same SDF steps in the bench's own process (`worker / in_process`)",
+    "gbuffer": "bilinear source lookup for the cubic one (`cubic_time_ratio`)",
+    "geometry": "autograd's double backward for the analytic SDF gradients; the naive uniform samples for the "
+                "empty-space skipping (`samples_skipped_fraction`)",
+    "hashgrid": "a copy of the feature table, and the torch path for the fused kernel",
+    "heldout_field": "the depth-guided reprojection's time beside the volume-rendered field's",
+    "light": "the plain `normalize(d)` for the light model's correction",
+    "materials": "gathering the texels' observations the fits read (`x_gather`)",
+    "memory": "the imports alone (memory, not speed)",
+    "normal_error_sources": "no speed figure (accuracy per simulated effect)",
+    "photometric": "a memory copy of the same bytes, and a naive numpy chain (`ratio_to_memcpy`, "
+                   "`speedup_over_naive`)",
+    "pipeline": "the cold run for the cached rerun (`cached_over_cold`)",
+    "projection": "no speed figure of its own (a projection from a run's stage seconds)",
+    "relight": "the simplest variant (no shadows, photometric albedo; `x_baseline`)",
+    "relightset": "the simulator's render of the same view (`x_truth`)",
+    "scale": None,
+    "sdf_schedule": "the 1800+1800 schedule (`vs 1800+1800`)",
+    "sg": "the map's order-2 SH projection (`x_sh_projection`)",
+    "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",
+    "specular_normals": "eq. 1's ratio (the `eq1` row)",
+    "textures": "the stage on the undecimated mesh (`x undecimated`)",
+}
+"""Per bench (name without ``bench_``): the simple baseline its speed figures are a ratio to, timed in the same
+process, or None where it has none yet (the report lists those)."""
 LIBRARIES = ("numpy", "torch", "rawpy", "pycolmap", "open3d", "xatlas", "OpenEXR", "pyarrow", "dask")
 
 
@@ -51,6 +81,23 @@ def machine_lines() -> list[str]:
             versions.append(f"{name} (absent)")
     lines.append("- " + ", ".join(versions))
     return lines
+
+
+def baseline_section(names: list[str]) -> list[str]:
+    """The report's list of each bench's speed baseline, and of the benches that have none."""
+    lines = ["## Speed figures and their baselines", "",
+             "Each speed figure is given beside a simple baseline timed in the same process, as a ratio, so that it "
+             "holds on a loaded machine.", "", "| bench | baseline |", "|---|---|"]
+    lacking = []
+    for name in names:
+        baseline = SPEED_BASELINES.get(name)
+        lines.append(f"| {name} | {baseline or '**none**'} |")
+        if baseline is None:
+            lacking.append(name)
+    if lacking:
+        lines += ["", "Without a baseline yet: " + ", ".join(lacking) + " (their times are absolute seconds on the "
+                  "machine above)."]
+    return lines + [""]
 
 
 def tradeoff_section(out: Path) -> list[str]:
@@ -108,7 +155,8 @@ def main() -> int:
         report.append("")
     total = time.perf_counter() - started
     first_bench = next((i for i, line in enumerate(report) if line.startswith("## bench_")), len(report))
-    report[first_bench:first_bench] = tradeoff_section(out)
+    report[first_bench:first_bench] = tradeoff_section(out) + baseline_section(
+        [s.stem.removeprefix("bench_") for s in scripts])
     report[report.index("## Machine"):report.index("## Machine")] = [
         f"{len(scripts)} benches in {total:.0f} s: " + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} s"
                                                               for k, v in times.items()), ""]

@@ -82,3 +82,19 @@ def test_stage_tradeoffs_mark_the_presets_from_their_configs(tmp_path):
     section = tradeoffs.report_section(tmp_path)
     assert "### decode: decode.demosaic, decode.half_size" in section
     assert (tmp_path / "tradeoff_00_decode.png").is_file()
+
+
+def test_every_bench_says_what_its_speed_baseline_is():
+    """run_all's report lists each bench's same-process baseline (or that it has none): a new bench must say."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_run_all_under_test", BENCH / "run_all.py")
+        run_all = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(run_all)
+    finally:
+        sys.path.remove(str(BENCH))
+    names = sorted(p.stem.removeprefix("bench_") for p in BENCH.glob("bench_*.py"))
+    assert sorted(run_all.SPEED_BASELINES) == names
+    section = run_all.baseline_section(names)
+    lacking = [n for n in names if run_all.SPEED_BASELINES[n] is None]
+    assert all(f"| {n} | **none** |" in section for n in lacking)
