@@ -24,6 +24,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
               "decode reads and writes (`x_rawpy_default`, `x_memcpy`)",
     "diffuse_normals": "the fit with one roughness prior (`time_vs_one_prior`)",
+    "end_to_end": "the smallest capture for the growth with width and actions (`x smallest`), the cold run for a "
+                  "rerun and a new action (share of its task seconds skipped)",
     "executor": "the same SDF steps in the bench's own process (`worker / in_process`)",
     "gbuffer": "bilinear source lookup for the cubic one (`cubic_time_ratio`)",
     "geometry": "autograd's double backward for the analytic SDF gradients; the naive uniform samples for the "
