@@ -40,7 +40,7 @@ PRESET = "fast"
 """The preset of the scaling runs (full mode): the whole DAG in its cheapest settings."""
 WIDTHS = (96, 160, 240)
 ACTION_COUNTS = (1, 2, 4)
-CAMERAS = 16
+CAMERAS = 8
 QUICK_PRESET, QUICK_WIDTHS, QUICK_ACTION_COUNTS, QUICK_CAMERAS = "test", (32, 40, 48), (1, 2), 4
 QUICK_THROUGH = "photometric"
 SESSION_STAGES = ("cameras", "colour", "lights", "plates")

@@ -19,6 +19,26 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
+    "calibration": ["--sizes", "480,-1"],
+    "diffuse_normals": ["--stride", "8"],
+    "executor": ["--steps", "75"],
+    "geometry": ["--checkpoints", "4", "--no-ablation"],
+    "heldout_field": ["--lengths", "100,400"],
+    "memory": None,
+    "pipeline": None,
+    "relight": ["--actions", "A0000"],
+    "relightset": ["--examples", "2"],
+    "scale": ["--sizes", "20,100"],
+    "sdf_schedule": ["--schedules", "400+1200,1800+1800"],
+    "sg": ["--lobes", "8,16,32,64"],
+    "specular_normals": ["--seeds", "0"],
+}
+"""What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
+with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
+Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (README: the estimate per bench). Left to
+the full run: the production-size memory measurements (memory) and the default capture end to end at 2 actions
+through dask (pipeline: bench_end_to_end measures the same things on small captures)."""
 SPEED_BASELINES: dict[str, str | None] = {
     "calibration": None,
     "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
@@ -85,6 +105,23 @@ def machine_lines() -> list[str]:
     return lines
 
 
+def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
+    """The arguments run_all gives bench ``name`` beyond ``--out`` (None: not run in this mode)."""
+    if quick:
+        return ["--quick"]
+    if full or name not in MAKE_BENCH_ARGS:
+        return []
+    return MAKE_BENCH_ARGS[name]
+
+
+def _children_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's finished children (and theirs, once waited for)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def baseline_section(names: list[str]) -> list[str]:
     """The report's list of each bench's speed baseline, and of the benches that have none."""
     lines = ["## Speed figures and their baselines", "",
@@ -115,8 +152,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default=str(HERE / "out"))
     parser.add_argument("--only", help="comma-separated bench names (e.g. decode,photometric)")
-    parser.add_argument("--quick", action="store_true",
-                        help="every bench in its quick mode (the tests' mode): checks they run; not measurements")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true",
+                      help="every bench in its quick mode (the tests' mode): checks they run; not measurements")
+    mode.add_argument("--full", action="store_true",
+                      help="every bench with its own (largest) defaults; without: MAKE_BENCH_ARGS's smaller runs")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -124,7 +164,7 @@ def main() -> int:
     if args.only:
         wanted = {f"bench_{n}.py" for n in args.only.split(",")}
         scripts = [s for s in scripts if s.name in wanted]
-    failures, times = [], {}
+    failures, times, cpu_times = [], {}, {}
     report = ["# Benchmark report", ""]
     env = None
     if args.quick:
@@ -133,19 +173,27 @@ def main() -> int:
                    ""]
         # numeric threads that sleep rather than spin while they wait: the tests run this beside other work
         env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+    elif not args.full:
+        report += ["`make bench` (`run_all.py`): the slowest benches run smaller than their own defaults "
+                   f"(`MAKE_BENCH_ARGS`); `make bench-full` (`--full`) runs them all at full size.", ""]
     report += ["## Machine", "", *machine_lines(), ""]
     started = time.perf_counter()
     for script in scripts:
-        print(f"== {script.name}", flush=True)
-        start = time.perf_counter()
-        proc = subprocess.run([sys.executable, str(script), "--out", str(out)] + (["--quick"] if args.quick else []),
-                              cwd=HERE.parent, env=env)
-        seconds = time.perf_counter() - start
-        times[script.stem] = seconds
-        print(f"== {script.name}: exit {proc.returncode}, {seconds:.1f} s", flush=True)
+        extra = bench_arguments(script.stem.removeprefix("bench_"), args.quick, args.full)
+        if extra is None:
+            print(f"== {script.name}: left to the full run (make bench-full)", flush=True)
+            report += [f"## {script.stem}", "", "not run: left to `make bench-full` (see MAKE_BENCH_ARGS)", ""]
+            continue
+        print(f"== {script.name} {' '.join(extra)}".rstrip(), flush=True)
+        start, cpu_start = time.perf_counter(), _children_cpu_seconds()
+        proc = subprocess.run([sys.executable, str(script), "--out", str(out)] + extra, cwd=HERE.parent, env=env)
+        seconds, cpu = time.perf_counter() - start, _children_cpu_seconds() - cpu_start
+        times[script.stem], cpu_times[script.stem] = seconds, cpu
+        print(f"== {script.name}: exit {proc.returncode}, {seconds:.1f} s ({cpu:.1f} s CPU)", flush=True)
         if proc.returncode:
             failures.append(script.name)
-        report += [f"## {script.stem}", "", f"exit {proc.returncode}, {seconds:.1f}s", ""]
+        report += [f"## {script.stem}", "", f"exit {proc.returncode}, {seconds:.1f}s wall, {cpu:.1f}s CPU"
+                   + (f" (`{' '.join(extra)}`)" if extra and not args.quick else ""), ""]
         result = out / f"{script.stem}.json"
         table = out / f"{script.stem}.md"
         if table.exists():  # the bench's own tables, written for readers
@@ -160,9 +208,12 @@ def main() -> int:
     report[first_bench:first_bench] = tradeoff_section(out) + baseline_section(
         [s.stem.removeprefix("bench_") for s in scripts])
     report[report.index("## Machine"):report.index("## Machine")] = [
-        f"{len(scripts)} benches in {total:.0f} s: " + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} s"
-                                                              for k, v in times.items()), ""]
+        f"{len(times)} benches in {total:.0f} s wall, {sum(cpu_times.values()):.0f} s CPU (wall / CPU per bench): "
+        + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} / {cpu_times[k]:.0f} s" for k, v in times.items()), ""]
     (out / "REPORT.md").write_text("\n".join(report))
+    (out / "bench_times.json").write_text(json.dumps(
+        {"mode": "quick" if args.quick else "full" if args.full else "make bench", "total_wall_s": total,
+         "benches": {k: {"wall_s": v, "cpu_s": cpu_times[k]} for k, v in times.items()}}, indent=1))
     print("times: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
     print(f"total {total:.1f} s; report: {out / 'REPORT.md'}")
     if failures:

@@ -98,3 +98,21 @@ def test_every_bench_says_what_its_speed_baseline_is():
     section = run_all.baseline_section(names)
     lacking = [n for n in names if run_all.SPEED_BASELINES[n] is None]
     assert all(f"| {n} | **none** |" in section for n in lacking)
+
+
+def test_make_bench_profile_names_real_benches_and_full_runs_them_all():
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_run_all_profile", BENCH / "run_all.py")
+        run_all = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(run_all)
+    finally:
+        sys.path.remove(str(BENCH))
+    names = {p.stem.removeprefix("bench_") for p in BENCH.glob("bench_*.py")}
+    assert set(run_all.MAKE_BENCH_ARGS) <= names
+    for name in names:
+        assert run_all.bench_arguments(name, quick=True, full=False) == ["--quick"]
+        assert run_all.bench_arguments(name, quick=False, full=True) == []
+    assert run_all.bench_arguments("scale", quick=False, full=False) == run_all.MAKE_BENCH_ARGS["scale"]
+    assert run_all.bench_arguments("memory", quick=False, full=False) is None
+    assert run_all.bench_arguments("decode", quick=False, full=False) == []
