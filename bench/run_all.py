@@ -6,7 +6,9 @@ process; they are never timed tests.
 ``--quick`` (``make bench-quick``, and tests/unit/bench/test_bench_quick.py) runs every bench in its quick mode:
 the same code on the smallest inputs that run it (the benches that read a release share a tiny simulated run
 made once under ``--out``, see bench/_quick.py), so that the benches cannot rot; its numbers are not
-measurements.
+measurements. Without it (``make bench``) the slowest benches run smaller (:data:`MAKE_BENCH_ARGS`); ``--full``
+(``make bench-full``) runs every bench with its own defaults. Each bench's wall and CPU seconds go into the report and
+``bench_times.json``.
 """
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
 }
 """What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
 with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
-Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (README: the estimate per bench). Left to
+Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (README: how that was estimated). Left to
 the full run: the production-size memory measurements (memory) and the default capture end to end at 2 actions
 through dask (pipeline: bench_end_to_end measures the same things on small captures)."""
 SPEED_BASELINES: dict[str, str | None] = {
