@@ -82,7 +82,7 @@ def _number(x: float) -> str:
         return "n/a"
     magnitude = abs(x)
     if magnitude == 0 or 0.01 <= magnitude < 1e5:
-        return f"{x:.3g}" if magnitude < 100 else f"{x:.0f}"
+        return f"{x:.4g}" if magnitude < 1000 else f"{x:.0f}"
     return f"{x:.2e}"
 
 

@@ -169,7 +169,9 @@ def geometry_tradeoffs(out: Path) -> list[Tradeoff]:
                                                                 == m["resolution"]))
                            for m in marching)
             result.append(Tradeoff("geometry (marching)", "geometry.mesh_resolution", "mesh extraction seconds",
-                                   "Chamfer (mm)", points, "bench_geometry"))
+                                   "Chamfer (mm)", points, "bench_geometry",
+                                   notes=("The first pass's final field meshed at each resolution; the production "
+                                          "preset's resolution is marked only when swept.",)))
     return result
 
 
@@ -183,15 +185,17 @@ def textures_tradeoffs(out: Path) -> list[Tradeoff]:
     data = _load(out, "bench_textures")
     if not data:
         return []
-    base = data["baseline_undecimated"]
+    base = data.get("baseline_undecimated")
     points = tuple(TradeoffPoint(f"{r['atlas_faces']} faces", r["cpu_s"], r["albedo_psnr_db"],
                                  presets=_presets_where(lambda c, r=r: c.textures.atlas_faces == r["atlas_faces"]),
-                                 baseline_seconds=base["cpu_s"])
+                                 baseline_seconds=base["cpu_s"] if base else None)
                    for r in data["rows"])
+    baseline = (f" The baseline is the stage on the undecimated mesh ({base['faces']} faces)." if base else
+                " Run without its baseline (the undecimated mesh: `make bench-full`).")
     return [Tradeoff("textures", "textures.atlas_faces", "stage CPU seconds", "albedo texture PSNR (dB)", points,
                      "bench_textures", higher_is_better=True, notes=(
-                         f"At the default texture size ({data['texture_size']}^2; production bakes 4096^2). The "
-                         f"baseline is the stage on the undecimated mesh ({base['faces']} faces).",))]
+                         f"At the default texture size ({data['texture_size']}^2; production bakes "
+                         f"4096^2).{baseline}",))]
 
 
 def relight_tradeoffs(out: Path) -> list[Tradeoff]:

@@ -10,7 +10,8 @@ pixels where the truth has the subject and the mesh is hit, PSNR against the sim
 the stage's CPU seconds (decimation, atlas, bake and writing; one process, numeric threads as the machine gives).
 
 Baseline in the same process: the same run with the mesh not decimated (the budget set above its face count), so
-the table says what a budget saves against keeping every face.
+the table says what a budget saves against keeping every face (``--no-undecimated`` leaves it out: on the default
+capture's 200,000-face mesh it costs about twice the whole sweep, 122 s CPU).
 
 ``python bench/bench_textures.py --out bench/out [--run runs/default] [--action A0000] [--quick]`` writes
 bench_textures.json and .md (run_all.py plots it with the other stages' trade-offs). Without a run with ground
@@ -132,15 +133,17 @@ def run_budget(work: Path, capture: Path, action: str, atlas_faces: int, probe: 
 
 
 def markdown(report: dict) -> str:
-    base = report["baseline_undecimated"]
-    lines = [f"# Textures: atlas face budget ({report['action']}, texture {report['texture_size']}^2)", "",
-             f"Baseline, same process: the mesh not decimated ({base['faces']} faces), {base['cpu_s']:.2f} s CPU, "
-             f"albedo {base['albedo_psnr_db']:.2f} dB.", "",
-             "| atlas_faces | faces | CPU s | x undecimated | atlas s | bake s | albedo PSNR dB | truth pixels hit |",
-             "|---|---|---|---|---|---|---|---|"]
+    base = report.get("baseline_undecimated")
+    lines = [f"# Textures: atlas face budget ({report['action']}, texture {report['texture_size']}^2)", ""]
+    if base:
+        lines += [f"Baseline, same process: the mesh not decimated ({base['faces']} faces), {base['cpu_s']:.2f} s "
+                  f"CPU, albedo {base['albedo_psnr_db']:.2f} dB.", ""]
+    lines += ["| atlas_faces | faces | CPU s | x undecimated | atlas s | bake s | albedo PSNR dB | truth pixels hit |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         name = str(r["atlas_faces"]) + "".join(f" ({p})" for p in r["presets"])
-        lines.append(f"| {name} | {r['faces']} | {r['cpu_s']:.2f} | {r['cpu_s'] / base['cpu_s']:.2f} | "
+        ratio = f"{r['cpu_s'] / base['cpu_s']:.2f}" if base else "-"
+        lines.append(f"| {name} | {r['faces']} | {r['cpu_s']:.2f} | {ratio} | "
                      f"{r['atlas_s']:.2f} | {r['bake_s']:.2f} | {r['albedo_psnr_db']:.2f} | "
                      f"{100 * r['truth_pixels_hit']:.1f}% |")
     return "\n".join(lines) + "\n"
@@ -151,6 +154,8 @@ def main() -> int:
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
     parser.add_argument("--run", help="a make dataset run folder (default runs/default; with --quick the tiny run)")
     parser.add_argument("--action", default="A0000")
+    parser.add_argument("--no-undecimated", action="store_true",
+                        help="leave out the baseline run on the undecimated mesh")
     parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
     if args.run is None:
@@ -173,9 +178,10 @@ def main() -> int:
         print(f"atlas_faces {faces}: {row['faces']} faces, {row['cpu_s']:.2f} s CPU, "
               f"albedo {row['albedo_psnr_db']:.2f} dB", flush=True)
     _, mesh_faces = read_ply(latest_artifact(work, "geometry", args.action) / "mesh" / "mesh.ply")
-    baseline = run_budget(work, capture, args.action, int(len(mesh_faces)) + 1, probe)
     report = {"action": args.action, "quick": args.quick, "texture_size": default_config().texture_size,
-              "mesh_faces": int(len(mesh_faces)), "rows": rows, "baseline_undecimated": baseline}
+              "mesh_faces": int(len(mesh_faces)), "rows": rows}
+    if not args.no_undecimated:
+        report["baseline_undecimated"] = run_budget(work, capture, args.action, int(len(mesh_faces)) + 1, probe)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_textures.json").write_text(json.dumps(report, indent=1))
