@@ -6,14 +6,15 @@ actions, and the share of work a rerun and a new action in a calibrated session 
    stage, the session stages (cameras, colour, lights, plates) shown once per session. Default
    ``runs/default/release`` (``make dataset``); skipped without it.
 2. **Growth with resolution**: a capture of one action simulated at each of :data:`WIDTHS` (pixels wide) and run
-   cold through the whole DAG with the :data:`PRESET` preset (in-process scheduler; after one warm-up run of the
-   smallest, not reported): wall seconds, the sum of the tasks' seconds and the split per stage.
+   cold through the whole DAG with the :data:`PRESET` preset (in-process scheduler; the first run also pays the
+   numeric libraries' first use, about a second): wall seconds, the sum of the tasks' seconds and the split per
+   stage.
 3. **Growth with the number of actions**: one capture of ``max(ACTION_COUNTS)`` actions at the smallest width, run
    cold on its first N actions for each N in :data:`ACTION_COUNTS` (fresh work folder each time).
 4. **Work skipped**: on that capture, a rerun of the last cold run (every task found in the store) and a **new
-   action** in the calibrated session (the first N - 1 actions run, then all N: the session's calibration stages and
-   the earlier actions' tasks are reused): tasks cached and ran (from the runner's task statuses), and the share of
-   the cold run's task seconds not spent again.
+   action** in the calibrated session (the run of the second-largest N gets its next action: the session's
+   calibration stages are reused): of the tasks the new action needs (the session's and its own), those cached and
+   ran (from the runner's task statuses), and the share of their cold task seconds not spent again.
 
 Writes bench_end_to_end.json and .md, and bench_end_to_end.png (stacked bar of the split, seconds against width and
 against actions). ``python bench/bench_end_to_end.py --out bench/out [--release runs/default/release]``;
@@ -39,7 +40,7 @@ from _quick import QUICK_HELP, quick_run, quick_sim_changes  # noqa: E402
 PRESET = "fast"
 """The preset of the scaling runs (full mode): the whole DAG in its cheapest settings."""
 WIDTHS = (96, 160, 240)
-ACTION_COUNTS = (1, 2, 4)
+ACTION_COUNTS = (1, 2, 3)
 CAMERAS = 8
 QUICK_PRESET, QUICK_WIDTHS, QUICK_ACTION_COUNTS, QUICK_CAMERAS = "test", (32, 40, 48), (1, 2), 4
 QUICK_THROUGH = "photometric"
@@ -117,6 +118,8 @@ def skipped_share(run: dict, cold_task_seconds: dict[str, float]) -> dict:
 
 
 def scaling(out: Path, quick: bool) -> dict:
+    from stages.registry import PRESETS, build_stages
+
     preset = QUICK_PRESET if quick else PRESET
     widths = QUICK_WIDTHS if quick else WIDTHS
     counts = QUICK_ACTION_COUNTS if quick else ACTION_COUNTS
@@ -124,11 +127,10 @@ def scaling(out: Path, quick: bool) -> dict:
     through = QUICK_THROUGH if quick else None
     scratch = out / "end_to_end"
     result = {"preset": preset, "cameras": cameras, "through": through, "by_width": [], "by_actions": []}
-    for k, width in enumerate(widths):
+    build_stages(PRESETS[preset])  # the stage modules' imports, outside the first timed run
+    for width in widths:
         capture = scratch / f"capture_w{width}"
         sim_s = simulate_capture(capture, 1, width, cameras, quick)
-        if k == 0:  # warm-up, not reported: the first run in a process pays imports and the kernels' first use
-            run_once(capture, scratch / "run_warm_up", preset, through)
         run = run_once(capture, scratch / f"run_w{width}", preset, through)
         result["by_width"].append({"width": width, "simulate_s": sim_s, **{k: run[k] for k in
                                                                          ("wall_s", "task_s", "stage_s")}})
@@ -141,12 +143,13 @@ def scaling(out: Path, quick: bool) -> dict:
         last = run_once(capture, scratch / f"run_a{n}", preset, through, actions=ids[:n])
         result["by_actions"].append({"actions": n, **{k: last[k] for k in ("wall_s", "task_s", "stage_s")}})
         print(f"{n} actions: wall {last['wall_s']:.1f} s, tasks {last['task_s']:.1f} s", flush=True)
-    n = max(counts)
-    rerun = run_once(capture, scratch / f"run_a{n}", preset, through, actions=ids, fresh=False)
+    rerun = run_once(capture, scratch / f"run_a{max(counts)}", preset, through, actions=ids, fresh=False)
     result["rerun"] = skipped_share(rerun, last["task_seconds"])
-    # a new action in a calibrated session: the first n - 1 actions were run; the last one arrives
-    added = run_once(capture, scratch / f"run_a{n - 1}", preset, through, actions=ids, fresh=False)
-    new_tasks = [t for t in added["tasks"] if t.endswith("/" + ids[-1]) or t.split("/")[0] in SESSION_STAGES]
+    # a new action in a calibrated session: the run of the first `before` actions gets one more
+    before = counts[-2]
+    added = run_once(capture, scratch / f"run_a{before}", preset, through, actions=ids[:before + 1], fresh=False)
+    new_tasks = [t for t in added["tasks"]
+                 if t.endswith("/" + ids[before]) or t.split("/")[0] in SESSION_STAGES]
     new_only = {**added, "tasks": new_tasks,
                 "ran": sum(t in added["task_seconds"] for t in new_tasks),
                 "cached": sum(t not in added["task_seconds"] for t in new_tasks)}

@@ -33,7 +33,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "relightset": ["--examples", "2"],
     "scale": ["--sizes", "20,100"],
     "sdf_schedule": ["--schedules", "400+1200,1800+1800"],
-    "sg": ["--lobes", "8,16,32,64"],
+    "sg": ["--lobes", "8,32,64"],
     "specular_normals": ["--seeds", "0"],
     "textures": ["--no-undecimated"],
 }
