@@ -69,7 +69,7 @@ compat: $(COMPAT_STAMP)
 	$(COMPAT_VENV)/bin/python tests/compat/check_release.py $(RUN)/release
 
 lint: setup
-	$(PY) -m compileall -q pipeline stages manifests calibration synthetic
+	$(PY) -m compileall -q pipeline stages manifests calibration synthetic evaluation
 
 clean-runs:
 	rm -rf runs

@@ -55,11 +55,11 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
     from stages.cameras import load_cameras
-    from stages.lightcolour import load_light_model
-    from stages.materials import load_atlas_mesh
+    from stages.artifacts import load_light_model
+    from stages.artifacts import load_atlas_mesh
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.raycast import mesh_scene
-    from stages.materials import fitted_f0
+    from stages.artifacts import fitted_f0
     from stages.numerics.specular_normals import view_directions
     from stages.diffuse_normals import DiffuseNormalsConfig, diffuse_albedo, materials_roughness, refit_diffuse_normals
 

@@ -96,7 +96,7 @@ def smooth_mesh_normals(vertices: np.ndarray, faces: np.ndarray, render: dict, K
 
 def mesh_normal_baseline(data, result: dict, truth_dir: Path | None) -> dict:
     """Held-out scores of the mesh's own normals (same pixels as the reprojection's comparison)."""
-    from stages.heldout import compare_maps, summarise
+    from evaluation.heldout import compare_maps, summarise
 
     parts, parts_truth = [], []
     for cam, maps in result["maps"].items():
@@ -116,7 +116,7 @@ def mesh_normal_baseline(data, result: dict, truth_dir: Path | None) -> dict:
 
 def photometric_vs_truth(result: dict) -> dict:
     """The held-out photometric maps' own scores against the truth (over their valid pixels in the true mask)."""
-    from stages.heldout import compare_maps, summarise
+    from evaluation.heldout import compare_maps, summarise
 
     parts = []
     for maps in result["maps"].values():
@@ -133,7 +133,7 @@ def data_variant(data, maps=None, depth_of=None):
     and/or every camera's depth from ``depth_of(cam) -> (H, W)`` instead of the mesh's render (target and
     sources, so the depth tests use it too). It keeps its own source cache, and shares ``data``'s cached
     depth renders unless ``depth_of`` replaces them."""
-    from stages.heldout import ActionGBuffers
+    from evaluation.heldout import ActionGBuffers
 
     class Variant(ActionGBuffers):
         def photometric(self, cam: str) -> dict:
@@ -186,7 +186,7 @@ def silhouette_ring(mask: np.ndarray) -> np.ndarray:
 
 def error_budget(data, release: Path, action: str, truth_dir: Path, rings: int = 6) -> dict:
     """The error budget of the held-out protocol for one action (module docstring, item 7)."""
-    from stages.heldout import heldout_metrics, load_truth
+    from evaluation.heldout import heldout_metrics, load_truth
     from stages.numerics.metrics import angular_error_deg
 
     diffuse = data.with_normals(True)
@@ -384,7 +384,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     from manifests import open_release
-    from stages.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics
+    from evaluation.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics
     from stages.numerics.learned_blend import LearnedBlendConfig
 
     quick = args.quick

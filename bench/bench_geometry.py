@@ -8,7 +8,7 @@ pipeline published), on one CPU thread as ``make dataset`` runs it:
    x axis);
 2. the **second pass on de-occluded normals** as the geometry stage trains it (``geometry.deocclude``): the
    first field meshed as the stage meshes it, eq. 1's normals with that mesh's occlusion of the LED sphere
-   divided out (:func:`stages.geometry.deoccluded_sdf_views`), a second training on them that draws the
+   divided out (:func:`stages.numerics.sdf_mesh.deoccluded_sdf_views`), a second training on them that draws the
    stage's share of its rays where the first mesh missed the normals (``geometry.second_pass_importance``; its
    clock starts where the first pass and the de-occlusion ended); the same for the **mask-only ablation**
    (``normal_supervision=False``) and the **visual hull alone** (classic centre test at 256^3, no dilation,
@@ -369,7 +369,8 @@ def main() -> int:
                                                         "hull_occupied_fraction", "samples_evaluated", "naive_samples")}
 
     if not args.no_deocclude:
-        from stages.geometry import GeometryConfig, second_pass_views
+        from stages.geometry import GeometryConfig
+        from stages.numerics.sdf_mesh import second_pass_views
         from stages.numerics.mesh import decimate, extract_mesh, largest_component
 
         stage = GeometryConfig()

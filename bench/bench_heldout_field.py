@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stages.heldout import DEFAULT_HELDOUT as HELDOUT  # noqa: E402  (the held-out cameras evaluate uses)
+from evaluation.heldout import DEFAULT_HELDOUT as HELDOUT  # noqa: E402  (the held-out cameras evaluate uses)
 KEYS = ("heldout_albedo_psnr_db", "heldout_albedo_ssim", "heldout_albedo_rmse", "heldout_normal_mean_deg",
         "heldout_normal_under5_pct", "heldout_normal_under25_pct")
 HEADERS = ("PSNR dB", "SSIM", "RMSE", "mean deg", "<5 deg %", "<25 deg %")
@@ -80,7 +80,7 @@ def _pick(result: dict, suffixes=("", "_truth")) -> dict:
 
 def field_metrics(data, maps: dict, rendered: dict[str, dict]) -> dict:
     """The field's held-out scores: own pixels vs photometric and truth, and the pixels the reprojection also has."""
-    from stages.heldout import compare_maps, summarise
+    from evaluation.heldout import compare_maps, summarise
 
     parts, parts_truth, common_field, common_reproj = [], [], [], []
     covered = masked = 0
@@ -233,7 +233,7 @@ def main() -> int:
 
     from bench_gbuffer import mesh_normal_baseline, photometric_vs_truth
     from manifests import open_release
-    from stages.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics, spread_heldout
+    from evaluation.heldout import PAPER_TABLE1, ActionGBuffers, heldout_metrics, spread_heldout
     from stages.numerics.appearance_field import (APPEARANCE_PRESETS, AppearanceView, render_appearance,
                                                   sample_training_pixels, train_appearance_field)
     from stages.numerics.sdf import SDFField

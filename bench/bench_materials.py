@@ -106,8 +106,8 @@ def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig)
     the baked albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
     ``cfg.min_alpha`` inside the mask, as the stage's), with the cameras' white references."""
     from manifests import open_release
-    from stages.heldout import release_cameras
-    from stages.materials import load_atlas_mesh
+    from evaluation.heldout import release_cameras
+    from stages.artifacts import load_atlas_mesh
     from stages.numerics.bake import BakeView
 
     view = open_release(release).action(action)
@@ -137,7 +137,7 @@ class TruthProbe:
     def __init__(self, data: dict, truth_dir: Path, action: str):
         from pipeline.codecs.exr import read_exr
         from pipeline.codecs.image import read_png
-        from stages.evaluate import true_cameras
+        from evaluation.release import true_cameras
         from stages.numerics.raycast import mesh_scene, render_uvs
 
         scene = mesh_scene(data["vertices"], data["faces"])
@@ -199,8 +199,8 @@ class TruthProbe:
 def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, progress) -> dict:
     """Per-texel fits for every variant (:func:`variant_configs`), smoothed and scored; times of the gather,
     fits and medians. Observations are gathered once, for the most views any variant uses."""
-    from stages.materials import (fit_texel_roughness, published_roughness, roughness_median, texel_samples,
-                                  texel_texture)
+    from stages.numerics.material_textures import (fit_texel_roughness, published_roughness, roughness_median,
+                                                   texel_samples, texel_texture)
     from stages.numerics.bake import sample_texture
     from stages.numerics.materials import NO_VIEWS_RESIDUAL
     from stages.numerics.raycast import mesh_scene
@@ -286,7 +286,7 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
 
 def albedo_section(data: dict, probe: TruthProbe, base: MaterialsConfig, threads: int, progress) -> dict:
     """Baked vs de-occluded albedo (the stage's occlusion at several ray counts and floors) vs the truth."""
-    from stages.materials import albedo_without_occlusion, texel_texture
+    from stages.numerics.material_textures import albedo_without_occlusion, texel_texture
     from stages.numerics.bake import rasterize_atlas
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import ambient_occlusion

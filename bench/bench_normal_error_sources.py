@@ -59,9 +59,10 @@ def main() -> int:
     sim_changes = quick_sim_changes() if args.quick else {}
     through = "photometric"  # only its maps are measured; the neural stages after it would take minutes a variant
     out = Path(args.out)
-    from pipeline.runner import ExecutionConfig, run_pipeline
-    from stages.evaluate import evaluate_release
+    from pipeline.runner import ExecutionConfig
+    from evaluation.release import evaluate_release
     from stages.registry import PRESETS, build_stages
+    from stages.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     report = {"quick": args.quick}

@@ -36,10 +36,11 @@ def main() -> int:
     root = out / "pipeline_run"
     shutil.rmtree(root, ignore_errors=True)
 
-    from pipeline.runner import ExecutionConfig, run_pipeline
-    from stages.evaluate import evaluate_release
+    from pipeline.runner import ExecutionConfig
+    from evaluation.release import evaluate_release
     from stages.numerics.photometric import PhotometricParams
     from stages.registry import PRESETS, build_stages
+    from stages.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     start = time.perf_counter()

@@ -127,7 +127,7 @@ def fit_environments(names: list[str], capture: Path, progress, lobes_sweep: tup
                      ) -> tuple[dict, list]:
     """(name -> {"env", lobes -> SGLobes}, rows of fit time and errors per environment and lobe count)."""
     from stages.numerics.sg import fit_sg_environment, sg_fit_errors
-    from stages.relight import find_environment, load_environment
+    from stages.environments import find_environment, load_environment
 
     fits, rows = {}, []
     for name in names:
@@ -156,12 +156,12 @@ class ActionScene:
     sources with lazily rendered depth, the atlas and its textures), as the stage's ActionAsset."""
 
     def __init__(self, release: Path, action: str):
-        from stages.heldout import ActionGBuffers
-        from stages.materials import load_atlas_mesh
+        from evaluation.heldout import ActionGBuffers
+        from stages.artifacts import load_atlas_mesh
         from stages.numerics.mesh import vertex_normals
         from stages.numerics.raycast import mesh_scene
         from manifests import open_release
-        from stages.relight import ActionAsset
+        from stages.numerics.novel_view import ActionAsset
 
         # the stage's sources: the specular-fitted normal maps and albedo_diffuse when the release has them
         kinds = open_release(release).action(action).kinds
@@ -193,7 +193,7 @@ class ActionScene:
         ``stage_seconds`` times the stage's G-buffer alone (not the variants' extra work)."""
         from stages.numerics.gbuffer import fuse_normals
         from stages.numerics.raycast import pixel_coverage
-        from stages.relight import novel_view_gbuffer, silhouette_alpha
+        from stages.numerics.novel_view import novel_view_gbuffer, silhouette_alpha
 
         h, w = int(cam["height"]), int(cam["width"])
         t0 = time.perf_counter()
@@ -247,7 +247,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
     from stages.numerics.raycast import camera_rays
     from stages.numerics.sg import fibonacci_sphere
     from stages.numerics.shadowing import direction_visibility
-    from stages.relight import premultiply_edges, shading_albedo
+    from stages.numerics.novel_view import premultiply_edges, shading_albedo
 
     plan = plan or sweeps()
     gb = scene.gbuffer(cam)

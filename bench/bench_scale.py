@@ -1,10 +1,11 @@
 """The engine's own overhead at release size: planning, submission and bookkeeping per task.
 
 A capture of N actions x 32 cameras x 3 illuminations (tiny raw files, one session per 50 actions) goes
-through the real engine, ``pipeline.runner.run_pipeline``: the plan (cache-key records and hashing, raw-file
-digests, store lookups), submission to the executor, the tasks' store folders and commits, publishing into
-the release, the manifests and the release page. The stages are the real stage list (names, scopes,
-requirements, per-camera splits, resources, configs and code digests) with their work replaced by a stub:
+through the real engine, ``pipeline.runner.run_pipeline`` with the manifests' catalog: the plan (cache-key
+records and hashing, raw-file digests, store lookups), submission to the executor, the tasks' store folders
+and commits (with the digests of the files each task publishes), publishing into the release, the manifests
+and the release page. The stages are the real stage list (names, scopes, requirements, per-camera splits,
+resources, configs and code digests) with their work replaced by a stub:
 each camera piece writes one small file, each whole-scope stage one file, and every file is published
 (so the release holds one file per executor task). What is timed is therefore only what the engine adds.
 
@@ -213,6 +214,7 @@ class TimedExecutor:
 
 def run_once(capture: Path, work: Path, release: Path, scheduler: str, workers: int) -> dict[str, Any]:
     """One ``run_pipeline`` with each phase timed (the engine's functions wrapped in place)."""
+    import manifests.catalog
     import manifests.page
     import pipeline.runner as runner
 
@@ -250,7 +252,7 @@ def run_once(capture: Path, work: Path, release: Path, scheduler: str, workers: 
 
     for module, name, label in ((runner, "make_plan", "plan"), (runner, "execute", "execute"),
                                 (runner, "prepare_action", "publish"), (runner, "swap_in", "publish"),
-                                (runner, "_write_manifests", "manifests"),
+                                (manifests.catalog, "write_run_manifests", "manifests"),
                                 (runner, "_write_release_docs", "docs"), (manifests.page, "write_release_page", "page")):
         timed(module, name, label)
     runner.make_executor = make_executor
@@ -258,7 +260,7 @@ def run_once(capture: Path, work: Path, release: Path, scheduler: str, workers: 
         start = time.perf_counter()
         result = runner.run_pipeline(capture, release, work, stub_stages(), {"bench": "scale"},
                                      runner.ExecutionConfig(scheduler=scheduler, workers=workers),
-                                     echo=lambda line: None)
+                                     echo=lambda line: None, catalog=manifests.catalog.ManifestCatalog())
         total = time.perf_counter() - start
     finally:
         runner.make_executor = original_make_executor

@@ -36,8 +36,9 @@ from _threads import set_numeric_threads  # noqa: E402
 
 def prepare(root: Path, seed: int, width: int, cameras: int, **sim_changes) -> Path:
     """Simulate and run through photometric; returns the work folder."""
-    from pipeline.runner import ExecutionConfig, run_pipeline
+    from pipeline.runner import ExecutionConfig
     from stages.registry import PRESETS, build_stages
+    from stages.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     shutil.rmtree(root, ignore_errors=True)
@@ -63,9 +64,9 @@ def variants(default_roughness: float) -> dict[str, dict]:
 def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]]:
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.lightcolour import corrected_normals, load_light_model
+    from stages.artifacts import load_light_model
     from stages.numerics.metrics import angular_error_deg
-    from stages.numerics.photometric import photometric_maps
+    from stages.numerics.photometric import corrected_normals, photometric_maps
     from stages.numerics.specular_normals import fit_diffuse_normals, view_directions
     from stages.photometric import SpecularConfig
 

@@ -35,7 +35,7 @@ import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -549,17 +549,9 @@ def calibrate_images(image_paths: list[Path], work_dir: Path, config: GeometricC
         if not p.is_file():
             raise FileNotFoundError(p)
     work_dir = Path(work_dir)
-    for sub in ("images", "sparse", "database.db"):
-        target = work_dir / sub
-        if target.is_dir() and not target.is_symlink():
-            shutil.rmtree(target)
-        elif target.exists() or target.is_symlink():
-            target.unlink()
-    work_dir.mkdir(parents=True, exist_ok=True)
-    image_dir, database_path, sparse_dir = work_dir / "images", work_dir / "database.db", work_dir / "sparse"
-    pycolmap.set_random_seed(config.seed)
-    if not config.verbose:
-        pycolmap.logging.minloglevel = 2  # warnings and errors only
+    _clear_work_dir(work_dir, ("images", "sparse", "database.db"))
+    image_dir, database_path = work_dir / "images", work_dir / "database.db"
+    _start_colmap(config)
     colmap_names = _stage_images(image_paths, image_dir)
     by_colmap = {v: k for k, v in colmap_names.items()}
     has_prior = bool(intrinsics_prior)
@@ -579,6 +571,70 @@ def calibrate_images(image_paths: list[Path], work_dir: Path, config: GeometricC
     _match_database(database_path, config, len(image_paths))
     timings["match"] = time.perf_counter() - t0
 
+    rec = _incremental_model(work_dir, config, has_prior, len(image_paths), timings, notes)
+    if config.retry_unregistered and len(_registered_names(rec, by_colmap)) < len(image_paths):
+        t0 = time.perf_counter()
+        rec = _retry_unregistered(rec, work_dir, config, has_prior, by_colmap, notes)
+        timings["retry"] = timings.get("retry", 0.0) + time.perf_counter() - t0
+    if config.final_ba_iterations > 0 and config.final_ba_rounds > 0:
+        t0 = time.perf_counter()
+        rec = _final_bundle_adjustment(rec, work_dir, config, has_prior)
+        timings["ba"] = time.perf_counter() - t0
+
+    aligned, residual, outliers = False, None, []
+    if known_centres:
+        t0 = time.perf_counter()
+        aligned, residual, outliers = _align_to_known_centres(rec, by_colmap, known_centres, config, notes)
+        timings["align"] = time.perf_counter() - t0
+
+    cameras: dict[str, CameraCalibration] = {}
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        camera = rec.camera(image.camera_id)
+        K, dist = opencv_from_colmap_camera(camera)
+        cameras[by_colmap[image.name]] = CameraCalibration(
+            K=K, dist=dist, cam_from_world=np.asarray(image.cam_from_world().matrix(), dtype=float),
+            width=int(camera.width), height=int(camera.height))
+    unregistered = [p.name for p in image_paths if p.name not in cameras]
+    timings["total"] = time.perf_counter() - t_start
+    return CalibrationResult(cameras=dict(sorted(cameras.items())), unregistered=unregistered,
+                             reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+                             alignment_residual_mm=residual, n_points3d=int(rec.num_points3D()), timings=timings,
+                             aligned=aligned, alignment_outliers=outliers, notes=notes, reconstruction=rec)
+
+
+def _clear_work_dir(work_dir: Path, entries: tuple[str, ...]) -> None:
+    """Remove ``entries`` (files, folders or links) of a previous run from ``work_dir`` and create it."""
+    for sub in entries:
+        target = work_dir / sub
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists() or target.is_symlink():
+            target.unlink()
+    work_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _start_colmap(config: GeometricConfig) -> None:
+    """Seed COLMAP's random numbers and quiet its log unless ``config.verbose``."""
+    import pycolmap
+
+    pycolmap.set_random_seed(config.seed)
+    if not config.verbose:
+        pycolmap.logging.minloglevel = 2  # warnings and errors only
+
+
+def _registered_names(rec: Any, by_colmap: dict[str, str]) -> set[str]:
+    """The image names (as given) of the images registered in ``rec``."""
+    return {by_colmap[rec.image(i).name] for i in rec.reg_image_ids()}
+
+
+def _incremental_model(work_dir: Path, config: GeometricConfig, has_prior: bool, n_images: int,
+                       timings: dict[str, float], notes: list[str]) -> Any:
+    """COLMAP's incremental mapping of the matched database into ``work_dir/sparse``: the largest model, from
+    a second, relaxed mapping when the first builds none. Raises RuntimeError when neither does."""
+    import pycolmap
+
+    image_dir, database_path, sparse_dir = work_dir / "images", work_dir / "database.db", work_dir / "sparse"
     t0 = time.perf_counter()
     sparse_dir.mkdir(parents=True, exist_ok=True)
     models = pycolmap.incremental_mapping(str(database_path), str(image_dir), str(sparse_dir),
@@ -596,90 +652,87 @@ def calibrate_images(image_paths: list[Path], work_dir: Path, config: GeometricC
         rec = _largest(models)
         timings["retry"] = time.perf_counter() - t0
         if rec is None:
-            raise RuntimeError(f"calibrate_images: COLMAP could not build any model from {len(image_paths)} "
+            raise RuntimeError(f"calibrate_images: COLMAP could not build any model from {n_images} "
                                "images (too few features or matches)")
         notes.append("first mapping failed; relaxed mapping built a model")
+    return rec
 
-    def registered_names(r: Any) -> set[str]:
-        return {by_colmap[r.image(i).name] for i in r.reg_image_ids()}
 
-    if config.retry_unregistered and len(registered_names(rec)) < len(image_paths):
-        t0 = time.perf_counter()
-        before = len(registered_names(rec))
-        model_dir = work_dir / "sparse_best"
-        if model_dir.exists():
-            shutil.rmtree(model_dir)
-        model_dir.mkdir()
-        rec.write(str(model_dir))
-        retry_dir = work_dir / "sparse_retry"
-        if retry_dir.exists():
-            shutil.rmtree(retry_dir)
-        retry_dir.mkdir()
-        opts = _mapping_options(config, has_prior, relaxed=True)
-        opts.multiple_models = False
-        try:
-            retried = pycolmap.incremental_mapping(str(database_path), str(image_dir), str(retry_dir),
-                                                   options=opts, input_path=str(model_dir))
-            cand = _largest(retried)
-            if cand is not None and len(registered_names(cand)) > before:
-                rec = cand
-        except Exception as exc:  # noqa: BLE001 - a failed retry keeps the first model
-            notes.append(f"relaxed retry failed: {exc}")
-        timings["retry"] = timings.get("retry", 0.0) + time.perf_counter() - t0
-        notes.append(f"relaxed registration retry: {before} -> {len(registered_names(rec))} images")
+def _retry_unregistered(rec: Any, work_dir: Path, config: GeometricConfig, has_prior: bool,
+                        by_colmap: dict[str, str], notes: list[str]) -> Any:
+    """Continue mapping from ``rec`` with relaxed options to register more images: the continued model when
+    it registers more, else ``rec``."""
+    import pycolmap
 
-    if config.final_ba_iterations > 0 and config.final_ba_rounds > 0:
-        t0 = time.perf_counter()
-        if config.final_retriangulate:
-            tri_dir = work_dir / "sparse_tri"
-            tri_dir.mkdir(exist_ok=True)
-            opts = _mapping_options(config, has_prior)
-            rec = pycolmap.triangulate_points(rec, str(database_path), str(image_dir), str(tri_dir),
-                                              clear_points=False, options=opts, refine_intrinsics=False)
-        for round_ in range(config.final_ba_rounds):
-            _global_ba(rec, config, has_prior)
-            if round_ + 1 < config.final_ba_rounds:
-                pycolmap.ObservationManager(rec).filter_all_points3D(config.final_filter_max_error_px, 1.5)
-        timings["ba"] = time.perf_counter() - t0
+    before = len(_registered_names(rec, by_colmap))
+    model_dir = work_dir / "sparse_best"
+    if model_dir.exists():
+        shutil.rmtree(model_dir)
+    model_dir.mkdir()
+    rec.write(str(model_dir))
+    retry_dir = work_dir / "sparse_retry"
+    if retry_dir.exists():
+        shutil.rmtree(retry_dir)
+    retry_dir.mkdir()
+    opts = _mapping_options(config, has_prior, relaxed=True)
+    opts.multiple_models = False
+    try:
+        retried = pycolmap.incremental_mapping(str(work_dir / "database.db"), str(work_dir / "images"),
+                                               str(retry_dir), options=opts, input_path=str(model_dir))
+        cand = _largest(retried)
+        if cand is not None and len(_registered_names(cand, by_colmap)) > before:
+            rec = cand
+    except Exception as exc:  # noqa: BLE001 - a failed retry keeps the first model
+        notes.append(f"relaxed retry failed: {exc}")
+    notes.append(f"relaxed registration retry: {before} -> {len(_registered_names(rec, by_colmap))} images")
+    return rec
 
-    aligned, residual, outliers = False, None, []
-    if known_centres:
-        t0 = time.perf_counter()
-        reg = {by_colmap[rec.image(i).name]: i for i in rec.reg_image_ids()}
-        common = sorted(set(reg) & set(known_centres))
-        if len(common) < 3:
-            notes.append(f"alignment skipped: only {len(common)} registered images have known centres")
-        else:
-            src = np.array([np.asarray(rec.image(reg[n]).projection_center(), dtype=float) for n in common])
-            dst = np.array([np.asarray(known_centres[n], dtype=float).ravel() for n in common])
-            # RANSAC threshold is in target units; scale-free source is handled by sampling minimal sets.
-            s, R, t, inl = umeyama_ransac(src, dst, config.alignment_max_error, seed=config.seed)
-            if inl.sum() < 3:
-                notes.append("alignment failed: fewer than 3 inliers")
-            else:
-                rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
-                err = np.linalg.norm(s * src @ R.T + t - dst, axis=1) * 1000.0
-                residual = (float(err[inl].mean()), float(err[inl].max()))
-                outliers = [n for n, ok in zip(common, inl) if not ok]
-                aligned = True
-                if outliers:
-                    notes.append(f"alignment outliers (centre off by > {config.alignment_max_error}): {outliers}")
-        timings["align"] = time.perf_counter() - t0
 
-    cameras: dict[str, CameraCalibration] = {}
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        camera = rec.camera(image.camera_id)
-        K, dist = opencv_from_colmap_camera(camera)
-        cameras[by_colmap[image.name]] = CameraCalibration(
-            K=K, dist=dist, cam_from_world=np.asarray(image.cam_from_world().matrix(), dtype=float),
-            width=int(camera.width), height=int(camera.height))
-    unregistered = [p.name for p in image_paths if p.name not in cameras]
-    timings["total"] = time.perf_counter() - t_start
-    return CalibrationResult(cameras=dict(sorted(cameras.items())), unregistered=unregistered,
-                             reprojection_error_px=float(rec.compute_mean_reprojection_error()),
-                             alignment_residual_mm=residual, n_points3d=int(rec.num_points3D()), timings=timings,
-                             aligned=aligned, alignment_outliers=outliers, notes=notes, reconstruction=rec)
+def _final_bundle_adjustment(rec: Any, work_dir: Path, config: GeometricConfig, has_prior: bool) -> Any:
+    """Optionally re-triangulate, then ``config.final_ba_rounds`` global bundle adjustments, filtering the
+    points between rounds; returns the model."""
+    import pycolmap
+
+    if config.final_retriangulate:
+        tri_dir = work_dir / "sparse_tri"
+        tri_dir.mkdir(exist_ok=True)
+        opts = _mapping_options(config, has_prior)
+        rec = pycolmap.triangulate_points(rec, str(work_dir / "database.db"), str(work_dir / "images"),
+                                          str(tri_dir), clear_points=False, options=opts, refine_intrinsics=False)
+    for round_ in range(config.final_ba_rounds):
+        _global_ba(rec, config, has_prior)
+        if round_ + 1 < config.final_ba_rounds:
+            pycolmap.ObservationManager(rec).filter_all_points3D(config.final_filter_max_error_px, 1.5)
+    return rec
+
+
+def _align_to_known_centres(rec: Any, by_colmap: dict[str, str], known_centres: dict[str, np.ndarray],
+                            config: GeometricConfig,
+                            notes: list[str]) -> tuple[bool, tuple[float, float] | None, list[str]]:
+    """Map ``rec`` in place onto the known centres of its registered images by a RANSAC similarity:
+    ``(aligned, (mean, max) residual mm of the inliers, outlier names)``; not aligned with fewer than 3
+    such images or inliers."""
+    import pycolmap
+
+    reg = {by_colmap[rec.image(i).name]: i for i in rec.reg_image_ids()}
+    common = sorted(set(reg) & set(known_centres))
+    if len(common) < 3:
+        notes.append(f"alignment skipped: only {len(common)} registered images have known centres")
+        return False, None, []
+    src = np.array([np.asarray(rec.image(reg[n]).projection_center(), dtype=float) for n in common])
+    dst = np.array([np.asarray(known_centres[n], dtype=float).ravel() for n in common])
+    # RANSAC threshold is in target units; scale-free source is handled by sampling minimal sets.
+    s, R, t, inl = umeyama_ransac(src, dst, config.alignment_max_error, seed=config.seed)
+    if inl.sum() < 3:
+        notes.append("alignment failed: fewer than 3 inliers")
+        return False, None, []
+    rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+    err = np.linalg.norm(s * src @ R.T + t - dst, axis=1) * 1000.0
+    residual = (float(err[inl].mean()), float(err[inl].max()))
+    outliers = [n for n, ok in zip(common, inl) if not ok]
+    if outliers:
+        notes.append(f"alignment outliers (centre off by > {config.alignment_max_error}): {outliers}")
+    return True, residual, outliers
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1088,18 +1141,48 @@ def _prior_ba(rec: Any, nominal: dict[int, tuple[np.ndarray, np.ndarray]], rig: 
     Unknowns per free image: rotation vector (about the nominal orientation), centre, focal scale; all
     3D points. Residuals: reprojection (px, Huber 1.5 px), priors (in sigmas). Principal points stay.
     """
-    import pycolmap
     from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
-    from scipy.spatial.transform import Rotation
 
     image_ids = sorted(int(i) for i in rec.reg_image_ids() if int(i) not in constant_image_ids)
     if not image_ids:
         return
-    cam_index = {i: k for k, i in enumerate(image_ids)}
     point_ids = sorted(int(p) for p in rec.point3D_ids())
     if not point_ids:
         return
+    obs = _prior_ba_observations(rec, image_ids, point_ids)
+    K0 = np.array([nominal[i][0] for i in image_ids])
+    R0 = np.array([nominal[i][1][:, :3] for i in image_ids])
+    C0 = np.array([camera_centre(nominal[i][1]) for i in image_ids])
+    x_cam = _prior_ba_start(rec, image_ids, K0, R0)
+    x_pt = np.array([np.asarray(rec.point3D(p).xyz, dtype=float) for p in point_ids])
+    sigmas = (np.radians(rig.prior_angle_deg), rig.prior_centre_mm / 1000.0, rig.prior_focal_pct / 100.0)
+    residuals = _prior_ba_residuals(obs, K0, R0, C0, len(point_ids), sigmas)
+    jac_sparsity = _prior_ba_sparsity(obs, len(image_ids), len(point_ids))
+    x0 = np.concatenate([x_cam.ravel(), x_pt.ravel()])
+    sol = least_squares(residuals, x0, jac_sparsity=jac_sparsity, method="trf", loss="huber", f_scale=1.5,
+                        x_scale="jac", max_nfev=max(10, max_iterations), xtol=1e-10, ftol=1e-10)
+    if np.all(np.isfinite(sol.x)):
+        _write_prior_ba(rec, sol.x, image_ids, point_ids, K0, R0)
+
+
+@dataclass
+class _PriorBAObservations:
+    """The observations of :func:`_prior_ba`'s points (N of them)."""
+
+    cam: np.ndarray  # (N,) index of the observing free image in the free images, -1 for a constant image
+    point: np.ndarray  # (N,) index of the point
+    xy: np.ndarray  # (N, 2) observed pixel
+    fixed_P: np.ndarray | None  # (N, 3, 4) K [R | t] of the constant observing image (zeros for free ones);
+    # None when every observation is by a free image
+
+    @property
+    def free(self) -> np.ndarray:
+        return self.cam >= 0
+
+
+def _prior_ba_observations(rec: Any, image_ids: list[int], point_ids: list[int]) -> _PriorBAObservations:
+    """Every observation of the points ``point_ids`` in ``rec``, with the free images ``image_ids``."""
+    cam_index = {i: k for k, i in enumerate(image_ids)}
     p_index = {p: k for k, p in enumerate(point_ids)}
     obs_cam, obs_pt, obs_xy, obs_fixed = [], [], [], []
     fixed_P = {}
@@ -1119,14 +1202,19 @@ def _prior_ba(rec: Any, nominal: dict[int, tuple[np.ndarray, np.ndarray]], rig: 
                     cam = rec.camera(image.camera_id)
                     fixed_P[int(el.image_id)] = (np.asarray(cam.calibration_matrix(), dtype=float),
                                                  np.asarray(image.cam_from_world().matrix(), dtype=float))
-    obs_cam, obs_pt, obs_fixed = np.array(obs_cam), np.array(obs_pt), np.array(obs_fixed)
-    obs_xy = np.array(obs_xy)
-    n_cam, n_pt, n_obs = len(image_ids), len(point_ids), len(obs_pt)
-    K0 = np.array([nominal[i][0] for i in image_ids])
-    R0 = np.array([nominal[i][1][:, :3] for i in image_ids])
-    C0 = np.array([camera_centre(nominal[i][1]) for i in image_ids])
-    # start from the current estimate
-    x_cam = np.zeros((n_cam, 7))
+    obs_cam, obs_fixed = np.array(obs_cam), np.array(obs_fixed)
+    # fixed-camera projections are precomputed matrices
+    fixed_list = np.array([fixed_P[i][0] @ fixed_P[i][1] if i >= 0 else np.zeros((3, 4)) for i in obs_fixed]) \
+        if (obs_cam < 0).any() else None
+    return _PriorBAObservations(cam=obs_cam, point=np.array(obs_pt), xy=np.array(obs_xy), fixed_P=fixed_list)
+
+
+def _prior_ba_start(rec: Any, image_ids: list[int], K0: np.ndarray, R0: np.ndarray) -> np.ndarray:
+    """(n, 7) unknowns of the free images at their current estimate: rotation vector about the nominal
+    orientation ``R0`` (n, 3, 3), centre, focal scale less 1 against the nominal ``K0`` (n, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    x_cam = np.zeros((len(image_ids), 7))
     for k, i in enumerate(image_ids):
         image = rec.image(i)
         P = np.asarray(image.cam_from_world().matrix(), dtype=float)
@@ -1134,14 +1222,19 @@ def _prior_ba(rec: Any, nominal: dict[int, tuple[np.ndarray, np.ndarray]], rig: 
         x_cam[k, 3:6] = camera_centre(P)
         f = np.asarray(rec.camera(image.camera_id).calibration_matrix(), dtype=float)[0, 0]
         x_cam[k, 6] = f / K0[k][0, 0] - 1.0
-    x_pt = np.array([np.asarray(rec.point3D(p).xyz, dtype=float) for p in point_ids])
-    free = obs_cam >= 0
-    # fixed-camera projections are precomputed matrices
-    fixed_list = np.array([fixed_P[i][0] @ fixed_P[i][1] if i >= 0 else np.zeros((3, 4)) for i in obs_fixed]) \
-        if (~free).any() else None
-    s_c = rig.prior_centre_mm / 1000.0
-    s_a = np.radians(rig.prior_angle_deg)
-    s_f = rig.prior_focal_pct / 100.0
+    return x_cam
+
+
+def _prior_ba_residuals(obs: _PriorBAObservations, K0: np.ndarray, R0: np.ndarray, C0: np.ndarray, n_pt: int,
+                        sigmas: tuple[float, float, float]) -> Callable[[np.ndarray], np.ndarray]:
+    """The residual function of :func:`_prior_ba`: unknowns (7 n + 3 n_pt,) -> reprojection errors (2 N,)
+    pixels, then the priors (7 n,) in sigmas (``sigmas``: rotation rad, centre m, focal scale)."""
+    from scipy.spatial.transform import Rotation
+
+    n_cam, n_obs = len(K0), len(obs.point)
+    s_a, s_c, s_f = sigmas
+    free = obs.free
+    obs_cam, obs_pt, obs_xy, fixed_list = obs.cam, obs.point, obs.xy, obs.fixed_P
 
     def residuals(x: np.ndarray) -> np.ndarray:
         cams = x[:n_cam * 7].reshape(n_cam, 7)
@@ -1166,28 +1259,41 @@ def _prior_ba(rec: Any, nominal: dict[int, tuple[np.ndarray, np.ndarray]], rig: 
                                 (cams[:, 6] / s_f).ravel()])
         return np.concatenate([out.ravel(), prior])
 
-    n_res = 2 * n_obs + 7 * n_cam
-    J = lil_matrix((n_res, 7 * n_cam + 3 * n_pt), dtype=np.int8)
+    return residuals
+
+
+def _prior_ba_sparsity(obs: _PriorBAObservations, n_cam: int, n_pt: int) -> Any:
+    """The Jacobian's sparsity pattern (CSR, int8) of :func:`_prior_ba_residuals`."""
+    from scipy.sparse import lil_matrix
+
+    n_obs = len(obs.point)
+    free = obs.free
+    J = lil_matrix((2 * n_obs + 7 * n_cam, 7 * n_cam + 3 * n_pt), dtype=np.int8)
     rows = np.arange(n_obs)
     for d in range(2):
         r = 2 * rows + d
         for q in range(7):
-            J[r[free], 7 * obs_cam[free] + q] = 1
+            J[r[free], 7 * obs.cam[free] + q] = 1
         for q in range(3):
-            J[r, 7 * n_cam + 3 * obs_pt + q] = 1
+            J[r, 7 * n_cam + 3 * obs.point + q] = 1
     base = 2 * n_obs
     for k in range(n_cam):
         for q in range(3):
             J[base + 3 * k + q, 7 * k + q] = 1
             J[base + 3 * n_cam + 3 * k + q, 7 * k + 3 + q] = 1
         J[base + 6 * n_cam + k, 7 * k + 6] = 1
-    x0 = np.concatenate([x_cam.ravel(), x_pt.ravel()])
-    sol = least_squares(residuals, x0, jac_sparsity=J.tocsr(), method="trf", loss="huber", f_scale=1.5,
-                        x_scale="jac", max_nfev=max(10, max_iterations), xtol=1e-10, ftol=1e-10)
-    if not np.all(np.isfinite(sol.x)):
-        return
-    cams = sol.x[:n_cam * 7].reshape(n_cam, 7)
-    pts = sol.x[n_cam * 7:].reshape(n_pt, 3)
+    return J.tocsr()
+
+
+def _write_prior_ba(rec: Any, x: np.ndarray, image_ids: list[int], point_ids: list[int], K0: np.ndarray,
+                    R0: np.ndarray) -> None:
+    """Put :func:`_prior_ba`'s solution ``x`` into ``rec``: the free images' poses and focal lengths, the
+    points, and the points' errors."""
+    from scipy.spatial.transform import Rotation
+
+    n_cam, n_pt = len(image_ids), len(point_ids)
+    cams = x[:n_cam * 7].reshape(n_cam, 7)
+    pts = x[n_cam * 7:].reshape(n_pt, 3)
     R = Rotation.from_rotvec(cams[:, :3]).as_matrix() @ R0
     for k, i in enumerate(image_ids):
         image = rec.image(i)
@@ -1258,13 +1364,12 @@ def calibrate_rig(image_paths: list[Path], work_dir: Path, nominal_K: dict[str, 
     image_paths: one image per camera (PNG/JPEG or raw; raws are decoded to 8-bit sRGB PNG), names unique.
     nominal_K, nominal_cam_from_world: image name (``path.name``) -> OpenCV (3, 3) K and (3, 4)
         cam_from_world in the stage frame, for every image.
-    Status (simulated stage, 32 cameras): the refined cameras are NOT yet closer to the truth than the
-    nominal ones (width 320: rotation 0.13 -> 0.23 deg, centre 4.8 -> 4.7 mm; width 640: rotation
-    0.13 -> 0.14 deg, centre 4.8 -> 4.9 mm, focal error 0.38 -> 0.21 %). Started from the TRUE cameras the
-    points triangulate with ~1.4 px reprojection error and the adjustment moves away from the truth by
-    ~0.16 deg, so the observations carry a systematic error (repetitive LED-sphere grid matches, or a
-    pixel convention mismatch between renderer and decode) that is not resolved yet. Use the nominal rig
-    unless a capture shows otherwise.
+    Status (simulated stage, 32 cameras): the refined cameras are NOT closer to the truth than the nominal
+    ones (``bench/bench_calibration.py --rig-prior`` measures both against the true cameras). Started from
+    the TRUE cameras the points triangulate with more than a pixel of reprojection error and the adjustment
+    moves away from the truth, so the observations carry a systematic error (repetitive LED-sphere grid
+    matches, or a pixel convention mismatch between renderer and decode) that is not resolved. Use the
+    nominal rig unless a capture shows otherwise.
 
     Returns a :class:`CalibrationResult` with ``aligned`` True; ``cameras`` holds the refined cameras
     (dist zero), ``unregistered`` the images that kept no refined pose (too few observations or a
@@ -1287,17 +1392,9 @@ def calibrate_rig(image_paths: list[Path], work_dir: Path, nominal_K: dict[str, 
         if not p.is_file():
             raise FileNotFoundError(p)
     work_dir = Path(work_dir)
-    for sub in ("images", "database.db", "rig_nominal", "rig_tri"):
-        target = work_dir / sub
-        if target.is_dir() and not target.is_symlink():
-            shutil.rmtree(target)
-        elif target.exists() or target.is_symlink():
-            target.unlink()
-    work_dir.mkdir(parents=True, exist_ok=True)
+    _clear_work_dir(work_dir, ("images", "database.db", "rig_nominal", "rig_tri"))
     image_dir, database_path = work_dir / "images", work_dir / "database.db"
-    pycolmap.set_random_seed(config.seed)
-    if not config.verbose:
-        pycolmap.logging.minloglevel = 2
+    _start_colmap(config)
     colmap_names = _stage_images(image_paths, image_dir)
     by_colmap = {v: k for k, v in colmap_names.items()}
     timings["stage_images"] = time.perf_counter() - t_start
@@ -1314,8 +1411,57 @@ def calibrate_rig(image_paths: list[Path], work_dir: Path, nominal_K: dict[str, 
         _match_database(database_path, config, len(image_paths))
         timings["match"] = time.perf_counter() - t0
 
-    # Model at the nominal cameras, ids as in the database.
     t0 = time.perf_counter()
+    rec = _nominal_model(database_path, by_colmap, nominal_K, nominal_cam_from_world)
+    nominal_by_id = {int(i): (K_to_colmap(nominal_K[by_colmap[rec.image(i).name]]),
+                              np.asarray(nominal_cam_from_world[by_colmap[rec.image(i).name]], dtype=float)[:3, :4])
+                     for i in rec.reg_image_ids()}
+    (work_dir / "rig_nominal").mkdir()
+    (work_dir / "rig_tri").mkdir()
+    rec.write(str(work_dir / "rig_nominal"))
+    opts = _mapping_options(config, has_prior=True)
+    opts.triangulation.min_angle = rig.min_triangulation_angle_deg
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    timings["model"] = time.perf_counter() - t0
+
+    rec = _refine_rig(rec, work_dir, opts, config, rig, nominal_by_id, timings, notes)
+    obs = _observations_per_image(rec)
+    constant = {i for i, n in obs.items() if n < rig.min_observations}
+
+    # Gauge: refined centres onto the nominal ones.
+    t0 = time.perf_counter()
+    names = {int(i): by_colmap[rec.image(i).name] for i in rec.reg_image_ids()}
+    free = sorted(i for i in names if i not in constant)
+    aligned, residual = _align_to_nominal_centres(rec, free, names, nominal_cam_from_world, config, rig, notes)
+    timings["align"] = time.perf_counter() - t0
+
+    cameras: dict[str, CameraCalibration] = {}
+    outliers: list[str] = []
+    if aligned:
+        cameras, outliers = _refined_cameras(rec, free, names, nominal_cam_from_world, rig)
+    if outliers:
+        notes.append(f"refinement moved {outliers} beyond {rig.max_change_m} m / {rig.max_change_deg} deg "
+                     "of the nominal camera; dropped")
+    few = sorted(names[i] for i in constant)
+    if few:
+        notes.append(f"too few observations (< {rig.min_observations}) to refine {few}")
+    unregistered = [p.name for p in image_paths if p.name not in cameras]
+    reproj = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else float("nan")
+    timings["total"] = time.perf_counter() - t_start
+    return CalibrationResult(cameras=dict(sorted(cameras.items())), unregistered=unregistered,
+                             reprojection_error_px=reproj if np.isfinite(reproj) else 0.0,
+                             alignment_residual_mm=residual, n_points3d=int(rec.num_points3D()), timings=timings,
+                             aligned=aligned, alignment_outliers=outliers, notes=notes, reconstruction=rec)
+
+
+def _nominal_model(database_path: Path, by_colmap: dict[str, str], nominal_K: dict[str, np.ndarray],
+                   nominal_cam_from_world: dict[str, np.ndarray]) -> Any:
+    """A COLMAP model of the database's images, each with its own PINHOLE camera at its nominal K and pose
+    (ids as in the database), holding their keypoints and no points."""
+    import pycolmap
+
     rec = pycolmap.Reconstruction()
     db = pycolmap.Database.open(str(database_path))
     try:
@@ -1336,22 +1482,20 @@ def calibrate_rig(image_paths: list[Path], work_dir: Path, nominal_K: dict[str, 
             rec.add_image_with_trivial_frame(new, _rigid3d(nominal_cam_from_world[name]))
     finally:
         db.close()
-    nominal_by_id = {int(i): (K_to_colmap(nominal_K[by_colmap[rec.image(i).name]]),
-                              np.asarray(nominal_cam_from_world[by_colmap[rec.image(i).name]], dtype=float)[:3, :4])
-                     for i in rec.reg_image_ids()}
-    nominal_dir, tri_dir = work_dir / "rig_nominal", work_dir / "rig_tri"
-    nominal_dir.mkdir()
-    tri_dir.mkdir()
-    rec.write(str(nominal_dir))
-    opts = _mapping_options(config, has_prior=True)
-    opts.triangulation.min_angle = rig.min_triangulation_angle_deg
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    timings["model"] = time.perf_counter() - t0
+    return rec
 
+
+def _refine_rig(rec: Any, work_dir: Path, opts: Any, config: GeometricConfig, rig: RigRefineConfig,
+                nominal_by_id: dict[int, tuple[np.ndarray, np.ndarray]], timings: dict[str, float],
+                notes: list[str]) -> Any:
+    """Match (guided: ``1 + rig.rematch_rounds`` times, each from the latest poses), triangulate with the
+    poses held, and run ``rig.ba_rounds`` robust bundle adjustments (images with fewer than
+    ``rig.min_observations`` observations held), filtering and re-triangulating between them; returns the
+    refined model (its frame still the nominal one, up to the adjustment's gauge)."""
+    import pycolmap
+
+    database_path, image_dir, tri_dir = work_dir / "database.db", work_dir / "images", work_dir / "rig_tri"
     cycles = 1 + (rig.rematch_rounds if rig.matching == "guided" else 0)
-    constant: set[int] = set()
     for cycle in range(cycles):
         if rig.matching == "guided":
             t0 = time.perf_counter()
@@ -1381,58 +1525,51 @@ def calibrate_rig(image_paths: list[Path], work_dir: Path, nominal_K: dict[str, 
                 rec = pycolmap.triangulate_points(rec, str(database_path), str(image_dir), str(tri_dir),
                                                   clear_points=True, options=opts, refine_intrinsics=False)
         timings["ba"] = timings.get("ba", 0.0) + time.perf_counter() - t0
-    obs = _observations_per_image(rec)
-    constant = {i for i, n in obs.items() if n < rig.min_observations}
+    return rec
 
-    # Gauge: refined centres onto the nominal ones.
-    t0 = time.perf_counter()
-    names = {int(i): by_colmap[rec.image(i).name] for i in rec.reg_image_ids()}
-    free = sorted(i for i in names if i not in constant)
-    aligned, residual, outliers = False, None, []
-    if len(free) >= 3:
-        src = np.array([np.asarray(rec.image(i).projection_center(), dtype=float) for i in free])
-        dst = np.array([camera_centre(nominal_cam_from_world[names[i]]) for i in free])
-        s, R, t, inl = umeyama_ransac(src, dst, config.alignment_max_error, seed=config.seed)
-        if inl.sum() >= 3 and np.isfinite(s) and s > 0:
-            rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
-            err = np.linalg.norm(s * src @ R.T + t - dst, axis=1) * 1000.0
-            residual = (float(err[inl].mean()), float(err[inl].max()))
-            aligned = True
-        else:
-            notes.append("alignment to the nominal centres failed; nominal cameras returned")
-    else:
+
+def _align_to_nominal_centres(rec: Any, free: list[int], names: dict[int, str],
+                              nominal_cam_from_world: dict[str, np.ndarray], config: GeometricConfig,
+                              rig: RigRefineConfig, notes: list[str]) -> tuple[bool, tuple[float, float] | None]:
+    """Map ``rec`` in place onto the nominal centres of its refined images ``free`` (ids; ``names``: id ->
+    image name) by a RANSAC similarity: ``(aligned, (mean, max) residual mm of the inliers)``."""
+    import pycolmap
+
+    if len(free) < 3:
         notes.append(f"only {len(free)} images had >= {rig.min_observations} observations; nominal cameras returned")
-    timings["align"] = time.perf_counter() - t0
+        return False, None
+    src = np.array([np.asarray(rec.image(i).projection_center(), dtype=float) for i in free])
+    dst = np.array([camera_centre(nominal_cam_from_world[names[i]]) for i in free])
+    s, R, t, inl = umeyama_ransac(src, dst, config.alignment_max_error, seed=config.seed)
+    if not (inl.sum() >= 3 and np.isfinite(s) and s > 0):
+        notes.append("alignment to the nominal centres failed; nominal cameras returned")
+        return False, None
+    rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t))
+    err = np.linalg.norm(s * src @ R.T + t - dst, axis=1) * 1000.0
+    return True, (float(err[inl].mean()), float(err[inl].max()))
 
+
+def _refined_cameras(rec: Any, free: list[int], names: dict[int, str],
+                     nominal_cam_from_world: dict[str, np.ndarray],
+                     rig: RigRefineConfig) -> tuple[dict[str, CameraCalibration], list[str]]:
+    """The aligned model's cameras of the images ``free`` (ids; ``names``: id -> image name), and the sorted
+    names of those dropped: non-finite, or moved beyond ``rig.max_change_m`` / ``rig.max_change_deg`` from
+    the nominal camera."""
     cameras: dict[str, CameraCalibration] = {}
     failed: list[str] = []
-    if aligned:
-        for image_id in free:
-            image = rec.image(image_id)
-            name = names[image_id]
-            K, dist = opencv_from_colmap_camera(rec.camera(image.camera_id))
-            P = np.asarray(image.cam_from_world().matrix(), dtype=float)
-            N = np.asarray(nominal_cam_from_world[name], dtype=float)
-            shift = float(np.linalg.norm(camera_centre(P) - camera_centre(N)))
-            angle = rotation_angle_deg(P[:, :3] @ N[:, :3].T)
-            if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))) or shift > rig.max_change_m \
-                    or angle > rig.max_change_deg:
-                failed.append(name)
-                continue
-            cam = rec.camera(image.camera_id)
-            cameras[name] = CameraCalibration(K=K, dist=dist, cam_from_world=P, width=int(cam.width),
-                                              height=int(cam.height))
-    if failed:
-        outliers = sorted(failed)
-        notes.append(f"refinement moved {outliers} beyond {rig.max_change_m} m / {rig.max_change_deg} deg "
-                     "of the nominal camera; dropped")
-    few = sorted(names[i] for i in constant)
-    if few:
-        notes.append(f"too few observations (< {rig.min_observations}) to refine {few}")
-    unregistered = [p.name for p in image_paths if p.name not in cameras]
-    reproj = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else float("nan")
-    timings["total"] = time.perf_counter() - t_start
-    return CalibrationResult(cameras=dict(sorted(cameras.items())), unregistered=unregistered,
-                             reprojection_error_px=reproj if np.isfinite(reproj) else 0.0,
-                             alignment_residual_mm=residual, n_points3d=int(rec.num_points3D()), timings=timings,
-                             aligned=aligned, alignment_outliers=outliers, notes=notes, reconstruction=rec)
+    for image_id in free:
+        image = rec.image(image_id)
+        name = names[image_id]
+        K, dist = opencv_from_colmap_camera(rec.camera(image.camera_id))
+        P = np.asarray(image.cam_from_world().matrix(), dtype=float)
+        N = np.asarray(nominal_cam_from_world[name], dtype=float)
+        shift = float(np.linalg.norm(camera_centre(P) - camera_centre(N)))
+        angle = rotation_angle_deg(P[:, :3] @ N[:, :3].T)
+        if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K))) or shift > rig.max_change_m \
+                or angle > rig.max_change_deg:
+            failed.append(name)
+            continue
+        cam = rec.camera(image.camera_id)
+        cameras[name] = CameraCalibration(K=K, dist=dist, cam_from_world=P, width=int(cam.width),
+                                          height=int(cam.height))
+    return cameras, sorted(failed)

@@ -451,12 +451,20 @@ def write_release_page(release: str | Path) -> Path:
     from manifests.writer import asset_row, replace_rows
 
     root = Path(release)
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
     rel = open_release(root)
     actions = rel.table("actions").to_pylist()
     page_kinds = ("page", "page_thumbnail")
-    assets = [r for r in rel.table("assets").to_pylist() if r["kind"] not in page_kinds]
+    # Rows become Python dicts only for what the page shows: at release size the assets and metrics tables hold
+    # hundreds of thousands of rows (the digests and the stages' per-camera statistics are not shown).
+    assets_table = rel.table("assets")
+    assets_table = assets_table.filter(pc.invert(pc.is_in(assets_table["kind"], pa.array(page_kinds))))
+    assets = assets_table.select([c for c in assets_table.column_names if c != "sha256"]).to_pylist()
     summary = rel.table("metrics_summary").to_pylist()
-    metrics = rel.table("metrics").to_pylist()
+    metrics_table = rel.table("metrics")
+    metrics = metrics_table.filter(pc.equal(metrics_table["source"], "evaluate")).to_pylist()  # accuracy_rows' rows
     examples = rel.table("relight_examples").to_pylist() if rel.has_table("relight_examples") else []
     run_path = root / "run.json"
     run = json.loads(run_path.read_text()) if run_path.is_file() else {}

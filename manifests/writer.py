@@ -23,6 +23,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from manifests.schemas import Column, TableSpec, media_type, spec
@@ -131,6 +132,47 @@ def _duplicates(table: str, keys: Sequence[str], columns: Mapping[str, Sequence]
         shown = ", ".join(str(dict(zip(keys, k))) for k in dup[:3])
         more = f" (and {len(dup) - 3} more)" if len(dup) > 3 else ""
         raise ValueError(f"{table}: duplicate key {tuple(keys)}: {shown}{more}")
+
+
+def _table_duplicates(table_name: str, keys: Sequence[str], table: pa.Table) -> None:
+    """:func:`_duplicates` over an Arrow table, counted by Arrow (null matches null): a release-size table's key
+    columns are never turned into Python objects."""
+    if table.num_rows < 2:
+        return
+    keys = list(keys)
+    counts = table.select(keys).group_by(keys).aggregate([([], "count_all")])
+    dup = counts.filter(pc.greater(counts["count_all"], 1))
+    if dup.num_rows:
+        shown = ", ".join(str(row) for row in dup.select(keys).slice(0, 3).to_pylist())
+        more = f" (and {dup.num_rows - 3} more)" if dup.num_rows > 3 else ""
+        raise ValueError(f"{table_name}: duplicate key {tuple(keys)}: {shown}{more}")
+
+
+def concat_validated(name: str, tables: Sequence[pa.Table]) -> pa.Table:
+    """One table of the tables :func:`validate_rows` made from parts of a table's rows (e.g. one action's at a
+    time, so that a release-size table's rows are never all Python dicts at once), sorted by the primary key.
+
+    Raises:
+        ValueError: two rows of different parts share the primary key.
+    """
+    ts = spec(name)
+    if not tables:
+        return validate_rows(name, [])
+    if len(tables) == 1:
+        return tables[0]
+    table = pa.concat_tables(tables)
+    _table_duplicates(name, ts.primary_key, table)
+    return _sorted(table, ts)
+
+
+def _as_table(name: str, rows: Iterable[Mapping] | pa.Table) -> pa.Table:
+    """``rows`` validated into a table (:func:`validate_rows`), or a table already validated with this table's
+    schema (:func:`concat_validated`)."""
+    if isinstance(rows, pa.Table):
+        if not rows.schema.equals(spec(name).schema()):
+            raise ValueError(f"{name}: a table with another schema than the manifest's")
+        return rows
+    return validate_rows(name, rows)
 
 
 def _sorted(table: pa.Table, ts: TableSpec) -> pa.Table:
@@ -387,28 +429,30 @@ def _update_index(directory: Path) -> None:
     os.replace(tmp, directory / INDEX_NAME)
 
 
-def replace_rows(release_dir: str | Path, name: str, rows: Iterable[Mapping],
+def replace_rows(release_dir: str | Path, name: str, rows: Iterable[Mapping] | pa.Table,
                  drop: Callable[[dict], bool]) -> Path:
     """Write a table as its existing rows for which ``drop(row)`` is false plus ``rows``, atomically, under the
     release's manifest lock: a writer replaces the rows it owns (e.g. every 'evaluate' row) without leaving
-    stale ones behind or touching the others'.
+    stale ones behind or touching the others'. ``rows``: dicts, or a table :func:`concat_validated` made.
 
     Raises:
         ValueError: invalid rows (:func:`validate_rows`) or a kept row sharing the primary key with a new one.
     """
     ts = spec(name)
-    new = validate_rows(name, list(rows))
+    new = _as_table(name, rows if isinstance(rows, pa.Table) else list(rows))
     directory = Path(release_dir) / MANIFEST_DIR
     directory.mkdir(parents=True, exist_ok=True)
     with _locked(directory):
         old = read_manifest(release_dir, name)
         table = new
         if old is not None and old.num_rows:
-            kept = old.filter(pa.array([not drop(r) for r in old.to_pylist()], type=pa.bool_()))
+            # row dicts a batch at a time: the whole metrics table as dicts is ~1 KiB a row at release size
+            keep = [not drop(r) for batch in old.to_batches(max_chunksize=1 << 14) for r in batch.to_pylist()]
+            kept = old.filter(pa.array(keep, type=pa.bool_()))
             if kept.num_rows:
                 kept = kept.select([c.name for c in ts.columns]).cast(new.schema)
                 table = _sorted(pa.concat_tables([kept, new]), ts)
-                _duplicates(name, ts.primary_key, {k: table.column(k).to_pylist() for k in ts.primary_key})
+                _table_duplicates(name, ts.primary_key, table)
         return _write_atomic(directory, name, table)
 
 
@@ -427,17 +471,18 @@ def write_table(release_dir: str | Path, name: str, rows: Iterable[Mapping]) -> 
     return write_table_keeping(release_dir, name, rows, keep_actions=())
 
 
-def write_table_keeping(release_dir: str | Path, name: str, rows: Iterable[Mapping],
+def write_table_keeping(release_dir: str | Path, name: str, rows: Iterable[Mapping] | pa.Table,
                         keep_actions: Iterable[str]) -> Path:
     """:func:`write_table`, but the existing rows of the actions in ``keep_actions`` stay: a run over some
     actions of a release replaces their rows (and the rows of no action) and leaves the other actions'.
+    ``rows``: dicts, or a table :func:`concat_validated` made.
 
     Raises:
         ValueError: see :func:`validate_rows`, or a kept row sharing the primary key with a new one.
     """
     manifest_path(release_dir, name)  # a release table (not a standalone one)
     ts = spec(name)
-    table = validate_rows(name, rows)
+    table = _as_table(name, rows)
     keep = set(keep_actions)
     directory = Path(release_dir) / MANIFEST_DIR
     directory.mkdir(parents=True, exist_ok=True)
@@ -448,7 +493,7 @@ def write_table_keeping(release_dir: str | Path, name: str, rows: Iterable[Mappi
             if kept.num_rows:
                 kept = kept.select([c.name for c in ts.columns]).cast(table.schema)
                 table = _sorted(pa.concat_tables([kept, table]), ts)
-                _duplicates(name, ts.primary_key, {k: table.column(k).to_pylist() for k in ts.primary_key})
+                _table_duplicates(name, ts.primary_key, table)
         return _write_atomic(directory, name, table)
 
 
@@ -556,13 +601,15 @@ def release_relpath(release_dir: str | Path, path: str | Path) -> str:
 
 
 def asset_row(release_dir: str | Path, path: str | Path, kind: str,
-              action_id: str | None = None, camera_id: str | None = None) -> dict:
+              action_id: str | None = None, camera_id: str | None = None, digest: dict | None = None) -> dict:
     """The ``assets`` row of a file of the release: relative path, bytes, sha256 and media type.
 
     Args:
         release_dir: the release root.
         path: the file, absolute or relative to the release root.
         kind: what the file is ('normal_alpha', 'mask', 'preview', 'transforms', ...).
+        digest: ``{"bytes", "sha256"}`` of the file when the task that wrote it hashed it already; None: the
+            file is read and hashed here.
 
     Raises:
         ValueError: the path lies outside the release.
@@ -578,7 +625,7 @@ def asset_row(release_dir: str | Path, path: str | Path, kind: str,
         "camera_id": camera_id,
         "kind": kind,
         "path": rel,
-        "bytes": full.stat().st_size,
-        "sha256": file_sha256(full),
+        "bytes": int(digest["bytes"]) if digest else full.stat().st_size,
+        "sha256": digest["sha256"] if digest else file_sha256(full),
         "media_type": media_type(rel),
     }

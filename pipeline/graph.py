@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import secrets
 import time
 import traceback
@@ -28,7 +29,7 @@ from typing import Any
 from pipeline.capture import Capture
 from pipeline.config import key_fields
 from pipeline.errors import InputError
-from pipeline.hashing import DigestCache, code_digests, record_key
+from pipeline.hashing import DigestCache, code_digests, file_sha256, record_key
 from pipeline.stage import PROGRESS_TOPIC, Stage, StageContext, set_local_progress
 from pipeline.store import ArtifactStore, short
 
@@ -49,7 +50,10 @@ class Task:
     """"cached", "run", or "failed" (bad input found while planning) / "blocked" (upstream failed)."""
     reason: str
     upstream: dict[str, "Task"]
-    raw_inputs: dict[str, Path]
+    raw_paths: dict[str, str]
+    """The raw input files by name, as strings: a release-size plan holds some 200,000 of them, and a Path object
+    costs about three times its string (314 against 95 bytes for a frame's path; :attr:`raw_inputs` makes the
+    Paths)."""
     views: list[str] = field(default_factory=list)
     error: str | None = None
     seconds: float = 0.0
@@ -64,6 +68,11 @@ class Task:
     @property
     def name(self) -> str:
         return f"{self.stage.name} {self.scope_id}"
+
+    @property
+    def raw_inputs(self) -> dict[str, Path]:
+        """The raw input files by name (what ``Stage.raw_inputs`` gave)."""
+        return {name: Path(path) for name, path in self.raw_paths.items()}
 
 
 @dataclass
@@ -170,8 +179,12 @@ def _why(record: dict[str, Any], previous: dict[str, Any] | None) -> str:
 
 def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, digests: DigestCache,
               actions: Iterable[str] | None = None, force: set[str] | None = None,
-              echo: Callable[[str], None] | None = None) -> Plan:
-    """Resolve every (stage, scope) task: its key, and whether it is cached, to run, or failed."""
+              echo: Callable[[str], None] | None = None, hash_threads: int = 0) -> Plan:
+    """Resolve every (stage, scope) task: its key, and whether it is cached, to run, or failed.
+
+    The raw inputs of every task are listed first and the ones whose digest is not known yet hashed together,
+    ``hash_threads`` files at a time (:meth:`DigestCache.digest_all`; 0 = one per CPU core), before any key is
+    computed."""
     force = force or set()
     ordered = topo_order(stages)
     by_name = {s.name: s for s in ordered}
@@ -180,6 +193,7 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     if unknown:
         raise InputError(capture.root / "capture.json", f"unknown action(s) {unknown}")
     stage_code: dict[str, dict[str, str]] = {}
+    stage_config = {stage.name: key_fields(stage.config) for stage in ordered}  # one record, shared by its tasks
     for stage in ordered:
         try:
             stage_code[stage.name] = code_digests(stage.code_module, stage.code_packages)
@@ -191,25 +205,44 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     for stage in ordered:
         stage.preflight(capture, emit)
 
+    sessions_needed = sorted({capture.action(a).session_id for a in wanted})
+    scopes = [(stage, session_id, session_id, None) for session_id in sessions_needed
+              for stage in ordered if stage.scope == "session"]
+    scopes += [(stage, action_id, capture.action(action_id).session_id, action_id) for action_id in wanted
+               for stage in ordered if stage.scope == "action"]
+    # the raw inputs as strings (the Paths made by raw_inputs are let go scope by scope), or why they cannot be had
+    raw_of: dict[tuple[str, str], dict[str, str] | str] = {}
+    for stage, scope_id, _, _ in scopes:
+        try:
+            raw_of[(stage.name, scope_id)] = {name: os.fspath(path)
+                                              for name, path in stage.raw_inputs(capture, scope_id).items()}
+        except InputError as exc:
+            raw_of[(stage.name, scope_id)] = str(exc)
+        except FileNotFoundError as exc:
+            raw_of[(stage.name, scope_id)] = f"{exc.filename}: file disappeared while planning"
+    digests.digest_all((path for raw in raw_of.values() if isinstance(raw, dict) for path in raw.values()),
+                       threads=hash_threads)
+
+    session_views: dict[str, list[str]] = {}
+
     def plan_one(stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
         upstream = {}
         for req in stage.requires:
             req_scope = session_id if by_name[req].scope == "session" else scope_id
             upstream[req] = index[(req, req_scope)]
         error = None
-        raw: dict[str, Path] = {}
+        raw = raw_of.pop((stage.name, scope_id))
         inputs: dict[str, str] = {}
+        if isinstance(raw, str):
+            error, raw = raw, {}
         try:
-            raw = stage.raw_inputs(capture, scope_id)
             for name, path in sorted(raw.items()):
                 inputs[name] = digests.digest(path)["sha256"]
-        except InputError as exc:
-            error = str(exc)
         except FileNotFoundError as exc:
             error = f"{exc.filename}: file disappeared while planning"
-        views = list(capture.sessions[session_id].camera_ids)
+        views = session_views.setdefault(session_id, list(capture.sessions[session_id].camera_ids))  # one list
         record = {"stage": stage.name, "version": stage.version, "code": stage_code[stage.name], "scope": scope_id,
-                  "config": key_fields(stage.config), "upstream": {n: t.key for n, t in sorted(upstream.items())},
+                  "config": stage_config[stage.name], "upstream": {n: t.key for n, t in sorted(upstream.items())},
                   "inputs": inputs}
         key = record_key(record)
         bad_up = [t for t in upstream.values() if t.status in ("failed", "blocked")]
@@ -243,16 +276,8 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
         tasks.append(task)
         return task
 
-    sessions_needed = sorted({capture.action(a).session_id for a in wanted})
-    for session_id in sessions_needed:
-        for stage in ordered:
-            if stage.scope == "session":
-                plan_one(stage, session_id, session_id, None)
-    for action_id in wanted:
-        session_id = capture.action(action_id).session_id
-        for stage in ordered:
-            if stage.scope == "action":
-                plan_one(stage, action_id, session_id, action_id)
+    for stage, scope_id, session_id, action_id in scopes:
+        plan_one(stage, scope_id, session_id, action_id)
     return Plan(tasks, store)
 
 
@@ -265,7 +290,7 @@ def _context(task: Task, store: ArtifactStore, capture: Capture) -> StageContext
     return StageContext(stage=task.stage.name, scope_id=task.scope_id, session_id=task.session_id,
                         action_id=task.action_id, out_dir=store.tmp_dir(task.stage.name, task.scope_id, task.key),
                         upstream=upstream_dirs, raw_inputs=task.raw_inputs,
-                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=task.views,
+                        rig=capture.sessions[task.session_id].rig, capture_root=capture.root, views=list(task.views),
                         subject=capture.action(task.action_id).subject if task.action_id else None,
                         upstream_keys={n: t.key for n, t in sorted(task.upstream.items())},
                         previous=previous, cache_dir=store.root.parent / "cache")
@@ -309,6 +334,23 @@ def run_view_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: st
                 "seconds": time.perf_counter() - start, "started_at": started_at, "traceback": traceback.format_exc()}
 
 
+def published_digests(stage: Stage, folder: Path) -> dict[str, dict[str, Any]]:
+    """Path in ``folder`` -> ``{"bytes", "sha256", "mtime_ns"}`` of each file the stage publishes from it
+    (``release_files``, ``release_root_files``): hashed by the task that wrote them, on its worker, so that
+    publishing reads the digests from the success record instead of re-reading every file in the driver."""
+    listed = [src for src, *_ in (stage.release_files(folder) if hasattr(stage, "release_files") else [])]
+    listed += [src for src, *_ in (stage.release_root_files(folder) if hasattr(stage, "release_root_files") else [])]
+    files: dict[str, dict[str, Any]] = {}
+    for src in listed:
+        src = Path(src)
+        rel = src.relative_to(folder).as_posix()
+        if rel in files or not src.is_file():
+            continue  # a file the stage did not write is reported when it is published
+        stat = src.stat()
+        files[rel] = {"bytes": stat.st_size, "sha256": file_sha256(src), "mtime_ns": stat.st_mtime_ns}
+    return files
+
+
 def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str, record: dict[str, Any],
                 attempt: str, *parts: dict[str, Any]) -> dict[str, Any]:
     """Finalize a per-view stage, or run a whole-scope stage, then commit its folder (runs on a worker).
@@ -346,8 +388,10 @@ def finish_task(stage: Stage, ctx: StageContext, store: ArtifactStore, key: str,
             stats = stage.finalize(ctx, {p["view"]: p["stats"] for p in parts})
         else:
             stats = stage.run(ctx)
+        files = published_digests(stage, ctx.out_dir)
         seconds = view_seconds + time.perf_counter() - start
-        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds, attempt=attempt, started_at=started_at)
+        store.commit(ctx.stage, ctx.scope_id, key, record, stats, seconds, attempt=attempt, started_at=started_at,
+                     files=files)
         return {"ok": True, "stats": stats, "seconds": seconds, "started_at": started_at}
     except Exception as exc:  # noqa: BLE001
         store.discard(ctx.stage, ctx.scope_id, key)
@@ -519,76 +563,111 @@ def execute(plan: Plan, capture: Capture, executor: Any,
     """
     if on_progress is not None and hasattr(executor, "subscribe_progress"):
         executor.subscribe_progress(on_progress)
-    store = plan.store
-    attempt = secrets.token_hex(8)  # this execution; a task recomputed after its worker died checks it
-    todo = plan.to_run()
-    total = len(todo)
-    scopes: dict[str, list[Task]] = {}
-    for task in todo:
-        scopes.setdefault(task.scope_id, []).append(task)
-    contexts = {id(task): _context(task, store, capture) for task in todo}
-    views = {id(task): task.stage.views(contexts[id(task)]) for task in todo if task.stage.per_view}
-    total_views = sum(len(v) for v in views.values())
+    run = _Execution(plan, capture, executor, on_view is not None)
     dynamic = hasattr(executor, "completions")
-    limit = (window if window > 0 else default_window(executor)) if dynamic else max(1, len(scopes))
-    pending = collections.deque(scopes.values())
-    handles: dict[tuple[str, str], Any] = {}  # submitted, not finished
-    outcomes: dict[tuple[str, str], dict[str, Any]] = {}  # finished
-    owner: dict[int, tuple[Any, Task]] = {}  # the handle is held with its task, so its id stays its own
-    view_owner: dict[int, tuple[Any, Task]] = {}
-    left: dict[str, int] = {}
-    watched: list[Any] = []
-    completions = executor.completions() if dynamic else None
+    limit = (window if window > 0 else default_window(executor)) if dynamic else max(1, len(run.pending))
+    run.fill(limit)
+    done = views_done = 0
+    for handle, result in run.completed():
+        if id(handle) in run.view_owner:
+            _, task = run.view_owner.pop(id(handle))
+            views_done += 1
+            on_view(task, result, views_done, run.total_views)
+            continue
+        task = run.finished(handle, result)
+        done += 1
+        if on_done:
+            on_done(task, result, done, run.total)
+        run.scope_left[task.scope_id] -= 1
+        if run.scope_left[task.scope_id] == 0:  # a scope finished: the next one goes in
+            run.in_flight -= 1
+            run.fill(limit)
+    run.classify_lost()
 
-    def watch(handle: Any) -> None:
-        if completions is not None:
-            completions.add(handle)
+
+class _Execution:
+    """The state of one :func:`execute`: the scopes still to submit, the handles in flight and the outcomes of
+    the finished tasks (what downstream tasks submitted later get instead of a handle)."""
+
+    def __init__(self, plan: Plan, capture: Capture, executor: Any, watch_views: bool):
+        self.plan, self.capture, self.executor, self.store = plan, capture, executor, plan.store
+        self.attempt = secrets.token_hex(8)  # this execution; a task recomputed after its worker died checks it
+        todo = plan.to_run()
+        self.total = len(todo)
+        scopes: dict[str, list[Task]] = {}
+        for task in todo:
+            scopes.setdefault(task.scope_id, []).append(task)
+        self.pending = collections.deque(scopes.values())
+        # A task's context (and its view list) is made when its scope is submitted, not for the whole plan here:
+        # the driver holds a window of contexts, and lists a task's earlier results only when it runs.
+        self.views: dict[int, list[str]] = {}
+        for task in todo:
+            if task.stage.per_view and type(task.stage).views is not Stage.views:  # a stage that picks its views
+                self.views[id(task)] = task.stage.views(_context(task, self.store, capture))
+        self.total_views = sum(len(self.views[id(t)]) if id(t) in self.views else len(t.views)
+                               for t in todo if t.stage.per_view)
+        self.watch_views = watch_views
+        self.handles: dict[tuple[str, str], Any] = {}  # submitted, not finished
+        self.outcomes: dict[tuple[str, str], dict[str, Any]] = {}  # finished
+        self.owner: dict[int, tuple[Any, Task]] = {}  # the handle is held with its task, so its id stays its own
+        self.view_owner: dict[int, tuple[Any, Task]] = {}
+        self.scope_left: dict[str, int] = {}
+        self.in_flight = 0
+        self.lost: list[Task] = []
+        self._watched: list[Any] = []
+        self._completions = executor.completions() if hasattr(executor, "completions") else None
+
+    def fill(self, limit: int) -> None:
+        """Submit pending scopes until ``limit`` are in flight."""
+        while self.pending and self.in_flight < limit:
+            self._submit_scope(self.pending.popleft())
+            self.in_flight += 1
+
+    def completed(self) -> Iterable[tuple[Any, dict[str, Any]]]:
+        """(handle, result) of each watched handle as it finishes, including those submitted meanwhile."""
+        if self._completions is not None:
+            return self._completions
+        return self.executor.as_completed(self._watched)
+
+    def _watch(self, handle: Any) -> None:
+        if self._completions is not None:
+            self._completions.add(handle)
         else:
-            watched.append(handle)
+            self._watched.append(handle)
 
-    def submit_scope(tasks: list[Task]) -> None:
-        left[tasks[0].scope_id] = len(tasks)
+    def _submit_scope(self, tasks: list[Task]) -> None:
+        self.scope_left[tasks[0].scope_id] = len(tasks)
         for task in tasks:
-            ctx = contexts.pop(id(task))
+            ctx = _context(task, self.store, self.capture)
             ups = []
             for n, t in task.upstream.items():
-                if (n, t.scope_id) in handles:
-                    ups.append(handles[(n, t.scope_id)])
-                elif (n, t.scope_id) in outcomes:
-                    ups.append(outcomes[(n, t.scope_id)])
-            store.begin(task.stage.name, task.scope_id, task.key)
+                if (n, t.scope_id) in self.handles:
+                    ups.append(self.handles[(n, t.scope_id)])
+                elif (n, t.scope_id) in self.outcomes:
+                    ups.append(self.outcomes[(n, t.scope_id)])
+            self.store.begin(task.stage.name, task.scope_id, task.key)
             tag = f"{task.stage.name}-{task.scope_id}-{short(task.key)}"
             res = task.stage.resources
             if task.stage.per_view:
-                parts = [executor.submit(run_view_task, task.stage, ctx, store, task.key, attempt, v, *ups,
-                                         key=f"{tag}-{v}", resources=res)
-                         for v in views.pop(id(task))]
-                if on_view:
+                views = self.views.pop(id(task)) if id(task) in self.views else task.stage.views(ctx)
+                parts = [self.executor.submit(run_view_task, task.stage, ctx, self.store, task.key, self.attempt, v,
+                                              *ups, key=f"{tag}-{v}", resources=res)
+                         for v in views]
+                if self.watch_views:
                     for p in parts:
-                        view_owner[id(p)] = (p, task)
-                        watch(p)
+                        self.view_owner[id(p)] = (p, task)
+                        self._watch(p)
             else:
                 parts = list(ups)
-            handle = executor.submit(finish_task, task.stage, ctx, store, task.key, task.record, attempt, *parts,
-                                     key=f"{tag}-commit")
-            handles[(task.stage.name, task.scope_id)] = handle
-            owner[id(handle)] = (handle, task)
-            watch(handle)
+            handle = self.executor.submit(finish_task, task.stage, ctx, self.store, task.key, task.record,
+                                          self.attempt, *parts, key=f"{tag}-commit")
+            self.handles[(task.stage.name, task.scope_id)] = handle
+            self.owner[id(handle)] = (handle, task)
+            self._watch(handle)
 
-    in_flight = 0
-    while pending and in_flight < limit:
-        submit_scope(pending.popleft())
-        in_flight += 1
-    done = views_done = 0
-    lost: list[Task] = []
-    for handle, result in (completions if completions is not None else executor.as_completed(watched)):
-        if id(handle) in view_owner:
-            _, task = view_owner.pop(id(handle))
-            views_done += 1
-            on_view(task, result, views_done, total_views)
-            continue
-        _, task = owner.pop(id(handle))
-        done += 1
+    def finished(self, handle: Any, result: dict[str, Any]) -> Task:
+        """Record a (stage, scope) task's result in its task and the store; its outcome replaces its handle."""
+        _, task = self.owner.pop(id(handle))
         task.seconds = float(result.get("seconds", 0.0))
         task.started_at = result.get("started_at")
         if result.get("ok"):
@@ -597,28 +676,24 @@ def execute(plan: Plan, capture: Capture, executor: Any,
             task.status = "skipped" if result.get("skipped") else "failed"
             task.error = result.get("error")
             if result.get("executor_error"):
-                lost.append(task)  # classified below, once every upstream task's outcome is known
+                self.lost.append(task)  # classified by classify_lost, once every upstream task's outcome is known
             elif task.status == "skipped":
                 task.failed_stage = result.get("failed_stage")
             else:
-                store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
+                self.store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
                 if result.get("traceback"):
                     log.debug("%s failed:\n%s", task.name, result["traceback"])
-        handles.pop((task.stage.name, task.scope_id), None)
-        outcomes[(task.stage.name, task.scope_id)] = _outcome(result)
-        if on_done:
-            on_done(task, result, done, total)
-        left[task.scope_id] -= 1
-        if left[task.scope_id] == 0:  # a scope finished: the next one goes in
-            in_flight -= 1
-            while pending and in_flight < limit:
-                submit_scope(pending.popleft())
-                in_flight += 1
-    # dask passes a task's error on to the tasks that depend on it: those were not run, the first one failed
-    for task in sorted(lost, key=plan.tasks.index):  # plan order: upstream before downstream
-        bad = next((t for t in task.upstream.values() if t.status in ("failed", "skipped")), None)
-        if bad is not None:
-            task.status, task.failed_stage = "skipped", bad.failed_stage or bad.stage.name
-            task.error = f"not run: upstream {task.failed_stage} failed"
-        else:
-            store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")
+        self.handles.pop((task.stage.name, task.scope_id), None)
+        self.outcomes[(task.stage.name, task.scope_id)] = _outcome(result)
+        return task
+
+    def classify_lost(self) -> None:
+        """dask passes a task's error on to the tasks that depend on it: those were not run, the first one
+        failed."""
+        for task in sorted(self.lost, key=self.plan.tasks.index):  # plan order: upstream before downstream
+            bad = next((t for t in task.upstream.values() if t.status in ("failed", "skipped")), None)
+            if bad is not None:
+                task.status, task.failed_stage = "skipped", bad.failed_stage or bad.stage.name
+                task.error = f"not run: upstream {task.failed_stage} failed"
+            else:
+                self.store.record_failure(task.stage.name, task.scope_id, task.key, task.error or "unknown error")

@@ -20,6 +20,7 @@ import os
 import sys
 import threading
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,13 @@ def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
         while block := handle.read(chunk):
             digest.update(block)
     return digest.hexdigest()
+
+
+def _sha256_or_none(path: str) -> str | None:
+    try:
+        return file_sha256(path)
+    except OSError:
+        return None
 
 
 class DigestCache:
@@ -95,6 +103,41 @@ class DigestCache:
             self._dirty = True
             self.hashed += 1
         return {"sha256": sha, "bytes": stat.st_size}
+
+    def digest_all(self, paths: Iterable[str | Path], threads: int = 0) -> int:
+        """Hash, ``threads`` files at a time, every file of ``paths`` whose digest is not known for its current
+        size and mtime; :meth:`digest` then finds them known. Returns how many files it hashed.
+
+        sha256 and file reads release the GIL, so threads hash in parallel (up to the cores and the disk): a
+        capture's new frames cost their bytes / (cores x sha256 rate) instead of / (one core's rate). A path
+        that does not exist is left to :meth:`digest`, which names it. ``threads``: 0 = one per CPU core.
+        """
+        todo: dict[str, os.stat_result] = {}
+        for path in paths:
+            key = self._resolved(path)
+            if key in todo:
+                continue
+            try:
+                stat = os.stat(key)
+            except OSError:
+                continue
+            entry = self._entries.get(key)
+            if not (entry and entry["bytes"] == stat.st_size and entry["mtime_ns"] == stat.st_mtime_ns):
+                todo[key] = stat
+        if not todo:
+            return 0
+        workers = max(1, min(threads or os.cpu_count() or 1, len(todo)))
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="digest") as pool:
+            shas = list(pool.map(_sha256_or_none, todo))
+        hashed = 0
+        with self._lock:
+            for (key, stat), sha in zip(todo.items(), shas):
+                if sha is not None:  # unreadable now: digest() raises for it where the plan names the task
+                    self._entries[key] = {"sha256": sha, "bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+                    hashed += 1
+            self._dirty = self._dirty or hashed > 0
+            self.hashed += hashed
+        return hashed
 
     def save(self) -> None:
         if not self._dirty:

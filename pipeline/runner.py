@@ -1,15 +1,15 @@
-"""One pipeline run: plan, execute, publish complete actions into the release, write the manifests.
+"""One pipeline run: plan, execute, publish complete actions into the release, have them indexed.
 
 This module is the engine's "action" layer (OpenSfM style): it knows the stage contract, the store and
-the release layout, but nothing about what the stages compute.
+the release layout, but nothing about what the stages compute, nor how the release is indexed: a
+:class:`ReleaseCatalog` (the project's: ``manifests.catalog.ManifestCatalog``) makes the asset rows, the
+tables and the page.
 """
 from __future__ import annotations
 
 import contextlib
-import datetime
 import json
 import logging
-import math
 import os
 import secrets
 import shutil
@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from pipeline.capture import Capture, open_capture
 from pipeline.config import Documented, dump_yaml
@@ -47,12 +47,17 @@ class ExecutionConfig(Documented):
     one finishes, so the scheduler holds a few actions' tasks, not the release's. 0 = twice the executor's
     worker threads, at least 4."""
 
-    not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight")
+    hash_threads: int = 0
+    """Threads that hash the raw frames not hashed before (their digests enter the cache keys) while planning;
+    0 = one per CPU core of the machine that runs the plan."""
+
+    not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight", "hash_threads")
 
     def __post_init__(self) -> None:
-        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0:
-            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0 and a scheduler, got "
-                             f"{self.workers!r}, {self.scopes_in_flight!r}, {self.scheduler!r}")
+        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0 or self.hash_threads < 0:
+            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0, hash_threads >= 0 and a "
+                             f"scheduler, got {self.workers!r}, {self.scopes_in_flight!r}, {self.hash_threads!r}, "
+                             f"{self.scheduler!r}")
 
 
 @dataclass
@@ -102,7 +107,28 @@ class PreparedAction:
     old_units: list[str] = field(default_factory=list)
 
 
-def prepare_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task]) -> PreparedAction:
+class ReleaseCatalog(Protocol):
+    """What indexes a release (the project's is ``manifests.catalog.ManifestCatalog``, Parquet): the engine stages
+    and swaps in the files and hands the catalog what to record; it never reads or writes the index itself."""
+
+    def asset_row(self, release: Path, path: Path, kind: str, action_id: str | None = None,
+                  camera_id: str | None = None, digest: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The index row of one release file (its ``path`` relative to ``release`` under ``"path"``); ``digest``:
+        its ``{"bytes", "sha256"}`` when known (None: the catalog hashes the file)."""
+
+    def write_manifests(self, release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,
+                        action_status: dict[str, str], action_errors: dict[str, str],
+                        asset_rows: list[dict[str, Any]], places: dict[Path, str],
+                        table_rows: dict[str, list[dict[str, Any]]]) -> None:
+        """Index this run: its actions (``action_status``, ``action_errors``), their raw frames (``digests``), the
+        files published (``asset_rows``), the plan's tasks, and the rows stages add to other tables."""
+
+    def write_page(self, release: Path) -> None:
+        """The release's page, from the index just written."""
+
+
+def prepare_action(release: Path, work: Path, store: ArtifactStore, action_id: str, tasks: list[Task],
+                   catalog: ReleaseCatalog) -> PreparedAction:
     """Stage an action's release files: hard-linked (or copied, across file systems) from the store into
     ``release/actions/.tmp-<id>``, and the files its stages publish at the release root (``release_root_files``,
     e.g. ``relight/<example>/``) into ``release/.tmp-root-<id>``, and hash them. Nothing the release shows changes
@@ -112,8 +138,6 @@ def prepare_action(release: Path, work: Path, store: ArtifactStore, action_id: s
     Raises:
         OSError: the staging could not be written (full disk, read-only folder); what was staged is removed.
     """
-    from manifests import asset_row
-
     keys = {t.stage.name: t.key for t in tasks}
     record_path = work / "published" / f"{action_id}.json"
     final = release / "actions" / action_id
@@ -130,30 +154,35 @@ def prepare_action(release: Path, work: Path, store: ArtifactStore, action_id: s
         entries, root_entries, tables = [], [], {}
         for task in tasks:
             artifact = store.final_dir(task.stage.name, task.scope_id, task.key)
+            success = store.success_record(task.stage.name, task.scope_id, task.key)
             for src, rel, kind, camera in (task.stage.release_files(artifact) if hasattr(task.stage, "release_files")
                                            else []):
                 link_or_copy(src, tmp / rel)
-                entries.append((rel, kind, camera))
+                entries.append((rel, kind, camera, store.file_digest(success, artifact, src)))
             if hasattr(task.stage, "release_root_files"):
-                root_entries += task.stage.release_root_files(artifact)
+                root_entries += [(src, rel, kind, store.file_digest(success, artifact, src))
+                                 for src, rel, kind in task.stage.release_root_files(artifact)]
             if hasattr(task.stage, "manifest_rows"):
                 for table, rows in task.stage.manifest_rows(artifact).items():
                     tables.setdefault(table, []).extend(rows)
-        rows = [asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera)
-                for rel, kind, camera in entries]
+        # the digests come from the success records (hashed by the tasks that wrote the files); a file without
+        # one (a result committed before the records held digests) is hashed here
+        rows = [catalog.asset_row(release, tmp / rel, kind, action_id=action_id, camera_id=camera, digest=digest)
+                for rel, kind, camera, digest in entries]
         prefix = f"actions/.tmp-{action_id}/"
-        for row in rows:  # rows were hashed in the temporary folder; record their final paths
+        for row in rows:  # rows were made in the temporary folder; record their final paths
             row["path"] = row["path"].replace(prefix, f"actions/{action_id}/", 1)
-        for src, rel, kind in root_entries:
+        for src, rel, kind, digest in root_entries:
             link_or_copy(src, staging / rel)
-            row = asset_row(release, staging / rel, kind, action_id=action_id)
+            row = catalog.asset_row(release, staging / rel, kind, action_id=action_id, digest=digest)
             row["path"] = rel
             rows.append(row)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    record = {"keys": keys, "assets": rows, "root_units": _root_units(root_entries), "tables": tables}
+    record = {"keys": keys, "assets": rows, "root_units": _root_units([e[:3] for e in root_entries]),
+              "tables": tables}
     return PreparedAction(action_id, rows, tables, record, cached=False, tmp=tmp, staging=staging,
                           old_units=list(old_record.get("root_units", [])))
 
@@ -234,43 +263,53 @@ def run_pipeline(capture_dir: Path, release: Path, work: Path, stages: Sequence[
                  progress: Callable[[Task, dict, int, int], None] | None = None,
                  view_progress: Callable[[Task, dict, int, int], None] | None = None,
                  stage_progress: Callable[[dict], None] | None = None,
-                 record: dict[str, Any] | None = None) -> RunResult:
-    """Run the DAG over a capture and publish the release. ``config`` is saved beside the run.
+                 record: dict[str, Any] | None = None, *, catalog: ReleaseCatalog) -> RunResult:
+    """Run the DAG over a capture and publish the release, indexed by ``catalog``. ``config`` is saved beside
+    the run.
 
     The run holds ``<work>/run.lock`` throughout (:mod:`pipeline.runlock`): a second run on the same work
     folder is refused with :class:`pipeline.runlock.RunLockedError` before it reads or writes anything. The
     release gets ``run.json`` (:func:`write_run_record`, with ``record``'s fields, e.g. the preset name), its
-    manifests and its page (``index.html``, :func:`manifests.page.write_release_page`).
+    index and its page (:class:`ReleaseCatalog`).
     """
     check_writable(Path(work), "the work folder")
     with hold_run_lock(work, echo=echo):
-        return _run_pipeline_locked(capture_dir, release, work, stages, config, execution, only, from_stage,
-                                    actions, echo, progress, view_progress, stage_progress, record)
+        start = time.perf_counter()
+        capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
+        capture = open_capture(capture_dir)
+        check_writable(release, "the release folder")
+        recover(release, echo)  # a publication a killed run left unfinished is rolled back
+        store = ArtifactStore(work / "artifacts")
+        digests = DigestCache(work / "digests.json")
+        run_id = new_run_id()
+        echo(f"run {run_id}: capture {capture_dir} -> release {release}")
+        plan, executor_name = _plan_and_execute(capture, stages, store, digests, execution, only, from_stage, actions,
+                                                echo, progress, view_progress, stage_progress)
+        wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
+        publication = _publish(release, work, capture, plan, digests, wanted, config, run_id, record or {}, catalog,
+                               echo)
+        (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
+        (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
+        return RunResult(run_id, plan, publication.action_status, publication.action_errors, publication.published,
+                         time.perf_counter() - start, executor_name)
 
 
-def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: Sequence[Stage], config: Any,
-                         execution: ExecutionConfig, only: str | None, from_stage: str | None,
-                         actions: Sequence[str] | None, echo: Callable[[str], None],
-                         progress: Callable[[Task, dict, int, int], None] | None,
-                         view_progress: Callable[[Task, dict, int, int], None] | None,
-                         stage_progress: Callable[[dict], None] | None,
-                         record: dict[str, Any] | None) -> RunResult:
-    start = time.perf_counter()
-    capture_dir, release, work = Path(capture_dir).resolve(), Path(release).resolve(), Path(work).resolve()
-    capture = open_capture(capture_dir)
-    check_writable(release, "the release folder")
-    recover(release, echo)  # a publication a killed run left unfinished is rolled back
-    store = ArtifactStore(work / "artifacts")
-    digests = DigestCache(work / "digests.json")
-    run_id = new_run_id()
+def _plan_and_execute(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, digests: DigestCache,
+                      execution: ExecutionConfig, only: str | None, from_stage: str | None,
+                      actions: Sequence[str] | None, echo: Callable[[str], None],
+                      progress: Callable[[Task, dict, int, int], None] | None,
+                      view_progress: Callable[[Task, dict, int, int], None] | None,
+                      stage_progress: Callable[[dict], None] | None) -> tuple[Plan, str]:
+    """Plan every task (``--only`` forces one stage, ``--from`` it and everything downstream), run those not
+    cached, and give every task its stats (a cached one's from its success record); the plan and the executor's
+    name."""
     names = {s.name for s in stages}
     for flag, name in (("--only", only), ("--from", from_stage)):
         if name and name not in names:
             raise ValueError(f"{flag} {name}: no such stage; stages are {sorted(names)}")
     force = {only} if only else (downstream_of(stages, from_stage) if from_stage else set())
-
-    echo(f"run {run_id}: capture {capture_dir} -> release {release}")
-    plan = make_plan(capture, stages, store, digests, actions=actions, force=force, echo=echo)
+    plan = make_plan(capture, stages, store, digests, actions=actions, force=force, echo=echo,
+                     hash_threads=execution.hash_threads)
     digests.save()
     executor_name = "none (everything cached)"
     if plan.to_run():
@@ -285,57 +324,81 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
     for task in plan.tasks:  # cached results carry the stats they were committed with
         if task.status == "cached":
             task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})
+    return plan, executor_name
 
-    action_status, action_errors, published = {}, {}, []
-    asset_rows: list[dict[str, Any]] = []
-    table_rows: dict[str, list[dict[str, Any]]] = {}
-    wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
-    # Publishing is one transaction: the action folders are staged beside the release first (where the bytes
-    # are written), then swapped in, then the documents, manifests and page are rewritten; any failure rolls
-    # all of it back, so the release is either this run's or the one before it.
+
+@dataclass
+class _Publication:
+    """What publishing a run decided per action, and what it staged."""
+
+    action_status: dict[str, str] = field(default_factory=dict)
+    action_errors: dict[str, str] = field(default_factory=dict)
+    published: list[str] = field(default_factory=list)
+    prepared: list[PreparedAction] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)
+    """Failed actions: taken out of the release if it holds them."""
+    asset_rows: list[dict[str, Any]] = field(default_factory=list)
+    table_rows: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+
+
+def _stage_actions(release: Path, work: Path, capture: Capture, plan: Plan, wanted: list[str],
+                   catalog: ReleaseCatalog, publication: _Publication) -> None:
+    """Sort ``wanted`` into published and failed actions, staging each complete one (:func:`prepare_action`)."""
+    for action_id in wanted:
+        session_id = capture.action(action_id).session_id
+        tasks = plan.of_scopes(session_id, action_id)
+        bad = [t for t in tasks if t.status not in ("ran", "cached")]
+        if bad:
+            first = next((t for t in bad if t.status == "failed"), bad[0])
+            publication.action_status[action_id] = "failed"
+            publication.action_errors[action_id] = f"{first.stage.name}: {first.error}"
+            publication.removed.append(action_id)
+            continue
+        publication.action_status[action_id] = "ok"
+        prepared = prepare_action(release, work, plan.store, action_id, tasks, catalog)
+        publication.prepared.append(prepared)
+        publication.asset_rows += prepared.rows
+        for table, rows in prepared.tables.items():
+            publication.table_rows.setdefault(table, []).extend(rows)
+        publication.published.append(action_id)
+
+
+def _publish(release: Path, work: Path, capture: Capture, plan: Plan, digests: DigestCache, wanted: list[str],
+             config: Any, run_id: str, record: dict[str, Any], catalog: ReleaseCatalog,
+             echo: Callable[[str], None]) -> _Publication:
+    """Publish the run as one transaction: the action folders are staged beside the release first (where the
+    bytes are written), then swapped in, then the documents, index and page are rewritten; any failure rolls all
+    of it back, so the release is either this run's or the one before it. ``<work>/published`` follows once the
+    release holds this run's actions.
+
+    Raises:
+        WriteError: the release could not be written (naming the step); it is left as it was.
+    """
     txn = ReleaseTransaction(release)
     had_actions_folder = (release / "actions").is_dir()
-    prepared: list[PreparedAction] = []
-    removed: list[str] = []
+    publication = _Publication()
     step = "staging the action files beside the release"
     try:
-        for action_id in wanted:
-            session_id = capture.action(action_id).session_id
-            tasks = plan.of_scopes(session_id, action_id)
-            bad = [t for t in tasks if t.status not in ("ran", "cached")]
-            if bad:
-                first = next((t for t in bad if t.status == "failed"), bad[0])
-                action_status[action_id] = "failed"
-                action_errors[action_id] = f"{first.stage.name}: {first.error}"
-                removed.append(action_id)
-                continue
-            action_status[action_id] = "ok"
-            prepared.append(prepare_action(release, work, store, action_id, tasks))
-            asset_rows += prepared[-1].rows
-            for table, rows in prepared[-1].tables.items():
-                table_rows.setdefault(table, []).extend(rows)
-            published.append(action_id)
+        _stage_actions(release, work, capture, plan, wanted, catalog, publication)
         step = "swapping the actions in"
         txn.keep_root_listing()
         for name in RELEASE_FILES_REWRITTEN:
             txn.keep_files(release / name)
-        for prep in prepared:
+        for prep in publication.prepared:
             swap_in(prep, release, txn)
-        unpublished = [a for a in removed if unpublish_action(release, work, a, txn)]
+        unpublished = [a for a in publication.removed if unpublish_action(release, work, a, txn)]
         step = "writing the documents"
         _write_release_docs(release, config, capture)
-        write_run_record(release, run_id, capture_dir, work, record or {})
+        write_run_record(release, run_id, capture.root, work, record)
         step = "writing the manifests"
-        places = {capture_dir: "<capture>", work: "<work>", release: "<release>"}
-        _write_manifests(release, capture, plan, digests, run_id, action_status,
-                         {a: portable_message(e, places) for a, e in action_errors.items()}, asset_rows, places,
-                         table_rows)
-        from manifests.page import write_release_page
-
+        places = {capture.root: "<capture>", work: "<work>", release: "<release>"}
+        catalog.write_manifests(release, capture, plan, digests, run_id, publication.action_status,
+                                {a: portable_message(e, places) for a, e in publication.action_errors.items()},
+                                publication.asset_rows, places, publication.table_rows)
         step = "writing the release page"
-        write_release_page(release)
+        catalog.write_page(release)
     except BaseException as exc:
-        for prep in prepared:
+        for prep in publication.prepared:
             for folder in (prep.tmp, prep.staging):
                 if folder is not None:
                     shutil.rmtree(folder, ignore_errors=True)
@@ -348,23 +411,19 @@ def _run_pipeline_locked(capture_dir: Path, release: Path, work: Path, stages: S
                                                          "before this run") from exc
         raise
     txn.commit()
-    for prep in prepared:
+    for prep in publication.prepared:
         echo(f"{'release':<12} {prep.action_id:<8} " + ("cached  same stage keys already published" if prep.cached
                                                           else f"written {len(prep.rows)} files"))
     for action_id in unpublished:
         echo(f"{'release':<12} {action_id:<8} removed (action failed)")
-    # what <work>/published says follows the release, once it holds this run's actions
-    for action_id in removed:
+    for action_id in publication.removed:
         (work / "published" / f"{action_id}.json").unlink(missing_ok=True)
-    for prep in prepared:
+    for prep in publication.prepared:
         if not prep.cached:
             record_path = work / "published" / f"{prep.action_id}.json"
             record_path.parent.mkdir(parents=True, exist_ok=True)
             _write_atomically(record_path, json.dumps(prep.record))
-    (work / "runs" / run_id).mkdir(parents=True, exist_ok=True)
-    (work / "runs" / run_id / "config.yaml").write_text(dump_yaml(config))
-    return RunResult(run_id, plan, action_status, action_errors, published, time.perf_counter() - start,
-                     executor_name)
+    return publication
 
 
 RUN_RECORD = "run.json"
@@ -410,10 +469,6 @@ def portable_message(text: str | None, places: dict[Path, str]) -> str | None:
     return text
 
 
-def _utc(epoch: float | None) -> datetime.datetime | None:
-    return None if epoch is None else datetime.datetime.fromtimestamp(epoch, datetime.timezone.utc)
-
-
 def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
     _write_atomically(release / "CONVENTIONS.md", CONVENTIONS.read_bytes())
     _write_atomically(release / "config.yaml", dump_yaml(config))
@@ -444,125 +499,3 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "interreflections; see metrics.parquet.",
              "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
     _write_atomically(release / "DATASHEET.md", "\n".join(lines))
-
-
-def _write_manifests(release: Path, capture: Capture, plan: Plan, digests: DigestCache, run_id: str,
-                     action_status: dict[str, str],
-                     action_errors: dict[str, str], asset_rows: list[dict[str, Any]],
-                     places: dict[Path, str],
-                     table_rows: dict[str, list[dict[str, Any]]] | None = None) -> None:
-    """The actions, frames, assets, stage_runs and metrics tables of this run, and the tables stages add rows to
-    (``table_rows``, e.g. relight_examples). ``action_errors`` are portable already; the frames' and stages'
-    errors are made so with ``places`` (:func:`portable_message`)."""
-    from manifests import append_rows, asset_row
-    from manifests.schemas import metric_unit
-    from manifests.writer import replace_rows, write_table_keeping
-
-    action_rows, frame_rows, metric_rows = [], [], []
-    for action_id, status in action_status.items():
-        info = capture.action(action_id)
-        session = capture.sessions[info.session_id]
-        tasks = plan.of_scopes(action_id)
-        decode = next((t for t in tasks if t.stage.name == "decode"), None)
-        views = (decode.stats.get("views", {}) if decode else {}) or {}
-        first_view = next(iter(views.values()), {})
-        cams = session.rig["cameras"]
-        action_rows.append({
-            "action_id": action_id, "session_id": info.session_id, "subject": info.subject, "status": status,
-            "error": action_errors.get(action_id), "n_cameras": len(cams),
-            "width": int(first_view.get("width", cams[0]["width"])),
-            "height": int(first_view.get("height", cams[0]["height"])),
-            "stages_run": sum(t.status == "ran" for t in tasks), "stages_cached": sum(t.status == "cached" for t in tasks),
-            "seconds": float(sum(t.seconds for t in tasks))})
-        error = action_errors.get(action_id, "")
-        # Stages may report cameras they had to leave out (e.g. not calibrated): those frames failed.
-        missing_views: dict[str, str] = {}
-        for task in plan.of_scopes(info.session_id, action_id):
-            missing_views |= task.stats.get("missing_views", {}) or {}
-        for illum in capture.illuminations:
-            paths = capture.raw_paths(action_id, illum, [cam["camera_id"] for cam in cams])  # one folder listing
-            for cam in cams:
-                path = paths[cam["camera_id"]]
-                row = {"action_id": action_id, "camera_id": cam["camera_id"], "illumination": illum,
-                       "raw_path": None, "raw_bytes": None, "raw_sha256": None,
-                       "exposure_s": cam.get("exposure_s"), "width": cam["width"], "height": cam["height"],
-                       "status": "missing", "error": f"no raw file for camera {cam['camera_id']} under '{illum}'"}
-                if path is not None:
-                    d = digests.digest(path)
-                    failed_here = status == "failed" and portable_message(str(path), places) in error
-                    left_out = missing_views.get(cam["camera_id"])
-                    row |= {"raw_path": path.relative_to(capture.root).as_posix(), "raw_bytes": d["bytes"],
-                            "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
-                            "error": error if failed_here else (portable_message(f"camera {cam['camera_id']}: {left_out}", places) if left_out else None)}
-                frame_rows.append(row)
-        # Calibration frames a session stage left out (its stats' "calibration_left_out": camera -> file and
-        # reason, also logged): one row per camera and stage for every action the calibration feeds.
-        for task in plan.of_scopes(info.session_id):
-            for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
-                metric_rows.append({"action_id": action_id, "camera_id": cam,
-                                    "metric": f"{task.stage.name}_calibration_frame_left_out", "region": None,
-                                    "environment": None, "value": 1.0, "unit": "count",
-                                    "source": task.stage.name, "run_id": run_id})
-        for task in tasks:
-            if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
-                continue
-            for cam, stats in (task.stats.get("views", {}) or {}).items():
-                for metric, value in (stats or {}).items():
-                    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-                        # named after the stage: its 'valid_fraction' is not evaluate's (one name, one quantity)
-                        metric_rows.append({"action_id": action_id, "camera_id": cam,
-                                            "metric": f"{task.stage.name}_{metric}",
-                                            "region": None, "environment": None, "value": float(value),
-                                            "unit": metric_unit(metric), "source": task.stage.name,
-                                            "run_id": run_id})
-    stage_rows = [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
-                   "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
-                   "seconds": float(t.seconds), "error": portable_message(t.error, places),
-                   "started_at": _utc(t.started_at), "config_json": json.dumps(t.record["config"], sort_keys=True)}
-                  for t in plan.tasks]
-    for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml", RUN_RECORD):
-        asset_rows.append(asset_row(release, release / name, "document"))
-    # A run over some actions (--actions) leaves the other published actions' rows in place.
-    keep = [a.action_id for a in capture.actions
-            if a.action_id not in action_status and (release / "actions" / a.action_id).is_dir()]
-    from manifests.writer import manifest_path
-
-    table_rows = dict(table_rows or {})
-    if manifest_path(release, "relight_examples").exists():  # rewritten even when no action added rows
-        table_rows.setdefault("relight_examples", [])
-    for table, rows in sorted(table_rows.items()):
-        write_table_keeping(release, table, rows, keep)
-    asset_rows += _write_split_lists(release)
-    write_table_keeping(release, "actions", action_rows, keep)
-    write_table_keeping(release, "frames", frame_rows, keep)
-    write_table_keeping(release, "assets", asset_rows, keep)
-    append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
-    # This run's actions get their stage statistics anew; a failed action keeps no numbers at all (its
-    # accuracy rows described files that are gone); evaluate owns the other rows of the published ones.
-    replace_rows(release, "metrics", metric_rows,
-                 drop=lambda row: row["action_id"] in action_status and (
-                     row["source"] != "evaluate" or action_status[row["action_id"]] != "ok"))
-
-
-def _write_split_lists(release: Path) -> list[dict[str, Any]]:
-    """``relight/splits/<split>.txt``: the relighting set's example ids per split, one a line (for the codes that
-    read list files), rewritten from the whole relight_examples table; their asset rows."""
-    from manifests import asset_row, read_manifest
-    from manifests.schemas import SPLITS
-
-    table = read_manifest(release, "relight_examples")
-    folder = release / "relight" / "splits"
-    if table is None or table.num_rows == 0:
-        shutil.rmtree(folder, ignore_errors=True)
-        return []
-    ids, splits = table.column("example_id").to_pylist(), table.column("split").to_pylist()
-    folder.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for split in SPLITS:
-        path = folder / f"{split}.txt"
-        chosen = sorted(i for i, s in zip(ids, splits) if s == split)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text("".join(f"{i}\n" for i in chosen))
-        os.replace(tmp, path)
-        rows.append(asset_row(release, path, "relight_split"))
-    return rows

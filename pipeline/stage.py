@@ -1,4 +1,4 @@
-"""The stage contract (DESIGN.md): what a stage declares and what it sees when it runs.
+"""The stage contract (../shared/DESIGN.md, "The stage contract"): what a stage declares and what it sees when it runs.
 
 A stage declares ``name``, ``version``, ``scope`` ("action" or "session"), ``requires`` (upstream stage
 names), ``outputs`` (named slots, each a folder in its artifact) and ``resources``. A per-view stage

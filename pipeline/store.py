@@ -92,8 +92,11 @@ class ArtifactStore:
 
     def commit(self, stage: str, scope_id: str, key: str, record: dict[str, Any],
                stats: dict[str, Any], seconds: float, attempt: str | None = None,
-               started_at: float | None = None) -> Path:
+               started_at: float | None = None, files: dict[str, dict[str, Any]] | None = None) -> Path:
         """Write the success record into the temporary folder and rename it into place.
+
+        ``files``: path in the folder -> ``{"bytes", "sha256", "mtime_ns"}`` of the files the stage publishes
+        (:func:`pipeline.graph.published_digests`), kept in the record for :meth:`file_digest`.
 
         ``attempt`` names the execution that commits (:func:`committed_by`). Hidden ``*.tmp`` files left in the
         folder by a writer that died before renaming them (the codecs write ``.<name>.<pid>.tmp``, then rename:
@@ -105,11 +108,30 @@ class ArtifactStore:
             leftover.unlink()
         success = {"stage": stage, "scope_id": scope_id, "key": key, "record": record, "stats": stats,
                    "seconds": seconds, "committed_at": time.time(), "attempt": attempt,
-                   "started_at": started_at}
+                   "started_at": started_at, "files": files or {}}
         (tmp / SUCCESS).write_text(json.dumps(success, indent=1, sort_keys=True))
         swap_into_place(tmp, final)  # a forced rerun of the same key replaces the old copy
         self.note_committed(stage, scope_id, key, record)
         return final
+
+    @staticmethod
+    def file_digest(success: dict[str, Any], artifact: Path, path: Path) -> dict[str, Any] | None:
+        """``{"bytes", "sha256"}`` of ``path`` (a file in the committed folder ``artifact``) from its success
+        record ``success``, when the record has it and the file's size and mtime are still the ones hashed;
+        else None (the caller hashes the file)."""
+        try:
+            entry = success.get("files", {}).get(Path(path).relative_to(artifact).as_posix())
+        except ValueError:
+            return None
+        if entry is None:
+            return None
+        try:
+            stat = os.stat(path)
+        except OSError:
+            return None
+        if stat.st_size != entry["bytes"] or stat.st_mtime_ns != entry["mtime_ns"]:
+            return None
+        return {"bytes": entry["bytes"], "sha256": entry["sha256"]}
 
     def note_committed(self, stage: str, scope_id: str, key: str, record: dict[str, Any]) -> None:
         """``latest.json`` names this key, and its last failure is forgotten (idempotent: the tail of a commit)."""

@@ -43,6 +43,7 @@ from calibration.markers import MarkerCalibrationConfig
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from stages.numerics.camera import camera_centre
 
 
 @dataclass(frozen=True)
@@ -72,11 +73,6 @@ class _MarkerCalibrationFailed(InputError):
     def __init__(self, path: Path, reason: str, left_out: dict[str, str]):
         super().__init__(path, reason)
         self.left_out = dict(left_out)
-
-
-def _centre(cam_from_world: Any) -> np.ndarray:
-    P = np.asarray(cam_from_world, dtype=float)
-    return -P[:, :3].T @ P[:, 3]
 
 
 class CamerasStage(Stage):
@@ -222,7 +218,7 @@ class CamerasStage(Stage):
             paths.append(write_png(image_dir / f"{cam}.png", pic))
         names = [p.name for p in paths]
         priors = {f"{c}.png": np.asarray(rig_cams[c]["K"], float) for c in rig_cams if f"{c}.png" in names}
-        centres = {f"{c}.png": _centre(rig_cams[c]["cam_from_world"]) for c in rig_cams if f"{c}.png" in names}
+        centres = {f"{c}.png": camera_centre(rig_cams[c]["cam_from_world"]) for c in rig_cams if f"{c}.png" in names}
         where = ctx.raw_inputs["rig.json"]  # errors name the session's rig spec, not a scratch folder
         try:
             result = calibrate_images(paths, ctx.out_dir / "work", self.config.geometric, intrinsics_prior=priors,

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -167,8 +168,46 @@ def _work_dir(args: argparse.Namespace, release: Path) -> Path:
     return Path(args.work) if args.work else release.with_name(release.name + ".work")
 
 
+def _start_truth_prefetch(capture: Path, work: Path, stages: list[Any]) -> Any:
+    """A lowest-priority process tracing the ground truth's visibility for the relit evaluation
+    (:func:`synthetic.relight.prefetch_visibility`) while the pipeline runs: it takes the cores' idle moments,
+    and the evaluation after the run finds what it finished. None when nothing would use it (no ground truth,
+    no relit stage)."""
+    import subprocess
+
+    if not (capture / "ground_truth").is_dir() or not {"relight", "relightset"} & {s.name for s in stages}:
+        return None
+    try:
+        record = json.loads((capture / "capture.json").read_text())
+        if not isinstance(record.get("simulator"), dict):
+            return None
+        rig = json.loads((capture / record["sessions"][0]["rig"]).read_text())
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return None  # the run itself names what is wrong with the capture
+    from evaluation.release import RELIT_CACHE, relit_truth_lights, truth_visibility_folder
+
+    lights = relit_truth_lights(rig.get("cameras", []))
+    folder = truth_visibility_folder(work / RELIT_CACHE)
+    # os.nice in the child itself: a preexec_fn is not safe once the parent runs threads
+    script = ("import os, sys; os.nice(19); from synthetic.relight import prefetch_visibility; "
+              "prefetch_visibility(sys.argv[1], sys.argv[2], int(sys.argv[3]))")
+    return subprocess.Popen([sys.executable, "-c", script, str(capture), str(folder), str(lights)],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env=os.environ | {"OMP_NUM_THREADS": "1"})
+
+
+def _stop(process: Any) -> None:
+    """End a helper process (what it finished is on disk, written whole)."""
+    if process is not None and process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(timeout=30)
+        except Exception:  # noqa: BLE001 - it must not outlive the command
+            process.kill()
+
+
 def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
-    from pipeline.runner import run_pipeline
+    from stages.run import run_pipeline
     from stages.registry import build_stages
 
     config = _resolve_config(args.preset, args.config, args.scheduler)
@@ -190,14 +229,18 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         print("plan: " + ", ".join(f"{v} {k}" for k, v in counts.items()))
         return 0
     on_done, on_view, on_progress = _progress_printer()
-    result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
-                          only=args.only, from_stage=args.from_stage, actions=actions,
-                          progress=on_done, view_progress=on_view, stage_progress=on_progress,
-                          record={"preset": args.preset, **({"through": args.through} if args.through else {})})
-    metrics = None
     truth = Path(args.capture) / "ground_truth"
+    prefetch = None if args.no_evaluate else _start_truth_prefetch(Path(args.capture), work, stages)
+    try:
+        result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
+                              only=args.only, from_stage=args.from_stage, actions=actions,
+                              progress=on_done, view_progress=on_view, stage_progress=on_progress,
+                              record={"preset": args.preset, **({"through": args.through} if args.through else {})})
+    finally:
+        _stop(prefetch)
+    metrics = None
     if not args.no_evaluate and truth.is_dir() and result.published:
-        from stages.evaluate import evaluate_release_cached
+        from evaluation.release import evaluate_release_cached
 
         summary, cached = evaluate_release_cached(release, truth, work, run_id=result.run_id)
         print(f"{'evaluate':<12} {'release':<8} {'cached  release unchanged since its last evaluation' if cached else 'ran'}")
@@ -205,7 +248,7 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         result.metrics = metrics
     _summary(result, metrics)
     if metrics:
-        from stages.evaluate import print_overall
+        from evaluation.release import print_overall
 
         print_overall(summary)
     return 0 if all(s == "ok" for s in result.action_status.values()) else 3
@@ -246,7 +289,7 @@ def cmd_rerun(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from stages.evaluate import evaluate_release, print_overall
+    from evaluation.release import evaluate_release, print_overall
 
     summary = evaluate_release(Path(args.release), Path(args.truth))
     print_overall(summary)

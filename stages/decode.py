@@ -1,4 +1,4 @@
-"""Action stage ``decode`` and session stage ``plates``: raw files to linear sRGB EXR, one task per camera.
+"""Action stage ``decode``: raw files to linear sRGB EXR, one task per camera.
 
 Wiring only: the decoding itself is :func:`pipeline.codecs.raw.decode_raw`. Each camera's three
 illuminations are decoded in one task and written as half-float EXR (its header says the colour space and
@@ -24,9 +24,9 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
+from stages.artifacts import colour_matrix
 from stages.cameras import load_cameras, unregistered_cameras
 from stages.exr_headers import EXR_HEADERS
-from stages.lightcolour import colour_matrix
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -205,34 +205,3 @@ class DecodeStage(Stage):
             files += [(p, f"{illum}/{p.name}", illum, p.stem) for p in sorted((artifact / illum).glob("*.exr"))]
             files += [(p, f"{illum}/{p.name}", f"{illum}_png", p.stem) for p in sorted((artifact / illum).glob("*.png"))]
         return files
-
-
-class PlatesStage(Stage):
-    """Clean plates (the empty stage under full_on), decoded once per session for foreground masks."""
-
-    name = "plates"
-    version = "2"
-    scope = "session"
-    requires = ("colour",)
-    outputs = ("plates",)
-    per_view = True
-    config_section = "decode"
-
-    def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
-        session = capture.sessions[scope_id]
-        found = {cam: capture.background_path(scope_id, cam) for cam in session.camera_ids}
-        return {f"background/{cam}": path for cam, path in found.items() if path is not None}
-
-    def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        path = ctx.raw_inputs.get(f"background/{view}")
-        if path is None:
-            return {"plate": False}
-        cam = next(c for c in ctx.rig["cameras"] if c["camera_id"] == view)
-        frame = decode_raw(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
-                           expected_size=(int(cam["height"]), int(cam["width"])))
-        matrix = colour_matrix(ctx.upstream["colour"], view)
-        if matrix is not None:
-            apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
-            np.maximum(frame.rgb, 0.0, out=frame.rgb)
-        write_exr(ctx.out_dir / "plates" / f"{view}.exr", frame.rgb)
-        return {"plate": True, "mean": float(frame.rgb.mean())}

@@ -20,7 +20,7 @@ from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
 from stages.exr_headers import EXR_HEADERS
-from stages.lightcolour import load_light_model
+from stages.artifacts import load_light_model
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import joint_bilateral
@@ -38,18 +38,14 @@ class DiffuseNormalsConfig(Documented):
 
     enabled: bool = True
     """Write ``normal_diffuse`` (and so release them). The ratio normals stay the release's ``normal_alpha``: the
-    SDF is fitted to those (with the specular-fitted ones its mesh came out 1.5 mm larger, Chamfer 2.2 -> 3.3 mm:
-    the fit leaves a few hundredths of n.v of bias per material, which moves a 10 cm limb's surface by
-    millimetres)."""
+    SDF is fitted to those (with the specular-fitted ones its mesh came out about a millimetre larger, a worse
+    Chamfer: the fit leaves a few hundredths of n.v of bias per material, which moves a 10 cm limb's surface
+    by millimetres)."""
     use_materials_roughness: bool = True
-    """Fit each pixel with the materials stage's roughness texture seen through the textured mesh. On the
-    default capture (`make dataset`, valid pixels of every camera, the Adam fit of the time) the maps came
-    closer to the simulator's normals, 7.08 -> 6.38 deg, shiny leather (roughness 0.25) most: 11.6 -> 8.2 deg
-    (6.33 deg with the Levenberg-Marquardt fit; 6.38 since the materials stage leaves shadowed texels out of
-    its roughness median, which brought the roughness closer to the truth, MAE 0.079 -> 0.064).
-    bench_diffuse_normals (8 cameras per action): 7.13 -> 6.48 and 7.88 -> 7.12 deg, against 6.32 and 6.87 with
-    the simulator's own roughness, for the same fit time.
-    Off: every pixel is fitted with ``fit.roughness``."""
+    """Fit each pixel with the materials stage's roughness texture seen through the textured mesh: on the
+    default capture the maps come closer to the simulator's normals than with one roughness prior, shiny
+    materials most, most of the way to a fit with the simulator's own roughness, for the same fit time
+    (bench/bench_diffuse_normals.py measures the three). Off: every pixel is fitted with ``fit.roughness``."""
     fit: SpecularConfig = field(default_factory=SpecularConfig)
     """The per-pixel fit; its ``roughness`` is used where the textured mesh does not cover a pixel (every
     pixel with ``use_materials_roughness`` off)."""
@@ -61,20 +57,18 @@ class DiffuseNormalsConfig(Documented):
     albedo: bool = True
     """Also write ``albedo_diffuse``: the released white-light albedo less the GGX reflection of the white light
     that the fitted normals, each pixel's roughness and the materials stage's F0 predict (its roughness was
-    fitted with that F0). On the default capture (bench_diffuse_normals, 8 cameras per action, median over the
-    valid pixels) the white-light albedo lies 0.017-0.020 above the simulator's albedo head-on (n.v > 0.7) and
-    0.057-0.060 at grazing views (n.v < 0.15); ``albedo_diffuse`` lies within 0.005 for n.v > 0.15 and 0.011
-    below (PSNR 27.2 -> 27.6 and 26.9 -> 27.5 dB), for 0.04 s per camera. It still holds the stage's ambient
-    occlusion, as the white-light albedo."""
+    fitted with that F0). On the default capture the white-light albedo lies above the simulator's albedo,
+    about three times more at grazing views than head-on, and ``albedo_diffuse`` much closer to it at every
+    n.v, for a few hundredths of a second per camera (bench/bench_diffuse_normals.py: the median difference
+    per band of n.v and the PSNR of both). It still holds the stage's ambient occlusion, as the white-light
+    albedo."""
     occlusion: bool = True
     """Divide the occlusion of the LED sphere out of the fitted normals: the mesh's visibility of each pixel's
     surface point over ``occlusion_directions`` directions, inverted by
     :func:`stages.numerics.shadowing.deocclude_normals` (eq. 1's ratio measures the cosine-weighted mean of the
-    *visible* directions, which leans away from an arm or the other leg). On the default capture
-    (bench_diffuse_normals, 8 cameras per action, against the simulator's normals) 6.39 -> 4.64 deg on A0000
-    and 7.04 -> 5.72 on A0001 (56 -> 73% and 49 -> 60% under 5 deg); where less than 80% of the
-    cosine-weighted sphere is visible 15.7 -> 6.9 deg (A0000, one-off). The released maps of both actions
-    went 6.37 -> 4.99 deg (with the two-pass mesh and its roughness). About 1 s per camera."""
+    *visible* directions, which leans away from an arm or the other leg). On the default capture the maps
+    come closer to the simulator's normals, most where much of the cosine-weighted sphere is hidden
+    (bench/bench_diffuse_normals.py measures the error with and without). About 1 s per camera."""
     occlusion_directions: int = 256
     """Directions (Fibonacci sphere) of the visibility."""
     occlusion_min_visible: float = 0.1
@@ -92,7 +86,7 @@ class DiffuseNormalsConfig(Documented):
 @functools.lru_cache(maxsize=2)
 def _roughness_atlas(textures_dir: str, materials_dir: str) -> tuple[Any, Any, np.ndarray]:
     """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process)."""
-    from stages.materials import load_atlas_mesh
+    from stages.artifacts import load_atlas_mesh
     from stages.numerics.raycast import mesh_scene
 
     vertices, faces, atlas = load_atlas_mesh(Path(textures_dir) / "mesh" / "textured.obj")
@@ -191,7 +185,7 @@ class DiffuseNormalsStage(Stage):
         fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
         stats = {}
         if cfg.albedo:
-            from stages.materials import fitted_f0
+            from stages.artifacts import fitted_f0
 
             f0 = fitted_f0(ctx.upstream["materials"]) if cfg.use_materials_roughness else cfg.fit.f0
             albedo_diffuse = diffuse_albedo(albedo, normals, cam, roughness, f0)

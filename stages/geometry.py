@@ -1,8 +1,8 @@
-"""Action stages ``geometry`` (normal-supervised neural SDF -> mesh) and ``textures`` (UV atlas + baking).
+"""Action stage ``geometry``: the normal-supervised neural SDF and its mesh.
 
-Wiring only: the numerics are :mod:`stages.numerics.sdf` (NeuS with a hash encoding, trained from the
-photometric normal maps), :mod:`stages.numerics.mesh` (narrow-band marching cubes, components,
-decimation, xatlas) and :mod:`stages.numerics.bake` (texel reprojection into the cameras that see it).
+Wiring only: the action is :func:`stages.numerics.sdf_mesh.sdf_mesh` over :mod:`stages.numerics.sdf` (NeuS
+with a hash encoding, trained from the photometric normal maps) and :mod:`stages.numerics.mesh` (narrow-band
+marching cubes, components, decimation).
 
 The SDF is trained twice (``deocclude``): eq. 1's normals lean away from whatever hides part of the LED
 sphere, so a mesh fitted to them bulges where the body occludes itself (inner thighs, armpits, neck). A short
@@ -13,23 +13,19 @@ stage's time over the two passes' step counts.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.codecs.exr import read_exr, write_exr
-from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, read_png, write_png
+from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
-from stages.exr_headers import EXR_HEADERS
+from stages.artifacts import camera_maps
 from stages.numerics import numeric_threads
 from stages.numerics.sdf import SDF_PRESETS, SDFConfig
 
@@ -71,10 +67,10 @@ class GeometryConfig(Documented):
     second_pass_importance: float = 0.2
     """Share of the second pass's rays drawn where the first mesh's normal is more than
     ``second_pass_error_floor_deg`` off the de-occluded normal, in proportion to the excess (the fingers, the
-    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. Default
-    capture, second pass alone, A0000: Chamfer 1.51 -> 1.29 mm together with the cpu preset's table size and
-    grazing/outlier settings (without the share 1.52; the share alone with the former settings 1.49; a share of
-    0.5: 1.88, too few rays left for the rest). The mask loss counts only the uniform rays."""
+    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. On the
+    default capture the share lowers the second pass's Chamfer together with the cpu SDF preset's table size
+    and grazing/outlier settings; a share of 0.5 leaves too few rays for the rest. The mask loss counts only
+    the uniform rays."""
     second_pass_error_floor_deg: float = 10.0
     """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
     previews: bool = True
@@ -97,110 +93,6 @@ class GeometryConfig(Documented):
             raise ValueError(f"second_pass_error_floor_deg must be >= 0, got {self.second_pass_error_floor_deg!r}")
 
 
-def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarray, directions: int = 256,
-                         min_visible: float = 0.1,
-                         error_floor_deg: float | None = None) -> tuple[list[Any], dict[str, float]]:
-    """The SDF views with their normals' occlusion by the mesh ``vertices``/``faces`` divided out (valid pixels
-    only; the rest keep theirs) and the mean statistics of :func:`stages.numerics.shadowing.deocclude_view`
-    over the views.
-
-    With ``error_floor_deg`` each view also gets a ``sample_weight``: by how many degrees more than that the
-    mesh's normal misses the de-occluded one (valid pixels the mesh covers; 0 elsewhere), and the statistics
-    ``error_weighted_fraction`` (share of the valid pixels with a weight) and ``error_mean_deg`` (mean miss
-    over the valid pixels the mesh covers)."""
-    from stages.numerics.metrics import angular_error_deg
-    from stages.numerics.raycast import mesh_scene, render_mesh
-    from stages.numerics.shadowing import deocclude_view
-
-    scene = mesh_scene(vertices, faces)
-    out, records = [], []
-    for view in views:
-        valid = np.asarray(view.normal_valid, bool)
-        normals = np.where(valid[..., None], view.normals_world, 0.0).astype(np.float32)
-        render = None
-        if error_floor_deg is not None:
-            render = render_mesh(None, None, view.K, view.cam_from_world, *valid.shape, scene=scene)
-        fixed, record = deocclude_view(scene, view.K, view.cam_from_world, normals, directions, min_visible, render)
-        fixed = np.where(valid[..., None], fixed, view.normals_world).astype(np.float32)
-        changes: dict[str, Any] = {"normals_world": fixed}
-        if render is not None:
-            covered = valid & (render["depth_m"] > 0)
-            miss = np.where(covered, angular_error_deg(render["normals_world"], fixed), 0.0)
-            miss = np.nan_to_num(miss, nan=0.0, posinf=0.0, neginf=0.0)
-            changes["sample_weight"] = np.maximum(miss - float(error_floor_deg), 0.0).astype(np.float32)
-            record = record | {"error_weighted_fraction": float((changes["sample_weight"] > 0).sum() / max(valid.sum(), 1)),
-                               "error_mean_deg": float(miss[covered].mean()) if covered.any() else 0.0}
-        out.append(dataclasses.replace(view, **changes))
-        records.append(record)
-    stats = {k: float(np.mean([r[k] for r in records])) for k in records[0]} if records else {}
-    return out, stats
-
-
-def pass_configs(cfg: GeometryConfig) -> tuple[Any, Any]:
-    """The SDF configs of the stage's passes: ``(first, second)``, ``second`` None without ``deocclude``.
-
-    The first pass runs ``first_pass_iterations`` steps of ``cfg.sdf`` (its warm-up capped to them; the sharpness
-    ramp and coarse-to-fine are fractions of the steps); the second runs ``cfg.sdf`` with the importance share
-    of its rays, or continues the first field for ``deocclude_iterations`` steps at the final sharpness."""
-    if not cfg.deocclude:
-        return cfg.sdf, None
-    first = cfg.sdf
-    if cfg.first_pass_iterations > 0:
-        first = dataclasses.replace(cfg.sdf, iterations=cfg.first_pass_iterations,
-                                    warmup_iterations=min(cfg.sdf.warmup_iterations, cfg.first_pass_iterations))
-    second = cfg.sdf
-    if cfg.deocclude_iterations > 0:
-        second = dataclasses.replace(cfg.sdf, iterations=cfg.deocclude_iterations, inv_s_start=cfg.sdf.inv_s_end,
-                                     coarse_to_fine=0.0,
-                                     warmup_iterations=min(cfg.sdf.warmup_iterations, cfg.deocclude_iterations))
-    return first, dataclasses.replace(second, importance_fraction=cfg.second_pass_importance)
-
-
-def second_pass_views(cfg: GeometryConfig, views: list[Any], vertices: np.ndarray,
-                      faces: np.ndarray) -> tuple[list[Any], dict[str, float]]:
-    """The second SDF pass's views as ``cfg`` asks for them: :func:`deoccluded_sdf_views` of the first mesh,
-    with sample weights when ``cfg.second_pass_importance`` draws a share of the rays by them."""
-    return deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions, cfg.deocclude_min_visible,
-                                cfg.second_pass_error_floor_deg if cfg.second_pass_importance > 0 else None)
-
-
-@dataclass(frozen=True)
-class TexturesConfig(Documented):
-    atlas_faces: int = 40_000
-    """Faces of the textured mesh (xatlas time grows faster than linearly with faces)."""
-    texture_size: int = 1024
-    """Width and height of the texture atlas in texels."""
-    atlas_padding: int = 2
-    """Texels between charts in the atlas."""
-    max_views: int = 3
-    """A texel blends at most this many of the cameras that see it (the most frontal)."""
-    depth_tolerance_m: float = 0.01
-    """A texel is visible in a camera when its depth is within this of the mesh's depth there."""
-    min_cos: float = 0.2
-    """Cameras seeing a texel at more grazing angles than this cosine are not used."""
-    min_alpha: float = 0.5
-    """Map pixels with a lower validity alpha are not baked."""
-    previews: bool = True
-    """Write PNG previews of the textures."""
-
-
-def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, dict[str, Any]]:
-    """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
-    missing camera, with no calibration or failed frames, has none)."""
-    cameras = load_cameras(decode_dir / "cameras.json")
-    return {c: cameras[c] for c in sorted(cameras) if (photometric_dir / "normal_alpha" / f"{c}.exr").exists()}
-
-
-def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
-    """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
-    :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
-    for cam_id, cam in mapped_cameras(decode_dir, photometric_dir).items():
-        normal_alpha = read_exr(photometric_dir / "normal_alpha" / f"{cam_id}.exr")
-        mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
-
-
 def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:
     """The calibrated cameras that have maps, as :class:`SDFView` records (sorted by camera id)."""
     from stages.numerics.sdf import SDFView
@@ -208,8 +100,7 @@ def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) ->
     ids, views = [], []
     for cam_id, cam, normal_alpha, mask, valid in camera_maps(decode_dir, photometric_dir, min_alpha):
         views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]), normal_valid=valid,
-                             mask=mask, K=np.asarray(cam["K"], np.float64),
-                             cam_from_world=np.asarray(cam["cam_from_world"], np.float64)))
+                             mask=mask, K=cam.K, cam_from_world=cam.cam_from_world))
         ids.append(cam_id)
     return ids, views
 
@@ -268,8 +159,8 @@ class GeometryStage(Stage):
         import torch
 
         from pipeline.codecs.mesh import write_ply
-        from stages.numerics.mesh import decimate, extract_mesh, largest_component, vertex_normals
-        from stages.numerics.sdf import train_sdf
+        from stages.numerics.mesh import vertex_normals
+        from stages.numerics.sdf_mesh import sdf_mesh
 
         torch.set_num_threads(numeric_threads())
         cfg: GeometryConfig = self.config
@@ -277,63 +168,23 @@ class GeometryStage(Stage):
         if len(views) < cfg.min_views:
             raise InputError(ctx.upstream["photometric"] / "normal_alpha",
                              f"{len(views)} camera(s) have normal maps; the SDF needs at least {cfg.min_views}")
-        start = time.perf_counter()
-        passes = 2 if cfg.deocclude else 1
-        first, second = pass_configs(cfg)
-        total = first.iterations + (second.iterations if second is not None else 0)
-        reported = {"tenth": 0, "done": 0}
-
-        def progress(iteration: int, record: dict[str, float]) -> None:
-            # train_sdf calls every log_every steps; show about one line per tenth of the whole schedule
-            step = reported["done"] + iteration
-            tenth = 10 * step // max(total, 1)
-            if tenth > reported["tenth"]:
-                reported["tenth"] = tenth
-                ctx.progress(step, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
-
-        def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution):
-            result = train_sdf(sdf_views, config, progress=progress, init=init)
-            reported["done"] += config.iterations
-            vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds), resolution)
-            extracted = len(faces)
-            vertices, faces = largest_component(vertices, faces)
-            vertices, faces = decimate(vertices, faces, cfg.face_budget)
-            if len(faces) == 0 or not np.all(np.isfinite(vertices)):
-                raise RuntimeError(f"the SDF of {ctx.scope_id} gave no usable surface (faces {len(faces)})")
-            return result, vertices, faces, mesh_stats | {"faces_extracted": extracted}
-
-        result, vertices, faces, mesh_stats = fit(views, first, resolution=(
-            cfg.first_pass_mesh_resolution or cfg.mesh_resolution) if second is not None else cfg.mesh_resolution)
-        first_pass = None
-        deocclusion: dict[str, float] = {}
-        if second is not None:
-            tick = time.perf_counter()
-            sdf_views, deocclusion = second_pass_views(cfg, views, vertices, faces)
-            deocclusion["seconds"] = time.perf_counter() - tick
-            weighted = (f"; {100 * deocclusion['error_weighted_fraction']:.1f}% of the pixels, where the first mesh "
-                        f"misses the normals by > {cfg.second_pass_error_floor_deg:g} deg, draw "
-                        f"{100 * cfg.second_pass_importance:.0f}% of the rays") if "error_weighted_fraction" in deocclusion else ""
-            ctx.log.info(f"second SDF pass on de-occluded normals (mean turn "
-                         f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s{weighted})")
-            first_pass = {"stats": result.stats, "history": result.history, "mesh_faces": int(len(faces))}
-            result, vertices, faces, mesh_stats = fit(sdf_views, second,
-                                                      result.field if cfg.deocclude_iterations > 0 else None)
-        train_s = time.perf_counter() - start
+        fitted = sdf_mesh(views, cfg, label=ctx.scope_id, progress=ctx.progress, log=ctx.log.info)
+        result, vertices, faces, mesh_stats = fitted.result, fitted.vertices, fitted.faces, fitted.mesh_stats
         out = ctx.out_dir
         (out / "sdf").mkdir(parents=True, exist_ok=True)
         torch.save(result.field.to_state(), out / "sdf" / "sdf.pt")
         (out / "sdf" / "training.json").write_text(json.dumps(
             {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
-             "history": result.history, "deocclusion": deocclusion, "first_pass": first_pass},
+             "history": result.history, "deocclusion": fitted.deocclusion, "first_pass": fitted.first_pass},
             indent=1, default=float))
         write_ply(out / "mesh" / "mesh.ply", vertices, faces, normals=vertex_normals(vertices, faces))
         if cfg.previews:
             _loss_plot(out / "previews" / "sdf_losses.png", result.history)
             write_png(out / "previews" / "mesh_normals.png", _normals_comparison(vertices, faces, views))
-        return {"cameras": len(views), "train_seconds": train_s, "passes": passes,
+        return {"cameras": len(views), "train_seconds": fitted.train_seconds, "passes": fitted.passes,
                 "faces_extracted": int(mesh_stats["faces_extracted"]), "mesh_faces": int(len(faces)),
                 "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
-                "deocclusion": deocclusion,
+                "deocclusion": fitted.deocclusion,
                 "sdf": {k: v for k, v in result.stats.items() if isinstance(v, (int, float, str))},
                 "mesh": {k: v for k, v in mesh_stats.items() if isinstance(v, (int, float, str))}}
 
@@ -342,69 +193,4 @@ class GeometryStage(Stage):
         for name, kind in (("sdf_losses.png", "preview_sdf_losses"), ("mesh_normals.png", "preview_mesh_normals")):
             if (artifact / "previews" / name).exists():
                 files.append((artifact / "previews" / name, f"previews/{name}", kind, None))
-        return files
-
-
-class TexturesStage(Stage):
-    """UV atlas of the decimated mesh and albedo/normal textures baked from the photometric maps."""
-
-    name = "textures"
-    version = "3"
-    scope = "action"
-    requires = ("geometry", "photometric", "decode")
-    outputs = ("mesh", "textures", "previews")
-
-    def run(self, ctx: StageContext) -> dict[str, Any]:
-        from pipeline.codecs.mesh import read_ply, write_obj
-        from stages.numerics.bake import BakeView, bake_textures
-        from stages.numerics.mesh import decimate, uv_atlas, vertex_normals
-
-        cfg: TexturesConfig = self.config
-        start = time.perf_counter()
-        vertices, faces = read_ply(ctx.upstream["geometry"] / "mesh" / "mesh.ply")
-        vertices, faces = decimate(vertices, faces, cfg.atlas_faces)
-        atlas = uv_atlas(vertices, faces, resolution=cfg.texture_size, padding=cfg.atlas_padding)
-        atlas_s = time.perf_counter() - start
-
-        photometric = ctx.upstream["photometric"]
-        views = [BakeView(images={"albedo": read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3],
-                                  "normal": np.ascontiguousarray(normal_alpha[..., :3])},
-                          valid=valid, K=np.asarray(cam["K"], np.float64),
-                          cam_from_world=np.asarray(cam["cam_from_world"], np.float64))
-                 for cam_id, cam, normal_alpha, _, valid in camera_maps(ctx.upstream["decode"], photometric,
-                                                                         cfg.min_alpha)]
-        start = time.perf_counter()
-        baked = bake_textures(vertices, faces, atlas, views, cfg.texture_size, max_views=cfg.max_views,
-                              depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
-        bake_s = time.perf_counter() - start
-
-        out = ctx.out_dir
-        tex = out / "textures"
-        write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
-        write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
-        write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
-        write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
-        # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
-        write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
-        atlas_vertices = np.asarray(vertices)[atlas.vmapping]
-        write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
-                  normals=vertex_normals(atlas_vertices, atlas.faces),
-                  material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
-        if cfg.previews:
-            covered = baked.covered.astype(np.float32)
-            write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
-            write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
-        return {"atlas_faces": int(len(faces)), "atlas_seconds": atlas_s, "bake_seconds": bake_s,
-                "cameras": len(views),
-                "bake": {k: v for k, v in baked.stats.items() if isinstance(v, (int, float, str))}}
-
-    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        # mesh/textured.obj is published by the exports stage, with its texture beside it (this artifact's
-        # MTL points at ../textures/albedo.png, a path some loaders refuse) and a GLB.
-        files = []
-        for p in sorted((artifact / "textures").iterdir()):
-            kind = f"texture_{p.stem}" if p.suffix == ".exr" else f"texture_{p.stem}_preview"
-            files.append((p, f"textures/{p.name}", kind, None))
-        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
-            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
         return files

@@ -17,11 +17,11 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
-from stages.lightcolour import corrected_normals, load_light_model
+from stages.artifacts import load_light_model
 from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
-from stages.numerics.photometric import (PhotometricParams, facing_away_fraction, normals_with_alpha,
-                                         photometric_maps)
+from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
+                                         normals_with_alpha, photometric_maps)
 from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions
 
 
@@ -29,9 +29,8 @@ from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_
 class SpecularConfig(Documented):
     """The per-pixel fit of the normals with the specular reflection fitted out
     (stages/numerics/specular_normals.py): each pixel's normal fitted as Lambertian plus GGX reflection instead
-    of eq. 1's ratio alone (default capture, one roughness prior for every pixel: 10.0 -> 7.7 deg mean error
-    against the simulator's normals over valid pixels; bench/bench_specular_normals.py: 9.4 -> 7.6 deg on a
-    subject the prior was not chosen on)."""
+    of eq. 1's ratio alone: a lower mean error against the simulator's normals over valid pixels, also on a
+    subject the roughness prior was not chosen on (bench/bench_specular_normals.py measures it there)."""
 
     roughness: float = 0.6
     """Perceptual GGX roughness assumed for every pixel the materials' roughness does not reach (a prior: one
@@ -39,23 +38,18 @@ class SpecularConfig(Documented):
     f0: float = 0.04
     """Schlick Fresnel reflectance at normal incidence assumed (dielectrics: 0.02-0.05)."""
     solver: str = "levenberg_marquardt"
-    """``levenberg_marquardt`` or ``adam`` (the former default). On the default capture (16 cameras, the
-    materials' roughness) 6 Levenberg-Marquardt steps reach 6.78 deg against the simulator's normals where 40
-    Adam steps reached 6.83, in a third of the time (0.76 vs 2.39 s per camera, one thread)."""
+    """``levenberg_marquardt`` or ``adam``. On the default capture 6 Levenberg-Marquardt steps reach the
+    error against the simulator's normals that 40 Adam steps do, in about a third of the time."""
     steps: int = 6
     """Iterations of the per-pixel fit per start (Adam needs about 40)."""
     lr: float = 0.03
     """Adam's step size (``solver: adam`` only)."""
-    retry_residual: float = 1e-5
-    """Pixels the first start leaves with a larger relative residual also get the half-way start."""
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS:
             raise ValueError(f"diffuse_normals.fit.solver must be one of {SOLVERS}, got {self.solver!r}")
-        if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0
-                and self.retry_residual >= 0):
-            raise ValueError("diffuse_normals.fit: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0, "
-                             "retry_residual >= 0")
+        if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0):
+            raise ValueError("diffuse_normals.fit: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0")
 
 
 @dataclass(frozen=True)
@@ -65,17 +59,15 @@ class DenoiseConfig(Documented):
     enabled: bool = True
     """Filter the albedo maps (and the diffuse_normals stage's ``normal_diffuse``, with its own copy of this
     config) with a joint bilateral filter guided by the albedo, over valid pixels only. Chosen against the
-    simulator's truth, not the held-out protocol (default capture, three cameras per action: albedo 28.21 ->
-    28.47 and 27.11 -> 27.35 dB, normal_diffuse 6.46 -> 6.46 and 8.07 -> 7.38 deg; a 1.5 px spatial width
-    smooths the normals of A0000 too much, 6.78 deg; over every camera, `make dataset`: normal_diffuse 7.40 ->
-    7.08 deg, albedo 24.71 -> 24.82 dB). The price: maps reprojected from these (held-out views, relighting)
-    lose a little detail the blend of views had kept (held-out normals against the truth 5.94 -> 6.17 deg,
-    albedo SSIM 0.912 -> 0.908, relit 23.23 -> 23.16 dB), while the held-out protocol against the photometric
-    maps gains most (5.41 -> 4.16 deg), because its references lose their pixel noise."""
+    simulator's truth, not the held-out protocol: on the default capture the albedo and ``normal_diffuse``
+    come closer to the truth (a 1.5 px spatial width smooths the normals too much). The price: maps
+    reprojected from these (held-out views, relighting) lose a little detail the blend of views had kept
+    (slightly worse held-out maps and relit views against the truth), while the held-out protocol against the
+    photometric maps gains most, because its references lose their pixel noise."""
     normal_alpha: bool = False
     """Also filter ``normal_alpha``, the maps the SDF is fitted to. Off: filtered, they are closer to the truth
-    (default capture: 9.82 -> 9.20 deg) but the mesh came out worse (Chamfer 2.26 -> 2.49 mm, F-score at 1 mm
-    42 -> 37%), and the relit views with it (23.23 -> 22.98 dB)."""
+    on the default capture, but the mesh came out worse (Chamfer and F-score at 1 mm), and the relit views
+    with it."""
     spatial_sigma_px: float = 1.0
     """Gaussian width of the spatial weight, pixels."""
     range_sigma: float = 0.03
@@ -129,7 +121,7 @@ def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
     white = np.asarray(cam["white_reference"], np.float32)
     views = view_directions(cam["K"], cam["cam_from_world"], pos.shape[0], pos.shape[1])
     fit = fit_diffuse_normals(pos, neg, white, views, normals_init, defined, roughness=roughness, f0=spec.f0,
-                              steps=spec.steps, lr=spec.lr, retry_residual=spec.retry_residual, solver=spec.solver)
+                              steps=spec.steps, lr=spec.lr, solver=spec.solver)
     if model is None:
         return fit.normals
     return corrected_normals(pos - fit.specular_pos, neg - fit.specular_neg, model, defined, light_iterations)

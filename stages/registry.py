@@ -7,17 +7,20 @@ from dataclasses import dataclass, field
 from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage
 from stages.cameras import CamerasConfig, CamerasStage
-from stages.decode import DecodeConfig, DecodeStage, PlatesStage
+from stages.colour import ColourConfig, ColourStage
+from stages.decode import DecodeConfig, DecodeStage
 from stages.exports import ExportsConfig, ExportsStage
-from stages.geometry import GeometryConfig, GeometryStage, TexturesConfig, TexturesStage
-from stages.lightcolour import ColourConfig, ColourStage, LightsConfig, LightsStage
+from stages.geometry import GeometryConfig, GeometryStage
+from stages.lights import LightsConfig, LightsStage
 from stages.materials import MaterialsConfig, MaterialsStage
 from stages.numerics.sdf import SDF_PRESETS
 from stages.diffuse_normals import DiffuseNormalsConfig, DiffuseNormalsStage
 from stages.photometric import PhotometricConfig, PhotometricStage
+from stages.plates import PlatesStage
 from stages.numerics.novel_view import ViewShading
 from stages.relight import RelightConfig, RelightStage
 from stages.relightset import RelightSetConfig, RelightSetStage
+from stages.textures import TexturesConfig, TexturesStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
                                           PhotometricStage, GeometryStage, TexturesStage,

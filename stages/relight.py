@@ -1,6 +1,7 @@
 """Action stage ``relight``: novel views of the asset under HDR environments.
 
-For each novel camera (placed between neighbouring captured cameras, :func:`novel_camera_pairs`):
+For each novel camera (placed between neighbouring captured cameras,
+:func:`stages.numerics.gbuffer.novel_camera_pairs`):
 
 1. depth from the action's mesh (Embree), the G-buffer (normal, albedo) reprojected from the ``sources``
    nearest captured views with depth tests (:func:`stages.numerics.gbuffer.reproject_gbuffer`, the paper's
@@ -22,7 +23,7 @@ For each novel camera (placed between neighbouring captured cameras, :func:`nove
    background. ``coverage_samples`` rays per pixel side measure the share the mesh covers
    (:func:`stages.numerics.raycast.pixel_coverage`); it is the relit images' alpha and their radiance is
    premultiplied by it. Covered pixels whose centre misses the mesh take the mean of their shaded neighbours
-   (:func:`grow_edges`). The masks are alpha >= 0.5.
+   (:func:`stages.numerics.novel_view.grow_edges`). The masks are alpha >= 0.5.
 
 Outputs per action (release ``renders/``): ``cameras.json`` (the novel cameras, OpenCV, and the captured
 pair each lies between), ``<view>/normal.exr``, ``albedo.exr``, ``roughness.exr``, ``mask.png`` and
@@ -33,7 +34,6 @@ share of the pixel the subject covers; the G-buffer maps and ``mask.png`` cover 
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,20 +45,13 @@ from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import label_picture, preview_linear, preview_normals, write_png
 from stages.exr_headers import EXR_HEADERS
 from pipeline.config import Documented
-from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.numerics import numeric_threads
+from stages.numerics.camera import Camera
 from stages.numerics.learned_blend import LearnedBlendConfig
-from stages.numerics.novel_view import (HALF_MAX, ActionAsset, ViewShading, auto_exposure, grow_edges,  # noqa: F401
-                                        novel_view_gbuffer, premultiply_edges, relight_view, shading_albedo,
-                                        silhouette_alpha)
+from stages.environments import fit_environments, raw_environment_inputs
+from stages.numerics.novel_view import ViewShading, auto_exposure, relight_view
 
-PROCEDURAL_PREFIX = "procedural:"
-#: What an environment found nowhere is replaced by (a capture without ../shared still gets renders).
-FALLBACK_ENVIRONMENT = "procedural:sky"
-#: Where environment names are looked up, after $ULTRASTAGE_HDRI (os.pathsep-separated folders).
-DEFAULT_HDRI_DIRS = (Path(__file__).resolve().parents[1].parent / "shared" / "data" / "hdri",)
-_HDR_SUFFIXES = (".hdr", ".exr")
 TURNTABLE_FRAMES = 12
 """Views of ``previews/turntable.png`` (30 degrees apart about +y)."""
 TURNTABLE_SIZE = (240, 160)
@@ -95,12 +88,13 @@ class RelightConfig(Documented):
     at each novel view's median depth; 3 px on the default capture)."""
     diffuse_normals: bool = True
     """Reproject the normal maps with the specular reflection fitted out (``normal_diffuse`` of the
-    diffuse_normals stage, when there are any) rather than eq. 1's (relit 22.48 vs 22.24 dB, bench_relight)."""
+    diffuse_normals stage, when there are any) rather than eq. 1's: the relit novel views came closer to the
+    simulator's with them when this default was chosen."""
     diffuse_albedo: bool = True
     """Reproject the sources' ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view,
     when the diffuse_normals stage wrote it) and shade it as is, rather than the white-light albedo times the
-    materials' diffuse ratio (one share per texel for every view). On the default capture the relit novel
-    views came 23.12 -> 23.30 dB closer to the simulator's renders (A0000 and A0001, `make dataset`)."""
+    materials' diffuse ratio (one share per texel for every view): closer relit novel views on the default
+    capture (bench/bench_relight.py scores the white-light albedo sources beside the default)."""
     shadows: bool = True
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
     visibility_directions: int = 256
@@ -113,8 +107,8 @@ class RelightConfig(Documented):
     """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
     whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
     still sampled at pixel centres; a covered pixel whose centre misses the mesh takes the mean of its shaded
-    neighbours'. 1 = hard edges (alpha = the centres' mask). On the default capture relit novel views 24.13 ->
-    24.80 dB against the simulator (2 rays per side: 24.83; the simulator's camera averages 2 x 2). The grid is
+    neighbours'. 1 = hard edges (alpha = the centres' mask; bench/bench_relight.py scores it beside the
+    default: the simulator's camera averages 2 x 2 rays, and hard edges score lower). The grid is
     cast only at the silhouette (:func:`stages.numerics.raycast.pixel_coverage`, ``edges_only``): 0.1-0.7 s
     per 320 x 480 view instead of 0.9-2.0 s for every pixel's, 0-3 pixels' coverage different, the same masks."""
     min_alpha: float = 0.5
@@ -124,7 +118,8 @@ class RelightConfig(Documented):
     learned_blend: LearnedBlendConfig = field(default_factory=LearnedBlendConfig)
     """With ``enabled: true``, blend the sources with weights learned leave one out on the action's captured
     views (the paper's blending network, :mod:`stages.numerics.learned_blend`) instead of the heuristic
-    weights. Off by default: relit novel views 23.12 -> 23.04 dB against the simulator (default capture)."""
+    weights. Off by default: on the default capture the relit novel views came no closer to the simulator's
+    with it (:class:`stages.numerics.learned_blend.LearnedBlendConfig`)."""
 
     def __post_init__(self) -> None:
         if not self.environments:
@@ -138,74 +133,19 @@ class RelightConfig(Documented):
                 raise ValueError(f"relight.{name} must be >= 1")
 
 
-def environment_label(name: str) -> str:
-    """File-name-safe label of an environment entry (``procedural:sky`` -> ``procedural_sky``)."""
-    stem = name[len(PROCEDURAL_PREFIX):] if name.startswith(PROCEDURAL_PREFIX) else Path(name).stem
-    label = ("procedural_" if name.startswith(PROCEDURAL_PREFIX) else "") + stem
-    return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in label)
-
-
-def find_environment(name: str, capture_root: Path | None = None) -> Path | None:
-    """The file an environment entry names, or None (procedural, or found nowhere)."""
-    if name.startswith(PROCEDURAL_PREFIX):
-        return None
-    path = Path(name).expanduser()
-    if path.suffix.lower() in _HDR_SUFFIXES and path.is_file():
-        return path
-    dirs = [Path(d) for d in os.environ.get("ULTRASTAGE_HDRI", "").split(os.pathsep) if d]
-    if capture_root is not None:
-        dirs.append(Path(capture_root) / "environments")
-    dirs += list(DEFAULT_HDRI_DIRS)
-    for folder in dirs:
-        for suffix in ("",) + _HDR_SUFFIXES:
-            candidate = folder / f"{name}{suffix}"
-            if candidate.is_file() and candidate.suffix.lower() in _HDR_SUFFIXES:
-                return candidate
-    return None
-
-
-def raw_environment_inputs(names: tuple[str, ...], capture_root: Path | None) -> dict[str, Path]:
-    """The environment files a config names, as raw inputs (``environment/<label>`` -> path): their digests
-    enter the stage's key, so replacing a map reruns the stage. Procedural and missing names have none."""
-    found = {}
-    for name in names:
-        path = find_environment(name, capture_root)
-        if path is not None:
-            found[f"environment/{environment_label(name)}"] = path
-    return found
-
-
-def load_environment(name: str, path: Path | None, height: int = 256) -> tuple[np.ndarray, str]:
-    """(environment (H, 2H, 3) float32, how it was obtained) for a config entry and its resolved file."""
-    from pipeline.codecs.hdr import read_environment
-    from stages.numerics.sg import PROCEDURAL_ENVIRONMENTS, procedural_environment
-
-    if path is not None:
-        env = read_environment(path)
-        if not np.all(np.isfinite(env)) or env.ndim != 3 or env.shape[1] != 2 * env.shape[0]:
-            raise InputError(path, f"not a finite equirectangular (H, 2H, 3) map: shape {env.shape}")
-        return np.maximum(env, 0.0).astype(np.float32), f"file {path.name}"
-    kind = name[len(PROCEDURAL_PREFIX):] if name.startswith(PROCEDURAL_PREFIX) else None
-    if kind is not None:
-        if kind not in PROCEDURAL_ENVIRONMENTS:
-            raise ValueError(f"relight.environments: unknown {name!r}; built in: "
-                             f"{[PROCEDURAL_PREFIX + k for k in PROCEDURAL_ENVIRONMENTS]}")
-        return procedural_environment(kind, height), "procedural"
-    return procedural_environment("sky", height), f"FALLBACK: {name!r} not found, {FALLBACK_ENVIRONMENT} used"
-
-
-def novel_cameras(cameras: dict[str, dict[str, Any]], count: int) -> list[dict[str, Any]]:
-    """Novel camera records halfway between ``count`` pairs of neighbouring captured cameras."""
+def novel_cameras(cameras: dict[str, Camera], count: int) -> list[Camera]:
+    """Novel cameras ``N000``, ``N001``, ... halfway between ``count`` pairs of neighbouring captured cameras, each
+    sized as the first of its pair; their records also say which pair (``between``)."""
     from stages.numerics.gbuffer import interpolate_camera, novel_camera_pairs
 
     ids = sorted(cameras)
-    poses = [np.asarray(cameras[c]["cam_from_world"], np.float64) for c in ids]
+    poses = [cameras[c].cam_from_world for c in ids]
     out = []
     for i, (a, b) in enumerate(novel_camera_pairs(poses, count)):
         ca, cb = cameras[ids[a]], cameras[ids[b]]
-        K, pose = interpolate_camera(ca["K"], poses[a], cb["K"], poses[b], 0.5)
-        out.append({"camera_id": f"N{i:03d}", "between": [ids[a], ids[b]], "K": K.tolist(),
-                    "cam_from_world": pose.tolist(), "width": int(ca["width"]), "height": int(ca["height"])})
+        K, pose = interpolate_camera(ca.K, poses[a], cb.K, poses[b], 0.5)
+        out.append(Camera(K, pose, ca.width, ca.height, camera_id=f"N{i:03d}",
+                          record={"camera_id": f"N{i:03d}", "between": [ids[a], ids[b]]}))
     return out
 
 
@@ -215,63 +155,6 @@ def view_shading(cfg: RelightConfig) -> ViewShading:
                        normal_fusion_m=cfg.normal_fusion_m, normals=cfg.normals, shadows=cfg.shadows,
                        visibility_directions=cfg.visibility_directions, f0=cfg.f0,
                        coverage_samples=cfg.coverage_samples)
-
-
-def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path | None) -> Any:
-    """:func:`stages.numerics.sg.fit_sg_environment` of a map, kept in ``cache_dir/sg_fits/`` under the hash of
-    the map's float32 bytes, the fit's settings and the fitting code, so a map is fitted once per work folder
-    (both actions and both stages of a session use the same maps). None: no memo."""
-    import hashlib
-
-    from stages.numerics import sg
-    from stages.numerics.sg import SGLobes, fit_sg_environment
-
-    if cache_dir is None:
-        return fit_sg_environment(env, sg_lobes, fit_height=fit_height)
-    digest = hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes())
-    digest.update(repr((env.shape, int(sg_lobes), int(fit_height))).encode())
-    digest.update(Path(sg.__file__).read_bytes())
-    path = Path(cache_dir) / "sg_fits" / f"{digest.hexdigest()[:32]}.json"
-    if path.is_file():
-        try:
-            return SGLobes.from_dict(json.loads(path.read_text()))
-        except (OSError, ValueError, KeyError):
-            pass  # unreadable: fit again
-    lobes = fit_sg_environment(env, sg_lobes, fit_height=fit_height)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(lobes.numpy().to_dict()))
-    os.replace(tmp, path)
-    return SGLobes.from_dict(json.loads(path.read_text()))
-
-
-def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Path], sg_lobes: int, fit_height: int,
-                     log: Any, cache_dir: Path | None = None) -> list[dict[str, Any]]:
-    """Each requested environment loaded (its file from ``raw_inputs['environment/<label>']``) and fitted with
-    ``sg_lobes`` spherical Gaussians: records ``name``, ``requested``, ``label``, ``source``, ``lobes``,
-    ``fit_seconds``, ``fit_errors``. Missing maps become the procedural sky, once, with a warning."""
-    from stages.numerics.sg import sg_fit_errors
-
-    environments: list[dict[str, Any]] = []
-    for requested in requested_names:
-        name, label = requested, environment_label(requested)
-        env, how = load_environment(name, raw_inputs.get(f"environment/{label}"))
-        if how.startswith("FALLBACK"):
-            # Named and labelled as what it is; several missing maps give one procedural sky.
-            log.warning("relight: %s", how)
-            name, label = FALLBACK_ENVIRONMENT, environment_label(FALLBACK_ENVIRONMENT)
-            if any(e["label"] == label for e in environments):
-                continue
-        elif any(e["label"] == label for e in environments):
-            raise ValueError(f"relight.environments {requested_names} give the label {label!r} twice")
-        t0 = time.perf_counter()
-        lobes = fit_sg_memo(env, sg_lobes, fit_height, cache_dir)
-        errors = sg_fit_errors(env, lobes)
-        environments.append({"name": name, "requested": requested, "label": label, "source": how, "lobes": lobes,
-                             "fit_seconds": time.perf_counter() - t0,
-                             "fit_errors": {k: float(v) for k, v in errors.items()
-                                            if isinstance(v, (int, float, np.floating))}})
-    return environments
 
 
 class RelightStage(Stage):
@@ -295,13 +178,13 @@ class RelightStage(Stage):
         import torch
 
         from stages.artifacts import ActionArtifacts, load_relightable_asset
+        from stages.numerics.novel_view import fit_blend
         from stages.numerics.sg import fibonacci_sphere
 
         torch.set_num_threads(numeric_threads())
         cfg: RelightConfig = self.config
         started = time.perf_counter()
-        out = ctx.out_dir
-        renders = out / "renders"
+        renders = ctx.out_dir / "renders"
         renders.mkdir(parents=True, exist_ok=True)
         environments = fit_environments(cfg.environments, ctx.raw_inputs, cfg.sg_lobes, cfg.fit_height, ctx.log,
                                         ctx.cache_dir)
@@ -309,65 +192,30 @@ class RelightStage(Stage):
                                                 cfg.diffuse_albedo)
         directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
         views = novel_cameras(cameras, cfg.novel_views)
-        blend = None
-        if cfg.learned_blend.enabled and len(asset.sources) >= 3:
-            from stages.numerics.learned_blend import fit_learned_blend
-
-            blend = fit_learned_blend(asset.sources, cfg.learned_blend, k=cfg.sources,
-                                      depth_tolerance_m=cfg.depth_tolerance_m)
+        blend = fit_blend(asset, cfg.learned_blend, cfg.sources, cfg.depth_tolerance_m)
+        if blend is not None:
             ctx.log.info("relight: learned blend on %d views, %d pixels: loss %.4f vs heuristic %.4f (%.0f s)",
                          blend.record["views"], blend.record["pixels"], blend.record["learned_loss"],
                          blend.record["heuristic_loss"], blend.record["gather_s"] + blend.record["train_s"])
-        shading = view_shading(cfg)
-
         records, sheet_rows = [], []
         for index, view in enumerate(views):
             t0 = time.perf_counter()
-            rendered = relight_view(asset, view["K"], view["cam_from_world"], view["height"], view["width"],
-                                    [env["lobes"] for env in environments], shading, blend=blend, directions=directions)
-            maps, out_mask, alpha = rendered["maps"], rendered["mask"], rendered["alpha"]
-            folder = renders / view["camera_id"]
-            for name, image in maps.items():
-                write_exr(folder / f"{name}.exr", image, header=EXR_HEADERS[f"render_{name}"])
-            write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
-            row = [label_picture(preview_normals(maps["normal"], out_mask.astype(np.float32)),
-                                 f"{view['camera_id']} normal")]
-            for env, image in zip(environments, rendered["images"]):
-                write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2),
-                          header=EXR_HEADERS["relit"])
-                row.append(label_picture(preview_linear(image, exposure=auto_exposure(image, out_mask)),
-                                         f"{view['camera_id']} {env['label']}"))
-            sheet_rows.append(np.concatenate(row, axis=1))
-            records.append({**view, "pixels": rendered["pixels"], "mask_pixels": int(out_mask.sum()),
+            rendered = relight_view(asset, view.K, view.cam_from_world, view.height, view.width,
+                                    [env["lobes"] for env in environments], view_shading(cfg), blend=blend,
+                                    directions=directions)
+            sheet_rows.append(_write_view(renders / view.camera_id, view.camera_id, rendered, environments))
+            records.append({**view.to_json(), "pixels": rendered["pixels"], "mask_pixels": int(rendered["mask"].sum()),
                             "coverage": rendered["coverage"], "normal_fusion_px": rendered["normal_fusion_px"],
                             "seconds": time.perf_counter() - t0})
-            ctx.progress(index + 1, len(views), f"view {view['camera_id']} relit under {len(environments)} "
+            ctx.progress(index + 1, len(views), f"view {view.camera_id} relit under {len(environments)} "
                                                 f"environment(s)")
         (renders / "cameras.json").write_text(json.dumps({"camera_convention": "opencv", "units": "metres",
                                                           "cameras": records}, indent=1))
-        (renders / "environments.json").write_text(json.dumps(
-            {"environments": [{k: v for k, v in e.items() if k != "lobes"} | {"lobes": e["lobes"].numpy().to_dict()}
-                              for e in environments],
-             "shading": {"sg_lobes": cfg.sg_lobes, "shadows": cfg.shadows, "f0": cfg.f0, "normals": cfg.normals,
-                         "radiance_units": "the environment map's",
-                         "alpha": (f"pixel coverage of {cfg.coverage_samples} x {cfg.coverage_samples} rays, radiance "
-                                   "premultiplied" if cfg.coverage_samples > 1 else "mask (pixel centres)")},
-             "blend": blend.record if blend is not None else "heuristic"}, indent=1, default=float))
-        if cfg.previews and sheet_rows:
-            write_png(out / "previews" / "relit.png", np.concatenate(sheet_rows, axis=0))
+        (renders / "environments.json").write_text(json.dumps(_environments_record(environments, cfg, blend),
+                                                              indent=1, default=float))
         if cfg.previews:
-            from stages.numerics.turntable import turntable_cameras, turntable_strip
-
-            cams = turntable_cameras(asset.vertices, TURNTABLE_FRAMES, *TURNTABLE_SIZE)
-            strip = turntable_strip(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, asset.albedo_tex, cams,
-                                    *TURNTABLE_SIZE)
-            write_png(out / "previews" / "turntable.png", preview_linear(strip, exposure=1.0))
-        return {"novel_views": len(views), "environments": [e["label"] for e in environments],
-                "source_albedo": "albedo_diffuse" if asset.sources_diffuse_albedo else "albedo x diffuse_ratio",
-                "fallbacks": [e["name"] for e in environments if e["source"].startswith("FALLBACK")],
-                "sg_fit_seconds": float(sum(e["fit_seconds"] for e in environments)),
-                "blend_seconds": float(blend.record["gather_s"] + blend.record["train_s"]) if blend is not None else 0.0,
-                "seconds": time.perf_counter() - started}
+            _write_previews(ctx.out_dir / "previews", sheet_rows, asset)
+        return _run_stats(views, environments, asset, blend) | {"seconds": time.perf_counter() - started}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
         files = []
@@ -386,3 +234,54 @@ class RelightStage(Stage):
             if (artifact / "previews" / f"{name}.png").exists():
                 files.append((artifact / "previews" / f"{name}.png", f"previews/{name}.png", f"preview_{name}", None))
         return files
+
+
+def _write_view(folder: Path, camera_id: str, rendered: dict[str, Any],
+                environments: list[dict[str, Any]]) -> np.ndarray:
+    """Writes one novel view's G-buffer maps, mask and relit images (RGBA, premultiplied) into ``folder``;
+    returns its row of the preview sheet (normals, then each environment tone-mapped)."""
+    maps, out_mask, alpha = rendered["maps"], rendered["mask"], rendered["alpha"]
+    for name, image in maps.items():
+        write_exr(folder / f"{name}.exr", image, header=EXR_HEADERS[f"render_{name}"])
+    write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
+    row = [label_picture(preview_normals(maps["normal"], out_mask.astype(np.float32)), f"{camera_id} normal")]
+    for env, image in zip(environments, rendered["images"]):
+        write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2),
+                  header=EXR_HEADERS["relit"])
+        row.append(label_picture(preview_linear(image, exposure=auto_exposure(image, out_mask)),
+                                 f"{camera_id} {env['label']}"))
+    return np.concatenate(row, axis=1)
+
+
+def _environments_record(environments: list[dict[str, Any]], cfg: RelightConfig, blend: Any) -> dict[str, Any]:
+    """The content of ``renders/environments.json``: each environment with its lobes, the shading settings and
+    the blend's record."""
+    return {"environments": [{k: v for k, v in e.items() if k != "lobes"} | {"lobes": e["lobes"].numpy().to_dict()}
+                             for e in environments],
+            "shading": {"sg_lobes": cfg.sg_lobes, "shadows": cfg.shadows, "f0": cfg.f0, "normals": cfg.normals,
+                        "radiance_units": "the environment map's",
+                        "alpha": (f"pixel coverage of {cfg.coverage_samples} x {cfg.coverage_samples} rays, radiance "
+                                  "premultiplied" if cfg.coverage_samples > 1 else "mask (pixel centres)")},
+            "blend": blend.record if blend is not None else "heuristic"}
+
+
+def _run_stats(views: list[Camera], environments: list[dict[str, Any]], asset: Any, blend: Any) -> dict[str, Any]:
+    """The stage's statistics: views, environments (and which fell back), the sources' albedo, fit times."""
+    return {"novel_views": len(views), "environments": [e["label"] for e in environments],
+            "source_albedo": "albedo_diffuse" if asset.sources_diffuse_albedo else "albedo x diffuse_ratio",
+            "fallbacks": [e["name"] for e in environments if e["source"].startswith("FALLBACK")],
+            "sg_fit_seconds": float(sum(e["fit_seconds"] for e in environments)),
+            "blend_seconds": float(blend.record["gather_s"] + blend.record["train_s"]) if blend is not None else 0.0}
+
+
+def _write_previews(folder: Path, sheet_rows: list[np.ndarray], asset: Any) -> None:
+    """``relit.png`` (views x environments) and ``turntable.png`` (the textured mesh from TURNTABLE_FRAMES
+    azimuths)."""
+    from stages.numerics.turntable import turntable_cameras, turntable_strip
+
+    if sheet_rows:
+        write_png(folder / "relit.png", np.concatenate(sheet_rows, axis=0))
+    cams = turntable_cameras(asset.vertices, TURNTABLE_FRAMES, *TURNTABLE_SIZE)
+    strip = turntable_strip(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, asset.albedo_tex, cams,
+                            *TURNTABLE_SIZE)
+    write_png(folder / "turntable.png", preview_linear(strip, exposure=1.0))

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -45,7 +44,7 @@ from pipeline.store import link_or_copy
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.novel_view import ViewShading
-from stages.relight import DEFAULT_HDRI_DIRS, PROCEDURAL_PREFIX, find_environment
+from stages.environments import DEFAULT_HDRI_DIRS, PROCEDURAL_PREFIX, find_environment, load_environment
 
 HDRI_FOLDERS = "hdri-folders"
 """Pool entry: every map in the folders environment names are looked up in ($ULTRASTAGE_HDRI, the capture's
@@ -181,8 +180,6 @@ def resolve_pool(entries: tuple[str, ...], capture_root: Path | None) -> tuple[l
 
 def load_pool_map(pool_map: PoolMap, path: Path | None) -> tuple[np.ndarray, str]:
     """(map (H, 2H, 3) float32, sha256) of a pool map (:func:`pool_map_digest`)."""
-    from stages.relight import load_environment
-
     env, _ = load_environment(pool_map.name, path)
     return env, pool_map_digest(pool_map, path, env)
 
@@ -191,8 +188,6 @@ def pool_map_digest(pool_map: PoolMap, path: Path | None, env: np.ndarray | None
     """sha256 of a pool map: of the file's bytes, or of the float32 map for a procedural one (made here unless
     ``env`` gives it)."""
     from pipeline.hashing import file_sha256
-    from stages.relight import load_environment
-
     if path is not None:
         return file_sha256(path)
     if env is None:
@@ -202,6 +197,81 @@ def pool_map_digest(pool_map: PoolMap, path: Path | None, env: np.ndarray | None
 
 def _digest(record: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(record, sort_keys=True, default=float).encode()).hexdigest()
+
+
+class _ActionPool:
+    """The pool's maps as one action's examples use them: each read (and SG-fitted) only when an example draws it."""
+
+    def __init__(self, maps: list[PoolMap], paths: list[Path | None], digests: list[str], cfg: RelightSetConfig,
+                 cache_dir: Path | None):
+        self.maps, self.paths, self.digests, self.cfg, self.cache_dir = maps, paths, digests, cfg, cache_dir
+        self._envs: dict[int, np.ndarray] = {}
+        self._fits: dict[int, Any] = {}
+
+    def env(self, index: int) -> np.ndarray:
+        if index not in self._envs:
+            self._envs[index] = load_environment(self.maps[index].name, self.paths[index])[0]
+        return self._envs[index]
+
+    def lobes(self, index: int) -> Any:
+        from stages.environments import fit_sg_memo
+
+        if index not in self._fits:
+            self._fits[index] = fit_sg_memo(self.env(index), self.cfg.sg_lobes, self.cfg.fit_height, self.cache_dir)
+        return self._fits[index]
+
+
+def _example_row(ctx: StageContext, cfg: RelightSetConfig, example_id: str, index: int, subject: str, split: str,
+                 draw: dict[str, Any], pool: _ActionPool, render_record: dict[str, Any]) -> dict[str, Any]:
+    """An example's index row (camera, environment, its SH lighting, files, key) before it is rendered."""
+    from stages.numerics.relightset import example_lighting_sh
+
+    env_index, rotation_deg = draw["environment_index"], draw["rotation_deg"]
+    K, cam_from_world = draw["K"], draw["cam_from_world"]
+    key = _digest(render_record | {"example_id": example_id, "environment": pool.digests[env_index],
+                                   "rotation_deg": rotation_deg, "K": K.round(9).tolist(),
+                                   "cam_from_world": cam_from_world.round(9).tolist()})
+    sh_world, sh_camera = example_lighting_sh(pool.env(env_index), rotation_deg, cam_from_world)
+    pool_map = pool.maps[env_index]
+    row = {"example_id": example_id, "action_id": ctx.action_id, "subject": subject,
+           "session_id": ctx.session_id, "split": split, "view_index": index, "width": cfg.size,
+           "height": cfg.size, "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
+           "cy": float(K[1, 2]), "cam_from_world_json": json.dumps(cam_from_world.round(9).tolist()),
+           "environment_name": pool_map.name, "environment_file": pool_map.path.name if pool_map.path else "",
+           "environment_sha256": pool.digests[env_index], "environment_rotation_deg": rotation_deg,
+           "sh_world_json": json.dumps(sh_world.round(6).tolist()),
+           "sh_camera_json": json.dumps(sh_camera.round(6).tolist()),
+           "seed": cfg.seed, "example_key": key}
+    return row | {f"{name.replace('.', '_')}": f"relight/{example_id}/{name}" for name in EXAMPLE_FILES}
+
+
+def _reuse_example(old: tuple[dict[str, Any], Path], folder: Path) -> dict[str, Any]:
+    """Links (or copies) an earlier result's files of the same example into ``folder``; returns their row's
+    ``png_exposure`` and ``mask_pixels``."""
+    row, old_folder = old
+    for name in EXAMPLE_FILES:
+        link_or_copy(old_folder / name, folder / name)
+    return {"png_exposure": row["png_exposure"], "mask_pixels": row["mask_pixels"]}
+
+
+def _render_example(folder: Path, asset: Any, draw: dict[str, Any], pool: _ActionPool, cfg: RelightSetConfig,
+                    directions: np.ndarray | None) -> dict[str, Any]:
+    """Renders one drawn example and writes its files; returns the row's ``png_exposure`` and ``mask_pixels``."""
+    from stages.numerics.relightset import encode_normals, render_example, tone_map
+
+    env_index = draw["environment_index"]
+    example = render_example(asset, draw["K"], draw["cam_from_world"], cfg.size, pool.lobes(env_index),
+                             draw["rotation_deg"], cfg.shading, directions, cfg.png_level)
+    image, mask, albedo, normals_cam = (example[k] for k in ("image", "mask", "albedo", "normals_camera"))
+    write_exr(folder / "image.exr", np.concatenate([image, example["alpha"][..., None]], axis=2),
+              header=EXR_HEADERS["relightset_image"])
+    write_png(folder / "image.png", tone_map(image, example["exposure"]))
+    write_exr(folder / "albedo.exr", albedo, header=EXR_HEADERS["relightset_albedo"])
+    write_png(folder / "albedo.png", tone_map(albedo, 1.0))
+    write_exr(folder / "normal.exr", normals_cam, half=False, header=EXR_HEADERS["relightset_normal"])
+    write_png(folder / "normal.png", encode_normals(normals_cam, mask))
+    write_png(folder / "mask.png", mask)
+    return {"png_exposure": float(example["exposure"]), "mask_pixels": int(mask.sum())}
 
 
 class RelightSetStage(Stage):
@@ -237,12 +307,8 @@ class RelightSetStage(Stage):
         import torch
 
         from stages.artifacts import ActionArtifacts, load_relightable_asset
-        from stages.numerics.novel_view import auto_exposure, relight_view
-        from stages.numerics.relightset import (draw_example, encode_normals, normals_to_camera, split_of,
-                                                subject_frame, tone_map)
-        from stages.numerics.sg import fibonacci_sphere, rotate_sg, rotation_y
-        from stages.relight import fit_sg_memo, load_environment
-        from stages.numerics.sh import project_environment
+        from stages.numerics.relightset import draw_example, split_of, subject_frame
+        from stages.numerics.sg import fibonacci_sphere
 
         torch.set_num_threads(numeric_threads())
         cfg: RelightSetConfig = self.config
@@ -250,74 +316,30 @@ class RelightSetStage(Stage):
         maps, skipped = self.pool(ctx.capture_root)
         paths = [ctx.raw_inputs.get(f"environment/{m.label}") for m in maps]
         digests = [pool_map_digest(m, path) for m, path in zip(maps, paths)]
-        envs: dict[int, np.ndarray] = {}  # only the maps the action's examples draw are read
+        pool = _ActionPool(maps, paths, digests, cfg, ctx.cache_dir)
         subject = ctx.subject or ctx.action_id
         split = split_of(cfg.seed, subject, cfg.split_ratios)
         asset, cameras = load_relightable_asset(ActionArtifacts(ctx.upstream))
         centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
         directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
-        # the code that renders enters every example's key: a renderer change re-renders, never links stale files
-        render_record = {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
-                         "code": code_digests(self.code_module, self.code_packages),
-                         "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
-                         "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
+        render_record = self._render_record(ctx)
         previous = self._previous_examples(ctx)
         out = ctx.out_dir / "relight"
         out.mkdir(parents=True, exist_ok=True)
-        fits: dict[int, Any] = {}
         rows, reused, seconds = [], 0, []
         for index in range(cfg.examples_per_action):
             example_id = example_name(ctx.action_id, index)
             draw = draw_example(cfg.seed, example_id, digests, centre, radius, distance, cfg.size, cfg.elevation_deg,
                                 cfg.margin)
-            env_index, rotation_deg = draw["environment_index"], draw["rotation_deg"]
-            K, cam_from_world = draw["K"], draw["cam_from_world"]
-            key = _digest(render_record | {"example_id": example_id, "environment": digests[env_index],
-                                           "rotation_deg": rotation_deg, "K": K.round(9).tolist(),
-                                           "cam_from_world": cam_from_world.round(9).tolist()})
+            row = _example_row(ctx, cfg, example_id, index, subject, split, draw, pool, render_record)
             folder = out / example_id
-            if env_index not in envs:
-                envs[env_index] = load_environment(maps[env_index].name, paths[env_index])[0]
-            env = envs[env_index]
-            world_from_map = rotation_y(math.radians(rotation_deg))
-            row = {"example_id": example_id, "action_id": ctx.action_id, "subject": subject,
-                   "session_id": ctx.session_id, "split": split, "view_index": index, "width": cfg.size,
-                   "height": cfg.size, "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
-                   "cy": float(K[1, 2]), "cam_from_world_json": json.dumps(cam_from_world.round(9).tolist()),
-                   "environment_name": maps[env_index].name,
-                   "environment_file": maps[env_index].path.name if maps[env_index].path else "",
-                   "environment_sha256": digests[env_index], "environment_rotation_deg": rotation_deg,
-                   "sh_world_json": json.dumps(project_environment(env, world_from_map).round(6).tolist()),
-                   "sh_camera_json": json.dumps(project_environment(
-                       env, cam_from_world[:, :3] @ world_from_map).round(6).tolist()),
-                   "seed": cfg.seed, "example_key": key}
-            row |= {f"{name.replace('.', '_')}": f"relight/{example_id}/{name}" for name in EXAMPLE_FILES}
-            old = previous.get(key)
-            if old is not None:
-                for name in EXAMPLE_FILES:
-                    link_or_copy(old[1] / name, folder / name)
-                row |= {"png_exposure": old[0]["png_exposure"], "mask_pixels": old[0]["mask_pixels"]}
+            old = previous.get(row["example_key"])
+            if old is not None:  # rendered before with the same inputs and code: link its files
+                row |= _reuse_example(old, folder)
                 reused += 1
             else:
                 t0 = time.perf_counter()
-                if env_index not in fits:
-                    fits[env_index] = fit_sg_memo(env, cfg.sg_lobes, cfg.fit_height, ctx.cache_dir)
-                lobes = rotate_sg(fits[env_index], math.radians(rotation_deg))
-                view = relight_view(asset, K, cam_from_world, cfg.size, cfg.size, [lobes], cfg.shading,
-                                    directions=directions)
-                image, mask, alpha = view["images"][0], view["mask"], view["alpha"]
-                normals_cam = normals_to_camera(view["maps"]["normal"], cam_from_world)
-                exposure = auto_exposure(image, mask, cfg.png_level)
-                write_exr(folder / "image.exr", np.concatenate([image, alpha[..., None]], axis=2),
-                          header=EXR_HEADERS["relightset_image"])
-                write_png(folder / "image.png", tone_map(image, exposure))
-                albedo = np.clip(view["maps"]["albedo"], 0.0, 1.0)
-                write_exr(folder / "albedo.exr", albedo, header=EXR_HEADERS["relightset_albedo"])
-                write_png(folder / "albedo.png", tone_map(albedo, 1.0))
-                write_exr(folder / "normal.exr", normals_cam, half=False, header=EXR_HEADERS["relightset_normal"])
-                write_png(folder / "normal.png", encode_normals(normals_cam, mask))
-                write_png(folder / "mask.png", mask)
-                row |= {"png_exposure": float(exposure), "mask_pixels": int(mask.sum())}
+                row |= _render_example(folder, asset, draw, pool, cfg, directions)
                 seconds.append(time.perf_counter() - t0)
             (folder / "example.json").write_text(json.dumps(row, indent=1, sort_keys=True))
             rows.append(row)
@@ -327,6 +349,15 @@ class RelightSetStage(Stage):
                 "pool": [m.name for m in maps], "skipped_environments": skipped,
                 "seconds_per_example": float(np.mean(seconds)) if seconds else 0.0,
                 "seconds": time.perf_counter() - started}
+
+    def _render_record(self, ctx: StageContext) -> dict[str, Any]:
+        """What every example's key holds besides its own draw: the renderer's format, version, code and settings
+        and the upstream keys (a renderer change re-renders, never links stale files)."""
+        cfg: RelightSetConfig = self.config
+        return {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
+                "code": code_digests(self.code_module, self.code_packages),
+                "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
+                "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
 
     @staticmethod
     def _previous_examples(ctx: StageContext) -> dict[str, tuple[dict[str, Any], Path]]:
@@ -369,7 +400,6 @@ def example_name(action_id: str, index: int) -> str:
     return f"{action_id}_{index:02d}"
 
 
-def camera_centres(cameras: dict[str, dict[str, Any]]) -> np.ndarray:
-    """World centres (C, 3) of camera records with ``cam_from_world``."""
-    poses = [np.asarray(c["cam_from_world"], np.float64) for c in cameras.values()]
-    return np.array([-p[:, :3].T @ p[:, 3] for p in poses]).reshape(-1, 3)
+def camera_centres(cameras: dict[str, Any]) -> np.ndarray:
+    """World centres (C, 3) of :class:`stages.numerics.camera.Camera` s."""
+    return np.array([c.centre for c in cameras.values()]).reshape(-1, 3)

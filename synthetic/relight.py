@@ -44,12 +44,12 @@ from scipy.spatial import cKDTree
 from . import geometry, shading
 from .config import SimConfig
 from .rig import Camera
-from .simulate import prepare_action
+from .simulate import action_subject, prepare_action
 from .subject import load_base_subject, resolve_mesh
 from .threads import limit_blas_threads
 
 __all__ = ["DEFAULT_LIGHTS", "DEFAULT_MAX_HEIGHT", "equirect_directions", "equirect_solid_angles",
-           "environment_lights", "EnvironmentLightSet", "TruthRelighter"]
+           "environment_lights", "EnvironmentLightSet", "TruthRelighter", "prefetch_visibility"]
 
 DEFAULT_LIGHTS = 2048
 """Light directions per environment. Default capture, A0000, studio_small_03 (a small bright source), two
@@ -175,6 +175,77 @@ class _LightsOnly:
         self.leds = leds
 
 
+# --- the visibility kept on disk -------------------------------------------------------------------------
+
+def _visibility_key(capture_record: Path, action_id: str, lights: int) -> str:
+    """sha256 of what a subject's visibility of the fixed light directions depends on: the simulator's
+    source files, the capture's ``capture.json`` (its simulator record and actions), the action, the count."""
+    simulator = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        simulator.update(path.name.encode() + b"\0" + path.read_bytes())
+    record = {"format": 1, "simulator": simulator.hexdigest(), "action": action_id, "lights": int(lights),
+              "capture": hashlib.sha256(Path(capture_record).read_bytes()).hexdigest()}
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+
+
+def _cached_visibility(folder: Path, capture_record: Path, action_id: str, subject, directions: np.ndarray
+                       ) -> np.ndarray:
+    """(V, L) bool visibility of ``directions`` from the subject's vertices: read from ``folder`` when an
+    earlier evaluation (or :func:`prefetch_visibility`) traced it, else traced and kept there (bit-packed,
+    written under a temporary name and renamed, so a reader never sees half a file)."""
+    import os
+
+    path = Path(folder) / f"{_visibility_key(capture_record, action_id, len(directions))}.npy"
+    n_vertices, n_lights = len(subject.vertices_world), len(directions)
+    if path.is_file():
+        try:
+            packed = np.load(path)
+            if packed.shape == (n_vertices, (n_lights + 7) // 8):
+                return np.unpackbits(packed, axis=1, count=n_lights).astype(bool)
+        except (OSError, ValueError):
+            pass  # unreadable (e.g. a disk error): traced again below and rewritten
+    scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
+    visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world, directions)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as handle:
+            np.save(handle, np.packbits(visible, axis=1))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a cache that cannot be written costs the next evaluation the tracing, nothing else
+    return visible
+
+
+def prefetch_visibility(capture_dir: str | Path, folder: str | Path, lights: int = DEFAULT_LIGHTS,
+                        actions: list[str] | None = None) -> list[str]:
+    """Trace and keep (:func:`_cached_visibility`) the ground-truth visibility of ``lights`` directions for
+    each action with ground truth (``actions``: only these), so that an evaluation later finds it; returns
+    the actions done. ``ultrastage run`` runs this in a low-priority process beside the pipeline: the
+    tracing is the larger part of building a :class:`TruthRelighter`, and it needs only the capture."""
+    capture_dir = Path(capture_dir)
+    record_path = capture_dir / "capture.json"
+    record = json.loads(record_path.read_text(encoding="utf-8"))
+    if not isinstance(record.get("simulator"), dict):
+        return []
+    fields = {f.name for f in dataclasses.fields(SimConfig)}
+    config = SimConfig(**({"supersample": 1} | {k: v for k, v in record["simulator"].items() if k in fields}))
+    mesh_path = resolve_mesh(config.mesh)
+    base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
+    trace_config = dataclasses.replace(config, specular=True, specular_led_clusters=False)
+    directions = geometry.fibonacci_sphere(int(lights)).astype(np.float32)
+    done = []
+    for index, entry in enumerate(record.get("actions", [])):
+        action_id = entry["action_id"]
+        if (actions is not None and action_id not in actions) or not (capture_dir / "ground_truth" / action_id).is_dir():
+            continue
+        with limit_blas_threads(1):
+            _cached_visibility(Path(folder), record_path, action_id, action_subject(trace_config, base, index),
+                               directions)
+        done.append(action_id)
+    return done
+
+
 # --- the relighter ---------------------------------------------------------------------------------------
 
 def _read_ply_vertices(path: Path) -> np.ndarray:
@@ -218,7 +289,7 @@ class TruthRelighter:
     """
 
     def __init__(self, capture_dir: str | Path, action_id: str, lights: int = DEFAULT_LIGHTS,
-                 max_height: int = DEFAULT_MAX_HEIGHT) -> None:
+                 max_height: int = DEFAULT_MAX_HEIGHT, visibility_cache: str | Path | None = None) -> None:
         capture_dir = Path(capture_dir)
         record_path = capture_dir / "capture.json"
         if not record_path.is_file():
@@ -253,9 +324,15 @@ class TruthRelighter:
         lights_only = _LightsOnly(EnvironmentLightSet(geometry.fibonacci_sphere(self.lights),
                                                       np.zeros((self.lights, 9), np.float32)))
         trace_config = dataclasses.replace(self.config, specular=True, specular_led_clusters=False)
+        index = action_ids.index(action_id)
         with limit_blas_threads(1):
+            subject = action_subject(trace_config, base, index)
+            visible = None
+            if visibility_cache is not None:
+                visible = _cached_visibility(Path(visibility_cache), record_path, action_id, subject,
+                                             lights_only.leds.directions)
             self.subject, self.scene, self._lighting = prepare_action(
-                trace_config, base, lights_only, action_ids.index(action_id))
+                trace_config, base, lights_only, index, subject=subject, visible=visible)
         self._check_mesh(capture_dir / "ground_truth" / action_id / "mesh.ply")
 
     def _check_mesh(self, ply_path: Path) -> None:

@@ -293,16 +293,25 @@ def write_clean_plates(out: Path, config: SimConfig, session: Session, responses
                          raw, cam_from_xyz, neutral)
 
 
-def prepare_action(config: SimConfig, base: BaseSubject, session: Session, action_index: int
-                   ) -> tuple[ActionSubject, o3d.t.geometry.RaycastingScene, shading.SurfaceLighting]:
-    """The action's subject, its ray-casting scene and its view-independent lighting."""
+def action_subject(config: SimConfig, base: BaseSubject, action_index: int) -> ActionSubject:
+    """The posed, folded subject of one action (deterministic from the config's seed)."""
     cycle_offset = int(np.random.default_rng([config.seed, _SUBJECT]).integers(1 << 16))
-    subject = make_action_subject(base, np.random.default_rng([config.seed, _SUBJECT, action_index]),
-                                  action_index, config.fold_amplitude_m, cycle_offset,
-                                  action_pose(config, base, action_index))
+    return make_action_subject(base, np.random.default_rng([config.seed, _SUBJECT, action_index]),
+                               action_index, config.fold_amplitude_m, cycle_offset,
+                               action_pose(config, base, action_index))
+
+
+def prepare_action(config: SimConfig, base: BaseSubject, session: Session, action_index: int,
+                   subject: ActionSubject | None = None, visible: np.ndarray | None = None
+                   ) -> tuple[ActionSubject, o3d.t.geometry.RaycastingScene, shading.SurfaceLighting]:
+    """The action's subject, its ray-casting scene and its view-independent lighting. ``subject`` and
+    ``visible`` ((V, L) bool, :func:`shading.vertex_visibility` of the session's lights) when the caller has
+    them already (the ground-truth relighter keeps its visibility on disk)."""
+    subject = subject if subject is not None else action_subject(config, base, action_index)
     scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
-    visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world,
-                                        session.leds.directions)
+    if visible is None:
+        visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world,
+                                            session.leds.directions)
     levels = shading.CLUSTER_LEVELS if config.specular_led_clusters else shading.EXACT_LEVELS
     lighting = shading.surface_lighting(visible, subject.normals_world, session.leds,
                                         with_specular=config.specular, levels=levels)

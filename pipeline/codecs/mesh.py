@@ -288,6 +288,93 @@ def read_obj(path: str | Path) -> dict:
         text = path.read_text(encoding="utf-8")
     except OSError as error:
         raise InputError(path, f"cannot read: {error}") from error
+    fast = _read_obj_columns(text)
+    if fast is not None:
+        v, vt, vn, fv, ft, fn, mtllib = fast
+    else:
+        v, vt, vn, fv, ft, fn, mtllib = _read_obj_lines(path, text)
+
+    def _faces(rows, n_items):
+        if len(rows) == 0:
+            return None
+        arr = np.asarray(rows, np.int64)
+        arr = np.where(arr < 0, arr + n_items, arr - 1)  # OBJ: 1-based, negatives count from the end
+        if arr.min() < 0 or arr.max() >= n_items:
+            raise InputError(path, "face indices out of range")
+        return arr.astype(np.int32)
+
+    vertices = np.asarray(v, np.float32).reshape(-1, 3)
+    material = None
+    if mtllib is not None and (path.parent / mtllib).exists():
+        material = {}
+        for line in (path.parent / mtllib).read_text(encoding="utf-8").splitlines():
+            m = re.match(r"\s*(\S+)\s+(.*\S)\s*$", line)
+            if m and not m.group(1).startswith("#"):
+                key = "name" if m.group(1) == "newmtl" else m.group(1)
+                material[key] = m.group(2)
+    faces = _faces(fv, len(vertices))
+    return {"vertices": vertices, "faces": faces if faces is not None else np.zeros((0, 3), np.int32),
+            "uvs": np.asarray(vt, np.float32).reshape(-1, 2) if len(vt) else None, "uv_faces": _faces(ft, len(vt)),
+            "normals": np.asarray(vn, np.float32).reshape(-1, 3) if len(vn) else None,
+            "normal_faces": _faces(fn, len(vn)), "mtllib": mtllib, "material": material}
+
+
+def _read_obj_columns(text: str) -> tuple | None:
+    """The statements of an OBJ laid out as :func:`write_obj` writes it (``v``/``vt``/``vn`` lines of 3/2/3
+    numbers, triangles ``f a/b/c`` with the same corner layout on every face, comments, ``mtllib`` and
+    ``usemtl``), parsed a statement kind at a time with numpy: ``(v, vt, vn, fv, ft, fn, mtllib)`` as
+    :func:`_read_obj_lines` gives them. None when the file holds anything else (that reader then parses it
+    line by line and names the line it cannot read)."""
+    lines = text.splitlines()
+    groups: dict[str, list[str]] = {"v": [], "vt": [], "vn": [], "f": []}
+    mtllib = None
+    for line in lines:
+        head, _, rest = line.partition(" ")
+        group = groups.get(head)
+        if group is not None:
+            group.append(rest)
+        elif head == "mtllib":
+            mtllib = " ".join(rest.split())
+        elif not (head == "" and not line.strip()) and not head.startswith("#") and head != "usemtl":
+            return None
+
+    def numbers(rows: list[str], width: int, dtype) -> np.ndarray | None:
+        if not rows:
+            return np.zeros((0, width), dtype)
+        if not all(len(row.split()) == width for row in rows):
+            return None
+        flat = " ".join(rows).split()
+        try:
+            return np.array(flat, dtype=np.float64 if dtype is float else np.int64).reshape(-1, width)
+        except ValueError:
+            return None
+
+    columns = [numbers(groups[kind], width, float) for kind, width in (("v", 3), ("vt", 2), ("vn", 3))]
+    if any(c is None for c in columns) or not groups["f"]:
+        return None if any(c is None for c in columns) else (*columns, [], [], [], mtllib)
+    parts = groups["f"][0].split()[0].split("/")
+    present = [bool(p) for p in parts]  # the corner layout: v, v/t, v/t/n or v//n
+    if len(parts) > 3 or not present[0] or (len(parts) == 2 and not present[1]):
+        return None
+    field = [r"-?\d+" if p else "" for p in present]
+    corner = "/".join(field)
+    triangle = re.compile(f"{corner} {corner} {corner}")
+    if not all(triangle.fullmatch(row.strip()) for row in groups["f"]):
+        return None
+    width = sum(present)
+    corners = numbers([row.replace("/", " ") for row in groups["f"]], 3 * width, int)
+    if corners is None:
+        return None
+    corners = corners.reshape(-1, 3, width)
+    column = {kind: i for i, kind in enumerate(k for k, p in zip("vtn", present) if p)}
+    fv = corners[:, :, 0]
+    ft = corners[:, :, column["t"]] if "t" in column else []
+    fn = corners[:, :, column["n"]] if "n" in column else []
+    return (*columns, fv, ft, fn, mtllib)
+
+
+def _read_obj_lines(path: Path, text: str) -> tuple:
+    """Any OBJ's vertex, uv and normal rows and its faces (fan-triangulated), a line at a time."""
     v, vt, vn, fv, ft, fn = [], [], [], [], [], []
     mtllib = None
     for number, line in enumerate(text.splitlines(), 1):
@@ -314,27 +401,4 @@ def read_obj(path: str | Path) -> dict:
                         fn.append([int(c[2]) for c in tri])
         except (ValueError, IndexError) as error:
             raise InputError(path, f"line {number}: cannot parse {line!r}") from error
-
-    def _faces(rows, n_items):
-        if not rows:
-            return None
-        arr = np.asarray(rows, np.int64)
-        arr = np.where(arr < 0, arr + n_items, arr - 1)  # OBJ: 1-based, negatives count from the end
-        if arr.min() < 0 or arr.max() >= n_items:
-            raise InputError(path, "face indices out of range")
-        return arr.astype(np.int32)
-
-    vertices = np.asarray(v, np.float32).reshape(-1, 3)
-    material = None
-    if mtllib is not None and (path.parent / mtllib).exists():
-        material = {}
-        for line in (path.parent / mtllib).read_text(encoding="utf-8").splitlines():
-            m = re.match(r"\s*(\S+)\s+(.*\S)\s*$", line)
-            if m and not m.group(1).startswith("#"):
-                key = "name" if m.group(1) == "newmtl" else m.group(1)
-                material[key] = m.group(2)
-    faces = _faces(fv, len(vertices))
-    return {"vertices": vertices, "faces": faces if faces is not None else np.zeros((0, 3), np.int32),
-            "uvs": np.asarray(vt, np.float32).reshape(-1, 2) if vt else None, "uv_faces": _faces(ft, len(vt)),
-            "normals": np.asarray(vn, np.float32).reshape(-1, 3) if vn else None,
-            "normal_faces": _faces(fn, len(vn)), "mtllib": mtllib, "material": material}
+    return v, vt, vn, fv, ft, fn, mtllib

@@ -244,23 +244,7 @@ def decode_raw(
 
     path = Path(path)
     alg = _demosaic_algorithm(demosaic)
-
-    if not path.exists():
-        raise RawDecodeError(path, "missing file: no such raw file")
-    if not path.is_file():
-        raise RawDecodeError(path, "not a regular file")
-    size = os.path.getsize(path)
-    if size == 0:
-        raise RawDecodeError(path, "empty file (0 bytes)")
-
-    declared_end, camera = _tiff_info(path)
-    if declared_end is not None and declared_end > size:
-        raise RawDecodeError(
-            path,
-            f"truncated file: {size} bytes, but its TIFF header declares raw data up to byte {declared_end} "
-            f"({100.0 * size / declared_end:.0f}% present)",
-        )
-
+    camera = _check_file(path) or "unknown"
     try:
         raw_file = rawpy.imread(str(path))
     except rawpy.LibRawError as exc:
@@ -269,33 +253,7 @@ def decode_raw(
         raise RawDecodeError(path, f"cannot read file ({exc})") from exc
 
     with raw_file as rp:
-        try:
-            raw = rp.raw_image_visible
-            pattern = rp.raw_pattern
-            raw_type = rp.raw_type
-            num_colors = rp.num_colors
-        except rawpy.LibRawError as exc:
-            raise RawDecodeError(path, _libraw_reason(exc)) from exc
-        desc = rp.color_desc.decode(errors="replace") if isinstance(rp.color_desc, bytes) else str(rp.color_desc)
-        camera = camera or "unknown"
-
-        # --- is it a Bayer camera frame at all?
-        if pattern is None or raw.ndim != 2 or raw_type != rawpy.RawType.Flat:
-            chans = raw.shape[2] if raw.ndim == 3 else 1
-            raise RawDecodeError(
-                path,
-                f"not a Bayer light-stage camera frame: LibRaw reports a {chans}-channel "
-                f"{getattr(raw_type, 'name', raw_type)} image without a colour filter array pattern "
-                f"({camera}; e.g. a film scanner or a linear/demosaiced DNG)",
-            )
-        cfa_colours = {int(v) for v in np.unique(pattern)}
-        if pattern.shape != (2, 2) or num_colors != 3 or cfa_colours not in ({0, 1, 2}, {0, 1, 2, 3}):
-            raise RawDecodeError(
-                path,
-                f"not a Bayer light-stage camera frame: CFA pattern {pattern.tolist()} with {num_colors} "
-                f"colours ({desc}), only 2x2 RGB Bayer sensors are supported ({camera})",
-            )
-
+        raw = _bayer_sites(path, rp, camera)
         raw_h, raw_w = int(raw.shape[0]), int(raw.shape[1])
         if expected_size is not None:
             exp = (int(expected_size[0]), int(expected_size[1]))
@@ -304,93 +262,17 @@ def decode_raw(
                     path,
                     f"wrong frame size: {raw_h}x{raw_w} (H x W), expected {exp[0]}x{exp[1]} for this camera",
                 )
-
-        # --- levels, saturation, black frame
-        blacks = np.asarray(rp.black_level_per_channel, dtype=np.float64)
-        white = int(rp.white_level)
-        black_mean = float(blacks.mean())
-        black_max = float(blacks.max())
-        span = float(white) - black_max
-        if span <= 0:
-            raise RawDecodeError(path, f"invalid levels: white level {white} <= black level {black_max:g}")
-        clip_at = white - max(1.0, CLIP_MARGIN * span)
-        sat_sites = raw >= clip_at
-
-        tz = _trailing_zero_rows(raw)
-        if 0 < tz < raw_h:
-            above = raw[: raw_h - tz]
-            if black_max > 0 or np.count_nonzero(above[-1]) > 0.5 * raw_w:
-                raise RawDecodeError(
-                    path,
-                    f"truncated or corrupt raw data: the bottom {tz} of {raw_h} rows are all zero "
-                    f"(LibRaw fills missing data with zeros)",
-                )
-
-        sat_frac = float(np.count_nonzero(sat_sites)) / sat_sites.size
-        if sat_frac > SATURATED_FRAME_FRACTION:
-            raise RawDecodeError(
-                path,
-                f"saturated frame: {100 * sat_frac:.1f}% of sensor sites are clipped "
-                f"(>= {clip_at:.0f} DN of white level {white}); reduce exposure",
-            )
-        # Subsample with odd strides so every CFA colour is represented; percentile on <= ~1M sites.
-        stride = max(1, int(np.sqrt(raw.size / 1.0e6)))
-        stride += 1 - stride % 2
-        sub = raw[::stride, ::stride].astype(np.float32)
-        colors = rp.raw_colors_visible[::stride, ::stride]
-        sub -= blacks.astype(np.float32)[np.clip(colors, 0, len(blacks) - 1)]
-        p999 = float(np.percentile(sub, 99.9)) / span
-        if p999 < BLACK_FRAME_LEVEL:
-            raise RawDecodeError(
-                path,
-                f"black frame: essentially no signal above the black level (99.9th percentile at "
-                f"{100 * p999:.3f}% of the range, threshold {100 * BLACK_FRAME_LEVEL:.1f}%); "
-                f"lights off or lens capped?",
-            )
-
-        # --- white balance actually used (LibRaw: as-shot, falling back to daylight when absent)
-        cam_wb = np.asarray(rp.camera_whitebalance, dtype=np.float64)[:3]
-        if not (np.all(np.isfinite(cam_wb)) and np.all(cam_wb > 0)):
-            cam_wb = np.asarray(rp.daylight_whitebalance, dtype=np.float64)[:3]
-        if not (np.all(np.isfinite(cam_wb)) and np.all(cam_wb > 0)):
-            cam_wb = np.ones(3)
-        cam_wb = cam_wb / cam_wb.min()
-
-        try:
-            img = rp.postprocess(
-                demosaic_algorithm=alg,
-                half_size=bool(half_size),
-                use_camera_wb=True,
-                use_auto_wb=False,
-                output_color=rawpy.ColorSpace.sRGB,
-                output_bps=16,
-                gamma=(1.0, 1.0),
-                no_auto_bright=True,
-                bright=1.0,
-                user_flip=0,
-                adjust_maximum_thr=0.0,  # keep 1.0 = declared white level, never the data maximum
-                highlight_mode=rawpy.HighlightMode.Clip,
-                median_filter_passes=0,
-            )
-        except rawpy.LibRawError as exc:
-            raise RawDecodeError(path, _libraw_reason(exc)) from exc
+        black_mean, white, sat_sites = _check_levels(path, rp, raw)
+        cam_wb = _white_balance_used(rp)
+        img = _postprocess(path, rp, alg, half_size)
 
     if img.ndim != 3 or img.shape[2] < 3:
         raise RawDecodeError(path, f"LibRaw produced an unexpected image of shape {img.shape}")
     rgb = np.empty(img.shape[:2] + (3,), dtype=np.float32)
     np.multiply(img[..., :3], np.float32(1.0 / 65535.0), out=rgb, casting="unsafe")
-
-    out_hw = rgb.shape[:2]
-    if half_size:
-        clipped = _block_any(sat_sites, out_hw) if out_hw == ((raw_h + 1) // 2, (raw_w + 1) // 2) else None
-    else:
-        clipped = _dilate3(sat_sites) if out_hw == (raw_h, raw_w) else None
-    if clipped is None:  # pixel-aspect stretch or a rotated sensor layout: map sites by position
-        clipped = _resize_nearest(_dilate3(sat_sites), out_hw)
-
     return DecodedFrame(
         rgb=rgb,
-        clipped=clipped,
+        clipped=_clipped_pixels(sat_sites, rgb.shape[:2], half_size),
         black_level=black_mean,
         white_level=white,
         wb_multipliers=(float(cam_wb[0]), float(cam_wb[1]), float(cam_wb[2])),
@@ -399,3 +281,150 @@ def decode_raw(
         demosaic="HALF" if half_size else alg.name,
         half_size=bool(half_size),
     )
+
+
+def _check_file(path: Path) -> str | None:
+    """Refuse a missing, empty or (by its TIFF header) truncated file; returns the camera its TIFF header
+    names, if any."""
+    if not path.exists():
+        raise RawDecodeError(path, "missing file: no such raw file")
+    if not path.is_file():
+        raise RawDecodeError(path, "not a regular file")
+    size = os.path.getsize(path)
+    if size == 0:
+        raise RawDecodeError(path, "empty file (0 bytes)")
+    declared_end, camera = _tiff_info(path)
+    if declared_end is not None and declared_end > size:
+        raise RawDecodeError(
+            path,
+            f"truncated file: {size} bytes, but its TIFF header declares raw data up to byte {declared_end} "
+            f"({100.0 * size / declared_end:.0f}% present)",
+        )
+    return camera
+
+
+def _bayer_sites(path: Path, rp, camera: str) -> np.ndarray:
+    """The visible sensor sites (H, W) of an opened raw file; refuses anything but a 2x2 RGB Bayer frame."""
+    import rawpy
+
+    try:
+        raw = rp.raw_image_visible
+        pattern = rp.raw_pattern
+        raw_type = rp.raw_type
+        num_colors = rp.num_colors
+    except rawpy.LibRawError as exc:
+        raise RawDecodeError(path, _libraw_reason(exc)) from exc
+    desc = rp.color_desc.decode(errors="replace") if isinstance(rp.color_desc, bytes) else str(rp.color_desc)
+    if pattern is None or raw.ndim != 2 or raw_type != rawpy.RawType.Flat:
+        chans = raw.shape[2] if raw.ndim == 3 else 1
+        raise RawDecodeError(
+            path,
+            f"not a Bayer light-stage camera frame: LibRaw reports a {chans}-channel "
+            f"{getattr(raw_type, 'name', raw_type)} image without a colour filter array pattern "
+            f"({camera}; e.g. a film scanner or a linear/demosaiced DNG)",
+        )
+    cfa_colours = {int(v) for v in np.unique(pattern)}
+    if pattern.shape != (2, 2) or num_colors != 3 or cfa_colours not in ({0, 1, 2}, {0, 1, 2, 3}):
+        raise RawDecodeError(
+            path,
+            f"not a Bayer light-stage camera frame: CFA pattern {pattern.tolist()} with {num_colors} "
+            f"colours ({desc}), only 2x2 RGB Bayer sensors are supported ({camera})",
+        )
+    return raw
+
+
+def _check_levels(path: Path, rp, raw: np.ndarray) -> tuple[float, int, np.ndarray]:
+    """Black and white levels and the saturated sites (H, W) bool of the sensor sites ``raw`` (H, W); refuses
+    invalid levels, zero-filled (truncated) data, a saturated frame and a black one. Returns
+    ``(mean black level, white level, saturated sites)``."""
+    raw_h, raw_w = int(raw.shape[0]), int(raw.shape[1])
+    blacks = np.asarray(rp.black_level_per_channel, dtype=np.float64)
+    white = int(rp.white_level)
+    black_max = float(blacks.max())
+    span = float(white) - black_max
+    if span <= 0:
+        raise RawDecodeError(path, f"invalid levels: white level {white} <= black level {black_max:g}")
+    clip_at = white - max(1.0, CLIP_MARGIN * span)
+    sat_sites = raw >= clip_at
+
+    tz = _trailing_zero_rows(raw)
+    if 0 < tz < raw_h:
+        above = raw[: raw_h - tz]
+        if black_max > 0 or np.count_nonzero(above[-1]) > 0.5 * raw_w:
+            raise RawDecodeError(
+                path,
+                f"truncated or corrupt raw data: the bottom {tz} of {raw_h} rows are all zero "
+                f"(LibRaw fills missing data with zeros)",
+            )
+
+    sat_frac = float(np.count_nonzero(sat_sites)) / sat_sites.size
+    if sat_frac > SATURATED_FRAME_FRACTION:
+        raise RawDecodeError(
+            path,
+            f"saturated frame: {100 * sat_frac:.1f}% of sensor sites are clipped "
+            f"(>= {clip_at:.0f} DN of white level {white}); reduce exposure",
+        )
+    # Subsample with odd strides so every CFA colour is represented; percentile on <= ~1M sites.
+    stride = max(1, int(np.sqrt(raw.size / 1.0e6)))
+    stride += 1 - stride % 2
+    sub = raw[::stride, ::stride].astype(np.float32)
+    colors = rp.raw_colors_visible[::stride, ::stride]
+    sub -= blacks.astype(np.float32)[np.clip(colors, 0, len(blacks) - 1)]
+    p999 = float(np.percentile(sub, 99.9)) / span
+    if p999 < BLACK_FRAME_LEVEL:
+        raise RawDecodeError(
+            path,
+            f"black frame: essentially no signal above the black level (99.9th percentile at "
+            f"{100 * p999:.3f}% of the range, threshold {100 * BLACK_FRAME_LEVEL:.1f}%); "
+            f"lights off or lens capped?",
+        )
+    return float(blacks.mean()), white, sat_sites
+
+
+def _white_balance_used(rp) -> np.ndarray:
+    """The white balance LibRaw applies (as shot, falling back to daylight, then none), scaled so that its
+    smallest multiplier is 1: (3,) R, G, B."""
+    cam_wb = np.asarray(rp.camera_whitebalance, dtype=np.float64)[:3]
+    if not (np.all(np.isfinite(cam_wb)) and np.all(cam_wb > 0)):
+        cam_wb = np.asarray(rp.daylight_whitebalance, dtype=np.float64)[:3]
+    if not (np.all(np.isfinite(cam_wb)) and np.all(cam_wb > 0)):
+        cam_wb = np.ones(3)
+    return cam_wb / cam_wb.min()
+
+
+def _postprocess(path: Path, rp, alg, half_size: bool) -> np.ndarray:
+    """LibRaw's linear 16-bit sRGB image (H, W, C) of the opened file: camera white balance, no gamma, no
+    brightening, highlights clipped, 1.0 at the declared white level."""
+    import rawpy
+
+    try:
+        return rp.postprocess(
+            demosaic_algorithm=alg,
+            half_size=bool(half_size),
+            use_camera_wb=True,
+            use_auto_wb=False,
+            output_color=rawpy.ColorSpace.sRGB,
+            output_bps=16,
+            gamma=(1.0, 1.0),
+            no_auto_bright=True,
+            bright=1.0,
+            user_flip=0,
+            adjust_maximum_thr=0.0,  # keep 1.0 = declared white level, never the data maximum
+            highlight_mode=rawpy.HighlightMode.Clip,
+            median_filter_passes=0,
+        )
+    except rawpy.LibRawError as exc:
+        raise RawDecodeError(path, _libraw_reason(exc)) from exc
+
+
+def _clipped_pixels(sat_sites: np.ndarray, out_hw: tuple[int, int], half_size: bool) -> np.ndarray:
+    """Output pixels (out_hw) bool that a saturated sensor site (H, W) touches: the 2x2 block of a half-size
+    pixel, the 3x3 demosaic neighbourhood of a full-size one."""
+    raw_h, raw_w = sat_sites.shape
+    if half_size:
+        clipped = _block_any(sat_sites, out_hw) if out_hw == ((raw_h + 1) // 2, (raw_w + 1) // 2) else None
+    else:
+        clipped = _dilate3(sat_sites) if out_hw == (raw_h, raw_w) else None
+    if clipped is None:  # pixel-aspect stretch or a rotated sensor layout: map sites by position
+        clipped = _resize_nearest(_dilate3(sat_sites), out_hw)
+    return clipped

@@ -1,4 +1,4 @@
-"""Test metrics of the single-image baselines, on masked pixels (the DESIGN's relighting-set protocol).
+"""Test metrics of the single-image baselines, on masked pixels (../shared/DESIGN.md's relighting-set protocol).
 
 Albedo (linear, [0, 1]): PSNR (peak 1), SSIM (stages.numerics.metrics.ssim, 7x7 windows, data range 1) and
 RMSE, each twice: ``raw`` compares the prediction as it is; ``scaled`` first multiplies each channel by the

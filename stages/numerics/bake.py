@@ -37,7 +37,7 @@ from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normal
 from stages.numerics.raycast import mesh_scene, render_mesh
 
 __all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "gather_observations",
-           "sample_texture", "texture_in_camera", "dilate_texture"]
+           "sample_texture", "texture_in_camera", "dilate_texture", "AtlasTextures", "atlas_textures"]
 
 _MIN_TAP_SUPPORT = 0.5  # a view needs valid, depth-consistent pixels under half its bilinear weight
 
@@ -497,11 +497,9 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     t0 = time.perf_counter()
     raster = rasterize_atlas(v, f, atlas, texture_size)
     size = int(texture_size)
-    covered_flat = raster["covered"].reshape(-1)
-    texel = np.flatnonzero(covered_flat)
+    texel = np.flatnonzero(raster["covered"].reshape(-1))
     points = raster["position"].reshape(-1, 3)[texel].astype(np.float64)
     normals = raster["normal"].reshape(-1, 3)[texel].astype(np.float64)
-    n_texels = len(texel)
     timings["rasterize_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -512,83 +510,26 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
 
     t0 = time.perf_counter()
     k = min(int(max_views), len(views))
-    order, scores = _rank_views(views, depths, points, normals, n_dot_p, p_sq, min_cos, depth_tolerance_m)
-    chosen = np.zeros(scores.shape, bool)
-    np.put_along_axis(chosen, order[:k], True, axis=0)
-    chosen &= scores > 0
-    next_best = (np.take_along_axis(scores, order[k:k + 1], axis=0)[0] if len(views) > k
-                 else np.zeros(n_texels, np.float32))
-    del order
+    chosen, next_best = _choose_views(views, depths, points, normals, n_dot_p, p_sq, min_cos, depth_tolerance_m, k)
     timings["select_s"] = time.perf_counter() - t0
 
     # Pass 2: blend the chosen views.
     t0 = time.perf_counter()
-    names = list(channels)
-    total_c = sum(channels.values())
-    acc = np.zeros((n_texels, total_c), np.float64)
-    acc2 = np.zeros((n_texels, total_c), np.float64)
-    wsum = np.zeros(n_texels, np.float64)
-    log_unseen = np.zeros(n_texels, np.float64)
-    count = np.zeros(n_texels, np.int32)
+    sums = _BlendSums.zeros(len(texel), sum(channels.values()))
     for i, view in enumerate(views):
         sel = np.flatnonzero(chosen[i])
-        if not len(sel):
-            continue
-        cand, score, seen, taps, weights = _view_lookup(view, depths[i], points[sel], normals[sel],
-                                                        n_dot_p[sel], p_sq[sel], min_cos, depth_tolerance_m)
-        idx = sel[cand]
-        blend_w = np.maximum(score - next_best[idx], 1e-3 * score)
-        values = []
-        for name in names:
-            image = np.asarray(view.images[name], np.float32).reshape(-1, channels[name])
-            gathered = image[taps]
-            gathered = np.where(np.isfinite(gathered), gathered, 0.0)  # 0-weight taps must not spread NaN
-            sample = np.einsum("nk,nkc->nc", weights, gathered).astype(np.float64)
-            if name in normalize:
-                norm = np.linalg.norm(sample, axis=1, keepdims=True)
-                sample = np.divide(sample, norm, out=np.zeros_like(sample), where=norm > 1e-8)
-            values.append(sample)
-        values = np.concatenate(values, axis=1)
-        finite = np.all(np.isfinite(values), axis=1)  # a non-finite map value counts as invalid
-        idx, blend_w, values, seen = idx[finite], blend_w[finite], values[finite], seen[finite]
-        acc[idx] += blend_w[:, None] * values
-        acc2[idx] += blend_w[:, None] * values ** 2
-        wsum[idx] += blend_w
-        log_unseen[idx] += np.log(np.clip(1.0 - seen, 1e-12, 1.0))
-        count[idx] += 1
-    seen_mask = (count > 0) & (wsum > 0)
-    mean = np.divide(acc, wsum[:, None], out=np.zeros_like(acc), where=seen_mask[:, None])
-    var = np.clip(np.divide(acc2, wsum[:, None], out=np.zeros_like(acc2), where=seen_mask[:, None]) - mean ** 2,
-                  0.0, None)
-    spread = 0.0
-    start = 0
-    for name in names:
-        c = channels[name]
-        spread = spread + var[:, start:start + c].mean(axis=1) / agreement_scale ** 2
-        start += c
-    confidence = np.where(seen_mask, (1.0 - np.exp(log_unseen)) * np.exp(-0.5 * spread), 0.0)
+        if len(sel):
+            _add_view(sums, view, depths[i], sel, points, normals, n_dot_p, p_sq, next_best, channels, normalize,
+                      min_cos, depth_tolerance_m)
+    mean, seen_mask, confidence = sums.mean_and_confidence(channels, agreement_scale)
     timings["blend_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    textures = {}
-    start = 0
-    for name in names:
-        c = channels[name]
-        tex = np.zeros((size * size, c), np.float32)
-        tex[texel[seen_mask]] = mean[seen_mask, start:start + c]
-        textures[name] = tex.reshape(size, size, c)
-        start += c
-    filled = np.zeros(size * size, bool)
-    filled[texel[seen_mask]] = True
-    textures, grown = dilate_texture(textures, filled.reshape(size, size), dilate_px)
-    for name in normalize:
-        tex = textures[name]
-        norm = np.linalg.norm(tex, axis=2, keepdims=True)
-        textures[name] = np.divide(tex, norm, out=np.zeros_like(tex), where=norm > 1e-6).astype(np.float32)
-    for name in names:  # belt and braces: nothing non-finite leaves
-        textures[name] = np.nan_to_num(textures[name], nan=0.0, posinf=0.0, neginf=0.0)
+    textures, filled, grown = _texture_images(mean, seen_mask, texel, size, channels, normalize, dilate_px)
     timings["dilate_s"] = time.perf_counter() - t0
 
+    count = sums.count
+    n_texels = len(texel)
     view_count = np.zeros(size * size, np.uint8)
     view_count[texel] = np.where(seen_mask, np.minimum(count, 255), 0).astype(np.uint8)
     conf = np.zeros(size * size, np.float32)
@@ -602,3 +543,142 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
              "seconds": time.perf_counter() - t_start}
     return BakeResult(textures=textures, view_count=view_count.reshape(size, size),
                       confidence=conf.reshape(size, size), covered=raster["covered"], stats=stats)
+
+
+def _choose_views(views: list[BakeView], depths: list, points: np.ndarray, normals: np.ndarray,
+                  n_dot_p: np.ndarray, p_sq: np.ndarray, min_cos: float, depth_tolerance_m: float,
+                  k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pass 1: the ``k`` best-scoring views of each texel (points, normals (N, 3)) that see it, (V, N) bool,
+    and the score of the best view left out, (N,) (0 when every view is chosen)."""
+    order, scores = _rank_views(views, depths, points, normals, n_dot_p, p_sq, min_cos, depth_tolerance_m)
+    chosen = np.zeros(scores.shape, bool)
+    np.put_along_axis(chosen, order[:k], True, axis=0)
+    chosen &= scores > 0
+    next_best = (np.take_along_axis(scores, order[k:k + 1], axis=0)[0] if len(views) > k
+                 else np.zeros(len(points), np.float32))
+    return chosen, next_best
+
+
+@dataclass
+class _BlendSums:
+    """Weighted sums over the views blended into each texel (N texels, C channels of all maps side by side)."""
+
+    acc: np.ndarray  # (N, C) sum of weight x value
+    acc2: np.ndarray  # (N, C) sum of weight x value^2
+    wsum: np.ndarray  # (N,) sum of weights
+    log_unseen: np.ndarray  # (N,) sum of log(1 - seen): log of the chance that no view saw the texel
+    count: np.ndarray  # (N,) int32 views blended
+
+    @classmethod
+    def zeros(cls, n_texels: int, n_channels: int) -> "_BlendSums":
+        return cls(acc=np.zeros((n_texels, n_channels), np.float64),
+                   acc2=np.zeros((n_texels, n_channels), np.float64), wsum=np.zeros(n_texels, np.float64),
+                   log_unseen=np.zeros(n_texels, np.float64), count=np.zeros(n_texels, np.int32))
+
+    def mean_and_confidence(self, channels: dict[str, int],
+                            agreement_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The blended values (N, C), where any view was blended (N,) bool, and the confidence (N,): the chance
+        that a view saw the texel times ``exp(-0.5 spread)``, the spread being the views' variance in units of
+        ``agreement_scale^2`` (mean over each map's channels, summed over the maps)."""
+        seen_mask = (self.count > 0) & (self.wsum > 0)
+        mean = np.divide(self.acc, self.wsum[:, None], out=np.zeros_like(self.acc), where=seen_mask[:, None])
+        var = np.clip(np.divide(self.acc2, self.wsum[:, None], out=np.zeros_like(self.acc2),
+                                where=seen_mask[:, None]) - mean ** 2, 0.0, None)
+        spread = 0.0
+        start = 0
+        for c in channels.values():
+            spread = spread + var[:, start:start + c].mean(axis=1) / agreement_scale ** 2
+            start += c
+        confidence = np.where(seen_mask, (1.0 - np.exp(self.log_unseen)) * np.exp(-0.5 * spread), 0.0)
+        return mean, seen_mask, confidence
+
+
+def _add_view(sums: _BlendSums, view: BakeView, depth, sel: np.ndarray, points: np.ndarray, normals: np.ndarray,
+              n_dot_p: np.ndarray, p_sq: np.ndarray, next_best: np.ndarray, channels: dict[str, int],
+              normalize: tuple[str, ...], min_cos: float, depth_tolerance_m: float) -> None:
+    """Blend ``view`` into the texels ``sel`` (indices) it was chosen for: weighted by its score's margin over
+    the best view left out; texels it does not see after all, or where its maps are not finite, get nothing."""
+    cand, score, seen, taps, weights = _view_lookup(view, depth, points[sel], normals[sel], n_dot_p[sel],
+                                                    p_sq[sel], min_cos, depth_tolerance_m)
+    idx = sel[cand]
+    blend_w = np.maximum(score - next_best[idx], 1e-3 * score)
+    values = []
+    for name, c in channels.items():
+        image = np.asarray(view.images[name], np.float32).reshape(-1, c)
+        gathered = image[taps]
+        gathered = np.where(np.isfinite(gathered), gathered, 0.0)  # 0-weight taps must not spread NaN
+        sample = np.einsum("nk,nkc->nc", weights, gathered).astype(np.float64)
+        if name in normalize:
+            norm = np.linalg.norm(sample, axis=1, keepdims=True)
+            sample = np.divide(sample, norm, out=np.zeros_like(sample), where=norm > 1e-8)
+        values.append(sample)
+    values = np.concatenate(values, axis=1)
+    finite = np.all(np.isfinite(values), axis=1)  # a non-finite map value counts as invalid
+    idx, blend_w, values, seen = idx[finite], blend_w[finite], values[finite], seen[finite]
+    sums.acc[idx] += blend_w[:, None] * values
+    sums.acc2[idx] += blend_w[:, None] * values ** 2
+    sums.wsum[idx] += blend_w
+    sums.log_unseen[idx] += np.log(np.clip(1.0 - seen, 1e-12, 1.0))
+    sums.count[idx] += 1
+
+
+def _texture_images(mean: np.ndarray, seen_mask: np.ndarray, texel: np.ndarray, size: int,
+                    channels: dict[str, int], normalize: tuple[str, ...],
+                    dilate_px: int) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The blended values (N, C) of the seen texels (``texel``: their flat indices) as ``size x size`` images
+    per map, dilated by ``dilate_px``, ``normalize``'s maps renormalised, nothing non-finite; the texels
+    filled before dilation (size * size,) bool and after it (size, size) bool."""
+    textures = {}
+    start = 0
+    for name, c in channels.items():
+        tex = np.zeros((size * size, c), np.float32)
+        tex[texel[seen_mask]] = mean[seen_mask, start:start + c]
+        textures[name] = tex.reshape(size, size, c)
+        start += c
+    filled = np.zeros(size * size, bool)
+    filled[texel[seen_mask]] = True
+    textures, grown = dilate_texture(textures, filled.reshape(size, size), dilate_px)
+    for name in normalize:
+        tex = textures[name]
+        norm = np.linalg.norm(tex, axis=2, keepdims=True)
+        textures[name] = np.divide(tex, norm, out=np.zeros_like(tex), where=norm > 1e-6).astype(np.float32)
+    for name in channels:  # belt and braces: nothing non-finite leaves
+        textures[name] = np.nan_to_num(textures[name], nan=0.0, posinf=0.0, neginf=0.0)
+    return textures, filled, grown
+
+
+@dataclass(frozen=True)
+class AtlasTextures:
+    """The textures stage's mesh, its UV atlas and the textures baked into it."""
+
+    vertices: np.ndarray
+    """(V, 3) the decimated mesh's vertices."""
+    faces: np.ndarray
+    """(F, 3) its faces."""
+    atlas: Atlas
+    """Its UV atlas (xatlas)."""
+    baked: BakeResult
+    """The albedo and normal textures with their view counts, confidence and coverage."""
+    atlas_seconds: float
+    """Time of the decimation and the atlas."""
+    bake_seconds: float
+    """Time of the baking."""
+
+
+def atlas_textures(vertices: np.ndarray, faces: np.ndarray, views: list[BakeView], atlas_faces: int,
+                   texture_size: int, padding: int, max_views: int, depth_tolerance_m: float,
+                   min_cos: float) -> AtlasTextures:
+    """The mesh (V, 3) / (F, 3) decimated to ``atlas_faces``, its UV atlas of ``texture_size`` texels with
+    ``padding`` between charts, and the views' images baked into it (:func:`bake_textures`: each texel blends its
+    ``max_views`` most frontal views within ``depth_tolerance_m`` of the mesh and above ``min_cos``)."""
+    from stages.numerics.mesh import decimate, uv_atlas
+
+    start = time.perf_counter()
+    vertices, faces = decimate(vertices, faces, atlas_faces)
+    atlas = uv_atlas(vertices, faces, resolution=texture_size, padding=padding)
+    atlas_s = time.perf_counter() - start
+    start = time.perf_counter()
+    baked = bake_textures(vertices, faces, atlas, views, texture_size, max_views=max_views,
+                          depth_tolerance_m=depth_tolerance_m, min_cos=min_cos)
+    return AtlasTextures(vertices=vertices, faces=faces, atlas=atlas, baked=baked, atlas_seconds=atlas_s,
+                         bake_seconds=time.perf_counter() - start)

@@ -29,10 +29,9 @@ The contributions are blended with per-source weights (``weighting``):
 A source map is read at the point's projection with Keys' cubic convolution (Catmull-Rom) where all 16
 taps of the 4 x 4 neighbourhood are visible and valid, bilinearly elsewhere (``interpolation="bilinear"``
 everywhere): the bilinear kernel low-passes the source texture once more. On the default capture's held-out
-views (bench/bench_gbuffer.py) cubic raises the albedo SSIM 0.958 -> 0.960 on A0001 (0.965 on A0000 both
-ways) and against the simulator's truth 0.896 -> 0.901, PSNR 26.96 -> 27.09 dB, for 2.1x the lookup time
-(0.15 -> 0.32 s per 320 x 480 view, six sources, source depth renders cached). Negative lobes can
-overshoot: the albedo sample is clamped at 0 (the blended normal is renormalised anyway).
+views cubic raises the albedo SSIM, against the photometric maps and the simulator's truth, for about twice
+the lookup time (bench/bench_gbuffer.py measures both lookups). Negative lobes can overshoot: the albedo
+sample is clamped at 0 (the blended normal is renormalised anyway).
 
 A trained :class:`stages.numerics.learned_blend.LearnedBlend` (``blend``) replaces the heuristic weights by
 learned ones per pixel; :func:`source_candidates` gives its input, each source's samples and terms before
@@ -50,7 +49,9 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "camera_centre", "nearest_views", "source_candidates",
+from stages.numerics.camera import as_pose, camera_centre, lift_points
+
+__all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "nearest_views", "source_candidates",
            "reproject_gbuffer", "fuse_normals", "interpolate_camera", "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
@@ -78,17 +79,6 @@ class SourceView:
     depth_m: np.ndarray
 
 
-def _pose(cam_from_world: np.ndarray, name: str = "cam_from_world") -> np.ndarray:
-    P = np.asarray(cam_from_world, dtype=np.float64)
-    if P.shape == (4, 4):
-        P = P[:3]
-    if P.shape != (3, 4):
-        raise ValueError(f"{name} must be (3, 4) or (4, 4), got {P.shape}")
-    if not np.all(np.isfinite(P)):
-        raise ValueError(f"{name} holds non-finite values")
-    return P
-
-
 def _intrinsics(K: np.ndarray, name: str = "K") -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3):
@@ -96,24 +86,6 @@ def _intrinsics(K: np.ndarray, name: str = "K") -> np.ndarray:
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"{name} must be finite with positive focal lengths, got {K.tolist()}")
     return K
-
-
-def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
-    """World position of a camera centre: ``-R^T t``.
-
-    Args:
-        cam_from_world: (3, 4) or (4, 4), or a stack (N, 3, 4).
-
-    Returns:
-        (3,) (or (N, 3)) float64.
-    """
-    P = np.asarray(cam_from_world, dtype=np.float64)
-    if P.ndim == 2:
-        P = _pose(P)
-        return -P[:, :3].T @ P[:, 3]
-    if P.ndim != 3 or P.shape[-2:] not in ((3, 4), (4, 4)):
-        raise ValueError(f"cam_from_world must be (3, 4), (4, 4) or (N, 3, 4), got {P.shape}")
-    return -np.einsum("nji,nj->ni", P[:, :3, :3], P[:, :3, 3])
 
 
 def nearest_views(target_cam_from_world: np.ndarray, source_cam_from_worlds: Sequence[np.ndarray] | np.ndarray,
@@ -137,8 +109,8 @@ def nearest_views(target_cam_from_world: np.ndarray, source_cam_from_worlds: Seq
     """
     if int(k) != k or k < 1:
         raise ValueError(f"k must be a positive integer, got {k}")
-    target = _pose(target_cam_from_world, "target_cam_from_world")
-    sources = [_pose(P, f"source_cam_from_worlds[{i}]") for i, P in enumerate(source_cam_from_worlds)]
+    target = as_pose(target_cam_from_world, "target_cam_from_world")
+    sources = [as_pose(P, f"source_cam_from_worlds[{i}]") for i, P in enumerate(source_cam_from_worlds)]
     if not sources:
         raise ValueError("nearest_views: no source cameras")
     centre = np.asarray(subject_centre, dtype=np.float64)
@@ -175,7 +147,7 @@ def _check_source(i: int, s: SourceView) -> tuple[np.ndarray, ...]:
     valid = valid & finite & (depth > 0)
     normal = np.nan_to_num(normal, nan=0.0, posinf=0.0, neginf=0.0)
     albedo = np.nan_to_num(albedo, nan=0.0, posinf=0.0, neginf=0.0)
-    return normal, albedo, valid, depth, _intrinsics(s.K, f"sources[{i}].K"), _pose(s.cam_from_world, f"sources[{i}].cam_from_world")
+    return normal, albedo, valid, depth, _intrinsics(s.K, f"sources[{i}].K"), as_pose(s.cam_from_world, f"sources[{i}].cam_from_world")
 
 
 def _keys_weights(t: np.ndarray, a: float = -0.5) -> tuple[np.ndarray, ...]:
@@ -254,12 +226,7 @@ def _lift(depth: np.ndarray, K: np.ndarray, P: np.ndarray):
 def _lift_points(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, P: np.ndarray):
     """World points (N, 3) at pixel coordinates ``u``, ``v`` and camera depth ``z`` (N,), their unit directions
     to the camera (N, 3) and the camera's sampling density ``(f / distance)^2`` (N,)."""
-    # lift: x_cam = z K^-1 [u, v, 1], x_world = R^T (x_cam - t)
-    y_cam = (v - K[1, 2]) / K[1, 1]
-    x_cam = (u - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
-    pts_cam = np.stack([x_cam * z, y_cam * z, z], axis=-1)
-    R, t = P[:, :3], P[:, 3]
-    pts = (pts_cam - t) @ R  # rows of R^T (x - t)
+    pts = lift_points(K, P, u, v, z)
     to_target = camera_centre(P) - pts
     dist_target = np.linalg.norm(to_target, axis=-1)
     to_target /= np.maximum(dist_target, 1e-12)[:, None]
@@ -317,7 +284,7 @@ def _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, w
     if np.any(depth < 0):
         raise ValueError("target_depth_m holds negative depths (use 0 for 'no surface')")
     K = _intrinsics(K)
-    P = _pose(cam_from_world)
+    P = as_pose(cam_from_world)
     if weighting not in WEIGHTINGS:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
     if interpolation not in INTERPOLATIONS:
@@ -580,7 +547,7 @@ def interpolate_camera(K_a: np.ndarray, cam_from_world_a: np.ndarray, K_b: np.nd
 
     if not 0.0 <= float(t) <= 1.0:
         raise ValueError(f"t must be in [0, 1], got {t}")
-    Pa, Pb = _pose(cam_from_world_a, "cam_from_world_a"), _pose(cam_from_world_b, "cam_from_world_b")
+    Pa, Pb = as_pose(cam_from_world_a, "cam_from_world_a"), as_pose(cam_from_world_b, "cam_from_world_b")
     Ka, Kb = _intrinsics(K_a, "K_a"), _intrinsics(K_b, "K_b")
     ca, cb = camera_centre(Pa), camera_centre(Pb)
     ra, rb = np.linalg.norm(ca), np.linalg.norm(cb)
@@ -611,7 +578,7 @@ def novel_camera_pairs(cam_from_worlds: Sequence[np.ndarray], count: int,
     Returns:
         list of ``(a, b)`` index pairs (a != b), at most ``count``, no pair twice.
     """
-    poses = [_pose(P, f"cam_from_worlds[{i}]") for i, P in enumerate(cam_from_worlds)]
+    poses = [as_pose(P, f"cam_from_worlds[{i}]") for i, P in enumerate(cam_from_worlds)]
     if len(poses) < 2:
         raise ValueError("need at least two cameras to place a novel view between")
     if int(count) < 1:

@@ -1,5 +1,7 @@
-"""A fused CPU kernel of the multiresolution hash encoding: features, their spatial Jacobian and the table
-gradient of both, in one pass over the points each.
+"""Fused CPU kernels of the SDF's training step: the multiresolution hash encoding (features, their spatial
+Jacobian and the table gradient of both, in one pass over the points each) and the proposal grid's march
+(:func:`march_first_crossing`: each ray sampled until its first crossing, with ``F.grid_sample``'s float
+operations, so it returns the torch march's values bit for bit).
 
 :class:`stages.numerics.sdf.HashEncoding` computes the same with torch operations; on a CPU those allocate and
 walk about thirty (N, L, 8, F)-sized temporaries per step, which made the encoding more than half of an SDF
@@ -134,6 +136,86 @@ void hashgrid_backward(int64_t F, const float *x, int64_t N, int64_t L, int64_t 
         }
     }
 }
+/* The cached SDF grid (D, H, W) (W the x axis) at a point, as torch's grid_sample (trilinear, border padding,
+   align_corners=False) computes it from the normalised coordinate g = (p - lo) / ext * 2 - 1. */
+static inline float grid_at(const float *grid, int64_t D, int64_t H, int64_t W, const float lo[3],
+                            const float ext[3], const float p[3]) {
+    const int64_t size[3] = {W, H, D};
+    float ix[3];
+    int64_t i0[3];
+    for (int a = 0; a < 3; ++a) {
+        float g = (p[a] - lo[a]) / ext[a];
+        g = g * 2.0f - 1.0f;
+        float u = ((g + 1.0f) * (float)size[a] - 1.0f) / 2.0f;
+        const float hi = (float)(size[a] - 1);
+        u = u < 0.0f ? 0.0f : u;  /* clip_coordinates: std::min(hi, std::max(u, 0)) */
+        u = u < hi ? u : hi;
+        ix[a] = u;
+        i0[a] = (int64_t)u;  /* u >= 0 here: truncation is floor */
+    }
+    const float x = ix[0], y = ix[1], z = ix[2];
+    const int64_t x0 = i0[0], y0 = i0[1], z0 = i0[2], x1 = x0 + 1, y1 = y0 + 1, z1 = z0 + 1;
+    /* corner order and weight expressions of grid_sampler_3d_cpu_impl: tnw, tne, tsw, tse, bnw, bne, bsw, bse */
+    const int64_t cx[8] = {x0, x1, x0, x1, x0, x1, x0, x1};
+    const int64_t cy[8] = {y0, y0, y1, y1, y0, y0, y1, y1};
+    const int64_t cz[8] = {z0, z0, z0, z0, z1, z1, z1, z1};
+    const float w[8] = {
+        ((float)x1 - x) * ((float)y1 - y) * ((float)z1 - z),
+        (x - (float)x0) * ((float)y1 - y) * ((float)z1 - z),
+        ((float)x1 - x) * (y - (float)y0) * ((float)z1 - z),
+        (x - (float)x0) * (y - (float)y0) * ((float)z1 - z),
+        ((float)x1 - x) * ((float)y1 - y) * (z - (float)z0),
+        (x - (float)x0) * ((float)y1 - y) * (z - (float)z0),
+        ((float)x1 - x) * (y - (float)y0) * (z - (float)z0),
+        (x - (float)x0) * (y - (float)y0) * (z - (float)z0)};
+    float out = 0.0f;
+    for (int c = 0; c < 8; ++c)
+        if (cx[c] >= 0 && cx[c] < W && cy[c] >= 0 && cy[c] < H && cz[c] >= 0 && cz[c] < D)
+            out += grid[(cz[c] * H + cy[c]) * W + cx[c]] * w[c];
+    return out;
+}
+
+/* Per ray: march the cached SDF at near + (k + 0.5) * step, k < n_steps, while inside [near, far); the first
+   + to - crossing (linear interpolation between the two samples) -> t_out, crossed = 1, min_s = the least
+   sample up to it; without one, t_out = the first sample of least SDF (near when none is inside) and min_s
+   its value (+inf when none). */
+void proposal_march(const float *grid, int64_t D, int64_t H, int64_t W, const float *lo, const float *ext,
+                    float step, int64_t n_steps, const float *origins, const float *dirs, const float *near,
+                    const float *far, int64_t R, float *t_out, uint8_t *crossed, float *min_s) {
+    for (int64_t r = 0; r < R; ++r) {
+        const float *o = origins + 3 * r, *d = dirs + 3 * r;
+        float best_s = INFINITY, best_t = near[r], prev_s = 0.0f, prev_t = 0.0f;
+        int hit = 0;
+        for (int64_t k = 0; k < n_steps; ++k) {
+            const float t = near[r] + ((float)k + 0.5f) * step;
+            if (!(t < far[r]))
+                break;
+            float p[3];
+            for (int a = 0; a < 3; ++a)
+                p[a] = o[a] + t * d[a];
+            const float s = grid_at(grid, D, H, W, lo, ext, p);
+            if (k > 0 && prev_s > 0.0f && s <= 0.0f && isfinite(s)) {
+                float den = prev_s - s;
+                den = den < 1e-12f ? 1e-12f : den;
+                t_out[r] = prev_t + (step * prev_s) / den;
+                hit = 1;
+                if (s < best_s)
+                    best_s = s;
+                break;
+            }
+            if (s < best_s) {
+                best_s = s;
+                best_t = t;
+            }
+            prev_s = s;
+            prev_t = t;
+        }
+        crossed[r] = (uint8_t)hit;
+        if (!hit)
+            t_out[r] = best_t;
+        min_s[r] = best_s;
+    }
+}
 """
 
 MAX_TORCH_THREADS = 2
@@ -183,6 +265,10 @@ def _library() -> ctypes.CDLL | None:
     lib.hashgrid_backward.argtypes = [i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p,
                                       f32p, f32p]
     lib.hashgrid_backward.restype = None
+    u8p = ctypes.POINTER(ctypes.c_uint8)
+    lib.proposal_march.argtypes = [f32p, i64, i64, i64, f32p, f32p, ctypes.c_float, i64, f32p, f32p, f32p, f32p,
+                                   i64, f32p, u8p, f32p]
+    lib.proposal_march.restype = None
     return lib
 
 
@@ -268,3 +354,42 @@ def encode(table: torch.Tensor, x01: torch.Tensor, res: torch.Tensor, offsets: t
                      int(table.shape[1]))
     enc, jac = _HashGridFunction.apply(table, x01, layout, jacobian)
     return enc, jac
+
+
+def march_first_crossing(grid: torch.Tensor, lo: torch.Tensor, ext: torch.Tensor, step: float, n_steps: int,
+                         origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The proposal grid's march (:meth:`stages.numerics.sdf._ProposalGrid.first_crossing`) with the compiled
+    kernel, one ray after another with an early exit at its crossing.
+
+    Args:
+        grid: (D, H, W) float32 CPU cached SDF (W along x), sampled as ``F.grid_sample`` (trilinear, border,
+            ``align_corners=False``) over the box ``lo`` (3,) + ``ext`` (3,).
+        step: sample spacing along the rays; ``n_steps``: the most samples per ray.
+        origins, dirs: (R, 3) float32; near, far: (R,) float32 ray interval.
+
+    Returns:
+        ``(t (R,), crossed (R,) bool, min_sdf (R,))``: the first + to - crossing (linear interpolation), else
+        the first sample of least SDF; ``min_sdf`` is the least sample up to the crossing (+inf on a ray with
+        no sample inside its interval).
+    """
+    if grid.ndim != 3 or grid.dtype != torch.float32 or grid.device.type != "cpu":
+        raise ValueError(f"march_first_crossing: grid must be a (D, H, W) float32 CPU tensor, got "
+                         f"{tuple(grid.shape)} {grid.dtype} {grid.device}")
+    R = int(dirs.shape[0])
+    if origins.shape != (R, 3) or dirs.shape != (R, 3) or near.shape != (R,) or far.shape != (R,):
+        raise ValueError("march_first_crossing: origins, dirs (R, 3) and near, far (R,) must agree")
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("march_first_crossing: the compiled kernel is not available")
+    grid_c = grid.detach().contiguous()
+    lo_c, ext_c = lo.detach().float().contiguous(), ext.detach().float().contiguous()
+    o, d = origins.detach().float().contiguous(), dirs.detach().float().contiguous()
+    n, f = near.detach().float().contiguous(), far.detach().float().contiguous()
+    t_out = torch.empty(R, dtype=torch.float32)
+    crossed = torch.empty(R, dtype=torch.uint8)
+    min_s = torch.empty(R, dtype=torch.float32)
+    D, H, W = (int(v) for v in grid_c.shape)
+    lib.proposal_march(_ptr(grid_c), D, H, W, _ptr(lo_c), _ptr(ext_c), float(step), int(n_steps), _ptr(o), _ptr(d),
+                       _ptr(n), _ptr(f), R, _ptr(t_out), _ptr(crossed, ctypes.c_uint8), _ptr(min_s))
+    return t_out, crossed.bool(), min_s

@@ -137,6 +137,46 @@ def extract_mesh(sdf_fn: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray,
     from skimage.measure import marching_cubes
 
     t0 = time.perf_counter()
+    bounds = _check_extract_args(bounds, resolution, coarse_factor, lipschitz, chunk)
+    resolution, factor, chunk = int(resolution), int(coarse_factor), int(chunk)
+    extent = bounds[1] - bounds[0]
+    voxel = float(extent.max()) / resolution
+    coarse_cells = np.maximum(np.ceil(extent / (voxel * factor) - 1e-9).astype(int), 1)  # per axis
+    fine_shape = tuple(int(n) + 1 for n in coarse_cells * factor)
+    origin = bounds[0]
+
+    coarse, keep, diagonal = _coarse_pass(sdf_fn, origin, voxel, factor, coarse_cells, level, chunk, lipschitz)
+    n_evals = coarse.size
+    stats = {"coarse_cells_kept": int(keep.sum()), "grid_shape": list(fine_shape), "voxel_m": voxel}
+    empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    if not keep.any():
+        stats.update(fine_evaluated_fraction=0.0, sdf_evaluations=int(n_evals), faces=0,
+                     seconds=time.perf_counter() - t0)
+        return *empty, stats
+
+    cell_fine = np.repeat(np.repeat(np.repeat(keep, factor, 0), factor, 1), factor, 2)
+    volume, n_fine = _fine_volume(sdf_fn, coarse, cell_fine, fine_shape, origin, voxel, factor, diagonal, level,
+                                  chunk)
+    n_evals += n_fine
+    mc_mask = np.zeros(fine_shape, bool)
+    o = _mc_mask_offset()
+    mc_mask[o:fine_shape[0] - 1 + o, o:fine_shape[1] - 1 + o, o:fine_shape[2] - 1 + o] = cell_fine
+    stats.update(fine_evaluated_fraction=n_fine / float(np.prod(fine_shape)),
+                 sdf_evaluations=int(n_evals))
+    try:
+        # skimage's winding also flips with its z-y-x -> x-y-z reordering: "descent" gives faces wound
+        # counter-clockwise from outside for an SDF negative inside (test_mesh checks it on a sphere).
+        verts, faces, _, _ = marching_cubes(volume, 0.0, mask=mc_mask, gradient_direction="descent")
+    except (RuntimeError, ValueError):  # no crossing anywhere / level outside the range
+        stats.update(faces=0, seconds=time.perf_counter() - t0)
+        return *empty, stats
+    vertices = (origin + voxel * verts.astype(np.float64)).astype(np.float32)
+    stats.update(faces=int(len(faces)), seconds=time.perf_counter() - t0)
+    return vertices, faces.astype(np.int32), stats
+
+
+def _check_extract_args(bounds, resolution, coarse_factor, lipschitz, chunk) -> np.ndarray:
+    """:func:`extract_mesh`'s argument checks; returns the bounds as a float64 (2, 3) array."""
     bounds = np.asarray(bounds, dtype=np.float64)
     if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)):
         raise ValueError(f"bounds must be a finite (2, 3) array of min and max corners, got {bounds.shape}")
@@ -151,35 +191,31 @@ def extract_mesh(sdf_fn: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray,
         raise ValueError(f"lipschitz must be > 0, got {lipschitz}")
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    resolution, factor, chunk = int(resolution), int(coarse_factor), int(chunk)
+    return bounds
 
-    voxel = float(extent.max()) / resolution
-    coarse_cells = np.maximum(np.ceil(extent / (voxel * factor) - 1e-9).astype(int), 1)  # per axis
-    fine_cells = coarse_cells * factor
-    fine_shape = tuple(int(n) + 1 for n in fine_cells)
-    origin = bounds[0]
 
-    # Coarse pass: values at every factor-th fine point.
+def _coarse_pass(sdf_fn: Callable[[np.ndarray], np.ndarray], origin: np.ndarray, voxel: float, factor: int,
+                 coarse_cells: np.ndarray, level: float, chunk: int,
+                 lipschitz: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """The SDF less ``level`` at every ``factor``-th fine point (coarse_cells + 1 per axis), the coarse cells
+    the level may cross (coarse_cells per axis, bool) and the coarse cells' diagonal (metres)."""
     coarse_axes = [origin[a] + voxel * factor * np.arange(coarse_cells[a] + 1) for a in range(3)]
     coarse_pts = np.stack(np.meshgrid(*coarse_axes, indexing="ij"), axis=-1).reshape(-1, 3)
     coarse = _evaluate(sdf_fn, coarse_pts, chunk).reshape(tuple(coarse_cells + 1)) - np.float32(level)
-    n_evals = coarse.size
     diagonal = voxel * factor * np.sqrt(3.0)
     sign_change = _corner_reduce(coarse < 0, np.logical_or) & ~_corner_reduce(coarse < 0, np.logical_and)
     # Every point of a cell is within one diagonal of each corner, so a 1-Lipschitz SDF can reach the
     # level in a cell only if all its corners are within a diagonal of it (half the cells of "any corner").
     near = _corner_reduce(np.abs(coarse), np.maximum) < diagonal * float(lipschitz)
-    keep = sign_change | near
+    return coarse, sign_change | near, diagonal
 
-    stats = {"coarse_cells_kept": int(keep.sum()), "grid_shape": list(fine_shape), "voxel_m": voxel}
-    empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
-    if not keep.any():
-        stats.update(fine_evaluated_fraction=0.0, sdf_evaluations=int(n_evals), faces=0,
-                     seconds=time.perf_counter() - t0)
-        return *empty, stats
 
-    # Fine cells of kept blocks, and the fine points that are corners of them.
-    cell_fine = np.repeat(np.repeat(np.repeat(keep, factor, 0), factor, 1), factor, 2)
+def _fine_volume(sdf_fn: Callable[[np.ndarray], np.ndarray], coarse: np.ndarray, cell_fine: np.ndarray,
+                 fine_shape: tuple[int, int, int], origin: np.ndarray, voxel: float, factor: int, diagonal: float,
+                 level: float, chunk: int) -> tuple[np.ndarray, int]:
+    """The fine grid's volume (fine_shape) float32 for marching cubes: the SDF less ``level`` at every corner
+    of a kept fine cell (``cell_fine``, one per fine cell), elsewhere a placeholder; and the points
+    evaluated."""
     needed = np.zeros(fine_shape, bool)
     for dx in (0, 1):
         for dy in (0, 1):
@@ -198,23 +234,7 @@ def extract_mesh(sdf_fn: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray,
         idx = flat_idx[start:start + chunk]
         ijk = np.stack(np.unravel_index(idx, fine_shape), axis=-1)
         flat_volume[idx] = _evaluate(sdf_fn, origin + voxel * ijk, chunk) - np.float32(level)
-    n_evals += len(flat_idx)
-
-    mc_mask = np.zeros(fine_shape, bool)
-    o = _mc_mask_offset()
-    mc_mask[o:fine_shape[0] - 1 + o, o:fine_shape[1] - 1 + o, o:fine_shape[2] - 1 + o] = cell_fine
-    stats.update(fine_evaluated_fraction=len(flat_idx) / float(np.prod(fine_shape)),
-                 sdf_evaluations=int(n_evals))
-    try:
-        # skimage's winding also flips with its z-y-x -> x-y-z reordering: "descent" gives faces wound
-        # counter-clockwise from outside for an SDF negative inside (test_mesh checks it on a sphere).
-        verts, faces, _, _ = marching_cubes(volume, 0.0, mask=mc_mask, gradient_direction="descent")
-    except (RuntimeError, ValueError):  # no crossing anywhere / level outside the range
-        stats.update(faces=0, seconds=time.perf_counter() - t0)
-        return *empty, stats
-    vertices = (origin + voxel * verts.astype(np.float64)).astype(np.float32)
-    stats.update(faces=int(len(faces)), seconds=time.perf_counter() - t0)
-    return vertices, faces.astype(np.int32), stats
+    return volume, len(flat_idx)
 
 
 # ------------------------------------------------------------------------------------------ cleanup

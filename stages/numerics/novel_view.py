@@ -15,6 +15,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from stages.numerics.camera import Camera
+
 HALF_MAX = 60000.0
 """Radiance is clipped here before it is written as half float (max 65504)."""
 
@@ -85,8 +87,9 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     mesh_normals = np.where(mask[..., None] & (norm > 1e-8), mesh_normals / np.maximum(norm, 1e-8), 0.0)
     albedo = np.where(reprojected[..., None], gbuffer["albedo"], texture(asset.albedo_tex, 0.0))
     pix = np.flatnonzero(mask.reshape(-1))
-    centre = -pose[:, :3].T @ pose[:, 3]
-    points = pixel_points(K, pose, depth).reshape(-1, 3)[pix]
+    camera = Camera(K, pose, w, h)
+    centre = camera.centre
+    points = camera.lift_depth_map(depth).reshape(-1, 3)[pix]
     view_dirs = centre[None] - points
     view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
     normal_reprojected = np.where(reprojected[..., None], gbuffer["normal"], mesh_normals).astype(np.float32)
@@ -147,15 +150,6 @@ def scatter_pixels(pixels: np.ndarray, values: np.ndarray, h: int, w: int) -> np
     out = np.zeros((h * w, values.shape[1]), np.float32)
     out[pixels] = values
     return out.reshape(h, w, values.shape[1])
-
-
-def pixel_points(K: np.ndarray, cam_from_world: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
-    """World points (H, W, 3) of a depth map (camera z)."""
-    h, w = depth_m.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    x_cam = np.stack([(u - K[0, 2]) / K[0, 0] * depth_m, (v - K[1, 2]) / K[1, 1] * depth_m, depth_m], axis=-1)
-    R, t = cam_from_world[:, :3], cam_from_world[:, 3]
-    return (x_cam - t) @ R
 
 
 def auto_exposure(image: np.ndarray, mask: np.ndarray, level: float = 0.8) -> float:
@@ -259,3 +253,14 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
         images.append(premultiply_edges(scatter_pixels(pix, rgb, h, w), mask, alpha))
     return {"maps": maps, "mask": out_mask, "alpha": alpha, "images": images, "pixels": int(len(pix)),
             "coverage": gb["coverage"], "normal_fusion_px": gb["normal_fusion_px"]}
+
+
+def fit_blend(asset: ActionAsset, config: Any, k: int, depth_tolerance_m: float) -> Any:
+    """The learned source blend of :mod:`stages.numerics.learned_blend` fitted leave one out on the asset's
+    captured views when ``config.enabled`` (a :class:`LearnedBlendConfig`) and there are at least 3 of them;
+    None otherwise (the heuristic weights)."""
+    if not config.enabled or len(asset.sources) < 3:
+        return None
+    from stages.numerics.learned_blend import fit_learned_blend
+
+    return fit_learned_blend(asset.sources, config, k=k, depth_tolerance_m=depth_tolerance_m)

@@ -28,6 +28,7 @@ import numexpr as ne
 import numpy as np
 from scipy import ndimage
 
+from calibration.light import LightModel, correct_normals
 from stages.numerics import numeric_threads
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "photometric_maps",
     "facing_away_fraction",
     "normals_with_alpha",
+    "corrected_normals",
 ]
 
 #: ``|d|`` of an ideal, unoccluded Lambertian point under the LED gradients.
@@ -480,7 +482,7 @@ def albedo_from_white(
     Returns:
         float32 (H, W, 3) in [0, albedo_max]; NaN and negative inputs give 0, +Inf gives ``albedo_max``.
 
-    The white image still holds ambient occlusion (the DESIGN's note): this is albedo times visibility.
+    The white image still holds ambient occlusion (../shared/DESIGN.md, the physics): this is albedo times visibility.
     """
     full_on = _as_rgb("full_on", full_on)
     H, W = full_on.shape[:2]
@@ -821,3 +823,15 @@ def normals_with_alpha(normals: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     out = np.concatenate([normals, alpha[..., None]], axis=-1)
     out[none, :3] = 0.0
     return out
+
+
+def corrected_normals(pos: np.ndarray, neg: np.ndarray, model: LightModel, mask: np.ndarray,
+                      iterations: int) -> np.ndarray:
+    """Normals (H, W, 3) from the gradient ratio of ``pos``/``neg`` (H, W, 3) through the fitted light model
+    (:func:`calibration.light.correct_normals`, ``iterations`` Gauss-Newton steps), 0 outside ``mask`` (H, W)."""
+    total = pos + neg
+    d = np.where(total > 1e-6, (pos - neg) / np.maximum(total, 1e-6), 0.0).astype(np.float32)
+    normals = np.zeros_like(d)
+    if mask.any():
+        normals[mask] = correct_normals(d[mask], model, iterations=iterations).astype(np.float32)
+    return np.nan_to_num(normals, nan=0.0, posinf=0.0, neginf=0.0)

@@ -22,7 +22,7 @@ def _check_camera(K: np.ndarray, cam_from_world: np.ndarray, height: int, width:
 
 def camera_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
                 pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World-space rays through pixel centres.
+    """World-space rays through pixel centres (:meth:`stages.numerics.camera.Camera.rays_with_depth_scale`).
 
     Args:
         K: (3, 3) intrinsics. cam_from_world: (3, 4) ``[R | t]``.
@@ -32,19 +32,10 @@ def camera_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: i
         origins (N, 3) float64 (the camera centre), directions (N, 3) float64 unit, and
         z_per_t (N,) float64: camera depth per unit of ray length (depth_m = t * z_per_t).
     """
-    K, P = _check_camera(K, cam_from_world, height, width)
-    if pixels is None:
-        v, u = np.mgrid[0:height, 0:width]
-        pixels = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)
-    pixels = np.asarray(pixels, dtype=np.float64)
-    R, t = P[:, :3], P[:, 3]
-    d_cam = np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
-                      np.ones(len(pixels))], axis=-1)
-    norm = np.linalg.norm(d_cam, axis=-1)
-    d_cam /= norm[:, None]
-    directions = d_cam @ R  # R^T d for each row
-    origins = np.broadcast_to(-R.T @ t, directions.shape).copy()
-    return origins, directions, d_cam[:, 2]
+    from stages.numerics.camera import Camera
+
+    _check_camera(K, cam_from_world, height, width)
+    return Camera(K, cam_from_world, width, height).rays_with_depth_scale(pixels)
 
 
 def mesh_scene(vertices: np.ndarray, faces: np.ndarray):

@@ -10,12 +10,16 @@ that adding an action, an example or an environment map leaves every other examp
 - :func:`split_of`: a subject's split from one draw and the split ratios.
 - :func:`orbit_camera`: a pinhole camera on a sphere around the subject looking at its centre, the subject's
   bounding sphere filling the square image less a margin.
+
+:func:`render_example` renders one drawn example (image, alpha, mask, albedo, camera-frame normals, PNG exposure)
+and :func:`example_lighting_sh` gives its lighting as order-2 spherical harmonics.
 """
 from __future__ import annotations
 
 import hashlib
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -137,3 +141,35 @@ def draw_example(seed: int, example_id: str, pool_digests: Sequence[str], centre
     return {"environment_index": choose_environment(seed, example_id, pool_digests),
             "rotation_deg": 360.0 * unit_draw(seed, "rotation", example_id), "azimuth_deg": azimuth,
             "elevation_deg": elevation, "K": K, "cam_from_world": cam_from_world}
+
+
+def example_lighting_sh(env: np.ndarray, rotation_deg: float, cam_from_world: np.ndarray) -> tuple[np.ndarray,
+                                                                                                    np.ndarray]:
+    """An example's lighting as order-2 spherical harmonics (9, 3): in the world frame and in the camera's, of the
+    environment ``env`` (H, 2H, 3) turned ``rotation_deg`` about +y. cam_from_world: (3, 4) or (4, 4)."""
+    from stages.numerics.sg import rotation_y
+    from stages.numerics.sh import project_environment
+
+    world_from_map = rotation_y(math.radians(rotation_deg))
+    return (project_environment(env, world_from_map),
+            project_environment(env, np.asarray(cam_from_world)[:3, :3] @ world_from_map))
+
+
+def render_example(asset: Any, K: np.ndarray, cam_from_world: np.ndarray, size: int, lobes: Any, rotation_deg: float,
+                   shading: Any, directions: np.ndarray | None, png_level: float) -> dict[str, Any]:
+    """One example of the set: the asset (:class:`stages.numerics.novel_view.ActionAsset`) seen by the square
+    ``size`` camera (K (3, 3), cam_from_world (3, 4) or (4, 4)) under the SG ``lobes`` turned ``rotation_deg``
+    about +y (:func:`stages.numerics.novel_view.relight_view` with ``shading``).
+
+    Returns ``image`` (S, S, 3) linear radiance premultiplied by ``alpha`` (S, S), ``mask`` (S, S) bool,
+    ``albedo`` (S, S, 3) in [0, 1], ``normals_camera`` (S, S, 3) (OpenCV camera frame) and ``exposure``, the
+    PNG's exposure that puts the masked pixels' ``png_level`` quantile at the top of the range."""
+    from stages.numerics.novel_view import auto_exposure, relight_view
+    from stages.numerics.sg import rotate_sg
+
+    view = relight_view(asset, K, cam_from_world, size, size, [rotate_sg(lobes, math.radians(rotation_deg))],
+                        shading, directions=directions)
+    image, mask = view["images"][0], view["mask"]
+    return {"image": image, "alpha": view["alpha"], "mask": mask, "albedo": np.clip(view["maps"]["albedo"], 0.0, 1.0),
+            "normals_camera": normals_to_camera(view["maps"]["normal"], cam_from_world),
+            "exposure": auto_exposure(image, mask, png_level)}

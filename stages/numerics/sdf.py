@@ -39,6 +39,8 @@ same seed on the CPU gives the same weights bit for bit (torch's CPU kernels use
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import math
 import time
 from dataclasses import dataclass
@@ -70,6 +72,32 @@ __all__ = [
 
 _PRIMES = (1, 2654435761, 805459861)  # Instant-NGP's spatial hash
 _SOFTPLUS_BETA = 100.0  # NeuS / IDR: a smooth ReLU whose curvature does not blur a metre-scale SDF
+
+# Schedule and sampling constants of the SDF's training. They are not settings: no preset, test, bench or user
+# turns them, and every preset's schedule (cpu, production, test) runs with these values.
+_MLP_LR_FACTOR = 0.1
+"""The MLP's learning rate is the hash table's times this (Adam moves every parameter by about its learning rate
+per step: the output layer's bias is a global offset of the surface, keep it slow)."""
+_EMA_DECAY = 0.99
+"""Exponential moving average of the parameters over the last steps (Polyak averaging); the result is the
+averaged field. Adam's per-step moves make the surface jitter by about a millimetre from one step to the next;
+the average removes it."""
+_EMA_START = 0.5
+"""Fraction of the steps after which the average starts (all hash levels are on by then)."""
+_FINAL_LR_FRACTION = 0.1
+"""The learning rate decays (cosine) to this fraction of ``learning_rate`` at the last step."""
+_CURVATURE_STEP_M = 0.005
+"""Offset of the smoothness term's second point, metres (used only when ``weight_curvature`` > 0)."""
+_HULL_INIT_LR = 1e-2
+"""Adam learning rate of the hull regression (the default ``learning_rate`` of the rendering losses)."""
+_PROPOSAL_BAND_M = 0.06
+"""A refresh of the cached SDF grid re-evaluates only the cells whose cached |SDF| is below this (metres); the
+surface must not move farther than that between two refreshes."""
+_WINDOW_SHARPNESS = 8.0
+"""Sampling-window half-width in units of the NeuS transition width ``1 / inv_s``: the logistic density is
+about 1.3e-3 of its peak there (``4 exp(-8)``)."""
+_INV_S_RAMP = 0.7
+"""Fraction of the steps over which ``inv_s`` ramps to ``inv_s_end``; then kept there to the end."""
 
 
 # ------------------------------------------------------------------------------------------------ config
@@ -112,19 +140,8 @@ class SDFConfig(Documented):
     """Network samples per ray, stratified over the window around the ray's first zero crossing."""
     learning_rate: float = 1e-2
     """Adam learning rate (hash table and MLP) after warm-up."""
-    mlp_lr_factor: float = 0.1
-    """The MLP's learning rate is ``learning_rate`` times this (Adam moves every parameter by about its learning
-    rate per step: the output layer's bias is a global offset of the surface, keep it slow)."""
-    ema_decay: float = 0.99
-    """Exponential moving average of the parameters over the last steps (Polyak averaging); the result is the
-    averaged field. Adam's per-step moves make the surface jitter by about a millimetre from one step to the
-    next; the average removes it. 0 = the last step's parameters."""
-    ema_start: float = 0.5
-    """Fraction of the steps after which the average starts (all hash levels are on by then)."""
     warmup_iterations: int = 50
     """Linear learning-rate warm-up (steps)."""
-    final_lr_fraction: float = 0.1
-    """The learning rate decays (cosine) to this fraction of ``learning_rate`` at the last step."""
     weight_normal: float = 1.0
     """Weight of the normal loss ``|n_r - n|_1 + (1 - cos)`` (mean over the valid rays kept)."""
     weight_mask: float = 0.1
@@ -133,10 +150,8 @@ class SDFConfig(Documented):
     """Weight of the eikonal term ``(|grad f| - 1)^2`` (mean over ray samples and random points)."""
     weight_curvature: float = 0.0
     """Weight of a smoothness term ``|n(x) - n(x + e)|^2`` between unit SDF normals at each opaque ray's surface
-    sample ``x`` and at a random offset ``|e| = curvature_step_m`` (0 = off). It damps the photometric normals'
+    sample ``x`` and at a random offset ``|e| = _CURVATURE_STEP_M`` (0 = off). It damps the photometric normals'
     noise and the surface's high frequencies; one extra gradient evaluation per ray."""
-    curvature_step_m: float = 0.005
-    """Offset of the smoothness term's second point, metres."""
     importance_fraction: float = 0.0
     """Share of each batch's rays drawn in proportion to the views' :attr:`SDFView.sample_weight` (the rest
     uniformly from every ray worth drawing); 0 = uniform only. Views without weights count as weight 0."""
@@ -173,29 +188,20 @@ class SDFConfig(Documented):
     """Regression steps of the network to the hull's signed distance before the rendering losses."""
     hull_init_points: int = 2048
     """Points per regression step (half near the hull surface, half uniform in the bounds)."""
-    hull_init_lr: float = 1e-2
-    """Adam learning rate of the hull regression."""
     proposal_voxel_m: float = 0.015
     """Voxel size of the cached SDF grid that proposes each ray's window, metres (0 is refused)."""
     proposal_update_every: int = 100
     """Steps between refreshes of the cached SDF grid from the network."""
-    proposal_band_m: float = 0.06
-    """A refresh re-evaluates only the cells whose cached |SDF| is below this (metres); the surface must not
-    move farther than that between two refreshes."""
     window_m: float = 0.03
     """Half-width of the sampling window (metres along the ray) around the proposed crossing at the start;
-    it shrinks with the NeuS sharpness to ``max(window_min_m, window_sharpness / inv_s)``."""
+    it shrinks with the NeuS sharpness to ``max(window_min_m, _WINDOW_SHARPNESS / inv_s)``."""
     window_min_m: float = 0.008
     """Smallest half-width of the sampling window, metres (covers the cached grid's crossing error)."""
-    window_sharpness: float = 8.0
-    """Window half-width in units of the NeuS transition width ``1 / inv_s``."""
     inv_s_start: float = 50.0
     """NeuS sharpness ``inv_s`` (1 / metres) at the first step; the logistic density of NeuS is
     ``s exp(-s f) / (1 + exp(-s f))^2`` with ``s = inv_s``."""
     inv_s_end: float = 800.0
-    """``inv_s`` reached (geometrically) at ``inv_s_ramp`` of the steps, kept to the end."""
-    inv_s_ramp: float = 0.7
-    """Fraction of the steps over which ``inv_s`` ramps."""
+    """``inv_s`` reached (geometrically) at ``_INV_S_RAMP`` of the steps, kept to the end."""
     coarse_to_fine: float = 0.5
     """Fraction of the steps over which the hash levels are switched on one by one (from
     ``initial_levels``), as Neuralangelo; 0 = all levels from the start."""
@@ -214,6 +220,54 @@ class SDFConfig(Documented):
     """torch CPU threads while training (restored afterwards); 0 leaves torch's setting alone."""
     log_every: int = 50
     """Steps between history entries (and progress calls)."""
+
+    def __post_init__(self) -> None:
+        _check_config(self)
+
+
+def _check_config(config: SDFConfig) -> None:
+    enc = config.encoding
+    problems = []
+    if not 1 <= enc.levels <= 32:
+        problems.append(f"encoding.levels={enc.levels} (1..32)")
+    if not 1 <= enc.features_per_level <= 8:
+        problems.append(f"encoding.features_per_level={enc.features_per_level} (1..8)")
+    if not 8 <= enc.log2_table_size <= 24:
+        problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
+    if not 1 <= enc.base_resolution <= enc.finest_resolution:
+        problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
+    for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "hull_resolution",
+                 "proposal_update_every", "log_every", "initial_levels"):
+        if getattr(config, name) < 1:
+            problems.append(f"{name}={getattr(config, name)} (must be >= 1)")
+    for name in ("hidden_layers", "hull_init_steps", "eikonal_points", "warmup_iterations", "hull_max_misses",
+                 "threads"):
+        if getattr(config, name) < 0:
+            problems.append(f"{name}={getattr(config, name)} (must be >= 0)")
+    for name in ("learning_rate", "proposal_voxel_m", "window_m", "window_min_m", "inv_s_start", "inv_s_end",
+                 "fd_step_m"):
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value > 0):
+            problems.append(f"{name}={value} (must be > 0)")
+    for name in ("outlier_fraction", "coarse_to_fine"):
+        value = getattr(config, name)
+        if not 0 <= value <= 1:
+            problems.append(f"{name}={value} (must be in [0, 1])")
+    if not 0 <= config.importance_fraction < 1:
+        problems.append(f"importance_fraction={config.importance_fraction} (must be in [0, 1))")
+    if not 0 <= config.outlier_fraction < 1:
+        problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
+    if not 0 <= config.grazing_cos_min < 1:
+        problems.append(f"grazing_cos_min={config.grazing_cos_min} (must be in [0, 1))")
+    for name in ("weight_normal", "weight_mask", "weight_eikonal", "weight_curvature", "weight_hull", "hull_margin_m",
+                 "hull_dilate_px", "hull_init_dilate_px"):
+        value = getattr(config, name)
+        if not (math.isfinite(value) and value >= 0):
+            problems.append(f"{name}={value} (must be >= 0)")
+    if config.gradient not in ("analytic", "finite_difference", "autograd"):
+        problems.append(f"gradient={config.gradient!r}")
+    if problems:
+        raise ValueError("invalid SDFConfig: " + "; ".join(problems))
 
 
 SDF_PRESETS: dict[str, SDFConfig] = {
@@ -260,51 +314,6 @@ def resolve_device(device: str) -> torch.device:
     if device not in ("cpu", "cuda"):
         raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
     return torch.device(device)
-
-
-def _check_config(config: SDFConfig) -> None:
-    enc = config.encoding
-    problems = []
-    if not 1 <= enc.levels <= 32:
-        problems.append(f"encoding.levels={enc.levels} (1..32)")
-    if not 1 <= enc.features_per_level <= 8:
-        problems.append(f"encoding.features_per_level={enc.features_per_level} (1..8)")
-    if not 8 <= enc.log2_table_size <= 24:
-        problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
-    if not 1 <= enc.base_resolution <= enc.finest_resolution:
-        problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
-    for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "hull_resolution",
-                 "proposal_update_every", "log_every", "initial_levels"):
-        if getattr(config, name) < 1:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 1)")
-    for name in ("hidden_layers", "hull_init_steps", "eikonal_points", "warmup_iterations", "hull_max_misses",
-                 "threads"):
-        if getattr(config, name) < 0:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 0)")
-    for name in ("learning_rate", "mlp_lr_factor", "proposal_voxel_m", "proposal_band_m", "window_m", "window_min_m", "inv_s_start", "inv_s_end",
-                 "fd_step_m", "hull_init_lr", "window_sharpness"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value > 0):
-            problems.append(f"{name}={value} (must be > 0)")
-    for name in ("outlier_fraction", "coarse_to_fine", "final_lr_fraction", "inv_s_ramp", "ema_decay", "ema_start"):
-        value = getattr(config, name)
-        if not 0 <= value <= 1:
-            problems.append(f"{name}={value} (must be in [0, 1])")
-    if not 0 <= config.importance_fraction < 1:
-        problems.append(f"importance_fraction={config.importance_fraction} (must be in [0, 1))")
-    if not 0 <= config.outlier_fraction < 1:
-        problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
-    if not 0 <= config.grazing_cos_min < 1:
-        problems.append(f"grazing_cos_min={config.grazing_cos_min} (must be in [0, 1))")
-    for name in ("weight_normal", "weight_mask", "weight_eikonal", "weight_curvature", "weight_hull", "hull_margin_m",
-                 "hull_dilate_px", "hull_init_dilate_px", "curvature_step_m"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value >= 0):
-            problems.append(f"{name}={value} (must be >= 0)")
-    if config.gradient not in ("analytic", "finite_difference", "autograd"):
-        problems.append(f"gradient={config.gradient!r}")
-    if problems:
-        raise ValueError("invalid SDFConfig: " + "; ".join(problems))
 
 
 # ------------------------------------------------------------------------------------------------ field
@@ -667,6 +676,8 @@ class SDFResult:
             that the hull (rays worth drawing: ``candidate_ray_fraction``) and the cached SDF grid (window
             around the crossing) skipped, and ``samples_skipped_vs_neus_128`` against 128 samples on every
             pixel's ray; hull and pre-fit timings, ``time_breakdown_s``.
+        start: what training started from (:class:`SDFStart`): a later :func:`train_sdf` on views with the
+            same masks and cameras and a config that differs only in its schedule reuses it.
     """
 
     field: SDFField
@@ -674,6 +685,42 @@ class SDFResult:
     hull: HullGrid
     history: dict[str, list]
     stats: dict[str, Any]
+    start: "SDFStart | None" = None
+
+
+@dataclass(frozen=True)
+class SDFStart:
+    """A training's start: the visual hull and its signed distance, the bounds, the hull-pre-fitted field and
+    the random generators' states after it, and the key of what made them (:func:`_start_key`)."""
+
+    key: str
+    hull: HullGrid
+    hull_sd: np.ndarray
+    sdf_bounds: np.ndarray
+    stage_box: np.ndarray
+    field_state: dict[str, Any]
+    prefit_losses: list[float]
+    generator_state: torch.Tensor
+    torch_rng_state: torch.Tensor
+
+
+_SCHEDULE_FIELDS = ("iterations", "warmup_iterations", "importance_fraction", "log_every")
+"""SDFConfig fields that act after the start (the two passes of the geometry stage differ in these)."""
+
+
+def _start_key(masks: list[np.ndarray], cams: list, config: "SDFConfig", bounds: np.ndarray | None,
+               device: torch.device) -> str:
+    """sha256 of what the hull, the bounds and the pre-fitted field depend on: the masks, the cameras, the
+    caller's bounds, the device and every config field but the schedule's."""
+    digest = hashlib.sha256()
+    for mask, (K, T) in zip(masks, cams):
+        digest.update(np.packbits(mask).tobytes() + repr(mask.shape).encode())
+        digest.update(np.ascontiguousarray(K, np.float64).tobytes() + np.ascontiguousarray(T, np.float64).tobytes())
+    digest.update(b"none" if bounds is None else np.ascontiguousarray(bounds, np.float64).tobytes())
+    neutral = dataclasses.replace(config, **{name: SDFConfig.__dataclass_fields__[name].default
+                                             for name in _SCHEDULE_FIELDS})
+    digest.update(repr((to_dict(neutral), str(device))).encode())
+    return digest.hexdigest()
 
 
 def _check_views(views: Sequence[SDFView], normal_supervision: bool) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -894,6 +941,11 @@ class _ProposalGrid:
         R = dirs.shape[0]
         step = self.step
         n_steps = int(math.ceil(float((far - near).max()) / step)) + 1 if R else 1
+        if self.values.device.type == "cpu" and hashgrid_kernel.kernel_available():
+            # One ray after another, each stopping at its crossing: the chunked march below samples every ray
+            # until the last one crosses.
+            return hashgrid_kernel.march_first_crossing(self.values[0, 0], self.lo, self.ext, step, n_steps,
+                                                        origins, dirs, near, far)
         t_hit = torch.full((R,), float("nan"), device=dirs.device)
         best_t = near.clone()
         best_s = torch.full((R,), float("inf"), device=dirs.device)
@@ -980,12 +1032,12 @@ def _lr_factor(it: int, config: SDFConfig) -> float:
         return (it + 1) / config.warmup_iterations
     span = max(config.iterations - config.warmup_iterations, 1)
     p = min((it - config.warmup_iterations) / span, 1.0)
-    f = config.final_lr_fraction
+    f = _FINAL_LR_FRACTION
     return f + (1 - f) * 0.5 * (1 + math.cos(math.pi * p))
 
 
 def _inv_s(it: int, config: SDFConfig) -> float:
-    ramp = max(config.inv_s_ramp * config.iterations, 1.0)
+    ramp = max(_INV_S_RAMP * config.iterations, 1.0)
     p = min(it / ramp, 1.0)
     return config.inv_s_start * (config.inv_s_end / config.inv_s_start) ** p
 
@@ -1074,7 +1126,7 @@ def fit_to_signed_distance(field_: SDFField, grid: HullGrid, signed_distance: np
 def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], bounds: np.ndarray | None = None,
               progress: Callable[[int, dict], None] | None = None,
               checkpoint: Callable[[int, "SDFField"], None] | None = None,
-              init: "SDFField | None" = None) -> SDFResult:
+              init: "SDFField | None" = None, start: "SDFStart | None" = None) -> SDFResult:
     """Train a neural SDF of the subject from photometric normal maps and masks.
 
     Args:
@@ -1088,34 +1140,124 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
             device: copy its ``state_dict`` to keep it), e.g. to measure error over time.
         init: a trained field to continue from (a copy; its bounds are kept and the hull pre-fit is skipped).
             Pair it with a schedule that starts sharp: ``inv_s_start = inv_s_end`` and ``coarse_to_fine = 0``.
+        start: an earlier result's :attr:`SDFResult.start`: used when its key is this call's (same masks,
+            cameras, bounds, device and config but for the schedule), so the hull and the pre-fit are not
+            computed again; the training is then the same as without it, bit for bit.
 
     Returns:
         :class:`SDFResult`.
 
     Raises:
-        ValueError: bad views (shapes, cameras, all masks empty), a bad config, or an empty hull.
+        ValueError: bad views (shapes, cameras, all masks empty) or an empty hull (a bad config is refused when
+            it is built).
     """
-    _check_config(config)
     cams = _check_views(views, config.normal_supervision)
     if init is not None and (to_dict(init.encoding_config) != to_dict(config.encoding)
                              or (init.hidden_width, init.hidden_layers) != (config.hidden_width, config.hidden_layers)):
         raise ValueError("init was trained with another encoding or network than config's")
     device = resolve_device(config.device)
     with torch_threads(config.threads):
-        return _train(views, cams, config, bounds, progress, checkpoint, device, init)
+        return _train(views, cams, config, bounds, progress, checkpoint, device, init, start)
 
 
-def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device, init=None) -> SDFResult:
+def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device, init=None,
+           start: SDFStart | None = None) -> SDFResult:
     t_start = time.perf_counter()
-    stats: dict[str, Any] = {"device": str(device)}
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     masks = [np.asarray(v.mask, bool) for v in views]
-    Ks = [K for K, _ in cams]
-    Ts = [T for _, T in cams]
+    key = _start_key(masks, cams, config, bounds, device) if init is None else None
+    if start is not None and key is not None and start.key == key:
+        hull, hull_sd, sdf_bounds, stage_box = start.hull, start.hull_sd, start.sdf_bounds, start.stage_box
+        field_ = SDFField.from_state(start.field_state).to(device)
+        field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
+        prefit_losses = list(start.prefit_losses)
+        generator.set_state(start.generator_state)
+        torch.set_rng_state(start.torch_rng_state)
+        stats: dict[str, Any] = {"device": str(device), "hull_time_s": 0.0, "start_reused": True,
+                                 "hull_occupied_fraction": hull.occupied_fraction, "hull_init_time_s": 0.0}
+    else:
+        Ks = [K for K, _ in cams]
+        Ts = [T for _, T in cams]
+        hull, sdf_bounds, stage_box = _hull_and_bounds(masks, Ks, Ts, cams, config, bounds, init)
+        hull_sd = hull.signed_distance()
+        prefit_hull, prefit_sd = _prefit_target(masks, Ks, Ts, hull, hull_sd, config, init)
+        stats = {"device": str(device), "hull_time_s": time.perf_counter() - t_start,
+                 "hull_occupied_fraction": hull.occupied_fraction}
+        t0 = time.perf_counter()
+        field_, prefit_losses = _initial_field(sdf_bounds, prefit_hull, prefit_sd, config, device, generator, init)
+        stats["hull_init_time_s"] = time.perf_counter() - t0
+        start = None if key is None else SDFStart(
+            key=key, hull=hull, hull_sd=hull_sd, sdf_bounds=sdf_bounds, stage_box=stage_box,
+            field_state=field_.to_state(), prefit_losses=list(prefit_losses),
+            generator_state=generator.get_state(), torch_rng_state=torch.get_rng_state())
+    stats["hull_init_final_l1_m"] = prefit_losses[-1] if prefit_losses else None
 
-    # 1. Bounds and the visual hull.
+    bank = _build_ray_bank(views, cams, hull, sdf_bounds, stage_box, config.grazing_cos_min, device, rng)
+    proposal = _ProposalGrid(sdf_bounds, config.proposal_voxel_m, device)
+    proposal.refresh(field_)
+    hull_distance = _grid_sampler(hull, hull_sd, device)
+
+    table = [field_.encoding.table]
+    mlp = [p for n, p in field_.named_parameters() if not n.startswith("encoding.")]
+    optimiser = _adam([{"params": table}, {"params": mlp}], config.learning_rate)
+    history: dict[str, list] = {k: [] for k in ("iteration", "seconds") + _HISTORY_KEYS}
+    n_important = int(round(config.importance_fraction * config.rays_per_batch)) if bank.sample_cdf is not None else 0
+    box_lo = torch.tensor(sdf_bounds[0], dtype=torch.float32, device=device)
+    box_ext = torch.tensor(sdf_bounds[1] - sdf_bounds[0], dtype=torch.float32, device=device)
+    average = _ParameterAverage(list(field_.parameters()), config)
+    meter = _LossMeter()
+    counts = _SampleCounts()
+    timing = {"proposal": 0.0, "forward": 0.0, "backward": 0.0, "step": 0.0, "refresh": 0.0}
+    t_train = time.perf_counter()
+    for it in range(config.iterations):
+        inv_s, lr = _apply_schedule(it, config, field_, optimiser)
+        if it > 0 and it % config.proposal_update_every == 0:
+            tick = time.perf_counter()
+            # Only cells near the surface: the rest keep their (large, correctly signed) values.
+            proposal.refresh(field_, band_m=_PROPOSAL_BAND_M)
+            timing["refresh"] += time.perf_counter() - tick
+        window = max(config.window_min_m, min(config.window_m, _WINDOW_SHARPNESS / inv_s))
+
+        tick = time.perf_counter()
+        batch = _draw_batch(bank, proposal, config.rays_per_batch, n_important, generator, device)
+        timing["proposal"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        samples = _sample_windows(field_, batch, window, box_lo, box_ext, config, generator, device)
+        counts.add(config.rays_per_batch, samples.n_rays, config.samples_per_ray, window, bank.mean_chord_all_m)
+        losses = _step_losses(field_, bank, batch, samples, hull_distance, it, inv_s, n_important, config,
+                              generator, device)
+        optimiser.zero_grad(set_to_none=True)
+        timing["forward"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        losses.total.backward()
+        timing["backward"] += time.perf_counter() - tick
+        tick = time.perf_counter()
+        optimiser.step()
+        average.update(it)
+        timing["step"] += time.perf_counter() - tick
+
+        meter.add(losses, batch.crossed)
+        if (it + 1) % config.log_every == 0 or it + 1 == config.iterations:
+            entry = meter.take_means()
+            entry.update(inv_s=inv_s, lr=lr)
+            _report(it, entry, time.perf_counter() - t_start, history, progress, checkpoint, field_, average)
+
+    average.finish(config.iterations - 1)
+    field_ = field_.cpu().eval()
+    stats.update(_training_stats(config, bank, n_important, counts, timing, t_start, t_train))
+    return SDFResult(field=field_, bounds=sdf_bounds, hull=hull, history=history, stats=stats, start=start)
+
+
+def _hull_and_bounds(masks, Ks, Ts, cams, config: SDFConfig, bounds: np.ndarray | None,
+                     init: SDFField | None) -> tuple[HullGrid, np.ndarray, np.ndarray]:
+    """The conservative visual hull that bounds the rays and samples, the SDF's (2, 3) bounds (metres) and the
+    stage box the naive sampler of the stats is measured in.
+
+    With no ``bounds``, a coarse hull over :func:`default_stage_box` finds the subject's box first. The SDF's
+    bounds are the hull's box plus ``hull_margin_m``, kept inside a caller's ``bounds``; a continued ``init``
+    field keeps its own (its encoding is defined over them)."""
     if init is not None:
         bounds = np.asarray(init.bounds, np.float64)
     if bounds is None:
@@ -1133,231 +1275,339 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
     sdf_bounds = hull.tight_bounds(config.hull_margin_m)
     if bounds is not None:  # never leave the box the caller vouched for
         sdf_bounds = np.stack([np.maximum(sdf_bounds[0], box[0]), np.minimum(sdf_bounds[1], box[1])])
-    if init is not None:  # the field's own bounds: its encoding is defined over them
-        sdf_bounds = np.asarray(init.bounds, np.float64)
-    hull_sd = hull.signed_distance()
-    stats["hull_time_s"] = time.perf_counter() - t_start
-    stats["hull_occupied_fraction"] = hull.occupied_fraction
-
-    # 2. The field, pre-fitted to the hull: the conservative one bounds samples and rays; the closer,
-    # classic centre-test hull is the better starting surface (the mask loss alone carves slowly).
-    if config.hull_init_tight and init is None:
-        init_hull = visual_hull(masks, Ks, Ts, hull.bounds, config.hull_resolution, config.hull_max_misses,
-                                config.hull_init_dilate_px, conservative=False)
-        if not init_hull.occupancy.any():
-            init_hull = hull
-        init_sd = init_hull.signed_distance() if init_hull is not hull else hull_sd
-    else:
-        init_hull, init_sd = hull, hull_sd
-    stats["hull_time_s"] = time.perf_counter() - t_start
-    t0 = time.perf_counter()
     if init is not None:
-        field_ = SDFField.from_state(init.to_state()).to(device)
-        prefit_losses: list[float] = []
-    else:
-        field_ = SDFField(sdf_bounds, config.encoding, config.hidden_width, config.hidden_layers).to(device)
-        field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
-        prefit_losses = fit_to_signed_distance(field_, init_hull, init_sd, config.hull_init_steps,
-                                               config.hull_init_points, config.hull_init_lr, generator=generator)
-    stats["hull_init_time_s"] = time.perf_counter() - t0
-    stats["hull_init_final_l1_m"] = prefit_losses[-1] if prefit_losses else None
+        sdf_bounds = np.asarray(init.bounds, np.float64)
+    return hull, sdf_bounds, stage_box
 
-    # 3. Rays worth drawing and the cached proposal grid.
-    bank = _build_ray_bank(views, cams, hull, sdf_bounds, stage_box, config.grazing_cos_min, device, rng)
-    proposal = _ProposalGrid(sdf_bounds, config.proposal_voxel_m, device)
-    proposal.refresh(field_)
 
-    hull_distance = _grid_sampler(hull, hull_sd, device)
+def _prefit_target(masks, Ks, Ts, hull: HullGrid, hull_sd: np.ndarray, config: SDFConfig,
+                   init: SDFField | None) -> tuple[HullGrid, np.ndarray]:
+    """The hull the new field is pre-fitted to and its signed distance (Rx, Ry, Rz) metres.
 
-    # 4. Rendering losses.
-    table = [field_.encoding.table]
-    mlp = [p for n, p in field_.named_parameters() if not n.startswith("encoding.")]
-    optimiser = _adam([{"params": table}, {"params": mlp}], config.learning_rate)
-    keys = ("loss", "normal", "mask", "eikonal", "hull", "normal_deg", "crossed", "inv_s", "lr")
-    history: dict[str, list] = {k: [] for k in ("iteration", "seconds") + keys}
-    n_bank = int(bank.dirs.shape[0])
-    n_important = int(round(config.importance_fraction * config.rays_per_batch)) if bank.sample_cdf is not None else 0
+    The conservative hull bounds samples and rays; the closer, classic centre-test hull is the better starting
+    surface (the mask loss alone carves slowly), unless it comes out empty."""
+    if not config.hull_init_tight or init is not None:
+        return hull, hull_sd
+    tight = visual_hull(masks, Ks, Ts, hull.bounds, config.hull_resolution, config.hull_max_misses,
+                        config.hull_init_dilate_px, conservative=False)
+    if not tight.occupancy.any():
+        return hull, hull_sd
+    return tight, tight.signed_distance()
+
+
+def _initial_field(sdf_bounds: np.ndarray, prefit_hull: HullGrid, prefit_sd: np.ndarray, config: SDFConfig,
+                   device: torch.device, generator: torch.Generator,
+                   init: SDFField | None) -> tuple[SDFField, list[float]]:
+    """The field training starts from, on ``device``, and the pre-fit's loss per step: a copy of ``init``
+    (no pre-fit), or a new field over ``sdf_bounds`` regressed to the pre-fit hull's signed distance."""
+    if init is not None:
+        return SDFField.from_state(init.to_state()).to(device), []
+    field_ = SDFField(sdf_bounds, config.encoding, config.hidden_width, config.hidden_layers).to(device)
+    field_.set_active_levels(float(min(config.initial_levels, config.encoding.levels)))
+    losses = fit_to_signed_distance(field_, prefit_hull, prefit_sd, config.hull_init_steps,
+                                    config.hull_init_points, _HULL_INIT_LR, generator=generator)
+    return field_, losses
+
+
+def _apply_schedule(it: int, config: SDFConfig, field_: SDFField,
+                    optimiser: torch.optim.Optimizer) -> tuple[float, float]:
+    """Set step ``it``'s active hash levels and learning rates (the hash table's group first, the MLP's second);
+    returns the step's NeuS sharpness ``inv_s`` and the table's learning rate."""
+    inv_s = _inv_s(it, config)
+    field_.set_active_levels(_active_levels(it, config))
+    lr = config.learning_rate * _lr_factor(it, config)
+    optimiser.param_groups[0]["lr"] = lr
+    optimiser.param_groups[1]["lr"] = lr * _MLP_LR_FACTOR
+    return inv_s, lr
+
+
+@dataclass
+class _Batch:
+    """One step's rays, drawn from the bank, with each one's first crossing in the cached SDF grid (B rays)."""
+
+    pick: torch.Tensor  # (B,) int64 indices into the bank; the first n_important drawn by the sample weights
+    origins: torch.Tensor  # (B, 3)
+    dirs: torch.Tensor  # (B, 3)
+    target_mask: torch.Tensor  # (B,) float 0/1
+    t_cross: torch.Tensor  # (B,) distance along the ray to the proposed crossing
+    crossed: torch.Tensor  # (B,) bool: the cached grid changes sign along the ray
+    min_sdf: torch.Tensor  # (B,) smallest cached SDF along the ray
+
+
+def _draw_batch(bank: _RayBank, proposal: _ProposalGrid, count: int, n_important: int,
+                generator: torch.Generator, device: torch.device) -> _Batch:
+    pick = _draw_rays(int(bank.dirs.shape[0]), count, bank.sample_cdf, n_important, generator, device)
+    dirs = bank.dirs[pick]
+    origins = bank.origins[bank.view[pick]]
+    t_cross, crossed, min_sdf = proposal.first_crossing(origins, dirs, bank.near[pick], bank.far[pick])
+    return _Batch(pick=pick, origins=origins, dirs=dirs, target_mask=bank.mask[pick], t_cross=t_cross,
+                  crossed=crossed, min_sdf=min_sdf)
+
+
+@dataclass
+class _Samples:
+    """The field at the samples of the rendered rays' windows (R rays x K samples) and at random points."""
+
+    ray: torch.Tensor  # (R,) int64 indices into the batch of the rays rendered
+    points: torch.Tensor  # (R, K, 3) samples along the rendered rays
+    delta: torch.Tensor  # (R,) sample spacing
+    all_points: torch.Tensor  # (R * K + n_random, 3): the ray samples, then the random points
+    sdf: torch.Tensor  # (R * K + n_random,) the field at all_points, metres
+    grad: torch.Tensor  # (R * K + n_random, 3) its gradient
+
+    @property
+    def n_rays(self) -> int:
+        return int(self.ray.numel())
+
+
+def _sample_windows(field_: SDFField, batch: _Batch, window: float, box_lo: torch.Tensor, box_ext: torch.Tensor,
+                    config: SDFConfig, generator: torch.Generator, device: torch.device) -> _Samples:
+    """Stratified samples (``samples_per_ray``, jittered) over ``+-window`` metres around each rendered ray's
+    proposed crossing, ``eikonal_points`` uniform points in the box ``box_lo + [0, box_ext]``, and the field's
+    SDF and gradient at all of them."""
     K = config.samples_per_ray
-    blo = torch.tensor(sdf_bounds[0], dtype=torch.float32, device=device)
-    bext = torch.tensor(sdf_bounds[1] - sdf_bounds[0], dtype=torch.float32, device=device)
-    evaluated = 0
-    naive = 0.0
-    rays_drawn = 0
-    rays_rendered = 0
-    t_train = time.perf_counter()
-    timing = {"proposal": 0.0, "forward": 0.0, "backward": 0.0, "step": 0.0, "refresh": 0.0}
-    params = [p for p in field_.parameters()]
-    ema = [p.detach().clone() for p in params] if config.ema_decay > 0 else None
-    ema_first = int(config.ema_start * config.iterations)
-    sums = {"loss": 0.0, "normal": 0.0, "mask": 0.0, "eikonal": 0.0, "hull": 0.0, "normal_deg": 0.0,
-            "crossed": 0.0}
-    count = 0
-    for it in range(config.iterations):
-        inv_s = _inv_s(it, config)
-        field_.set_active_levels(_active_levels(it, config))
-        lr = config.learning_rate * _lr_factor(it, config)
-        optimiser.param_groups[0]["lr"] = lr
-        optimiser.param_groups[1]["lr"] = lr * config.mlp_lr_factor
-        if it > 0 and it % config.proposal_update_every == 0:
-            tick = time.perf_counter()
-            # Only cells near the surface: the rest keep their (large, correctly signed) values.
-            proposal.refresh(field_, band_m=config.proposal_band_m)
-            timing["refresh"] += time.perf_counter() - tick
-        window = max(config.window_min_m, min(config.window_m, config.window_sharpness / inv_s))
+    # Rays off the mask that pass far from the surface have opacity ~0 already: no samples.
+    render = batch.crossed | (batch.target_mask > 0.5) | (batch.min_sdf < 2 * window)
+    r_idx = torch.nonzero(render).view(-1)
+    R = int(r_idx.numel())
+    delta = torch.full((R,), 2 * window / K, device=device)
+    jitter = torch.rand((R, K), generator=generator).to(device)
+    t = (batch.t_cross[r_idx].unsqueeze(1) - window
+         + (torch.arange(K, device=device).float().unsqueeze(0) + jitter) * delta.unsqueeze(1))
+    pts = batch.origins[r_idx].unsqueeze(1) + t.unsqueeze(-1) * batch.dirs[r_idx].unsqueeze(1)
+    rand_pts = box_lo + torch.rand((config.eikonal_points, 3), generator=generator).to(device) * box_ext
+    all_pts = torch.cat([pts.reshape(-1, 3), rand_pts])
+    sdf_all, grad_all = field_.sdf_and_gradient(all_pts, config.gradient, config.fd_step_m)
+    return _Samples(ray=r_idx, points=pts, delta=delta, all_points=all_pts, sdf=sdf_all, grad=grad_all)
 
-        tick = time.perf_counter()
-        pick = _draw_rays(n_bank, config.rays_per_batch, bank.sample_cdf, n_important, generator, device)
-        dirs = bank.dirs[pick]
-        origins = bank.origins[bank.view[pick]]
-        near, far = bank.near[pick], bank.far[pick]
-        target_mask = bank.mask[pick]
-        t_c, crossed, min_s = proposal.first_crossing(origins, dirs, near, far)
-        timing["proposal"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        # Rays off the mask that pass far from the surface have opacity ~0 already: no samples.
-        render = crossed | (target_mask > 0.5) | (min_s < 2 * window)
-        r_idx = torch.nonzero(render).view(-1)
-        R = int(r_idx.numel())
-        rays_drawn += config.rays_per_batch
-        rays_rendered += R
-        delta = torch.full((R,), 2 * window / K, device=device)
-        jitter = torch.rand((R, K), generator=generator).to(device)
-        t = t_c[r_idx].unsqueeze(1) - window + (torch.arange(K, device=device).float().unsqueeze(0) + jitter) * delta.unsqueeze(1)
-        pts = origins[r_idx].unsqueeze(1) + t.unsqueeze(-1) * dirs[r_idx].unsqueeze(1)
-        n_rand = config.eikonal_points
-        rand_pts = blo + torch.rand((n_rand, 3), generator=generator).to(device) * bext
-        all_pts = torch.cat([pts.reshape(-1, 3), rand_pts])
-        sdf_all, grad_all = field_.sdf_and_gradient(all_pts, config.gradient, config.fd_step_m)
-        evaluated += R * K
-        naive += config.rays_per_batch * bank.mean_chord_all_m / (2 * window / K)
-        sdf = sdf_all[:R * K].view(R, K)
-        grad = grad_all[:R * K].view(R, K, 3)
-        cos_anneal = min(1.0, it / max(0.1 * config.iterations, 1.0))
-        weights, _ = _neus_composite(sdf, grad, dirs[r_idx], delta, inv_s, cos_anneal)
-        opacity = weights.sum(1)
-        unit = F.normalize(grad, dim=-1, eps=1e-8)
-        rendered_normal = (weights.unsqueeze(-1) * unit).sum(1)
 
-        # Mask BCE over every uniformly drawn ray (rays not rendered have opacity 0 against a 0 mask: loss
-        # 0). The importance-drawn ones are chosen for their normals' error, mostly inside the mask: counted
-        # here they tip its balance of inside and outside rays and the surface swells (A0000: Chamfer 1.86 mm
-        # instead of 1.49 at a share of 0.2).
-        m = target_mask[r_idx]
-        op = opacity.clamp(1e-4, 1 - 1e-4)
-        bce = -(m * torch.log(op) + (1 - m) * torch.log(1 - op))
-        if n_important:
-            bce = bce[r_idx >= n_important]
-        mask_loss = bce.sum() / (config.rays_per_batch - n_important)
-        eik = ((grad_all[:R * K + n_rand].norm(dim=-1) - 1.0) ** 2).mean()
-        loss = config.weight_mask * mask_loss + config.weight_eikonal * eik
-        hull_loss = torch.zeros((), device=device)
-        if config.weight_hull > 0:
-            d_hull = hull_distance(all_pts[:R * K + n_rand])
-            hull_loss = F.relu(d_hull - sdf_all[:R * K + n_rand]).mean()
-            loss = loss + config.weight_hull * hull_loss
-        normal_loss = torch.zeros((), device=device)
-        normal_deg = float("nan")
-        if config.normal_supervision:
-            ok = bank.normal_ok[pick][r_idx]
-            if bool(ok.any()):
-                target_n = bank.normals[pick][r_idx][ok]
-                pred_n = rendered_normal[ok]
-                cos = F.cosine_similarity(pred_n, target_n, dim=-1, eps=1e-8)
-                # The L1 compares directions (the rendered normal normalised): left unnormalised it would
-                # also push the opacity of every valid pixel to 1, which the mask loss balances only on
-                # the mask's inner side, and the surface creeps outwards at the silhouettes.
-                unit_n = pred_n / pred_n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-                residual = (unit_n - target_n).abs().sum(-1) + (1.0 - cos)
-                keep = residual.numel() - int(config.outlier_fraction * residual.numel())
-                kept, kept_idx = torch.topk(residual, max(keep, 1), largest=False, sorted=False)
-                normal_loss = kept.mean()
-                normal_deg = float(torch.rad2deg(torch.acos(cos[kept_idx].detach().clamp(-1, 1))).mean())
-                loss = loss + config.weight_normal * normal_loss
-        curvature_loss = torch.zeros((), device=device)
-        if config.weight_curvature > 0 and R > 0:
-            # One point per opaque ray (its sample of largest weight, i.e. on the surface) and a random
-            # neighbour: 1/K of the samples' cost, where the surface is.
-            offsets = F.normalize(torch.randn((R, 3), generator=generator).to(device), dim=1)
-            best = weights.detach().argmax(dim=1)
-            on_surface = opacity.detach() > 0.5
-            if bool(on_surface.any()):
-                rows = torch.nonzero(on_surface).view(-1)
-                base_pts = pts[rows, best[rows]]
-                _, g_near = field_.sdf_and_gradient(base_pts.detach() + offsets[rows] * config.curvature_step_m,
-                                                    config.gradient, config.fd_step_m)
-                n0 = unit[rows, best[rows]]
-                n1 = F.normalize(g_near, dim=-1, eps=1e-8)
-                curvature_loss = ((n0 - n1) ** 2).sum(-1).mean()
-                loss = loss + config.weight_curvature * curvature_loss
+@dataclass
+class _StepLosses:
+    """One step's losses (scalar tensors; ``total`` is the weighted sum that is minimised)."""
 
-        optimiser.zero_grad(set_to_none=True)
-        timing["forward"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        loss.backward()
-        timing["backward"] += time.perf_counter() - tick
-        tick = time.perf_counter()
-        optimiser.step()
-        if ema is not None and it >= ema_first:
-            if it == ema_first:
-                torch._foreach_copy_(ema, params)
-            else:
-                torch._foreach_lerp_(ema, params, 1.0 - config.ema_decay)
-        timing["step"] += time.perf_counter() - tick
+    total: torch.Tensor
+    normal: torch.Tensor
+    mask: torch.Tensor
+    eikonal: torch.Tensor
+    hull: torch.Tensor
+    normal_deg: float  # mean angle of the kept valid rays' rendered normals, degrees; NaN when there are none
 
-        sums["loss"] += float(loss.detach())
-        sums["normal"] += float(normal_loss.detach())
-        sums["mask"] += float(mask_loss.detach())
-        sums["eikonal"] += float(eik.detach())
-        sums["hull"] += float(hull_loss.detach())
-        sums["crossed"] += float(crossed.float().mean())
-        sums["normal_deg"] += 0.0 if math.isnan(normal_deg) else normal_deg
-        count += 1
-        if (it + 1) % config.log_every == 0 or it + 1 == config.iterations:
-            entry = {k: v / count for k, v in sums.items()}
-            entry.update(inv_s=inv_s, lr=lr)
-            history["iteration"].append(it + 1)
-            history["seconds"].append(time.perf_counter() - t_start)
-            for k in keys:
-                history[k].append(float(entry[k]))
-            if progress is not None:
-                progress(it + 1, dict(entry))
-            if checkpoint is not None:
-                if ema is not None and it > ema_first:
-                    # Show the field training would return if it stopped here: the averaged parameters.
-                    with torch.no_grad():
-                        live = [p.detach().clone() for p in params]
-                        torch._foreach_copy_(params, ema)
-                        checkpoint(it + 1, field_)
-                        torch._foreach_copy_(params, live)
-                else:
-                    checkpoint(it + 1, field_)
-            sums = {k: 0.0 for k in sums}
-            count = 0
 
-    if ema is not None and config.iterations > ema_first:
+def _step_losses(field_: SDFField, bank: _RayBank, batch: _Batch, samples: _Samples,
+                 hull_distance: Callable[[torch.Tensor], torch.Tensor], it: int, inv_s: float, n_important: int,
+                 config: SDFConfig, generator: torch.Generator, device: torch.device) -> _StepLosses:
+    """Composite the samples along the rendered rays (NeuS) and weigh the mask, eikonal, hull, normal and
+    curvature losses of step ``it``."""
+    R, K = samples.n_rays, config.samples_per_ray
+    n_samples = R * K + config.eikonal_points
+    sdf = samples.sdf[:R * K].view(R, K)
+    grad = samples.grad[:R * K].view(R, K, 3)
+    cos_anneal = min(1.0, it / max(0.1 * config.iterations, 1.0))
+    weights, _ = _neus_composite(sdf, grad, batch.dirs[samples.ray], samples.delta, inv_s, cos_anneal)
+    opacity = weights.sum(1)
+    unit = F.normalize(grad, dim=-1, eps=1e-8)
+    rendered_normal = (weights.unsqueeze(-1) * unit).sum(1)
+
+    mask_loss = _mask_loss(opacity, batch.target_mask[samples.ray], samples.ray, config.rays_per_batch, n_important)
+    eik = ((samples.grad[:n_samples].norm(dim=-1) - 1.0) ** 2).mean()
+    loss = config.weight_mask * mask_loss + config.weight_eikonal * eik
+    hull_loss = torch.zeros((), device=device)
+    if config.weight_hull > 0:
+        d_hull = hull_distance(samples.all_points[:n_samples])
+        hull_loss = F.relu(d_hull - samples.sdf[:n_samples]).mean()
+        loss = loss + config.weight_hull * hull_loss
+    normal_loss = torch.zeros((), device=device)
+    normal_deg = float("nan")
+    if config.normal_supervision:
+        ok = bank.normal_ok[batch.pick][samples.ray]
+        if bool(ok.any()):
+            target_n = bank.normals[batch.pick][samples.ray][ok]
+            normal_loss, normal_deg = _normal_loss(rendered_normal[ok], target_n, config.outlier_fraction)
+            loss = loss + config.weight_normal * normal_loss
+    if config.weight_curvature > 0 and R > 0:
+        curvature_loss = _curvature_loss(field_, samples.points, unit, weights, opacity, config, generator, device)
+        if curvature_loss is not None:
+            loss = loss + config.weight_curvature * curvature_loss
+    return _StepLosses(total=loss, normal=normal_loss, mask=mask_loss, eikonal=eik, hull=hull_loss,
+                       normal_deg=normal_deg)
+
+
+def _mask_loss(opacity: torch.Tensor, target: torch.Tensor, ray: torch.Tensor, rays_per_batch: int,
+               n_important: int) -> torch.Tensor:
+    """Mask BCE of the rendered rays' opacity (R,) against their mask (R,); ``ray`` (R,) are their indices in
+    the batch of ``rays_per_batch``, whose first ``n_important`` were drawn by the sample weights. The mean is
+    over every uniformly drawn ray: the rays not rendered have opacity 0 against a 0 mask (loss 0)."""
+    op = opacity.clamp(1e-4, 1 - 1e-4)
+    bce = -(target * torch.log(op) + (1 - target) * torch.log(1 - op))
+    # The importance-drawn rays are chosen for their normals' error, mostly inside the mask: counted here they
+    # tip its balance of inside and outside rays and the surface swells (A0000: Chamfer 1.86 mm instead of 1.49
+    # at a share of 0.2).
+    if n_important:
+        bce = bce[ray >= n_important]
+    return bce.sum() / (rays_per_batch - n_important)
+
+
+def _normal_loss(pred_n: torch.Tensor, target_n: torch.Tensor, outlier_fraction: float) -> tuple[torch.Tensor, float]:
+    """Normal loss ``|n_r - n|_1 + (1 - cos)`` of rendered normals (N, 3) against unit photometric ones (N, 3),
+    the ``outlier_fraction`` largest residuals left out; returns it and the kept rays' mean angle, degrees."""
+    cos = F.cosine_similarity(pred_n, target_n, dim=-1, eps=1e-8)
+    # The L1 compares directions (the rendered normal normalised): left unnormalised it would also push the
+    # opacity of every valid pixel to 1, which the mask loss balances only on the mask's inner side, and the
+    # surface creeps outwards at the silhouettes.
+    unit_n = pred_n / pred_n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    residual = (unit_n - target_n).abs().sum(-1) + (1.0 - cos)
+    keep = residual.numel() - int(outlier_fraction * residual.numel())
+    kept, kept_idx = torch.topk(residual, max(keep, 1), largest=False, sorted=False)
+    normal_deg = float(torch.rad2deg(torch.acos(cos[kept_idx].detach().clamp(-1, 1))).mean())
+    return kept.mean(), normal_deg
+
+
+def _curvature_loss(field_: SDFField, points: torch.Tensor, unit: torch.Tensor, weights: torch.Tensor,
+                    opacity: torch.Tensor, config: SDFConfig, generator: torch.Generator,
+                    device: torch.device) -> torch.Tensor | None:
+    """Smoothness ``|n(x) - n(x + e)|^2`` between the unit SDF normal at each opaque ray's sample of largest
+    weight (points, unit (R, K, 3); weights (R, K); opacity (R,)) and at a random offset
+    ``|e| = _CURVATURE_STEP_M``; None when no ray is opaque. One point per opaque ray, on the surface: 1/K of
+    the samples' cost, where the surface is."""
+    R = points.shape[0]
+    offsets = F.normalize(torch.randn((R, 3), generator=generator).to(device), dim=1)
+    best = weights.detach().argmax(dim=1)
+    on_surface = opacity.detach() > 0.5
+    if not bool(on_surface.any()):
+        return None
+    rows = torch.nonzero(on_surface).view(-1)
+    base_pts = points[rows, best[rows]]
+    _, g_near = field_.sdf_and_gradient(base_pts.detach() + offsets[rows] * _CURVATURE_STEP_M,
+                                        config.gradient, config.fd_step_m)
+    n0 = unit[rows, best[rows]]
+    n1 = F.normalize(g_near, dim=-1, eps=1e-8)
+    return ((n0 - n1) ** 2).sum(-1).mean()
+
+
+class _ParameterAverage:
+    """Exponential moving average of the field's parameters (decay ``_EMA_DECAY``) from step
+    ``_EMA_START * iterations`` on."""
+
+    def __init__(self, params: list[torch.Tensor], config: SDFConfig):
+        self.params = params
+        self.first = int(_EMA_START * config.iterations)
+        self.average = [p.detach().clone() for p in params]
+
+    def update(self, it: int) -> None:
+        """Take in the parameters after step ``it``: the first step copies them."""
+        if it < self.first:
+            return
+        if it == self.first:
+            torch._foreach_copy_(self.average, self.params)
+        else:
+            torch._foreach_lerp_(self.average, self.params, 1.0 - _EMA_DECAY)
+
+    def differs_after(self, it: int) -> bool:
+        """Whether the average after step ``it`` holds more than that step's parameters."""
+        return it > self.first
+
+    def call_with_average(self, fn: Callable[[], None]) -> None:
+        """Call ``fn`` with the averaged values in the parameters, then put the live ones back."""
         with torch.no_grad():
-            torch._foreach_copy_(params, ema)
-    field_ = field_.cpu().eval()
-    stats.update(
+            live = [p.detach().clone() for p in self.params]
+            torch._foreach_copy_(self.params, self.average)
+            fn()
+            torch._foreach_copy_(self.params, live)
+
+    def finish(self, last: int) -> None:
+        """Leave the average in the parameters if it started by step ``last``."""
+        if last >= self.first:
+            with torch.no_grad():
+                torch._foreach_copy_(self.params, self.average)
+
+
+_HISTORY_KEYS = ("loss", "normal", "mask", "eikonal", "hull", "normal_deg", "crossed", "inv_s", "lr")
+
+
+class _LossMeter:
+    """Sums of the losses since the last history entry."""
+
+    def __init__(self):
+        self.sums = {"loss": 0.0, "normal": 0.0, "mask": 0.0, "eikonal": 0.0, "hull": 0.0, "normal_deg": 0.0,
+                     "crossed": 0.0}
+        self.count = 0
+
+    def add(self, losses: _StepLosses, crossed: torch.Tensor) -> None:
+        self.sums["loss"] += float(losses.total.detach())
+        self.sums["normal"] += float(losses.normal.detach())
+        self.sums["mask"] += float(losses.mask.detach())
+        self.sums["eikonal"] += float(losses.eikonal.detach())
+        self.sums["hull"] += float(losses.hull.detach())
+        self.sums["crossed"] += float(crossed.float().mean())
+        self.sums["normal_deg"] += 0.0 if math.isnan(losses.normal_deg) else losses.normal_deg
+        self.count += 1
+
+    def take_means(self) -> dict[str, float]:
+        """The means since the last call; starts the sums again."""
+        means = {k: v / self.count for k, v in self.sums.items()}
+        self.sums = {k: 0.0 for k in self.sums}
+        self.count = 0
+        return means
+
+
+def _report(it: int, entry: dict[str, float], seconds: float, history: dict[str, list],
+            progress: Callable[[int, dict], None] | None, checkpoint: Callable[[int, SDFField], None] | None,
+            field_: SDFField, average: _ParameterAverage) -> None:
+    """After step ``it``: append ``entry`` to the history, call ``progress`` and ``checkpoint``."""
+    history["iteration"].append(it + 1)
+    history["seconds"].append(seconds)
+    for k in _HISTORY_KEYS:
+        history[k].append(float(entry[k]))
+    if progress is not None:
+        progress(it + 1, dict(entry))
+    if checkpoint is not None:
+        if average.differs_after(it):
+            # Show the field training would return if it stopped here: the averaged parameters.
+            average.call_with_average(lambda: checkpoint(it + 1, field_))
+        else:
+            checkpoint(it + 1, field_)
+
+
+@dataclass
+class _SampleCounts:
+    """Rays and samples over the training, against a naive sampler's (for the stats)."""
+
+    evaluated: int = 0  # samples the field was evaluated at along rays
+    naive: float = 0.0  # samples a uniform sampler at the window's spacing would take over the stage box
+    rays_drawn: int = 0
+    rays_rendered: int = 0
+
+    def add(self, rays_drawn: int, rays_rendered: int, samples_per_ray: int, window: float,
+            mean_chord_m: float) -> None:
+        self.evaluated += rays_rendered * samples_per_ray
+        self.naive += rays_drawn * mean_chord_m / (2 * window / samples_per_ray)
+        self.rays_drawn += rays_drawn
+        self.rays_rendered += rays_rendered
+
+
+def _training_stats(config: SDFConfig, bank: _RayBank, n_important: int, counts: _SampleCounts,
+                    timing: dict[str, float], t_start: float, t_train: float) -> dict[str, Any]:
+    """:attr:`SDFResult.stats` of the training itself (after the hull and the pre-fit)."""
+    n_bank = int(bank.dirs.shape[0])
+    return dict(
         time_s=time.perf_counter() - t_start,
         train_time_s=time.perf_counter() - t_train,
         iterations=config.iterations,
         rays_per_iteration=config.rays_per_batch,
         importance_rays_per_iteration=n_important,
         candidate_ray_fraction=n_bank / bank.pixels_total,
-        rendered_ray_fraction=rays_rendered / max(rays_drawn, 1),
-        samples_evaluated=int(evaluated),
-        naive_samples=float(naive),
-        samples_skipped_fraction=float(1.0 - evaluated * (n_bank / bank.pixels_total) / max(naive, 1.0)),
+        rendered_ray_fraction=counts.rays_rendered / max(counts.rays_drawn, 1),
+        samples_evaluated=int(counts.evaluated),
+        naive_samples=float(counts.naive),
+        samples_skipped_fraction=float(1.0 - counts.evaluated * (n_bank / bank.pixels_total) / max(counts.naive, 1.0)),
         # Against NeuS's default sampler: 64 coarse + 64 fine samples on every pixel's ray.
-        samples_skipped_vs_neus_128=float(1.0 - evaluated * (n_bank / bank.pixels_total)
-                                          / max(128.0 * rays_drawn, 1.0)),
+        samples_skipped_vs_neus_128=float(1.0 - counts.evaluated * (n_bank / bank.pixels_total)
+                                          / max(128.0 * counts.rays_drawn, 1.0)),
         final_inv_s=_inv_s(config.iterations - 1, config),
         gradient=config.gradient,
         normal_supervision=config.normal_supervision,
         time_breakdown_s={k: round(v, 3) for k, v in timing.items()},
     )
-    return SDFResult(field=field_, bounds=sdf_bounds, hull=hull, history=history, stats=stats)
 
 
 # ------------------------------------------------------------------------------------------------ render

@@ -496,20 +496,32 @@ def fit_sg_environment(env: np.ndarray, n_lobes: int, iterations: int = 300, see
         raise ValueError("env must be non-negative radiance")
     h = min(fit_height, env.shape[0])
     small = resize_environment(env, h, 2 * h).astype(np.float64)
-    w = 2 * h
-    solid = equirect_solid_angles(h, w).reshape(-1).astype(np.float64)
+    solid = equirect_solid_angles(h, 2 * h).reshape(-1).astype(np.float64)
     target = small.reshape(-1, 3)
     scale = float((target * solid[:, None]).sum() / (4.0 * math.pi * 3.0))
     if scale <= 0:  # a black map: zero lobes
         dirs = fibonacci_sphere(n_lobes).astype(np.float32)
         return SGLobes(dirs, np.full(n_lobes, min_sharpness, np.float32), np.zeros((n_lobes, 3), np.float32))
-    target = target / scale
     lam_max = float(max_sharpness) if max_sharpness is not None else (2.0 * h / math.pi) ** 2
     lam_min = float(min_sharpness)
     if not 0 < lam_min < lam_max:
         raise ValueError(f"need 0 < min_sharpness < max_sharpness, got {lam_min}, {lam_max}")
 
-    # initial lobes: brightest directions, then a randomly turned Fibonacci lattice
+    axis0, sharp0 = _initial_lobes(small, n_lobes, seed, bright_fraction, lam_min, lam_max)
+    fit = _LobeFit(small, solid, scale, supersample, irradiance_weight)
+    amp0 = fit.solve_amplitudes(torch.as_tensor(axis0, dtype=torch.float32),
+                                torch.as_tensor(sharp0, dtype=torch.float32))
+    if iterations == 0:
+        return SGLobes(axis0.astype(np.float32), sharp0.astype(np.float32), (amp0 * scale).astype(np.float32))
+    axis, sharp = _optimise_lobes(fit, axis0, sharp0, amp0, lam_min, lam_max, iterations, optimizer, lr)
+    amp = fit.solve_amplitudes(axis, sharp)  # the exact optimum for the final axes and sharpnesses
+    return SGLobes(axis.numpy().astype(np.float32), sharp.numpy().astype(np.float32), (amp * scale).astype(np.float32))
+
+
+def _initial_lobes(small: np.ndarray, n_lobes: int, seed: int, bright_fraction: float, lam_min: float,
+                   lam_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """Starting axes (L, 3) and sharpnesses (L,) of the fit on the map ``small`` (h, 2h, 3): the brightest
+    directions (sharper lobes), then a Fibonacci lattice turned by a random rotation (``seed``)."""
     rng = np.random.default_rng(seed)
     spacing = math.sqrt(4.0 * math.pi / n_lobes)
     base_sharp = min(max(math.log(2.0) / (1.0 - math.cos(0.5 * spacing)), lam_min), lam_max)
@@ -519,49 +531,74 @@ def fit_sg_environment(env: np.ndarray, n_lobes: int, iterations: int = 300, see
     rest = fibonacci_sphere(n_lobes - len(peaks), q) if n_lobes > len(peaks) else np.zeros((0, 3))
     axis0 = np.concatenate([peaks, rest])
     sharp0 = np.concatenate([np.full(len(peaks), max(base_sharp, 0.25 * lam_max)), np.full(len(rest), base_sharp)])
+    return axis0, sharp0
 
-    # supersampled texel directions: the lobe's texel mean is the mean of s x s samples
-    s = supersample
-    sub = equirect_directions(h * s, w * s).reshape(h, s, w, s, 3).transpose(0, 2, 1, 3, 4).reshape(h * w, s * s, 3)
-    sub_solid = equirect_solid_angles(h * s, w * s).reshape(h, s, w, s).transpose(0, 2, 1, 3).reshape(h * w, s * s)
-    sub_weights = sub_solid / sub_solid.sum(axis=1, keepdims=True)
-    dirs_t = torch.as_tensor(sub.reshape(-1, 3), dtype=torch.float32)  # (T s^2, 3)
-    subw_t = torch.as_tensor(sub_weights, dtype=torch.float32)[:, :, None]  # (T, s^2, 1)
 
-    def texel_basis(axis, sharp):  # (T, L): texel means of every unit-amplitude lobe (for NNLS)
-        lobe = torch.exp(sharp * (dirs_t @ axis.T - 1.0)).view(h * w, s * s, -1)
-        return (lobe * subw_t).sum(1)
+class _LobeFit:
+    """The fit's loss on an (h, 2h) map divided by ``scale`` (its mean radiance): the relative map error over
+    the texels (each texel's lobe value is the mean of ``supersample^2`` samples in it) plus
+    ``irradiance_weight`` times the relative diffuse-irradiance error over 64 normals."""
 
-    def texel_recon(axis, sharp, amp):  # (T, 3): texel means of the sum of the lobes
-        return ((torch.exp(sharp * (dirs_t @ axis.T - 1.0)) @ amp).view(h * w, s * s, 3) * subw_t).sum(1)
+    def __init__(self, small: np.ndarray, solid: np.ndarray, scale: float, supersample: int,
+                 irradiance_weight: float):
+        h, w = small.shape[:2]
+        s = supersample
+        self.h, self.w, self.s = h, w, s
+        self.irradiance_weight = irradiance_weight
+        self.solid = solid  # (T,) texel solid angles
+        self.target = small.reshape(-1, 3) / scale  # (T, 3)
+        # supersampled texel directions: the lobe's texel mean is the mean of s x s samples
+        sub = equirect_directions(h * s, w * s).reshape(h, s, w, s, 3).transpose(0, 2, 1, 3, 4).reshape(h * w, s * s, 3)
+        sub_solid = equirect_solid_angles(h * s, w * s).reshape(h, s, w, s).transpose(0, 2, 1, 3).reshape(h * w, s * s)
+        sub_weights = sub_solid / sub_solid.sum(axis=1, keepdims=True)
+        self.dirs_t = torch.as_tensor(sub.reshape(-1, 3), dtype=torch.float32)  # (T s^2, 3)
+        self.subw_t = torch.as_tensor(sub_weights, dtype=torch.float32)[:, :, None]  # (T, s^2, 1)
+        self.target_t = torch.as_tensor(self.target, dtype=torch.float32)
+        self.solid_t = torch.as_tensor(solid, dtype=torch.float32)
+        self.map_norm = float((solid[:, None] * self.target ** 2).sum())
+        self.normals = fibonacci_sphere(64)
+        self.irr_target = environment_irradiance(small.astype(np.float32) / np.float32(scale), self.normals, height=h)
+        self.irr_target_t = torch.as_tensor(self.irr_target, dtype=torch.float32)
+        self.normals_t = torch.as_tensor(self.normals, dtype=torch.float32)
+        self.irr_norm = float((self.irr_target.astype(np.float64) ** 2).sum())
 
-    target_t = torch.as_tensor(target, dtype=torch.float32)
-    solid_t = torch.as_tensor(solid, dtype=torch.float32)
-    map_norm = float((solid[:, None] * target ** 2).sum())
-    normals = fibonacci_sphere(64)
-    irr_target = environment_irradiance(small.astype(np.float32) / np.float32(scale), normals, height=h)
-    irr_target_t = torch.as_tensor(irr_target, dtype=torch.float32)
-    normals_t = torch.as_tensor(normals, dtype=torch.float32)
-    irr_norm = float((irr_target.astype(np.float64) ** 2).sum())
+    def texel_basis(self, axis: torch.Tensor, sharp: torch.Tensor) -> torch.Tensor:
+        """(T, L): texel means of every unit-amplitude lobe (for NNLS)."""
+        lobe = torch.exp(sharp * (self.dirs_t @ axis.T - 1.0)).view(self.h * self.w, self.s * self.s, -1)
+        return (lobe * self.subw_t).sum(1)
 
-    def solve_amplitudes(axis, sharp) -> np.ndarray:
+    def texel_recon(self, axis: torch.Tensor, sharp: torch.Tensor, amp: torch.Tensor) -> torch.Tensor:
+        """(T, 3): texel means of the sum of the lobes."""
+        lobes = torch.exp(sharp * (self.dirs_t @ axis.T - 1.0)) @ amp
+        return (lobes.view(self.h * self.w, self.s * self.s, 3) * self.subw_t).sum(1)
+
+    def solve_amplitudes(self, axis: torch.Tensor, sharp: torch.Tensor) -> np.ndarray:
         """Optimal non-negative amplitudes (L, 3) of the loss for fixed axes and sharpnesses: the loss is a
         linear least-squares problem in the amplitudes (map rows and irradiance rows stacked)."""
+        solid, map_norm, irr_norm = self.solid, self.map_norm, self.irr_norm
         with torch.no_grad():
-            rows = [texel_basis(axis, sharp).double().numpy() * np.sqrt(solid / map_norm)[:, None]]
-            targets = [target * np.sqrt(solid / map_norm)[:, None]]
-            if irradiance_weight > 0:
-                nn = normals_t[:, None, :]
-                irr_basis = _cosine_integral(axis[None].expand(len(normals), -1, -1),
-                                             sharp[None].expand(len(normals), -1), nn).double().numpy()
-                rows.append(irr_basis * math.sqrt(irradiance_weight / irr_norm))
-                targets.append(irr_target.astype(np.float64) * math.sqrt(irradiance_weight / irr_norm))
+            rows = [self.texel_basis(axis, sharp).double().numpy() * np.sqrt(solid / map_norm)[:, None]]
+            targets = [self.target * np.sqrt(solid / map_norm)[:, None]]
+            if self.irradiance_weight > 0:
+                nn = self.normals_t[:, None, :]
+                irr_basis = _cosine_integral(axis[None].expand(len(self.normals), -1, -1),
+                                             sharp[None].expand(len(self.normals), -1), nn).double().numpy()
+                rows.append(irr_basis * math.sqrt(self.irradiance_weight / irr_norm))
+                targets.append(self.irr_target.astype(np.float64) * math.sqrt(self.irradiance_weight / irr_norm))
         return _nnls_amplitudes(np.concatenate(rows), np.concatenate(targets), np.ones(sum(len(r) for r in rows)))
 
-    amp0 = solve_amplitudes(torch.as_tensor(axis0, dtype=torch.float32), torch.as_tensor(sharp0, dtype=torch.float32))
-    if iterations == 0:
-        return SGLobes(axis0.astype(np.float32), sharp0.astype(np.float32), (amp0 * scale).astype(np.float32))
+    def loss(self, axis: torch.Tensor, sharp: torch.Tensor, amp: torch.Tensor) -> torch.Tensor:
+        loss = (self.solid_t[:, None] * (self.texel_recon(axis, sharp, amp) - self.target_t) ** 2).sum() / self.map_norm
+        if self.irradiance_weight > 0:
+            irr = sg_irradiance(SGLobes(axis, sharp, amp), self.normals_t)
+            loss = loss + self.irradiance_weight * ((irr - self.irr_target_t) ** 2).sum() / self.irr_norm
+        return loss
 
+
+def _optimise_lobes(fit: _LobeFit, axis0: np.ndarray, sharp0: np.ndarray, amp0: np.ndarray, lam_min: float,
+                    lam_max: float, iterations: int, optimizer: str, lr: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Minimise ``fit``'s loss over the axes, sharpnesses and amplitudes from the starting lobes; returns the
+    final axes (L, 3) and sharpnesses (L,) (no gradient)."""
     # differentiable parameters: free axis vector, sharpness through a sigmoid in log space, log amplitude
     # (Adam's steps are then relative: a sun lobe 1e4 times the mean moves as readily as a dim one)
     log_lo, log_hi = math.log(lam_min), math.log(lam_max)
@@ -574,14 +611,6 @@ def fit_sg_environment(env: np.ndarray, n_lobes: int, iterations: int = 300, see
     def unpack():
         return _unit(p_axis), torch.exp(log_lo + (log_hi - log_lo) * torch.sigmoid(p_sharp)), torch.exp(p_amp)
 
-    def objective():
-        axis, sharp, amp = unpack()
-        loss = (solid_t[:, None] * (texel_recon(axis, sharp, amp) - target_t) ** 2).sum() / map_norm
-        if irradiance_weight > 0:
-            irr = sg_irradiance(SGLobes(axis, sharp, amp), normals_t)
-            loss = loss + irradiance_weight * ((irr - irr_target_t) ** 2).sum() / irr_norm
-        return loss
-
     params = [p_axis, p_sharp, p_amp]
     if optimizer == "lbfgs":
         lbfgs = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, max_eval=int(1.25 * iterations),
@@ -590,7 +619,7 @@ def fit_sg_environment(env: np.ndarray, n_lobes: int, iterations: int = 300, see
 
         def closure():
             lbfgs.zero_grad(set_to_none=True)
-            loss = objective()
+            loss = fit.loss(*unpack())
             loss.backward()
             return loss
 
@@ -600,13 +629,12 @@ def fit_sg_environment(env: np.ndarray, n_lobes: int, iterations: int = 300, see
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(adam, T_max=iterations, eta_min=0.05 * lr)
         for _ in range(iterations):
             adam.zero_grad(set_to_none=True)
-            objective().backward()
+            fit.loss(*unpack()).backward()
             adam.step()
             schedule.step()
     with torch.no_grad():
         axis, sharp, _ = unpack()
-    amp = solve_amplitudes(axis, sharp)  # the exact optimum for the final axes and sharpnesses
-    return SGLobes(axis.numpy().astype(np.float32), sharp.numpy().astype(np.float32), (amp * scale).astype(np.float32))
+    return axis, sharp
 
 
 def sg_fit_errors(env: np.ndarray, lobes: SGLobes, n_normals: int = 256, irradiance_height: int = 128) -> dict:

@@ -17,10 +17,9 @@ mirror-like pixel's normal lies; the lower residual wins.
 
 **Solver.** Levenberg-Marquardt in the tangent plane of the current normal (two parameters per pixel, the
 Jacobian of the six residuals by forward differences, a 2 x 2 solve, steps of at most 0.5 rad, the damping
-per pixel), or Adam on an unnormalised 3-vector (the former default). On the default capture (16 cameras,
-the materials' roughness) 6 Levenberg-Marquardt steps reach 6.78 deg against the simulator's normals where
-40 Adam steps reached 6.83, at a third of the time (0.76 vs 2.39 s per camera with the edge-preserving
-filter, one thread); 12 steps give 6.78 too.
+per pixel), or Adam on an unnormalised 3-vector. On the default capture 6 Levenberg-Marquardt steps reach
+the error against the simulator's normals that 40 Adam steps do, in about a third of the time; more steps
+do not lower it.
 
 Conventions of docs/CONTRACTS.md: stage frame, OpenCV cameras ``x_cam = R x_world + t``, images
 ``(H, W, 3)`` float32; radiance in white units (decoded value / ``white_reference``). Pure numerics:
@@ -61,23 +60,13 @@ class SpecularFit:
 
 def view_directions(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int) -> np.ndarray:
     """(H, W, 3) float32 unit stage-frame directions from the surface seen at each pixel towards the camera
-    (the pixel's ray reversed; lens distortion is ignored, which moves them by far less than a degree).
+    (the pixel's ray reversed; lens distortion is ignored, which moves them by far less than a degree):
+    :meth:`stages.numerics.camera.Camera.view_directions`.
 
     K: (3, 3) intrinsics. cam_from_world: (3, 4) or (4, 4) ``[R | t]``."""
-    K = np.asarray(K, np.float64)
-    P = np.asarray(cam_from_world, np.float64)
-    if K.shape != (3, 3) or P.shape not in ((3, 4), (4, 4)):
-        raise ValueError(f"K must be (3, 3) and cam_from_world (3, 4) or (4, 4), got {K.shape} and {P.shape}")
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(P))) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError("K and cam_from_world must be finite, with positive focal lengths")
-    if height < 1 or width < 1:
-        raise ValueError(f"image size must be positive, got {height} x {width}")
-    R = P[:3, :3]
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-    rays_world = rays_cam @ R  # R^T r per pixel
-    rays_world /= np.linalg.norm(rays_world, axis=-1, keepdims=True)
-    return (-rays_world).astype(np.float32)
+    from stages.numerics.camera import Camera
+
+    return Camera(K, cam_from_world, width, height).view_directions()
 
 
 def _specular_only(n: torch.Tensor, views: torch.Tensor, roughness: torch.Tensor, f0: float) -> torch.Tensor:

@@ -42,8 +42,9 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from tests.integration.conftest import TINY_CAMERAS as CAMERAS
 
 SYNC = ExecutionConfig(scheduler="sync")

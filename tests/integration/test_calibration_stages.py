@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.cameras import CamerasConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from synthetic import SimConfig, simulate
 from synthetic.calibration import CalibrationConfig
 
@@ -74,7 +75,7 @@ def test_thin_geometric_calibration_fails_the_session_clearly(capture, tmp_path)
 
 
 def test_marker_calibration_is_the_default_and_beats_the_rig_spec(tmp_path):
-    from stages.evaluate import camera_errors, true_cameras
+    from evaluation.release import camera_errors, true_cameras
 
     root = tmp_path / "capture"
     simulate(root, SimConfig(actions=1, width=160, n_cameras=8, n_leds=128, background=False),

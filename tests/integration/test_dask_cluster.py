@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from tests.integration.conftest import dask_cluster
 
 

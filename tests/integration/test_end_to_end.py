@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from stages.cli import main as cli
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from synthetic import SimConfig, simulate
 
 SYNC = ExecutionConfig(scheduler="sync")
@@ -191,7 +192,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
     from stages.cameras import load_cameras
-    from stages.lightcolour import load_light_model
+    from stages.artifacts import load_light_model
     from stages.diffuse_normals import refit_diffuse_normals
 
     out, _ = first_run
@@ -261,7 +262,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
 def test_relit_truth_renders_are_kept_by_their_inputs(first_run, capture, tmp_path, monkeypatch):
     import synthetic.relight
     from manifests import open_release
-    from stages.evaluate import RelitTruthCache, _relit_overall
+    from evaluation.release import RelitTruthCache, _relit_overall
 
     out, _ = first_run
     release = open_release(out / "release")
@@ -329,7 +330,7 @@ def test_relit_view_matches_the_truth_under_its_own_environment(first_run, captu
     from manifests import open_release
     from stages.numerics.metrics import relit_psnr
     from stages.numerics.sg import rotate_environment
-    from stages.relight import load_environment
+    from stages.environments import load_environment
     from synthetic.relight import TruthRelighter
 
     out, _ = first_run
@@ -350,7 +351,7 @@ def test_heldout_white_albedo_is_predicted_view_dependent(first_run):
     """The held-out white-light albedo: the other cameras' albedo_diffuse blended plus the held-out view's own
     white-light specular from the materials' roughness and F0; the plain blend and the diffuse maps on
     request; a release without the inputs falls back to the plain blend."""
-    from stages.heldout import ActionGBuffers, heldout_metrics, predict_white_albedo, synthesise_heldout
+    from evaluation.heldout import ActionGBuffers, heldout_metrics, predict_white_albedo, synthesise_heldout
     from stages.numerics.specular_normals import view_directions
 
     out, _ = first_run
@@ -404,7 +405,7 @@ def test_outputs_are_finite_and_normals_unit(first_run):
 @pytest.fixture(scope="module")
 def evaluated(first_run, capture):
     """The first run's release evaluated against the truth (once; later tests change the release)."""
-    from stages.evaluate import evaluate_release
+    from evaluation.release import evaluate_release
 
     out, _ = first_run
     return evaluate_release(out / "release", capture / "ground_truth")
@@ -413,8 +414,8 @@ def evaluated(first_run, capture):
 def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
     """The relit parts measured action by action in worker processes give the numbers and the metrics rows
     (in the same order) of an all-in-one-process run."""
+    from evaluation.release import evaluate_release, evaluate_workers
     from pipeline.runner import new_run_id
-    from stages.evaluate import evaluate_release, evaluate_workers
 
     out, _ = first_run
     run_id = new_run_id()

@@ -33,8 +33,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
+from stages.run import run_pipeline
 from synthetic import SimConfig, simulate
 from tests.integration.conftest import ROOT, dask_cluster
 

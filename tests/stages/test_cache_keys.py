@@ -18,7 +18,7 @@ import pytest
 from pipeline.config import Documented, key_fields
 
 ROOT = Path(__file__).resolve().parents[2]
-PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests")
+PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests", "evaluation")
 
 
 def _classes_with_exclusions() -> list[tuple[str, str]]:

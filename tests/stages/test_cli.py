@@ -77,3 +77,36 @@ def test_summary_fits_100_columns_and_names_what_failed():
     assert f"FAILED {names[4]}" in text and f"{len(names) - 4} ran" in text and "4 cached" in text
     for value in ("4.77", "71.23", "31.52", "2.61", "29.97"):
         assert value in text
+
+
+def test_truth_prefetch_traces_the_visibility_beside_the_run(tmp_path):
+    from evaluation.release import RELIT_CACHE, truth_visibility_folder
+    from stages.cli import _start_truth_prefetch, _stop
+    from synthetic import SimConfig, simulate
+
+    capture = simulate(tmp_path / "capture", SimConfig(actions=1, width=48, n_cameras=2, n_leds=64,
+                                                       mesh="procedural", noise=False, background=False))
+    work = tmp_path / "work"
+    relit, geometry = SimpleNamespace(name="relight"), SimpleNamespace(name="geometry")
+    assert _start_truth_prefetch(capture, work, [geometry]) is None  # nothing would use it
+    process = _start_truth_prefetch(capture, work, [geometry, relit])
+    assert process is not None
+    assert process.wait(timeout=300) == 0
+    import os
+
+    assert os.getpriority(os.PRIO_PROCESS, os.getpid()) < 19  # the low priority is the child's alone
+    assert len(list(truth_visibility_folder(work / RELIT_CACHE).glob("*.npy"))) == 1  # one action
+    _stop(process)  # a finished process: nothing to do
+    running = _start_truth_prefetch(capture, tmp_path / "other", [relit])
+    import time
+
+    niceness = None
+    for _ in range(200):  # the child lowers its own priority first thing, before its imports
+        niceness = os.getpriority(os.PRIO_PROCESS, running.pid)
+        if niceness == 19 or running.poll() is not None:
+            break
+        time.sleep(0.01)
+    assert niceness == 19
+    _stop(running)  # stopped mid-way: nothing half-written is left
+    assert running.poll() is not None
+    assert not list((tmp_path / "other").rglob("*.tmp"))

@@ -7,7 +7,8 @@ import pytest
 
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
-from stages.materials import fitted_f0, load_atlas_mesh, roughness_median, surface_median, texel_uvs
+from stages.artifacts import fitted_f0, load_atlas_mesh
+from stages.numerics.material_textures import roughness_median, surface_median, texel_uvs
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals
 

@@ -7,8 +7,9 @@ import pytest
 
 from pipeline.codecs.exr import write_exr
 from pipeline.errors import InputError
-from stages.relight import (RelightConfig, environment_label, find_environment, load_environment, novel_cameras,
-                            raw_environment_inputs)
+from stages.environments import environment_label, find_environment, load_environment, raw_environment_inputs
+from stages.numerics.camera import Camera
+from stages.relight import RelightConfig, novel_cameras
 from synthetic.rig import look_at
 
 
@@ -71,21 +72,19 @@ def _ring(n=8, radius=3.0):
     for i in range(n):
         angle = 2 * np.pi * i / n
         centre = np.array([radius * np.sin(angle), 0.2 * (i % 2), radius * np.cos(angle)])
-        cams[f"{i:05d}"] = {"K": [[500.0, 0, 160], [0, 500.0, 240], [0, 0, 1]],
-                            "cam_from_world": look_at(centre, np.zeros(3)), "width": 320, "height": 480}
+        cams[f"{i:05d}"] = Camera([[500.0, 0, 160], [0, 500.0, 240], [0, 0, 1]], look_at(centre, np.zeros(3)), 320, 480,
+                                  camera_id=f"{i:05d}")
     return cams
 
 
 def test_novel_cameras_lie_between_neighbours():
     cams = _ring()
     views = novel_cameras(cams, 3)
-    assert [v["camera_id"] for v in views] == ["N000", "N001", "N002"]
+    assert [v.camera_id for v in views] == ["N000", "N001", "N002"]
     for v in views:
-        a, b = v["between"]
-        pose = np.asarray(v["cam_from_world"])
-        centre = -pose[:, :3].T @ pose[:, 3]
-        ca, cb = (-np.asarray(cams[c]["cam_from_world"])[:, :3].T @ np.asarray(cams[c]["cam_from_world"])[:, 3]
-                  for c in (a, b))
+        a, b = v.record["between"]
+        centre = v.centre
+        ca, cb = (cams[c].centre for c in (a, b))
         # on the arc around the stage centre: mean radius, the same angle to both, and not at either
         radius = np.linalg.norm(centre)
         assert abs(radius - 0.5 * (np.linalg.norm(ca) + np.linalg.norm(cb))) < 1e-9
@@ -94,7 +93,8 @@ def test_novel_cameras_lie_between_neighbours():
             return np.arccos(np.clip(p @ q / (np.linalg.norm(p) * np.linalg.norm(q)), -1, 1))
 
         assert abs(angle(centre, ca) - angle(centre, cb)) < 1e-9 and angle(centre, ca) > 0.1
-        assert (v["width"], v["height"]) == (320, 480)
+        assert (v.width, v.height) == (320, 480)
+        assert list(v.to_json())[:2] == ["camera_id", "between"]
 
 
 def test_config_checks():
@@ -113,7 +113,7 @@ def test_config_checks():
 
 
 def test_silhouette_alpha_and_premultiplied_edges_by_hand():
-    from stages.relight import premultiply_edges, silhouette_alpha
+    from stages.numerics.novel_view import premultiply_edges, silhouette_alpha
 
     shaded = np.zeros((1, 6), bool)
     shaded[0, 1:3] = True  # two pixels whose centres see the subject

@@ -88,7 +88,8 @@ def test_occlusion_configs_check_their_fields():
 
 
 def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
-    from stages.geometry import GeometryConfig, deoccluded_sdf_views, second_pass_views
+    from stages.geometry import GeometryConfig
+    from stages.numerics.sdf_mesh import deoccluded_sdf_views, second_pass_views
     from stages.numerics.sdf import SDFView
 
     # a camera 2 m above an open floor (y = 0): nothing occludes it, so the de-occlusion keeps every normal and
@@ -203,7 +204,8 @@ def test_contact_sheet_labels_each_tile_with_its_camera():
 
 
 def test_pass_configs_give_each_pass_its_steps():
-    from stages.geometry import GeometryConfig, pass_configs
+    from stages.geometry import GeometryConfig
+    from stages.numerics.sdf_mesh import pass_configs
     from stages.numerics.sdf import SDF_PRESETS
 
     sdf = SDF_PRESETS["cpu"]

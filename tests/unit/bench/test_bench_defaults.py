@@ -12,7 +12,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[3]
 BENCH = ROOT / "bench"
-PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests")
+PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests", "evaluation")
 
 
 def load_bench(name: str):

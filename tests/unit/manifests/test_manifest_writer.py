@@ -285,3 +285,22 @@ def test_every_write_records_the_tables_digests_in_the_index(tmp_path):
     assert sorted(index) == ["metrics.parquet", "stage_runs.parquet"]
     for name, entry in index.items():
         assert entry["sha256"] == file_sha256(tmp_path / "manifests" / name)
+
+
+def test_tables_validated_in_parts_equal_the_whole_and_keys_are_checked_across_parts(tmp_path):
+    rows = [metric(value=float(i), action_id=f"A{i % 3:04d}", camera_id=f"{i:05d}", region=None if i % 2 else "valid")
+            for i in range(9)]
+    parts = [writer_mod.validate_rows("metrics", [r for r in rows if r["action_id"] == a])
+             for a in ("A0002", "A0000", "A0001")]
+    assert writer_mod.concat_validated("metrics", parts).equals(writer_mod.validate_rows("metrics", rows))
+    twice = [parts[0], writer_mod.validate_rows("metrics", [rows[2]])]  # A0002 00002 in both parts
+    with pytest.raises(ValueError, match=r"duplicate key .*'action_id': 'A0002', 'camera_id': '00002'"):
+        writer_mod.concat_validated("metrics", twice)
+    nulls = [writer_mod.validate_rows("metrics", [metric(region=None)])] * 2  # null matches null
+    with pytest.raises(ValueError, match="duplicate key"):
+        writer_mod.concat_validated("metrics", nulls)
+    release = tmp_path / "release"
+    writer_mod.replace_rows(release, "metrics", writer_mod.concat_validated("metrics", parts), drop=lambda r: True)
+    assert open_release(release).table("metrics").equals(writer_mod.validate_rows("metrics", rows))
+    with pytest.raises(ValueError, match="another schema"):
+        writer_mod.write_table_keeping(release, "metrics", parts[0].drop_columns(["run_id"]), keep_actions=())

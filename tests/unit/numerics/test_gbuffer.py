@@ -321,7 +321,7 @@ def test_subpixel_input_checks(sphere_scene):
 
 
 def test_spread_heldout_and_summary():
-    from stages.heldout import spread_heldout, summarise
+    from evaluation.heldout import spread_heldout, summarise
 
     cams = {f"{i:05d}": {"cam_from_world": ring_camera(i * 30.0)} for i in range(12)}
     assert spread_heldout(cams, 2) == ("00000", "00006")  # the opposite side of the ring

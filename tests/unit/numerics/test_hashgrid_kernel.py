@@ -124,3 +124,62 @@ def test_the_torch_path_is_taken_when_forced_or_when_the_kernel_cannot_be_built(
     assert out.stdout.strip() == "False"
     if setting != "forced":
         assert "the torch path is used" in out.stderr and "a_file" in out.stderr
+
+
+def _proposal_grid():
+    import numpy as np
+
+    from stages.numerics.sdf import _ProposalGrid
+
+    bounds = np.array([[-0.4, -0.9, -0.5], [0.5, 0.9, 0.4]])
+    grid = _ProposalGrid(bounds, 0.05, torch.device("cpu"))
+    c = grid.centres
+    two_balls = torch.minimum((c - torch.tensor([0.0, 0.2, 0.0])).norm(dim=1) - 0.25,
+                              (c - torch.tensor([0.1, -0.4, 0.0])).norm(dim=1) - 0.15)
+    grid.values.view(-1)[:] = two_balls
+    return grid
+
+
+def _rays(n: int = 600):
+    gen = torch.Generator().manual_seed(3)
+    origins = torch.rand(n, 3, generator=gen) * torch.tensor([0.6, 1.2, 0.0]) + torch.tensor([-0.3, -0.6, -1.5])
+    dirs = torch.nn.functional.normalize(torch.tensor([0.0, 0.0, 1.0]) + 0.1 * torch.randn(n, 3, generator=gen), dim=1)
+    near = torch.rand(n, generator=gen) * 0.5
+    far = near + 0.5 + torch.rand(n, generator=gen) * 2.0
+    near[:2] = far[:2] + 0.1  # empty intervals: no sample inside
+    origins[2], dirs[2] = torch.tensor([0.0, 0.2, -1.0]), torch.tensor([0.0, 0.0, 1.0])  # straight at a ball
+    return origins, dirs, near, far
+
+
+def test_proposal_march_equals_the_torch_march(monkeypatch):
+    grid = _proposal_grid()
+    origins, dirs, near, far = _rays()
+    t_kernel, crossed_kernel, min_kernel = grid.first_crossing(origins, dirs, near, far)
+    monkeypatch.setattr(hashgrid_kernel, "kernel_available", lambda: False)
+    t_torch, crossed_torch, min_torch = grid.first_crossing(origins, dirs, near, far)
+    assert 50 < int(crossed_torch.sum()) < len(near) - 50  # both kinds of rays are exercised
+    assert torch.equal(crossed_kernel, crossed_torch)
+    assert torch.equal(t_kernel, t_torch)  # the same float operations, in the same order
+    missed = ~crossed_torch
+    assert torch.equal(min_kernel[missed], min_torch[missed])
+    assert bool((min_kernel[crossed_kernel] <= 0).all())
+    assert torch.equal(t_kernel[:2], near[:2]) and bool(torch.isinf(min_kernel[:2]).all())
+
+
+def test_proposal_march_hand_computed_crossing():
+    # a ray along +z through the first ball's centre: it enters the surface 0.25 m before the centre
+    grid = _proposal_grid()
+    origins, dirs = torch.tensor([[0.0, 0.2, -1.0]]), torch.tensor([[0.0, 0.0, 1.0]])
+    near, far = torch.tensor([0.6]), torch.tensor([1.4])
+    t, crossed, _ = grid.first_crossing(origins, dirs, near, far)
+    assert bool(crossed[0])
+    assert abs(float(t[0]) - 0.75) < 0.05 * 0.5  # within half a voxel of the true surface at t = 0.75
+
+
+def test_proposal_march_refuses_bad_shapes():
+    with pytest.raises(ValueError, match="grid must be"):
+        hashgrid_kernel.march_first_crossing(torch.zeros(4, 4), torch.zeros(3), torch.ones(3), 0.1, 3,
+                                             torch.zeros(1, 3), torch.zeros(1, 3), torch.zeros(1), torch.ones(1))
+    with pytest.raises(ValueError, match="must agree"):
+        hashgrid_kernel.march_first_crossing(torch.zeros(4, 4, 4), torch.zeros(3), torch.ones(3), 0.1, 3,
+                                             torch.zeros(2, 3), torch.zeros(1, 3), torch.zeros(1), torch.ones(1))

@@ -1,6 +1,8 @@
 """Mesh numerics (sparse marching cubes, components, decimation, normals, UV atlas) and the mesh codecs."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -238,3 +240,51 @@ def test_uv_atlas_repacks_a_long_atlas_into_the_square():
     assert stats["square_fill"] > 1.2 * stats["first_square_fill"], stats
     assert (stats["packed_width"], stats["packed_height"]) == (256, 256)
     assert atlas.uvs.min() >= 0.0 and atlas.uvs.max() <= 1.0
+
+
+def _obj_readers(path):
+    """(the column reader's result, the line reader's) of one OBJ file."""
+    from pipeline.codecs import mesh as codec
+
+    fast = codec.read_obj(path)
+    text = Path(path).read_text()
+    assert codec._read_obj_columns(text) is not None  # the file takes the column path
+    lines = dict(zip(("v", "vt", "vn", "fv", "ft", "fn", "mtllib"), codec._read_obj_lines(Path(path), text)))
+    return fast, lines
+
+
+@pytest.mark.parametrize("with_uvs,with_normals", [(True, True), (True, False), (False, True), (False, False)])
+def test_read_obj_columns_equal_the_line_reader(tmp_path, with_uvs, with_normals):
+    from pipeline.codecs.mesh import read_obj, write_obj
+
+    rng = np.random.default_rng(4)
+    vertices = rng.normal(size=(50, 3)).astype(np.float32)
+    faces = rng.integers(0, 50, size=(80, 3))
+    uvs = rng.random((50, 2)).astype(np.float32) if with_uvs else None
+    normals = rng.normal(size=(50, 3)).astype(np.float32) if with_normals else None
+    path = write_obj(tmp_path / "m.obj", vertices, faces, uvs=uvs, normals=normals, material={"name": "skin"})
+    fast, lines = _obj_readers(path)
+    np.testing.assert_array_equal(fast["vertices"], np.asarray(lines["v"], np.float32))
+    np.testing.assert_array_equal(fast["faces"], faces.astype(np.int32))
+    np.testing.assert_allclose(fast["vertices"], vertices, rtol=1e-6, atol=1e-7)  # 7 digits in the file
+    assert (fast["uvs"] is None) == (not with_uvs) and (fast["normals"] is None) == (not with_normals)
+    if with_uvs:
+        np.testing.assert_array_equal(fast["uvs"], np.asarray(lines["vt"], np.float32))
+        np.testing.assert_array_equal(fast["uv_faces"], faces.astype(np.int32))
+    if with_normals:
+        np.testing.assert_array_equal(fast["normals"], np.asarray(lines["vn"], np.float32))
+        np.testing.assert_array_equal(fast["normal_faces"], np.asarray(lines["fn"]) - 1)
+    assert fast["material"]["name"] == "skin"
+    # quads, a 4-number vertex and tabs leave the column path: the line reader reads them the same
+    quads = tmp_path / "quad.obj"
+    quads.write_text("v 0 0 0\nv 1 0 0 1\nv\t1 1 0\nv 0 1 0\nf 1 2 3 4\n")
+    from pipeline.codecs import mesh as codec
+
+    assert codec._read_obj_columns(quads.read_text()) is None
+    quad = read_obj(quads)
+    np.testing.assert_array_equal(quad["faces"], [[0, 1, 2], [0, 2, 3]])
+    np.testing.assert_array_equal(quad["vertices"][1], [1, 0, 0])
+    broken = tmp_path / "broken.obj"
+    broken.write_text("v 0 0 0\nv 1 0 0\nv 0 1 x\nf 1 2 3\n")
+    with pytest.raises(InputError, match="line 3"):
+        read_obj(broken)

@@ -379,3 +379,39 @@ def test_presets_are_valid_configs():
     for config in SDF_PRESETS.values():
         assert isinstance(config, SDFConfig)
     assert SDF_PRESETS["production"].encoding.finest_resolution > SDF_PRESETS["cpu"].encoding.finest_resolution
+
+
+def test_a_bad_setting_is_refused_when_the_config_is_built_not_when_training_starts():
+    from pipeline.config import merge
+    from pipeline.errors import ConfigError
+    from stages.registry import PRESETS
+
+    with pytest.raises(ValueError, match=r"iterations=0 \(must be >= 1\)"):
+        SDFConfig(iterations=0)
+    # a YAML override is refused as it is merged, naming the file and the section, before any stage runs
+    with pytest.raises(ConfigError, match=r"o\.yaml\.geometry\.sdf: invalid SDFConfig: .*encoding\.levels=0"):
+        merge(PRESETS["default"], {"geometry": {"sdf": {"encoding": {"levels": 0}}}}, where="o.yaml")
+
+
+def test_a_second_pass_reuses_the_first_ones_start_bit_for_bit():
+    views = sphere_views(n=4, size=24)
+    first = train_sdf(views, TINY, bounds=BOUNDS)
+    assert first.start is not None and "start_reused" not in first.stats
+    # the geometry stage's second pass: other normals and weights, the same masks and cameras, another schedule
+    turned = [dataclasses.replace(v, normals_world=np.roll(v.normals_world, 1, axis=0),
+                                  sample_weight=np.where(v.mask, 1.0, 0.0).astype(np.float32)) for v in views]
+    second = dataclasses.replace(TINY, iterations=16, warmup_iterations=3, importance_fraction=0.25)
+    fresh = train_sdf(turned, second, bounds=BOUNDS)
+    reused = train_sdf(turned, second, bounds=BOUNDS, start=first.start)
+    assert reused.stats["start_reused"] is True and reused.stats["hull_init_time_s"] == 0.0
+    a, b = fresh.field.state_dict(), reused.field.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert fresh.history["loss"] == reused.history["loss"]
+    np.testing.assert_array_equal(fresh.bounds, reused.bounds)
+    assert fresh.stats["hull_init_final_l1_m"] == reused.stats["hull_init_final_l1_m"]
+    # another mask, another network or other bounds: the start is not reused
+    cut = [dataclasses.replace(v, mask=v.mask & (np.arange(v.mask.shape[1]) < 12)) for v in turned]
+    assert not np.array_equal(cut[0].mask, turned[0].mask)
+    for other_views, config, bounds in ((cut, second, BOUNDS), (turned, dataclasses.replace(second, hidden_width=16),
+                                                                BOUNDS), (turned, second, BOUNDS * 1.1)):
+        assert "start_reused" not in train_sdf(other_views, config, bounds=bounds, start=first.start).stats

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from pipeline.hashing import clear_code_cache, code_digest, code_digests
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
+from stages.run import run_pipeline
 from tests.unit.pipeline.conftest import ToyConfig
 
 PACKAGE = "ustest_codepkg"

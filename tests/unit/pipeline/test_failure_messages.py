@@ -8,9 +8,10 @@ from typing import Any
 from pipeline.capture import open_capture
 from pipeline.graph import make_plan
 from pipeline.hashing import DigestCache
-from pipeline.runner import ExecutionConfig, run_pipeline
+from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage, StageContext
 from pipeline.store import ArtifactStore
+from stages.run import run_pipeline
 from tests.unit.pipeline.conftest import ToyConfig, toy_stages
 
 SYNC = ExecutionConfig(scheduler="sync")

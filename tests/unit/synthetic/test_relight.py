@@ -14,7 +14,7 @@ from stages.numerics import sg
 from synthetic import SimConfig, files, simulate
 from synthetic.geometry import fibonacci_sphere
 from synthetic.relight import (TruthRelighter, environment_lights, equirect_directions,
-                               equirect_solid_angles)
+                               equirect_solid_angles, prefetch_visibility)
 from synthetic.simulate import render_views
 
 LIGHTS = 128
@@ -190,6 +190,28 @@ def test_rendering_is_deterministic_and_cached(relighter, capture, cameras):
         np.testing.assert_array_equal(first[key], second[key])
     other = render(relighter, cameras[1], env[:, ::-1].copy())
     assert not np.array_equal(other["radiance"], first["radiance"])
+
+
+def test_visibility_kept_on_disk_renders_the_same(relighter, capture, cameras, tmp_path):
+    env = np.random.default_rng(6).gamma(0.5, 1.0, size=(32, 64, 3)).astype(np.float32)
+    want = render(relighter, cameras[0], env)
+    folder = tmp_path / "visibility"
+    assert prefetch_visibility(capture, folder, lights=LIGHTS) == ["A0000"]
+    (kept,) = folder.glob("*.npy")
+    packed = np.load(kept)
+    assert packed.shape == (len(relighter.subject.vertices_world), LIGHTS // 8)
+    from_disk = TruthRelighter(capture, "A0000", lights=LIGHTS, visibility_cache=folder)
+    got = render(from_disk, cameras[0], env)
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key])
+    # a missing cache entry is traced and written; another light count is another entry
+    other = TruthRelighter(capture, "A0000", lights=LIGHTS // 2, visibility_cache=folder)
+    assert len(list(folder.glob("*.npy"))) == 2 and other.lights == LIGHTS // 2
+    # a damaged entry is traced again (and rewritten), never trusted
+    kept.write_bytes(b"not a numpy file")
+    again = TruthRelighter(capture, "A0000", lights=LIGHTS, visibility_cache=folder)
+    np.testing.assert_array_equal(render(again, cameras[0], env)["radiance"], want["radiance"])
+    assert np.array_equal(np.load(kept), packed)
 
 
 def test_relighter_refuses_unknown_actions_and_real_captures(capture, relighter, cameras, tmp_path):

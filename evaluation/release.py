@@ -172,106 +172,19 @@ def evaluate_release(release: Path, truth_dir: Path, run_id: str | None = None,
 
 def _evaluate_release(release: Path, truth_dir: Path, run_id: str | None, relit_cache: Path | None
                       ) -> EvaluationSummary:
-    from manifests import open_release, write_table
-    from manifests.page import write_release_page
-    from manifests.writer import replace_rows
+    from manifests import open_release
     from pipeline.runner import new_run_id
 
     run_id = run_id or new_run_id()
-
     rel = open_release(release)
     actions = rel.actions
     ok_ids = [a for a, s in zip(actions["action_id"], actions["status"]) if s == "ok"]
-    # The relit views and the relighting set (the simulator's renders: the larger part of the time) are
-    # measured action by action in worker processes while this one measures the rest.
-    relit_pool, relit_futures = None, None
-    workers = min(evaluate_workers(), len(ok_ids))
-    if workers > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        relit_pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-        relit_futures = [relit_pool.submit(_relit_action, Path(release), Path(truth_dir), action_id, run_id,
-                                           relit_cache) for action_id in ok_ids]
-    pools = {k: _ErrorPool() for k in ("valid", "all", "valid_unoccluded", "valid_occluded",
-                                       "all_unoccluded", "all_occluded")}
-    diffuse_pool = _ErrorPool()
-    sq_sum, sq_count, ssims, ious, valid_fg, fg_total = 0.0, 0, [], [], 0.0, 0
-    diffuse_sq, diffuse_count = 0.0, 0
+    relit_pool, relit_futures = _start_relit_workers(release, truth_dir, ok_ids, run_id, relit_cache)
     per_action: dict[str, dict[str, float]] = {}
     rows: list[dict[str, Any]] = []
-    for action_id in ok_ids:
-        view = rel.action(action_id)
-        has_diffuse = "normal_diffuse" in view.kinds
-        has_diffuse_albedo = "albedo_diffuse" in view.kinds
-        a_pool, a_sq, a_cnt, a_valid, a_fg = _ErrorPool(), 0.0, 0, 0.0, 0
-        a_dsq, a_dcnt = 0.0, 0
-        for cam in view.cameras:
-            if not (truth_dir / action_id / "normal" / f"{cam}.exr").exists():
-                continue
-            diffuse = view.normals(cam, diffuse=True) if has_diffuse else None
-            diffuse_albedo = view.albedo(cam, diffuse=True) if has_diffuse_albedo else None
-            res = evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam),
-                                  _load_truth(truth_dir, action_id, cam), diffuse_normals=diffuse,
-                                  diffuse_albedo=diffuse_albedo)
-            if diffuse_albedo is not None:  # the albedo with the fitted specular light out, over the same pixels
-                a_dsq += res["albedo_diffuse_sq_sum"]
-                a_dcnt += res["albedo_sq_count"]
-            if diffuse is not None:  # the specular-fitted normals, over the same pixels
-                diffuse_pool.add(res["err_valid_diffuse"])
-            for region, pool in pools.items():
-                pool.add(res[f"err_{region}"])
-            a_pool.add(res["err_valid"])
-            sq_sum += res["albedo_sq_sum"]
-            sq_count += res["albedo_sq_count"]
-            a_sq += res["albedo_sq_sum"]
-            a_cnt += res["albedo_sq_count"]
-            valid_fg += res["valid_fraction"] * res["fg_pixels"]
-            a_valid += res["valid_fraction"] * res["fg_pixels"]
-            fg_total += res["fg_pixels"]
-            a_fg += res["fg_pixels"]
-            if np.isfinite(res["albedo_ssim"]):
-                ssims.append(res["albedo_ssim"])
-            ious.append(res["mask_iou"])
-            cam_stats = _ErrorPool()
-            cam_stats.add(res["err_valid"])
-            s = cam_stats.stats()
-            for metric, value, region in (("normal_mean_deg", s.get("mean"), "valid"),
-                                          ("normal_under5_pct", s.get("under5_pct"), "valid"),
-                                          ("valid_fraction", res["valid_fraction"], "all"),
-                                          ("albedo_psnr_db", _psnr_from_mse(res["albedo_sq_sum"] / max(res["albedo_sq_count"], 1)), "all"),
-                                          ("albedo_ssim", res["albedo_ssim"], "all"), ("mask_iou", res["mask_iou"], None)):
-                if value is not None and np.isfinite(value):
-                    rows.append(_row(action_id, cam, metric, region, value, run_id))
-        st = a_pool.stats()
-        per_action[action_id] = {"normal_mean_deg": st.get("mean", float("nan")),
-                                 "normal_under5_pct": st.get("under5_pct", float("nan")),
-                                 "valid_fraction": a_valid / max(a_fg, 1),
-                                 "albedo_psnr_db": _psnr_from_mse(a_sq / max(a_cnt, 1))}
-        if a_dcnt:
-            per_action[action_id]["albedo_psnr_db_diffuse"] = _psnr_from_mse(a_dsq / a_dcnt)
-            diffuse_sq += a_dsq
-            diffuse_count += a_dcnt
-    valid, all_fg = pools["valid"].stats(), pools["all"].stats()
-    overall: dict[str, float] = {
-        "normal_mean_deg": valid.get("mean", float("nan")), "normal_median_deg": valid.get("median", float("nan")),
-        "normal_under5_pct": valid.get("under5_pct", float("nan")),
-        "normal_under25_pct": valid.get("under25_pct", float("nan")),
-        "normal_mean_deg_all": all_fg.get("mean", float("nan")),
-        "normal_mean_deg_unoccluded": pools["valid_unoccluded"].stats().get("mean", float("nan")),
-        "normal_mean_deg_occluded": pools["valid_occluded"].stats().get("mean", float("nan")),
-        "normal_mean_deg_all_unoccluded": pools["all_unoccluded"].stats().get("mean", float("nan")),
-        "normal_mean_deg_all_occluded": pools["all_occluded"].stats().get("mean", float("nan")),
-        "valid_fraction": valid_fg / max(fg_total, 1),
-        "albedo_psnr_db": _psnr_from_mse(sq_sum / max(sq_count, 1)) if sq_count else float("nan"),
-        "albedo_ssim": float(np.mean(ssims)) if ssims else float("nan"),
-        "mask_iou": float(np.mean(ious)) if ious else float("nan"),
-        "actions_ok": float(len(ok_ids)), "actions_failed": float(len(actions) - len(ok_ids))}
-    if diffuse_count:
-        overall["albedo_psnr_db_diffuse"] = _psnr_from_mse(diffuse_sq / diffuse_count)
-    diffuse = diffuse_pool.stats()
-    overall |= {f"normal_{k}{'_deg' if k in ('mean', 'median') else ''}_diffuse": diffuse[k]
-                for k in ("mean", "median", "under5_pct") if k in diffuse}
+    maps, diffuse = _maps_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
+    overall: dict[str, float] = maps | {"actions_ok": float(len(ok_ids)),
+                                        "actions_failed": float(len(actions) - len(ok_ids))} | diffuse
     aggregation = {"albedo_ssim": "mean_over_views", "mask_iou": "mean_over_views", "actions_ok": "count",
                    "actions_failed": "count"}
     cameras = _camera_overall(rel, truth_dir, ok_ids)
@@ -281,14 +194,7 @@ def _evaluate_release(release: Path, truth_dir: Path, run_id: str | None, relit_
     parts = [_mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
              _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, textured),
              _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, textured)]
-    if relit_futures is not None:
-        try:
-            relit_actions = [future.result() for future in relit_futures]
-        finally:
-            relit_pool.shutdown(cancel_futures=True)
-    else:
-        relit_actions = [_relit_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
-                         for action_id in ok_ids]
+    relit_actions = _finish_relit(relit_pool, relit_futures, release, truth_dir, ok_ids, run_id, relit_cache)
     relit, relightset, relit_per_action, relit_rows = _relit_parts(ok_ids, relit_actions)
     for action_id, values in relit_per_action.items():
         per_action.setdefault(action_id, {}).update(values)
@@ -297,10 +203,179 @@ def _evaluate_release(release: Path, truth_dir: Path, run_id: str | None, relit_
         aggregation |= dict.fromkeys(part, "mean_over_actions")
         overall |= part
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
-    replace_rows(release, "metrics", rows, drop=lambda row: row["source"] == "evaluate")
-    write_table(release, "metrics_summary", summary_rows(overall, aggregation, len(ok_ids), run_id))
-    write_release_page(release)
+    _write_metrics(release, rows, overall, aggregation, len(ok_ids), run_id)
     return EvaluationSummary(overall, per_action, rows)
+
+
+def _write_metrics(release: Path, rows: list[dict[str, Any]], overall: dict[str, float],
+                   aggregation: dict[str, str], n_actions: int, run_id: str) -> None:
+    """Replace the release's 'evaluate' rows of the metrics manifest and its metrics_summary table, and write
+    the release's page again with them."""
+    from manifests import write_table
+    from manifests.page import write_release_page
+    from manifests.writer import replace_rows
+
+    replace_rows(release, "metrics", rows, drop=lambda row: row["source"] == "evaluate")
+    write_table(release, "metrics_summary", summary_rows(overall, aggregation, n_actions, run_id))
+    write_release_page(release)
+
+
+_RelitAction = tuple[dict[str, float], list[dict[str, Any]], list[dict[str, Any]]]
+"""What :func:`_relit_action` returns for one action."""
+
+
+def _start_relit_workers(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str,
+                         relit_cache: Path | None) -> tuple[Any, list[Any] | None]:
+    """Submit :func:`_relit_action` of every action to a pool of :func:`evaluate_workers` processes:
+    ``(pool, futures)``, or ``(None, None)`` when the evaluation runs in this process alone.
+
+    The relit views and the relighting set (the simulator's renders: the larger part of the time) are measured
+    action by action in worker processes while this one measures the rest."""
+    workers = min(evaluate_workers(), len(ok_ids))
+    if workers <= 1:
+        return None, None
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    futures = [pool.submit(_relit_action, Path(release), Path(truth_dir), action_id, run_id, relit_cache)
+               for action_id in ok_ids]
+    return pool, futures
+
+
+def _finish_relit(pool: Any, futures: list[Any] | None, release: Path, truth_dir: Path, ok_ids: list[str],
+                  run_id: str, relit_cache: Path | None) -> list[_RelitAction]:
+    """:func:`_relit_action` of every action in ``ok_ids`` order: the workers' results (the pool is shut down),
+    or computed here when :func:`_start_relit_workers` started none."""
+    if futures is None:
+        return [_relit_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
+                for action_id in ok_ids]
+    try:
+        return [future.result() for future in futures]
+    finally:
+        pool.shutdown(cancel_futures=True)
+
+
+_MAP_REGIONS = ("valid", "all", "valid_unoccluded", "valid_occluded", "all_unoccluded", "all_occluded")
+
+
+@dataclass
+class _AlbedoSums:
+    """Sums over cameras of :func:`evaluate_camera`'s albedo error and coverage."""
+
+    sq: float = 0.0  # squared albedo error over the true foreground (all channels)
+    count: int = 0  # its values
+    valid_px: float = 0.0  # valid pixels (valid fraction x foreground pixels)
+    fg_px: int = 0  # foreground pixels
+
+    def add(self, res: dict[str, Any]) -> None:
+        self.sq += res["albedo_sq_sum"]
+        self.count += res["albedo_sq_count"]
+        self.valid_px += res["valid_fraction"] * res["fg_pixels"]
+        self.fg_px += res["fg_pixels"]
+
+
+def _camera_results(view: Any, truth_dir: Path, action_id: str):
+    """``(camera id, evaluate_camera result)`` of each of the action's cameras that has ground truth, one at a
+    time (the maps of one camera in memory)."""
+    has_diffuse = "normal_diffuse" in view.kinds
+    has_diffuse_albedo = "albedo_diffuse" in view.kinds
+    for cam in view.cameras:
+        if not (truth_dir / action_id / "normal" / f"{cam}.exr").exists():
+            continue
+        diffuse = view.normals(cam, diffuse=True) if has_diffuse else None
+        diffuse_albedo = view.albedo(cam, diffuse=True) if has_diffuse_albedo else None
+        yield cam, evaluate_camera(view.normals(cam), view.normal_alpha(cam), view.albedo(cam), view.mask(cam),
+                                   _load_truth(truth_dir, action_id, cam), diffuse_normals=diffuse,
+                                   diffuse_albedo=diffuse_albedo)
+
+
+def _maps_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
+                  rows: list[dict[str, Any]], run_id: str) -> tuple[dict[str, float], dict[str, float]]:
+    """Normal, albedo and mask errors of every published camera's maps against the truth: the per-camera
+    values go to ``rows``, the per-action ones to ``per_action``; returns the release-wide numbers of the
+    released maps and those of the specular-fitted ones (``normal_diffuse``, ``albedo_diffuse``), pooled over
+    every pixel of every camera (the albedo SSIM and mask IoU: means over views)."""
+    pools = {region: _ErrorPool() for region in _MAP_REGIONS}
+    diffuse_pool = _ErrorPool()
+    total = _AlbedoSums()
+    ssims: list[float] = []
+    ious: list[float] = []
+    diffuse_sq, diffuse_count = 0.0, 0
+    for action_id in ok_ids:
+        action_pool, action = _ErrorPool(), _AlbedoSums()
+        action_dsq, action_dcount = 0.0, 0
+        for cam, res in _camera_results(rel.action(action_id), truth_dir, action_id):
+            if "albedo_diffuse_sq_sum" in res:  # the albedo with the fitted specular light out, same pixels
+                action_dsq += res["albedo_diffuse_sq_sum"]
+                action_dcount += res["albedo_sq_count"]
+            if "err_valid_diffuse" in res:  # the specular-fitted normals, over the same pixels
+                diffuse_pool.add(res["err_valid_diffuse"])
+            for region, pool in pools.items():
+                pool.add(res[f"err_{region}"])
+            action_pool.add(res["err_valid"])
+            total.add(res)
+            action.add(res)
+            if np.isfinite(res["albedo_ssim"]):
+                ssims.append(res["albedo_ssim"])
+            ious.append(res["mask_iou"])
+            rows.extend(_camera_rows(action_id, cam, res, run_id))
+        st = action_pool.stats()
+        per_action[action_id] = {"normal_mean_deg": st.get("mean", float("nan")),
+                                 "normal_under5_pct": st.get("under5_pct", float("nan")),
+                                 "valid_fraction": action.valid_px / max(action.fg_px, 1),
+                                 "albedo_psnr_db": _psnr_from_mse(action.sq / max(action.count, 1))}
+        if action_dcount:
+            per_action[action_id]["albedo_psnr_db_diffuse"] = _psnr_from_mse(action_dsq / action_dcount)
+            diffuse_sq += action_dsq
+            diffuse_count += action_dcount
+    return _maps_summary(pools, total, ssims, ious), _diffuse_summary(diffuse_pool, diffuse_sq, diffuse_count)
+
+
+def _camera_rows(action_id: str, cam: str, res: dict[str, Any], run_id: str) -> list[dict[str, Any]]:
+    """The metrics rows of one camera's :func:`evaluate_camera` result (finite values only)."""
+    cam_stats = _ErrorPool()
+    cam_stats.add(res["err_valid"])
+    s = cam_stats.stats()
+    albedo_psnr = _psnr_from_mse(res["albedo_sq_sum"] / max(res["albedo_sq_count"], 1))
+    return [_row(action_id, cam, metric, region, value, run_id)
+            for metric, value, region in (("normal_mean_deg", s.get("mean"), "valid"),
+                                          ("normal_under5_pct", s.get("under5_pct"), "valid"),
+                                          ("valid_fraction", res["valid_fraction"], "all"),
+                                          ("albedo_psnr_db", albedo_psnr, "all"),
+                                          ("albedo_ssim", res["albedo_ssim"], "all"),
+                                          ("mask_iou", res["mask_iou"], None))
+            if value is not None and np.isfinite(value)]
+
+
+def _maps_summary(pools: dict[str, _ErrorPool], total: _AlbedoSums, ssims: list[float],
+                  ious: list[float]) -> dict[str, float]:
+    """The release-wide numbers of the released maps (NaN where nothing was measured)."""
+    valid, all_fg = pools["valid"].stats(), pools["all"].stats()
+    return {
+        "normal_mean_deg": valid.get("mean", float("nan")), "normal_median_deg": valid.get("median", float("nan")),
+        "normal_under5_pct": valid.get("under5_pct", float("nan")),
+        "normal_under25_pct": valid.get("under25_pct", float("nan")),
+        "normal_mean_deg_all": all_fg.get("mean", float("nan")),
+        "normal_mean_deg_unoccluded": pools["valid_unoccluded"].stats().get("mean", float("nan")),
+        "normal_mean_deg_occluded": pools["valid_occluded"].stats().get("mean", float("nan")),
+        "normal_mean_deg_all_unoccluded": pools["all_unoccluded"].stats().get("mean", float("nan")),
+        "normal_mean_deg_all_occluded": pools["all_occluded"].stats().get("mean", float("nan")),
+        "valid_fraction": total.valid_px / max(total.fg_px, 1),
+        "albedo_psnr_db": _psnr_from_mse(total.sq / max(total.count, 1)) if total.count else float("nan"),
+        "albedo_ssim": float(np.mean(ssims)) if ssims else float("nan"),
+        "mask_iou": float(np.mean(ious)) if ious else float("nan")}
+
+
+def _diffuse_summary(pool: _ErrorPool, albedo_sq: float, albedo_count: int) -> dict[str, float]:
+    """The release-wide numbers of the specular-fitted maps, where the release has them."""
+    out: dict[str, float] = {}
+    if albedo_count:
+        out["albedo_psnr_db_diffuse"] = _psnr_from_mse(albedo_sq / albedo_count)
+    diffuse = pool.stats()
+    out |= {f"normal_{k}{'_deg' if k in ('mean', 'median') else ''}_diffuse": diffuse[k]
+            for k in ("mean", "median", "under5_pct") if k in diffuse}
+    return out
 
 
 def evaluate_workers() -> int:
@@ -401,10 +476,10 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
                      textured: dict[str, dict] | None = None) -> dict[str, float]:
     """The paper's table-1 protocol on every action with a mesh: two held-out cameras' albedo and normal
     maps synthesised from the other cameras, against the held-out photometric maps and (``_truth``)
-    against the simulator's maps (:mod:`stages.heldout`). ``textured``: receives action id -> the
+    against the simulator's maps (:mod:`evaluation.heldout`). ``textured``: receives action id -> the
     ray-casting scene and atlas of the textured mesh where the protocol loaded it (the ``scene_cache`` of
     :func:`texture_in_camera`)."""
-    from stages.heldout import ActionGBuffers, heldout_metrics
+    from evaluation.heldout import ActionGBuffers, heldout_metrics
 
     values: dict[str, list[float]] = {}
     for action_id in ok_ids:
@@ -416,7 +491,7 @@ def _heldout_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[str]
         if textured is not None and "atlas" in data._shared:
             scene, atlas = data._shared["atlas"][:2]
             textured[action_id] = {"scene": scene, "atlas": atlas}
-        # 1 where the white-light albedo was predicted per view (stages.heldout), 0 where blended as it is
+        # 1 where the white-light albedo was predicted per view (evaluation.heldout), 0 where blended as it is
         values.setdefault("heldout_albedo_view_dependent", []).append(
             float(metrics.get("heldout_albedo_model") == "view_dependent"))
         for base in HELDOUT_METRICS:
@@ -450,7 +525,7 @@ def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.nda
     """Textures of the atlas seen by a camera through the textured mesh: name -> (H, W[, C]) and the hit
     mask (H, W). ``where``: (H, W) bool, the only pixels the textures are looked up at (0 elsewhere); None:
     every pixel."""
-    from stages.materials import load_atlas_mesh
+    from stages.artifacts import load_atlas_mesh
     from stages.numerics.bake import sample_texture
     from stages.numerics.raycast import mesh_scene, render_uvs
 
@@ -528,6 +603,11 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
             per_action.setdefault(action_id, {})[key] = value
             rows.append(_row(action_id, None, key, "textures", value, run_id))
     return {k: float(np.mean(v)) for k, v in values.items() if v}
+
+
+RELIT_CACHE = Path("cache") / "relit_truth"
+"""Where in a work folder ``ultrastage run``'s evaluation keeps the simulator's renders (and, beside them,
+:func:`truth_visibility_folder`)."""
 
 
 def relit_truth_lights(cameras: list[dict]) -> int:
@@ -612,7 +692,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     (``renders/<view>/normal.exr``) against the true subject's, mean angle over the pixels both masks cover,
     averaged over views."""
     from stages.numerics.metrics import angular_error_deg, relit_psnr
-    from stages.relight import find_environment, load_environment
+    from stages.environments import find_environment, load_environment
 
     capture_root = Path(truth_dir).parent
     if not (capture_root / "capture.json").exists():
@@ -640,7 +720,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                 true = cache.load(key) if cache is not None else None
                 if true is None:
                     if truth is None:
-                        truth = _relighter(relighters, capture_root, action_id, lights)
+                        truth = _relighter(relighters, capture_root, action_id, lights, cache_dir)
                     true = truth.render(*args)
                     if cache is not None:
                         cache.save(key, true)
@@ -668,14 +748,24 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     return out
 
 
-def _relighter(relighters: dict[tuple[str, int], Any] | None, capture_root: Path, action_id: str, lights: int) -> Any:
-    """The simulator's subject of an action for ground-truth relighting, built once per (action, lights)."""
+def truth_visibility_folder(relit_cache: Path) -> Path:
+    """Where the ground-truth relighter keeps its traced visibility beside the renders of ``relit_cache``
+    (``ultrastage run`` prefetches it there while the pipeline runs)."""
+    return Path(relit_cache).parent / "truth_visibility"
+
+
+def _relighter(relighters: dict[tuple[str, int], Any] | None, capture_root: Path, action_id: str, lights: int,
+               relit_cache: Path | None = None) -> Any:
+    """The simulator's subject of an action for ground-truth relighting, built once per (action, lights);
+    its traced visibility kept beside ``relit_cache`` when given."""
     from synthetic.relight import TruthRelighter
 
+    folder = truth_visibility_folder(relit_cache) if relit_cache is not None else None
     if relighters is None:
-        return TruthRelighter(capture_root, action_id, lights=lights)
+        return TruthRelighter(capture_root, action_id, lights=lights, visibility_cache=folder)
     if (action_id, lights) not in relighters:
-        relighters[(action_id, lights)] = TruthRelighter(capture_root, action_id, lights=lights)
+        relighters[(action_id, lights)] = TruthRelighter(capture_root, action_id, lights=lights,
+                                                         visibility_cache=folder)
     return relighters[(action_id, lights)]
 
 
@@ -731,7 +821,7 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             true = cache.load(key) if cache is not None else None
             if true is None or "albedo" not in true:
                 if truth is None:
-                    truth = _relighter(relighters, capture_root, action_id, lights)
+                    truth = _relighter(relighters, capture_root, action_id, lights, cache_dir)
                 true = truth.render(*args)
                 if cache is not None:
                     cache.save(key, true)
@@ -802,7 +892,7 @@ def evaluate_release_cached(release: Path, truth_dir: Path, work: Path,
         saved = json.loads(record.read_text())
         if saved.get("key") == key:
             return EvaluationSummary(saved["overall"], saved["per_action"]), True
-    summary = evaluate_release(release, truth_dir, run_id=run_id, relit_cache=work / "cache" / "relit_truth")
+    summary = evaluate_release(release, truth_dir, run_id=run_id, relit_cache=work / RELIT_CACHE)
     record.write_text(json.dumps({"key": key, "overall": summary.overall, "per_action": summary.per_action}))
     return summary, False
 

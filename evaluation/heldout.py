@@ -16,37 +16,31 @@ paper says so); the simulator's albedo does not, so the ``_truth`` albedo scores
 bench reports the held-out photometric map's own score against the truth beside it).
 
 **View-dependent albedo** (``albedo_model="view_dependent"``, the default). The white-light albedo a camera
-measures is the diffuse albedo plus the specular reflection of the white light, which depends on the view:
-on the default capture it lies 0.017-0.020 above the simulator's albedo head-on and 0.057-0.060 at grazing
-views (stages.diffuse_normals.DiffuseNormalsConfig.albedo), and near a held-out view's silhouette that view sees
-the surface at grazing angles that the nearest sources, weighted to the ones that see it head-on, do not.
-So the held-out white-light albedo is predicted (:func:`predict_white_albedo`) as the blend of the other
-cameras' ``albedo_diffuse`` (their white-light albedo less their own specular light) plus the GGX
-reflection of the white light for the held-out camera's view directions, with the blended
+measures is the diffuse albedo plus the specular reflection of the white light, which depends on the view
+(larger at grazing views; stages.diffuse_normals.DiffuseNormalsConfig.albedo), and near a held-out view's
+silhouette that view sees the surface at grazing angles that the nearest sources, weighted to the ones that
+see it head-on, do not. So the held-out white-light albedo is predicted (:func:`predict_white_albedo`) as the
+blend of the other cameras' ``albedo_diffuse`` (their white-light albedo less their own specular light) plus
+the GGX reflection of the white light for the held-out camera's view directions, with the blended
 ``normal_diffuse``, the materials' roughness texture seen through the textured mesh and the materials' F0
-(:func:`stages.numerics.specular_normals.white_light_specular`, the model that fitted them). Default capture,
-both actions, the protocol's albedo: SSIM 0.9680 -> 0.9728, PSNR 33.18 -> 33.94 dB (pooled); with F0 0.04
-instead of the materials' 0.02: 0.9685; the specular times the ambient occlusion: 0.9725; with eq. 1's
-blended normals: 0.9651. The roughness texture, like the mesh, is fitted from every camera of the action;
-fitted again without the two held-out cameras (a one-off script, default capture) it gives SSIM 0.9725, PSNR
-33.88 dB. ``albedo_model="white"`` blends the sources' white-light albedo as they are (the former protocol);
-releases without ``albedo_diffuse``, ``normal_diffuse``, the roughness texture or the textured mesh fall back
-to it. Against the simulator's albedo (``_truth``) the prediction scores lower than the plain blend (it adds
-the specular light the truth lacks: 26.9 vs 27.9 dB); the ``albedo_diffuse`` protocol is the one to compare
-with the truth (evaluate's ``heldout_albedo_*_diffuse_truth``).
+(:func:`stages.numerics.specular_normals.white_light_specular`, the model that fitted them). The roughness
+texture, like the mesh, is fitted from every camera of the action, the held-out ones included.
+``albedo_model="white"`` blends the sources' white-light albedo as they are; releases without
+``albedo_diffuse``, ``normal_diffuse``, the roughness texture or the textured mesh fall back to it.
+bench/bench_gbuffer.py reports both models. Against the simulator's albedo (``_truth``) the prediction
+scores lower than the plain blend (it adds the specular light the truth lacks); the ``albedo_diffuse``
+protocol is the one to compare with the truth (:mod:`evaluation.release`'s
+``heldout_albedo_*_diffuse_truth``).
 
 **Occlusion edges.** A camera pixel integrates the light over its square: where an arm passes in front of
 the torso the held-out photometric pixel mixes both sides, while a G-buffer sampled at the pixel centre
 takes one side wholly. The pixels at an occlusion edge of the mesh (their 3 x 3 neighbourhood on the
 surface and more than ``edge_jump_m`` deep; :func:`stages.numerics.raycast.occlusion_edges`, which also
 takes in surfaces seen obliquely enough) are synthesised from ``edge_samples`` x ``edge_samples`` sub-pixel
-rays, averaged over those that hit (:func:`stages.numerics.gbuffer.reproject_gbuffer`'s ``subpixel``).
-Default capture, mean of both actions, the plain white-light blend (``albedo_model="white"``; 6,404 of
-17,732 subject pixels per view at an edge): albedo SSIM 0.9662 -> 0.9680, PSNR 32.82 -> 33.26 dB, normals
-6.85 -> 6.71 deg (``normal_diffuse`` 3.90 -> 3.77 deg). 2 rays per side: 0.9679; 4: 0.9680; a 2 cm jump
-(2,470 pixels): 0.9680, normals 6.74 deg. Silhouette pixels are left at their centre: sub-sampled too, their
-rays graze the surface where the photometric maps are worst (SSIM 0.9676); so is the interior (every pixel
-from 3 x 3 rays: 0.9675, one more low-pass of the texture).
+rays, averaged over those that hit (:func:`stages.numerics.gbuffer.reproject_gbuffer`'s ``subpixel``);
+bench/bench_gbuffer.py reports the metrics against the rays per side. Silhouette pixels and the interior are
+left at their centre: sub-sampled, silhouette rays graze the surface where the photometric maps are worst,
+and the interior's texture is low-passed once more.
 
 **Blend.** With an enabled ``learned_blend`` the sources are blended by a network trained leave one out
 on the action's other cameras (:mod:`stages.numerics.learned_blend`; the held-out cameras are neither targets nor
@@ -57,6 +51,7 @@ Reads the release only through :mod:`manifests` (``open_release(path).action(id)
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -201,7 +196,7 @@ class ActionGBuffers:
     def roughness(self, cam: str) -> np.ndarray:
         """(H, W) float32 roughness of the materials' texture seen by camera ``cam`` through the textured mesh;
         the texture's median where that mesh misses a pixel."""
-        from stages.materials import load_atlas_mesh
+        from stages.artifacts import load_atlas_mesh
         from stages.numerics.raycast import mesh_scene
         from stages.diffuse_normals import materials_roughness
 
@@ -385,69 +380,116 @@ def heldout_metrics(release_dir: str | Path, action_id: str, heldout: Sequence[s
     if heldout is None or not set(heldout) <= set(data.cameras) or len(set(heldout)) >= len(data.cameras):
         heldout = spread_heldout(data.cameras, 2)
     heldout = tuple(heldout)
-    if albedo_model not in ALBEDO_MODELS:
-        raise ValueError(f"albedo_model must be one of {ALBEDO_MODELS}, got {albedo_model!r}")
-    if data.diffuse_albedo:
-        albedo_model = "diffuse"
-    elif albedo_model == "view_dependent" and not data.predicts_specular():
-        albedo_model = "white"
+    albedo_model = _albedo_model_used(data, albedo_model)
     blend_record = None
-    training_ids = [c for c in sorted(data.cameras) if c not in set(heldout)]
-    if learned_blend is not None and learned_blend.enabled and len(training_ids) >= 3:
-        from stages.numerics.learned_blend import fit_learned_blend
-
-        start = time.perf_counter()
-        training = [data.source(c) for c in training_ids]
-        blend = fit_learned_blend(training, learned_blend, k=k,
-                                  depth_tolerance_m=reproject_kwargs.get("depth_tolerance_m", 0.01),
-                                  interpolation=reproject_kwargs.get("interpolation", "cubic"))
+    fitted = _fit_blend(data, heldout, learned_blend, k, reproject_kwargs) if learned_blend is not None else None
+    if fitted is not None:
+        blend, blend_record = fitted
         reproject_kwargs = reproject_kwargs | {"blend": blend}
-        blend_record = blend.record | {"fit_s": time.perf_counter() - start}
-    parts, parts_truth, per_view, maps = [], [], {}, {}
-    covered = masked = 0
-    seconds = []
-    for cam in heldout:
-        synth = synthesise_heldout(data, cam, heldout, k=k, **reproject_kwargs)
-        if albedo_model == "view_dependent":
-            white = predict_white_albedo(data, cam, heldout, k=k, **reproject_kwargs)
-            synth = synth | {"albedo": white["albedo"], "specular": white["specular"],
-                             "valid": synth["valid"] & white["valid"],
-                             "seconds": synth["seconds"] + white["seconds"]}
-        seconds.append(float(synth["seconds"]))
-        ref = data.photometric(cam)
-        compare = synth["valid"] & (ref["alpha"] > 0.5) & ref["mask"]
-        part = compare_maps(synth["normal"], synth["albedo"], ref["normal"], ref["albedo"], compare)
-        parts.append(part)
-        cov_num, cov_den = int((synth["valid"] & ref["mask"]).sum()), int(ref["mask"].sum())
-        covered += cov_num
-        masked += cov_den
-        view_metrics = summarise([part]) | {"heldout_coverage": cov_num / max(cov_den, 1),
-                                            "seconds": float(synth["seconds"])}
-        truth = None
-        if truth_dir is not None:
-            truth = load_truth(Path(truth_dir), action_id, cam, synth["depth_m"].shape)
-            if truth is not None:
-                tmask = synth["valid"] & truth["mask"]
-                tpart = compare_maps(synth["normal"], synth["albedo"], truth["normal"], truth["albedo"], tmask)
-                parts_truth.append(tpart)
-                view_metrics |= summarise([tpart], "_truth")
-                view_metrics["heldout_coverage_truth"] = int(tmask.sum()) / max(int(truth["mask"].sum()), 1)
-        per_view[cam] = {k_: v for k_, v in view_metrics.items() if np.isfinite(v)}
-        if return_maps:
-            maps[cam] = {"synth": synth, "photometric": ref, "truth": truth, "compare": compare}
-    result: dict[str, Any] = summarise(parts)
-    result["heldout_coverage"] = covered / max(masked, 1)
-    if parts_truth:
-        result |= summarise(parts_truth, "_truth")
-    result["heldout_seconds_per_view"] = float(np.mean(seconds))
-    result = {k_: v for k_, v in result.items() if np.isfinite(v)}
+    views = [_heldout_view(data, action_id, cam, heldout, k, albedo_model, truth_dir, reproject_kwargs,
+                           return_maps) for cam in heldout]
+    result = _pooled_metrics(views)
     if blend_record is not None:
         result["heldout_blend_fit_s"] = float(blend_record["fit_s"])
     result["heldout_cameras"] = list(heldout)
     result["heldout_albedo_model"] = albedo_model
-    result["per_view"] = per_view
+    result["per_view"] = {view.cam: view.metrics for view in views}
     if blend_record is not None:
         result["blend"] = blend_record
     if return_maps:
-        result["maps"] = maps
+        result["maps"] = {view.cam: view.maps for view in views}
     return result
+
+
+def _albedo_model_used(data: ActionGBuffers, albedo_model: str) -> str:
+    """The albedo synthesis :func:`heldout_metrics` uses for ``data`` when asked for ``albedo_model``:
+    "diffuse" for ``albedo_diffuse`` maps, "white" where the release lacks the view-dependent prediction's
+    inputs."""
+    if albedo_model not in ALBEDO_MODELS:
+        raise ValueError(f"albedo_model must be one of {ALBEDO_MODELS}, got {albedo_model!r}")
+    if data.diffuse_albedo:
+        return "diffuse"
+    if albedo_model == "view_dependent" and not data.predicts_specular():
+        return "white"
+    return albedo_model
+
+
+def _fit_blend(data: ActionGBuffers, heldout: tuple[str, ...], config: Any, k: int,
+               reproject_kwargs: dict[str, Any]) -> tuple[Any, dict[str, Any]] | None:
+    """The learned blend (``config``: a ``LearnedBlendConfig``) trained on the cameras not held out, and its
+    training record with ``fit_s``; None when it is disabled or fewer than 3 cameras are not held out."""
+    training_ids = [c for c in sorted(data.cameras) if c not in set(heldout)]
+    if not config.enabled or len(training_ids) < 3:
+        return None
+    from stages.numerics.learned_blend import fit_learned_blend
+
+    start = time.perf_counter()
+    training = [data.source(c) for c in training_ids]
+    blend = fit_learned_blend(training, config, k=k,
+                              depth_tolerance_m=reproject_kwargs.get("depth_tolerance_m", 0.01),
+                              interpolation=reproject_kwargs.get("interpolation", "cubic"))
+    return blend, blend.record | {"fit_s": time.perf_counter() - start}
+
+
+@dataclass
+class _HeldoutView:
+    """One held-out view's comparison."""
+
+    cam: str
+    part: dict[str, Any]  # compare_maps against the held-out photometric maps
+    part_truth: dict[str, Any] | None  # compare_maps against the simulator's maps (None: no truth)
+    covered: int  # pixels of the held-out mask synthesised
+    masked: int  # pixels of the held-out mask
+    seconds: float  # synthesis time
+    metrics: dict[str, float]  # the view's own metrics (finite ones)
+    maps: dict[str, Any] | None  # "synth", "photometric", "truth" (or None), "compare" (pixels compared)
+
+
+def _synthesise_view(data: ActionGBuffers, cam: str, heldout: tuple[str, ...], k: int, albedo_model: str,
+                     reproject_kwargs: dict[str, Any]) -> dict[str, np.ndarray]:
+    """:func:`synthesise_heldout` of ``cam``, its albedo replaced by :func:`predict_white_albedo`'s for the
+    "view_dependent" model (valid where both are, both times counted)."""
+    synth = synthesise_heldout(data, cam, heldout, k=k, **reproject_kwargs)
+    if albedo_model != "view_dependent":
+        return synth
+    white = predict_white_albedo(data, cam, heldout, k=k, **reproject_kwargs)
+    return synth | {"albedo": white["albedo"], "specular": white["specular"],
+                    "valid": synth["valid"] & white["valid"], "seconds": synth["seconds"] + white["seconds"]}
+
+
+def _heldout_view(data: ActionGBuffers, action_id: str, cam: str, heldout: tuple[str, ...], k: int,
+                  albedo_model: str, truth_dir: str | Path | None, reproject_kwargs: dict[str, Any],
+                  keep_maps: bool) -> _HeldoutView:
+    """Synthesise held-out camera ``cam``'s maps and compare them with its photometric maps (where valid in
+    both and on its mask) and, with ``truth_dir``, with the simulator's (on the true mask); ``keep_maps``:
+    keep the maps in the result."""
+    synth = _synthesise_view(data, cam, heldout, k, albedo_model, reproject_kwargs)
+    ref = data.photometric(cam)
+    compare = synth["valid"] & (ref["alpha"] > 0.5) & ref["mask"]
+    part = compare_maps(synth["normal"], synth["albedo"], ref["normal"], ref["albedo"], compare)
+    covered, masked = int((synth["valid"] & ref["mask"]).sum()), int(ref["mask"].sum())
+    metrics = summarise([part]) | {"heldout_coverage": covered / max(masked, 1), "seconds": float(synth["seconds"])}
+    truth = part_truth = None
+    if truth_dir is not None:
+        truth = load_truth(Path(truth_dir), action_id, cam, synth["depth_m"].shape)
+        if truth is not None:
+            tmask = synth["valid"] & truth["mask"]
+            part_truth = compare_maps(synth["normal"], synth["albedo"], truth["normal"], truth["albedo"], tmask)
+            metrics |= summarise([part_truth], "_truth")
+            metrics["heldout_coverage_truth"] = int(tmask.sum()) / max(int(truth["mask"].sum()), 1)
+    return _HeldoutView(cam=cam, part=part, part_truth=part_truth, covered=covered, masked=masked,
+                        seconds=float(synth["seconds"]),
+                        metrics={k_: v for k_, v in metrics.items() if np.isfinite(v)},
+                        maps={"synth": synth, "photometric": ref, "truth": truth, "compare": compare}
+                        if keep_maps else None)
+
+
+def _pooled_metrics(views: list[_HeldoutView]) -> dict[str, Any]:
+    """The metrics pooled over the held-out views (finite ones), coverage and seconds per view."""
+    result: dict[str, Any] = summarise([view.part for view in views])
+    result["heldout_coverage"] = sum(view.covered for view in views) / max(sum(view.masked for view in views), 1)
+    parts_truth = [view.part_truth for view in views if view.part_truth is not None]
+    if parts_truth:
+        result |= summarise(parts_truth, "_truth")
+    result["heldout_seconds_per_view"] = float(np.mean([view.seconds for view in views]))
+    return {k_: v for k_, v in result.items() if np.isfinite(v)}

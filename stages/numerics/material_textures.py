@@ -1,0 +1,223 @@
+"""The materials stage's action: texel observations -> roughness, ambient occlusion and albedo textures.
+
+:func:`material_textures` runs the three steps over the action's UV atlas (:func:`texel_samples`,
+:func:`fit_texel_roughness`, :func:`published_roughness`), the ambient occlusion on the mesh and the albedos
+divided by it; the stage module (stages/materials.py) says why each step is there and what it measured. Pure:
+arrays and dataclasses in, arrays out. ``cfg`` is a :class:`stages.materials.MaterialsConfig`.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from stages.materials import MaterialsConfig
+
+
+def texel_uvs(covered: np.ndarray) -> np.ndarray:
+    """OBJ-convention UVs (N, 2) of the covered texels' centres, in row-major order."""
+    size = covered.shape[0]
+    rows, cols = np.nonzero(covered)
+    return np.stack([(cols + 0.5) / size, 1.0 - (rows + 0.5) / size], axis=1)
+
+
+def surface_median(points: np.ndarray, values: np.ndarray, usable: np.ndarray, neighbours: int) -> np.ndarray:
+    """Median of ``values`` over each point's ``neighbours`` nearest usable points in 3D, (N,) float32.
+
+    points: (N, 3); values: (N,); usable: (N,) bool (e.g. points that had observations). With no usable
+    point (or ``neighbours`` 1) the values come back unchanged."""
+    from scipy.spatial import cKDTree
+
+    values = np.asarray(values, np.float32)
+    if neighbours <= 1 or not usable.any():
+        return values.copy()
+    k = int(min(neighbours, usable.sum()))
+    _, nearest = cKDTree(points[usable]).query(points, k=k)
+    nearest = nearest.reshape(len(points), k)
+    return np.median(values[usable][nearest], axis=1).astype(np.float32)
+
+
+def roughness_median(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
+                     min_visibility: float, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+    """The published roughness: each texel's median over its ``neighbours`` nearest *voters*, the fitted
+    texels (``fitted`` (N,) bool) whose ``visibility`` (N,) reaches ``min_visibility`` (every fitted texel
+    when none does). points (N, 3), roughness (N,). Returns the (N,) float32 median and the (N,) bool voters."""
+    voters = np.asarray(fitted, bool) & (np.asarray(visibility) >= min_visibility)
+    if not voters.any():
+        voters = np.asarray(fitted, bool)
+    return surface_median(points, roughness, voters, neighbours), voters
+
+
+def texel_samples(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_texture: np.ndarray,
+                  views: list[Any], cfg: MaterialsConfig) -> dict[str, Any]:
+    """Step 1 of the roughness: the texels of a ``cfg.texture_size`` atlas and their observations.
+
+    vertices (V, 3), faces (F, 3) and atlas: :func:`stages.artifacts.load_atlas_mesh`; albedo_texture (T', T', 3):
+    the baked white-light albedo; views: :class:`stages.numerics.bake.BakeView` with ``images["obs"]`` (H, W, 9) =
+    full_on | pos | neg. Returns ``covered`` (T, T) bool, per covered texel in row-major order ``points`` and
+    ``normals`` (N, 3) float64 and ``albedo`` (N, 3), and ``obs``: :func:`stages.numerics.bake.gather_observations`
+    of the ``cfg.max_views`` best views (best first), with the config's depth tolerance and grazing limit."""
+    from stages.numerics.bake import gather_observations, rasterize_atlas, sample_texture
+
+    raster = rasterize_atlas(vertices, faces, atlas, int(cfg.texture_size))
+    covered = raster["covered"]
+    points = raster["position"][covered].astype(np.float64)
+    normals = raster["normal"][covered].astype(np.float64)
+    albedo = sample_texture(albedo_texture, texel_uvs(covered))
+    obs = gather_observations(vertices, faces, points, normals, views, cfg.max_views,
+                              depth_tolerance_m=cfg.depth_tolerance_m, min_cos=cfg.min_cos)
+    return {"covered": covered, "points": points, "normals": normals, "albedo": albedo, "obs": obs}
+
+
+def fit_texel_roughness(observed: np.ndarray, view_dirs: np.ndarray, valid: np.ndarray, normals: np.ndarray,
+                        albedo: np.ndarray, white_scale: np.ndarray,
+                        cfg: MaterialsConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2: the per-texel fit with the config's model, F0, bounds and albedo solve (arrays as
+    :func:`stages.numerics.materials.fit_roughness`, whose ``(roughness, rms, diffuse albedo)`` it returns;
+    texels without views have rms ``NO_VIEWS_RESIDUAL``)."""
+    from stages.numerics.materials import fit_roughness
+
+    return fit_roughness(observed, view_dirs, valid, normals, albedo, white_scale=white_scale,
+                         r_min=cfg.roughness_min, r_max=cfg.roughness_max, f0=cfg.f0,
+                         specular_model=cfg.specular_model, fit_albedo=cfg.fit_albedo, return_albedo=True)
+
+
+def published_roughness(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
+                        cfg: MaterialsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3: :func:`roughness_median` with the config's voters and neighbours, within the config's bounds
+    (0.5 where no texel voted). Returns the (N,) float32 roughness and the (N,) bool voters."""
+    smooth, voters = roughness_median(points, roughness, fitted, visibility, cfg.median_min_visibility,
+                                      cfg.median_neighbours)
+    return np.clip(np.nan_to_num(smooth, nan=0.5), cfg.roughness_min, cfg.roughness_max), voters
+
+
+def texel_texture(values: np.ndarray, covered: np.ndarray, fill: float | None = None) -> np.ndarray:
+    """A (T, T[, C]) float32 texture holding ``values`` (N[, C]) at the ``covered`` (T, T) texels in row-major
+    order, grown past the charts' borders (:func:`dilate_covered`, ``fill`` beyond)."""
+    texture = np.zeros(covered.shape + np.shape(values)[1:], np.float32)
+    texture[covered] = values
+    return dilate_covered(texture, covered, fill=fill)
+
+
+def albedo_without_occlusion(albedo_texture: np.ndarray, occlusion_texture: np.ndarray, min_occlusion: float,
+                             diffuse_ratio_texture: np.ndarray | None = None) -> np.ndarray:
+    """The baked albedo (T, T, 3) divided by the occlusion texture (sampled at its texels, floored at
+    ``min_occlusion``), times the diffuse-ratio texture when given (``albedo_intrinsic``), in [0, 1]."""
+    from stages.numerics.bake import sample_texture
+
+    uv_full = texel_uvs(np.ones(albedo_texture.shape[:2], bool)).reshape(albedo_texture.shape[:2] + (2,))
+    occlusion_full = np.maximum(sample_texture(occlusion_texture, uv_full), min_occlusion)[..., None]
+    albedo = (albedo_texture if diffuse_ratio_texture is None
+              else albedo_texture * sample_texture(diffuse_ratio_texture, uv_full))
+    return np.clip(np.nan_to_num(albedo / occlusion_full, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+
+
+def dilate_covered(texture: np.ndarray, covered: np.ndarray, fill: float | None = None, px: int = 4) -> np.ndarray:
+    """Grow the covered texels of a (T, T) or (T, T, C) texture ``px`` texels (bilinear lookups at chart
+    borders must not pull the empty value); texels still empty get ``fill`` (default: the covered texels'
+    median)."""
+    from stages.numerics.bake import dilate_texture
+
+    channels = texture if texture.ndim == 3 else texture[..., None]
+    grown, filled = dilate_texture({"t": channels}, covered, px)
+    default = (np.median(channels[covered], axis=0) if fill is None and covered.any()
+               else np.full(channels.shape[2], fill or 0.0))
+    out = np.where(filled[..., None], grown["t"], default).astype(np.float32)
+    return out if texture.ndim == 3 else out[..., 0]
+
+
+@dataclass(frozen=True)
+class MaterialTextures:
+    """The materials stage's textures (float32) and the statistics of their fit."""
+
+    roughness: np.ndarray
+    """(T, T) perceptual roughness, the surface median of the per-texel fits."""
+    roughness_fit_rms: np.ndarray
+    """(T, T) residual of each texel's fit (0 where no view saw it)."""
+    occlusion: np.ndarray
+    """(T_occ, T_occ) cosine-weighted visible fraction of the LED sphere on the mesh."""
+    albedo_deoccluded: np.ndarray
+    """(T', T', 3) the baked albedo divided by the occlusion."""
+    diffuse_ratio: np.ndarray
+    """(T, T, 3) the fitted diffuse albedo over the white-light one."""
+    albedo_intrinsic: np.ndarray
+    """(T', T', 3) the baked albedo times the diffuse ratio, divided by the occlusion."""
+    stats: dict[str, Any]
+    """Texel counts, roughness percentiles, fit residual, occlusion and diffuse-ratio summaries, step times."""
+
+
+def material_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_texture: np.ndarray,
+                      views: list[Any], white_per_view: np.ndarray, cfg: MaterialsConfig,
+                      progress: Callable[[int, int, str], None] | None = None) -> MaterialTextures:
+    """Roughness by inverse rendering under full_on / pos / neg, ambient occlusion and the albedos without it.
+
+    vertices (V, 3), faces (F, 3), atlas: the welded textured mesh (:func:`stages.artifacts.load_atlas_mesh`);
+    albedo_texture (T', T', 3): the baked white-light albedo; views: :class:`stages.numerics.bake.BakeView` with
+    ``images["obs"]`` (H, W, 9) = full_on | pos | neg; white_per_view (C, 3): each view's white reference.
+    ``progress(step, steps, message)`` is told after the observations and after the fit."""
+    from stages.numerics.bake import rasterize_atlas
+    from stages.numerics.materials import NO_VIEWS_RESIDUAL
+    from stages.numerics.raycast import mesh_scene
+    from stages.numerics.shadowing import ambient_occlusion
+
+    timings: dict[str, float] = {}
+    # Roughness: observations per texel, a per-texel fit, then a median over surface neighbours.
+    t0 = time.perf_counter()
+    size = int(cfg.texture_size)
+    texels = texel_samples(vertices, faces, atlas, albedo_texture, views, cfg)
+    covered, points, normals, albedo, obs = (texels[k] for k in ("covered", "points", "normals", "albedo", "obs"))
+    if progress is not None:
+        progress(1, 3, f"{len(points)} texels, {obs['valid'].sum(axis=1).mean():.1f} views each")
+    timings["observations_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    white_per_obs = np.asarray(white_per_view)[np.maximum(obs["view_index"], 0)]
+    observed = obs["values"]["obs"].reshape(len(points), -1, 3, 3)
+    roughness, fit_rms, diffuse_albedo = fit_texel_roughness(observed, obs["view_dirs"], obs["valid"], normals,
+                                                             albedo, white_per_obs, cfg)
+    fitted = fit_rms != NO_VIEWS_RESIDUAL
+    mesh = mesh_scene(vertices, faces)
+    # The share of the white-light albedo that the fit explains as diffuse (the rest is specular light).
+    diffuse_ratio = np.where(fitted[:, None] & (albedo > 0.02), diffuse_albedo / np.maximum(albedo, 1e-3), 1.0)
+    diffuse_ratio = np.clip(np.nan_to_num(diffuse_ratio, nan=1.0), 0.5, 1.5).astype(np.float32)
+    # texels the body shadows from part of the stage fit too rough: they take their unshadowed neighbours'
+    texel_visibility = ambient_occlusion(points, normals, mesh, rays=cfg.occlusion_rays)
+    smooth, voters = published_roughness(points, roughness, fitted, texel_visibility, cfg)
+    timings["fit_s"] = time.perf_counter() - t0
+    if progress is not None:
+        progress(2, 3, f"roughness fitted in {timings['fit_s']:.1f} s")
+
+    roughness_tex = texel_texture(smooth, covered)
+    rms_tex = np.zeros((size, size), np.float32)
+    rms_tex[covered] = np.where(fitted, fit_rms, 0.0)
+    ratio_tex = texel_texture(diffuse_ratio, covered, fill=1.0)
+
+    # Ambient occlusion on the mesh, divided out of the baked albedo.
+    t0 = time.perf_counter()
+    occ_raster = rasterize_atlas(vertices, faces, atlas, int(cfg.occlusion_size))
+    occ_covered = occ_raster["covered"]
+    visible = ambient_occlusion(occ_raster["position"][occ_covered].astype(np.float64),
+                                occ_raster["normal"][occ_covered].astype(np.float64),
+                                mesh, rays=cfg.occlusion_rays)
+    occlusion_tex = texel_texture(visible, occ_covered, fill=1.0)
+    deoccluded = albedo_without_occlusion(albedo_texture, occlusion_tex, cfg.min_occlusion)
+    intrinsic = albedo_without_occlusion(albedo_texture, occlusion_tex, cfg.min_occlusion, ratio_tex)
+    timings["occlusion_s"] = time.perf_counter() - t0
+
+    used = smooth[fitted] if fitted.any() else smooth
+    stats = {"texels": int(len(points)), "texels_fitted": int(fitted.sum()), "cameras": len(views),
+             "mean_views": float(obs["valid"].sum(axis=1).mean()) if len(points) else 0.0,
+             "roughness_mean": float(used.mean()) if len(used) else 0.0,
+             "roughness_p10": float(np.percentile(used, 10)) if len(used) else 0.0,
+             "roughness_p90": float(np.percentile(used, 90)) if len(used) else 0.0,
+             "fit_rms_median": float(np.median(fit_rms[fitted])) if fitted.any() else 0.0,
+             "median_voters_fraction": float(voters.sum() / max(int(fitted.sum()), 1)),
+             "occlusion_mean": float(visible.mean()) if len(visible) else 1.0,
+             "diffuse_ratio_median": float(np.median(diffuse_ratio[fitted])) if fitted.any() else 1.0,
+             "specular_model": cfg.specular_model, **timings}
+    return MaterialTextures(roughness=roughness_tex, roughness_fit_rms=rms_tex, occlusion=occlusion_tex,
+                            albedo_deoccluded=deoccluded.astype(np.float32), diffuse_ratio=ratio_tex,
+                            albedo_intrinsic=intrinsic.astype(np.float32), stats=stats)

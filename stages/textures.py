@@ -1,0 +1,101 @@
+"""Action stage ``textures``: a UV atlas of the decimated mesh and albedo/normal textures baked into it.
+
+Wiring only: the numerics are :mod:`stages.numerics.mesh` (decimation, xatlas) and :mod:`stages.numerics.bake`
+(texel reprojection into the cameras that see it).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.exr import write_exr
+from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, write_png
+from pipeline.config import Documented
+from pipeline.stage import Stage, StageContext
+from stages.artifacts import ActionArtifacts
+from stages.exr_headers import EXR_HEADERS
+
+
+@dataclass(frozen=True)
+class TexturesConfig(Documented):
+    atlas_faces: int = 40_000
+    """Faces of the textured mesh (xatlas time grows faster than linearly with faces)."""
+    texture_size: int = 1024
+    """Width and height of the texture atlas in texels."""
+    atlas_padding: int = 2
+    """Texels between charts in the atlas."""
+    max_views: int = 3
+    """A texel blends at most this many of the cameras that see it (the most frontal)."""
+    depth_tolerance_m: float = 0.01
+    """A texel is visible in a camera when its depth is within this of the mesh's depth there."""
+    min_cos: float = 0.2
+    """Cameras seeing a texel at more grazing angles than this cosine are not used."""
+    min_alpha: float = 0.5
+    """Map pixels with a lower validity alpha are not baked."""
+    previews: bool = True
+    """Write PNG previews of the textures."""
+
+
+class TexturesStage(Stage):
+    """UV atlas of the decimated mesh and albedo/normal textures baked from the photometric maps."""
+
+    name = "textures"
+    version = "3"
+    scope = "action"
+    requires = ("geometry", "photometric", "decode")
+    outputs = ("mesh", "textures", "previews")
+
+    def run(self, ctx: StageContext) -> dict[str, Any]:
+        from stages.numerics.bake import BakeView, atlas_textures
+
+        cfg: TexturesConfig = self.config
+        artifacts = ActionArtifacts(ctx.upstream)
+        vertices, faces = artifacts.mesh()
+        views = [BakeView(images={"albedo": artifacts.map("albedo", cam_id),
+                                  "normal": np.ascontiguousarray(normal_alpha[..., :3])},
+                          valid=valid, K=cam.K, cam_from_world=cam.cam_from_world)
+                 for cam_id, cam, normal_alpha, _, valid in artifacts.camera_maps(cfg.min_alpha)]
+        result = atlas_textures(vertices, faces, views, cfg.atlas_faces, cfg.texture_size, cfg.atlas_padding,
+                                cfg.max_views, cfg.depth_tolerance_m, cfg.min_cos)
+        _write_textures(ctx.out_dir, result, cfg.previews)
+        return {"atlas_faces": int(len(result.faces)), "atlas_seconds": result.atlas_seconds,
+                "bake_seconds": result.bake_seconds, "cameras": len(views),
+                "bake": {k: v for k, v in result.baked.stats.items() if isinstance(v, (int, float, str))}}
+
+    def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
+        # mesh/textured.obj is published by the exports stage, with its texture beside it (this artifact's
+        # MTL points at ../textures/albedo.png, a path some loaders refuse) and a GLB.
+        files = []
+        for p in sorted((artifact / "textures").iterdir()):
+            kind = f"texture_{p.stem}" if p.suffix == ".exr" else f"texture_{p.stem}_preview"
+            files.append((p, f"textures/{p.name}", kind, None))
+        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
+            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
+        return files
+
+
+def _write_textures(out: Path, result: Any, previews: bool) -> None:
+    """The textures (EXR, and the albedo as PNG for the OBJ's material), the textured OBJ and the previews of a
+    :class:`stages.numerics.bake.AtlasTextures`."""
+    from pipeline.codecs.mesh import write_obj
+    from stages.numerics.mesh import vertex_normals
+
+    baked, atlas = result.baked, result.atlas
+    tex = out / "textures"
+    write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
+    write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
+    write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
+    write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
+    # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
+    write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
+    atlas_vertices = np.asarray(result.vertices)[atlas.vmapping]
+    write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
+              normals=vertex_normals(atlas_vertices, atlas.faces),
+              material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
+    if previews:
+        covered = baked.covered.astype(np.float32)
+        write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
+        write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
