@@ -1,11 +1,11 @@
 """Textures stage: the atlas face budget against the baked albedo texture's error, with the stage's time.
 
 The textures stage decimates the SDF's mesh to ``atlas_faces`` faces, unwraps it (xatlas) and bakes the albedo and
-normal textures from the photometric maps. This bench runs :class:`stages.geometry.TexturesStage` itself (its
+normal textures from the photometric maps. This bench runs :class:`stages.textures.TexturesStage` itself (its
 ``run``, configs ``dataclasses.replace(TexturesConfig(), atlas_faces=N)``) on one action of a run's work folder
 (``make dataset``: its geometry, photometric and decode artifacts) for :data:`FACE_BUDGETS` plus the stage's and the
 production preset's budgets, and scores each baked albedo texture as ``ultrastage evaluate`` does
-(:func:`stages.evaluate.texture_in_camera`): seen through its own textured mesh from every true camera, on the
+(:func:`evaluation.release.texture_in_camera`): seen through its own textured mesh from every true camera, on the
 pixels where the truth has the subject and the mesh is hit, PSNR against the simulator's albedo (peak 1). Time:
 the stage's CPU seconds (decimation, atlas, bake and writing; one process, numeric threads as the machine gives).
 
@@ -42,7 +42,7 @@ QUICK_FACE_BUDGETS = (1_000, 3_000)
 
 
 def default_config():
-    from stages.geometry import TexturesConfig
+    from stages.textures import TexturesConfig
 
     return TexturesConfig()
 
@@ -75,7 +75,7 @@ class AlbedoProbe:
     def __init__(self, truth_dir: Path, action: str, session: str = "S000"):
         from pipeline.codecs.exr import read_exr
         from pipeline.codecs.image import read_png
-        from stages.evaluate import true_cameras
+        from evaluation.release import true_cameras
 
         self.views = []
         for cam_id, cam in sorted(true_cameras(truth_dir, session).items()):
@@ -90,7 +90,7 @@ class AlbedoProbe:
 
     def psnr_db(self, obj_path: Path, albedo_texture: np.ndarray) -> tuple[float, float]:
         """(PSNR in dB of the texture seen through the mesh against the truth, share of true-mask pixels hit)."""
-        from stages.evaluate import texture_in_camera
+        from evaluation.release import texture_in_camera
 
         cache: dict = {}
         sq, count, covered, total = 0.0, 0, 0, 0
@@ -111,7 +111,7 @@ def run_budget(work: Path, capture: Path, action: str, atlas_faces: int, probe: 
     """The textures stage with ``atlas_faces``, timed, its albedo texture scored."""
     from pipeline.codecs.exr import read_exr
     from pipeline.stage import StageContext
-    from stages.geometry import TexturesStage
+    from stages.textures import TexturesStage
 
     config = dataclasses.replace(default_config(), atlas_faces=atlas_faces)
     stage = TexturesStage(config)

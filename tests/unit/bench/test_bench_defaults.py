@@ -130,7 +130,7 @@ def test_sdf_schedule_default_row_is_the_stage_default():
 
 
 def test_textures_budgets_hold_the_stage_and_production_budgets():
-    from stages.geometry import TexturesConfig
+    from stages.textures import TexturesConfig
     from stages.registry import PRESETS
 
     bench = load_bench("bench_textures")
