@@ -72,7 +72,7 @@ def run_once(capture: Path, root: Path, preset: str, through: str | None, action
              fresh: bool = True) -> dict:
     """One ``run_pipeline`` of the DAG (``through``: only that stage and what it needs); wall seconds, the tasks'
     seconds per stage, ran/cached counts."""
-    from pipeline.runner import run_pipeline
+    from stages.run import run_pipeline
     from stages.registry import PRESETS, build_stages
 
     if fresh:
@@ -226,10 +226,12 @@ def markdown(report: dict) -> str:
               "| capture | wall s | task s | x smallest |", "|---|---|---|---|"]
     base = scale["by_width"][0]["wall_s"]
     for r in scale["by_width"]:
-        lines.append(f"| 1 action, {r['width']} px | {r['wall_s']:.1f} | {r['task_s']:.1f} | {r['wall_s'] / base:.2f} |")
+        lines.append(f"| 1 action, {r['width']} px | {r['wall_s']:.1f} | {r['task_s']:.1f} | "
+                     f"{r['wall_s'] / base:.2f} |")
     base = scale["by_actions"][0]["wall_s"]
     for r in scale["by_actions"]:
-        lines.append(f"| {r['actions']} action{'s' if r['actions'] > 1 else ''}, {scale['by_width'][0]['width']} px | {r['wall_s']:.1f} | "
+        plural = "s" if r["actions"] > 1 else ""
+        lines.append(f"| {r['actions']} action{plural}, {scale['by_width'][0]['width']} px | {r['wall_s']:.1f} | "
                      f"{r['task_s']:.1f} | {r['wall_s'] / base:.2f} |")
     lines += ["", "| work skipped | tasks cached | tasks ran | share of the cold task seconds skipped | wall s |",
               "|---|---|---|---|---|"]

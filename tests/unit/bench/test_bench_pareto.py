@@ -40,8 +40,8 @@ def test_table_and_plot(pareto, tmp_path):
     P = pareto.TradeoffPoint
     tradeoff = pareto.Tradeoff(
         stage="decode", knobs="demosaic", time_label="ms per MP", error_label="error (dB below 60)",
-        points=(P("LINEAR", 10.0, 9.0, presets=("fast",), baseline_seconds=5.0), P("AHD", 40.0, 3.0, presets=("default",)),
-                P("VNG", 50.0, 4.0)), source="bench_decode")
+        points=(P("LINEAR", 10.0, 9.0, presets=("fast",), baseline_seconds=5.0),
+                P("AHD", 40.0, 3.0, presets=("default",)), P("VNG", 50.0, 4.0)), source="bench_decode")
     lines = pareto.tradeoff_table(tradeoff)
     assert lines[0].startswith("| setting | ms per MP | error (dB below 60) | Pareto | preset | x baseline |")
     rows = {line.split(" | ")[0].strip("| "): line for line in lines[2:]}
