@@ -6,8 +6,9 @@ mosaicked through the inverse of LibRaw's colour pipeline into an uncompressed 1
 decoded with :func:`pipeline.codecs.raw.decode_raw`, and compared with the truth: PSNR (peak 1.0) over the
 frame minus an 8-pixel border and per region (flat patches and smooth gradients check the colour pipeline;
 texture, gratings and the zone plate rank the demosaic algorithms); half-size decodes against the 2x2 block
-average of the truth. Time is the
-best of a few decodes of the file (file read and checks included), in ms per megapixel of the raw frame.
+average of the truth. Time is the best of a few decodes of the file (file read and checks included), in ms per
+megapixel of the raw frame, and as a ratio to two baselines timed in the same process: rawpy's default call on the
+same file (``x_rawpy_default``) and a memory copy of the bytes a decode reads and writes (``x_memcpy``).
 When ../shared/data holds the real Blackmagic DNG (lossless-JPEG compressed), its decode time is reported
 too (no ground truth there).
 
@@ -148,6 +149,23 @@ def _time(fn, repeats: int) -> tuple[float, object]:
     return best, out
 
 
+def baselines(path: Path, h: int, w: int, repeats: int) -> tuple[float, float]:
+    """Seconds (best of ``repeats``) of two simple baselines on the same file, in this process: rawpy's default call
+    (``imread(...).postprocess()``: AHD to 8-bit sRGB with LibRaw's own defaults) and a memory copy of the bytes a
+    decode reads and writes (the 16-bit raw frame in, an (h, w, 3) float32 image out)."""
+    import rawpy
+
+    def default_call():
+        with rawpy.imread(str(path)) as raw:
+            return raw.postprocess()
+
+    default_s, _ = _time(default_call, repeats)
+    src = np.ones(h * w * (2 + 12) // 4, np.float32)
+    dst = np.empty_like(src)
+    copy_s, _ = _time(lambda: np.copyto(dst, src), max(repeats, 5))
+    return default_s, copy_s
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
@@ -170,6 +188,7 @@ def main() -> int:
         write_dng(path, mosaic(truth))
         decode_raw(path, demosaic="LINEAR")  # warm up (imports, page cache)
         regs = regions(h, w)
+        baseline_s, memcpy_s = baselines(path, h, w, repeats)
         for alg in supported_demosaic():
             sec, frame = _time(lambda a=alg: decode_raw(path, demosaic=a), repeats)
             rows.append({"algorithm": alg, "half_size": False, "ms_per_mp": 1e3 * sec / mp,
@@ -184,6 +203,10 @@ def main() -> int:
                      "psnr_db": psnr(frame.rgb[hi], half_truth[hi]), "ssim": ssim(frame.rgb[hi], half_truth[hi]),
                      "psnr_db_by_region": {k: psnr(frame.rgb, half_truth, downsample_to(m, hs, kind="mask"))
                                            for k, m in regs.items()}})
+        for r in rows:
+            r["baseline_ms_per_mp"] = 1e3 * baseline_s / mp
+            r["x_rawpy_default"] = r["ms_per_mp"] / r["baseline_ms_per_mp"]
+            r["x_memcpy"] = r["ms_per_mp"] / (1e3 * memcpy_s / mp)
 
     real = []
     if SHARED_RAW.exists():
@@ -214,6 +237,10 @@ def main() -> int:
         "frame": {"width": w, "height": h, "bits": 14, "black": BLACK, "white": WHITE, "noise": "none"},
         "repeats": repeats,
         "quick": args.quick,
+        "baselines": {"rawpy_default_ms_per_mp": 1e3 * baseline_s / mp, "memcpy_ms_per_mp": 1e3 * memcpy_s / mp,
+                      "what": "rawpy.imread(...).postprocess() with LibRaw's defaults (AHD, 8-bit sRGB), and "
+                              "np.copyto of the bytes a decode reads and writes (16-bit raw in, float32 RGB out), "
+                              "timed in the same process; x_rawpy_default and x_memcpy per row"},
         "rows": rows,
         "real_dng": real,
         "notes": "half-size decodes do not demosaic (LibRaw ignores the algorithm); their PSNR is against the "

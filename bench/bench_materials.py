@@ -14,7 +14,8 @@ is hit) and compared with the simulator's roughness and albedo maps.
    ``median_min_visibility`` 0/0.85 (which texels vote in the surface median: those whose ambient visibility on
    the mesh reaches it) and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's defaults
    (a change equal to the default is left out), with the fit time (``fit_roughness``, ``--threads`` torch
-   threads) and the smoothing time.
+   threads; ``x_gather``: as a ratio to gathering the observations it fits, in the same process) and the
+   smoothing time.
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
    variation gives) and, as oracles, the truth's own mean and median over the compared pixels (the median
    is the constant with the least absolute error).
@@ -247,6 +248,7 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
         settings = {name: getattr(cfg, name) for name in
                     ("specular_model", "fit_albedo", "max_views", "median_neighbours", "median_min_visibility")}
         out["variants"].append({"variant": label, **settings, "fit_s": round(fit_s, 2),
+                                "x_gather": round(fit_s / max(gather_s, 1e-9), 2),
                                 "median_s": round(median_s, 2),
                                 "mae": round(score["mae"], 4), "bias": round(score["bias"], 4),
                                 "mae_unsmoothed": round(raw["mae"], 4),
@@ -336,17 +338,17 @@ def markdown(report: dict) -> str:
         r = entry["roughness"]
         lines += [f"## {action} ({r['texels']} texels, {r['mean_valid_views']} valid views each of "
                   f"{r['gathered_views']}, gather {r['gather_s']} s, {entry['true_cameras']} true cameras)", "",
-                  "| roughness variant | MAE | bias | MAE per texel (no median) | fit s | median s |",
-                  "|---|---|---|---|---|---|"]
+                  "| roughness variant | MAE | bias | MAE per texel (no median) | fit s | x gather | median s |",
+                  "|---|---|---|---|---|---|---|"]
         for v in r["variants"]:
             lines.append(f"| {v['variant']} | {v['mae']:.4f} | {v['bias']:+.4f} | {v['mae_unsmoothed']:.4f} | "
-                         f"{v['fit_s']:.1f} | {v['median_s']:.2f} |")
+                         f"{v['fit_s']:.1f} | {v['x_gather']:.1f} | {v['median_s']:.2f} |")
         for n in r["neighbours"]:
             lines.append(f"| default, median_neighbours {n['median_neighbours']} | {n['mae']:.4f} | {n['bias']:+.4f} "
-                         f"| | | {n['median_s']:.2f} |")
+                         f"| | | | {n['median_s']:.2f} |")
         for name, b in r["baselines"].items():
             value = f" = {b['value']:.3f}" if "value" in b else ""
-            lines.append(f"| baseline: {name}{value} | {b['mae']:.4f} | {b['bias']:+.4f} | | 0 | |")
+            lines.append(f"| baseline: {name}{value} | {b['mae']:.4f} | {b['bias']:+.4f} | | 0 | | |")
         lines += ["", "| true roughness | share of pixels | fitted mean | MAE |", "|---|---|---|---|"]
         lines += [f"| {x['true_roughness']:.2f} | {x['share']:.3f} | {x['pred_mean']:.3f} | {x['mae']:.3f} |"
                   for x in r["default_by_true_level"]]

@@ -1,14 +1,15 @@
 """Where the photometric normal error comes from: the same subject rendered with one effect at a time.
 
 Variants of the simulator (8 cameras, 1 action, default width): everything on (default), no specular,
-no noise, no folds, and "ideal" (none of these and no LED errors). Each goes through the pipeline
-(default preset) and is evaluated against ground truth, over valid pixels, split by the ground-truth
+no noise, no folds, and "ideal" (none of these and no LED errors). Each goes through the pipeline (default preset)
+up to ``photometric``, whose maps are what is measured (the later stages do not change them), and is evaluated
+against ground truth, over valid pixels, split by the ground-truth
 visibility of the lit hemisphere. The pre-sensor error (the ratio of eq. 1 on the rendered radiance,
 before mosaicing, noise and demosaicing) of the ideal variant shows what the optics alone allow.
 Writes bench_normal_error_sources.json and .png.
 
-``--quick`` (the tests' mode): 4 cameras 64 px wide, 128 LEDs, the subject unsubdivided, and the pipeline only
-through ``photometric`` (whose maps are what is measured); the numbers are not measurements.
+``--quick`` (the tests' mode): 4 cameras 64 px wide, 128 LEDs, the subject unsubdivided; the numbers are not
+measurements.
 """
 from __future__ import annotations
 
@@ -56,7 +57,7 @@ def main() -> int:
     if args.quick:
         args.width, args.cameras = 64, 4
     sim_changes = quick_sim_changes() if args.quick else {}
-    through = "photometric" if args.quick else None
+    through = "photometric"  # only its maps are measured; the neural stages after it would take minutes a variant
     out = Path(args.out)
     from pipeline.runner import ExecutionConfig
     from evaluation.release import evaluate_release

@@ -61,11 +61,24 @@ def quick_schedule_config(first: int, second: int):
                                sdf=dataclasses.replace(cfg.sdf, hull_resolution=48, hull_init_steps=20))
 
 
-def schedules(quick: bool) -> list[tuple[int, int]]:
+def schedules(quick: bool, chosen: list[tuple[int, int]] | None = None) -> list[tuple[int, int]]:
+    """The stage's default schedule first, then ``chosen`` (default :data:`SCHEDULES`, or :data:`QUICK_SCHEDULES`
+    with ``quick``) without it."""
     base = default_config()
     default = (base.first_pass_iterations or base.sdf.iterations, base.sdf.iterations)
-    rest = [s for s in (QUICK_SCHEDULES if quick else SCHEDULES) if s != default]
+    rest = [s for s in (chosen or (QUICK_SCHEDULES if quick else SCHEDULES)) if s != default]
     return [default] + rest
+
+
+def parse_schedules(text: str) -> list[tuple[int, int]]:
+    """``"600+1800,400+1200"`` -> [(600, 1800), (400, 1200)] (first pass + second pass steps)."""
+    pairs = []
+    for item in text.split(","):
+        first, _, second = item.strip().partition("+")
+        if not (first.isdigit() and second.isdigit()):
+            raise ValueError(f"--schedules: {item!r} is not FIRST+SECOND steps")
+        pairs.append((int(first), int(second)))
+    return pairs
 
 
 def latest_artifact(work: Path, stage: str, action: str) -> Path:
@@ -159,6 +172,8 @@ def main() -> int:
     parser.add_argument("--run", help="a make dataset run folder (default runs/default; with --quick the tiny run)")
     parser.add_argument("--action", default="A0000")
     parser.add_argument("--workers", type=int, default=2, help="schedules measured side by side (one thread each)")
+    parser.add_argument("--schedules", help="FIRST+SECOND step pairs, comma-separated, measured besides the stage's "
+                                             "default (default: SCHEDULES)")
     parser.add_argument("--quick", action="store_true", help=QUICK_HELP + "; the default and one short schedule")
     args = parser.parse_args()
     if args.run is None:
@@ -168,7 +183,7 @@ def main() -> int:
     if not (work / "artifacts").is_dir() or not (capture / "ground_truth" / args.action / "mesh.ply").exists():
         print(f"bench_sdf_schedule: needs {run} with a work folder and ground truth (make dataset first); skipped")
         return 0
-    todo = schedules(args.quick)
+    todo = schedules(args.quick, parse_schedules(args.schedules) if args.schedules else None)
     jobs = [(str(work), str(capture), args.action, first, second, args.quick) for first, second in todo]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         rows = list(pool.map(run_schedule, jobs))

@@ -2,8 +2,9 @@
 accuracy of SG shading against brute-force quadrature.
 
 For every map in ../shared/data/hdri (1024 x 512 equirectangular Radiance files) and every lobe count,
-``fit_sg_environment`` is timed (1 thread, best of 1: fits are seconds long) and its fit measured with
-``sg_fit_errors``: relative L2 of the map (at full resolution, and area-resampled to 64 x 128), lobe energy
+``fit_sg_environment`` is timed (1 thread, best of 1: fits are seconds long; ``x_sh_projection``: its ratio to the
+map's order-2 SH projection, :func:`stages.numerics.sh.project_environment`, timed in the same process) and its fit
+measured with ``sg_fit_errors``: relative L2 of the map (at full resolution, and area-resampled to 64 x 128), lobe energy
 against map energy, and the relative error of the diffuse irradiance over 256 normals, both exactly
 (quadrature of the lobes) and as ``shade_sg`` computes it (SG-cosine approximation). Suns smaller than a
 texel of the 64-row fit cannot be matched by bounded-sharpness lobes, so the full-resolution map error of
@@ -39,19 +40,30 @@ sys.path.insert(0, str(ROOT / "bench"))
 HDRI = ROOT.parent / "shared" / "data" / "hdri"
 
 
+def _seconds(fn) -> float:
+    started = time.perf_counter()
+    fn()
+    return time.perf_counter() - started
+
+
 def fit_table(maps: list[Path], lobe_counts: list[int], iterations: int, fit_height: int) -> tuple[list, dict]:
     from pipeline.codecs.hdr import read_environment
     from stages.numerics import sg
 
+    from stages.numerics.sh import project_environment
+
     rows, fits = [], {}
     for path in maps:
         env = read_environment(path)
+        # the speed baseline, same process: the map's order-2 SH projection (9 coefficients, one weighted sum)
+        sh_s = min(_seconds(lambda: project_environment(env)) for _ in range(3))
         for count in lobe_counts:
             started = time.perf_counter()
             lobes = sg.fit_sg_environment(env, count, iterations=iterations, fit_height=fit_height, seed=0)
             seconds = time.perf_counter() - started
             errors = sg.sg_fit_errors(env, lobes)
-            row = {"map": path.stem, "lobes": count, "fit_s": round(seconds, 3),
+            row = {"map": path.stem, "lobes": count, "fit_s": round(seconds, 3), "sh_projection_s": round(sh_s, 4),
+                   "x_sh_projection": round(seconds / max(sh_s, 1e-9), 1),
                    **{k: round(v, 5) for k, v in errors.items()}}
             rows.append(row)
             fits[(path.stem, count)] = lobes
@@ -60,7 +72,7 @@ def fit_table(maps: list[Path], lobe_counts: list[int], iterations: int, fit_hei
 
 
 def summary(rows: list[dict], lobe_counts: list[int]) -> dict:
-    keys = ("fit_s", "map_rel_l2", "map_rel_l2_64", "energy_rel", "irradiance_rel_l2", "irradiance_max_rel",
+    keys = ("fit_s", "x_sh_projection", "map_rel_l2", "map_rel_l2_64", "energy_rel", "irradiance_rel_l2", "irradiance_max_rel",
             "irradiance_rel_l2_shading")
     out = {}
     for count in lobe_counts:

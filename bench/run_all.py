@@ -6,7 +6,9 @@ process; they are never timed tests.
 ``--quick`` (``make bench-quick``, and tests/unit/bench/test_bench_quick.py) runs every bench in its quick mode:
 the same code on the smallest inputs that run it (the benches that read a release share a tiny simulated run
 made once under ``--out``, see bench/_quick.py), so that the benches cannot rot; its numbers are not
-measurements.
+measurements. Without it (``make bench``) the slowest benches run smaller (:data:`MAKE_BENCH_ARGS`); ``--full``
+(``make bench-full``) runs every bench with its own defaults. Each bench's wall and CPU seconds go into the report and
+``bench_times.json``.
 """
 from __future__ import annotations
 
@@ -19,6 +21,59 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
+    "calibration": ["--sizes", "480,-1"],
+    "diffuse_normals": ["--stride", "8"],
+    "executor": ["--steps", "75"],
+    "geometry": ["--checkpoints", "4", "--no-ablation"],
+    "heldout_field": ["--lengths", "100,400"],
+    "memory": None,
+    "pipeline": None,
+    "relight": ["--actions", "A0000"],
+    "relightset": ["--examples", "2"],
+    "scale": ["--sizes", "20,100"],
+    "sdf_schedule": ["--schedules", "400+1200,1800+1800"],
+    "sg": ["--lobes", "8,32,64"],
+    "specular_normals": ["--seeds", "0"],
+    "textures": ["--no-undecimated"],
+}
+"""What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
+with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
+Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (README: how that was estimated). Left to
+the full run: the production-size memory measurements (memory) and the default capture end to end at 2 actions
+through dask (pipeline: bench_end_to_end measures the same things on small captures)."""
+SPEED_BASELINES: dict[str, str | None] = {
+    "calibration": None,
+    "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
+              "decode reads and writes (`x_rawpy_default`, `x_memcpy`)",
+    "diffuse_normals": "the fit with one roughness prior (`time_vs_one_prior`)",
+    "end_to_end": "the smallest capture for the growth with width and actions (`x smallest`), the cold run for a "
+                  "rerun and a new action (share of its task seconds skipped)",
+    "executor": "the same SDF steps in the bench's own process (`worker / in_process`)",
+    "gbuffer": "bilinear source lookup for the cubic one (`cubic_time_ratio`)",
+    "geometry": "autograd's double backward for the analytic SDF gradients; the naive uniform samples for the "
+                "empty-space skipping (`samples_skipped_fraction`)",
+    "hashgrid": "a copy of the feature table, and the torch path for the fused kernel",
+    "heldout_field": "the depth-guided reprojection's time beside the volume-rendered field's",
+    "light": "the plain `normalize(d)` for the light model's correction",
+    "materials": "gathering the texels' observations the fits read (`x_gather`)",
+    "memory": "the imports alone (memory, not speed)",
+    "normal_error_sources": "no speed figure (accuracy per simulated effect)",
+    "photometric": "a memory copy of the same bytes, and a naive numpy chain (`ratio_to_memcpy`, "
+                   "`speedup_over_naive`)",
+    "pipeline": "the cold run for the cached rerun (`cached_over_cold`)",
+    "projection": "no speed figure of its own (a projection from a run's stage seconds)",
+    "relight": "the simplest variant (no shadows, photometric albedo; `x_baseline`)",
+    "relightset": "the simulator's render of the same view (`x_truth`)",
+    "scale": None,
+    "sdf_schedule": "the 1800+1800 schedule (`vs 1800+1800`)",
+    "sg": "the map's order-2 SH projection (`x_sh_projection`)",
+    "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",
+    "specular_normals": "eq. 1's ratio (the `eq1` row)",
+    "textures": "the stage on the undecimated mesh (`x undecimated`; `make bench-full` only)",
+}
+"""Per bench (name without ``bench_``): the simple baseline its speed figures are a ratio to, timed in the same
+process, or None where it has none yet (the report lists those)."""
 LIBRARIES = ("numpy", "torch", "rawpy", "pycolmap", "open3d", "xatlas", "OpenEXR", "pyarrow", "dask")
 
 
@@ -53,12 +108,58 @@ def machine_lines() -> list[str]:
     return lines
 
 
+def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
+    """The arguments run_all gives bench ``name`` beyond ``--out`` (None: not run in this mode)."""
+    if quick:
+        return ["--quick"]
+    if full or name not in MAKE_BENCH_ARGS:
+        return []
+    return MAKE_BENCH_ARGS[name]
+
+
+def _children_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's finished children (and theirs, once waited for)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def baseline_section(names: list[str]) -> list[str]:
+    """The report's list of each bench's speed baseline, and of the benches that have none."""
+    lines = ["## Speed figures and their baselines", "",
+             "Each speed figure is given beside a simple baseline timed in the same process, as a ratio, so that it "
+             "holds on a loaded machine.", "", "| bench | baseline |", "|---|---|"]
+    lacking = []
+    for name in names:
+        baseline = SPEED_BASELINES.get(name)
+        lines.append(f"| {name} | {baseline or '**none**'} |")
+        if baseline is None:
+            lacking.append(name)
+    if lacking:
+        lines += ["", "Without a baseline yet: " + ", ".join(lacking) + " (their times are absolute seconds on the "
+                  "machine above)."]
+    return lines + [""]
+
+
+def tradeoff_section(out: Path) -> list[str]:
+    """The per-stage time-against-error tables and plots (bench/_tradeoffs.py) from the benches' JSON in ``out``."""
+    sys.path.insert(0, str(HERE))
+    sys.path.insert(0, str(HERE.parent))
+    from _tradeoffs import report_section
+
+    return report_section(out)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default=str(HERE / "out"))
     parser.add_argument("--only", help="comma-separated bench names (e.g. decode,photometric)")
-    parser.add_argument("--quick", action="store_true",
-                        help="every bench in its quick mode (the tests' mode): checks they run; not measurements")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true",
+                      help="every bench in its quick mode (the tests' mode): checks they run; not measurements")
+    mode.add_argument("--full", action="store_true",
+                      help="every bench with its own (largest) defaults; without: MAKE_BENCH_ARGS's smaller runs")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -66,7 +167,7 @@ def main() -> int:
     if args.only:
         wanted = {f"bench_{n}.py" for n in args.only.split(",")}
         scripts = [s for s in scripts if s.name in wanted]
-    failures, times = [], {}
+    failures, times, cpu_times = [], {}, {}
     report = ["# Benchmark report", ""]
     env = None
     if args.quick:
@@ -75,19 +176,27 @@ def main() -> int:
                    ""]
         # numeric threads that sleep rather than spin while they wait: the tests run this beside other work
         env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+    elif not args.full:
+        report += ["`make bench` (`run_all.py`): the slowest benches run smaller than their own defaults "
+                   f"(`MAKE_BENCH_ARGS`); `make bench-full` (`--full`) runs them all at full size.", ""]
     report += ["## Machine", "", *machine_lines(), ""]
     started = time.perf_counter()
     for script in scripts:
-        print(f"== {script.name}", flush=True)
-        start = time.perf_counter()
-        proc = subprocess.run([sys.executable, str(script), "--out", str(out)] + (["--quick"] if args.quick else []),
-                              cwd=HERE.parent, env=env)
-        seconds = time.perf_counter() - start
-        times[script.stem] = seconds
-        print(f"== {script.name}: exit {proc.returncode}, {seconds:.1f} s", flush=True)
+        extra = bench_arguments(script.stem.removeprefix("bench_"), args.quick, args.full)
+        if extra is None:
+            print(f"== {script.name}: left to the full run (make bench-full)", flush=True)
+            report += [f"## {script.stem}", "", "not run: left to `make bench-full` (see MAKE_BENCH_ARGS)", ""]
+            continue
+        print(f"== {script.name} {' '.join(extra)}".rstrip(), flush=True)
+        start, cpu_start = time.perf_counter(), _children_cpu_seconds()
+        proc = subprocess.run([sys.executable, str(script), "--out", str(out)] + extra, cwd=HERE.parent, env=env)
+        seconds, cpu = time.perf_counter() - start, _children_cpu_seconds() - cpu_start
+        times[script.stem], cpu_times[script.stem] = seconds, cpu
+        print(f"== {script.name}: exit {proc.returncode}, {seconds:.1f} s ({cpu:.1f} s CPU)", flush=True)
         if proc.returncode:
             failures.append(script.name)
-        report += [f"## {script.stem}", "", f"exit {proc.returncode}, {seconds:.1f}s", ""]
+        report += [f"## {script.stem}", "", f"exit {proc.returncode}, {seconds:.1f}s wall, {cpu:.1f}s CPU"
+                   + (f" (`{' '.join(extra)}`)" if extra and not args.quick else ""), ""]
         result = out / f"{script.stem}.json"
         table = out / f"{script.stem}.md"
         if table.exists():  # the bench's own tables, written for readers
@@ -98,10 +207,16 @@ def main() -> int:
             report.append(f"![{png.stem}]({png.name})")
         report.append("")
     total = time.perf_counter() - started
+    first_bench = next((i for i, line in enumerate(report) if line.startswith("## bench_")), len(report))
+    report[first_bench:first_bench] = tradeoff_section(out) + baseline_section(
+        [s.stem.removeprefix("bench_") for s in scripts])
     report[report.index("## Machine"):report.index("## Machine")] = [
-        f"{len(scripts)} benches in {total:.0f} s: " + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} s"
-                                                              for k, v in times.items()), ""]
+        f"{len(times)} benches in {total:.0f} s wall, {sum(cpu_times.values()):.0f} s CPU (wall / CPU per bench): "
+        + ", ".join(f"{k.removeprefix('bench_')} {v:.0f} / {cpu_times[k]:.0f} s" for k, v in times.items()), ""]
     (out / "REPORT.md").write_text("\n".join(report))
+    (out / "bench_times.json").write_text(json.dumps(
+        {"mode": "quick" if args.quick else "full" if args.full else "make bench", "total_wall_s": total,
+         "benches": {k: {"wall_s": v, "cpu_s": cpu_times[k]} for k, v in times.items()}}, indent=1))
     print("times: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
     print(f"total {total:.1f} s; report: {out / 'REPORT.md'}")
     if failures:

@@ -127,3 +127,15 @@ def test_sdf_schedule_default_row_is_the_stage_default():
     # the Pareto front: b is beaten by a on both axes; c is slower but better
     rows = [{"cpu_s": 10, "chamfer_mm": 1.5}, {"cpu_s": 12, "chamfer_mm": 1.6}, {"cpu_s": 20, "chamfer_mm": 1.3}]
     assert bench.pareto(rows) == [True, False, True]
+
+
+def test_textures_budgets_hold_the_stage_and_production_budgets():
+    from stages.textures import TexturesConfig
+    from stages.registry import PRESETS
+
+    bench = load_bench("bench_textures")
+    assert bench.default_config() == TexturesConfig()
+    full, quick = bench.budgets(False), bench.budgets(True)
+    assert full[0] == quick[0] == TexturesConfig().atlas_faces
+    assert PRESETS["production"].textures.atlas_faces in full
+    assert len(set(full)) == len(full) and len(set(quick)) == len(quick)

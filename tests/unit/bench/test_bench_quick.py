@@ -1,5 +1,5 @@
 """Every bench runs in its quick mode (`make bench-quick`: bench/run_all.py --quick), so that none can rot: each
-writes its results, marked quick, with finite numbers. Nothing is timed; the run takes about 2.5 minutes on a
+writes its results, marked quick, with finite numbers. Nothing is timed; the run takes about 3 minutes on an idle
 2-core machine (the tiny simulated run the release benches share included)."""
 from __future__ import annotations
 
