@@ -159,10 +159,10 @@ def _march(cfg, n_rays: int, repeats: int, inner: int) -> dict:
     import torch
 
     from stages.numerics import hashgrid_kernel
-    from stages.numerics.sdf import _ProposalGrid
+    from stages.numerics.sdf import ProposalGrid
 
     bounds = np.array([[-0.4, -0.9, -0.5], [0.5, 0.9, 0.4]])
-    grid = _ProposalGrid(bounds, cfg.proposal_voxel_m, torch.device("cpu"))
+    grid = ProposalGrid(bounds, cfg.proposal_voxel_m, torch.device("cpu"))
     c = grid.centres
     grid.values.view(-1)[:] = torch.minimum((c - torch.tensor([0.0, 0.2, 0.0])).norm(dim=1) - 0.25,
                                             (c - torch.tensor([0.1, -0.4, 0.0])).norm(dim=1) - 0.15)

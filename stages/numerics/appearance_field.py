@@ -56,7 +56,7 @@ from stages.numerics.sdf import (
     _lr_factor,
     _neus_composite,
     _pixel_rays,
-    _ProposalGrid,
+    ProposalGrid,
     _ray_box,
     resolve_device,
 )
@@ -288,7 +288,7 @@ class _Surface:
             raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {b!r}")
         self.bounds = b
         self.chunk = chunk
-        self._proposals: dict[tuple[float, str], _ProposalGrid] = {}
+        self._proposals: dict[tuple[float, str], ProposalGrid] = {}
 
     def _eval(self, points: torch.Tensor, gradient: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         values, grads = [], []
@@ -316,7 +316,7 @@ class _Surface:
         return sdf, (torch.nan_to_num(torch.cat(grads)) if gradient else None)
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
-        """SDF at points (what :class:`_ProposalGrid` refreshes from)."""
+        """SDF at points (what :class:`ProposalGrid` refreshes from)."""
         return self._eval(points, gradient=False)[0]
 
     def sdf_and_gradient(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -324,10 +324,10 @@ class _Surface:
         assert grad is not None
         return sdf, grad
 
-    def proposal(self, voxel_m: float, device: torch.device) -> _ProposalGrid:
+    def proposal(self, voxel_m: float, device: torch.device) -> ProposalGrid:
         key = (float(voxel_m), str(device))
         if key not in self._proposals:
-            grid = _ProposalGrid(self.bounds, voxel_m, device)
+            grid = ProposalGrid(self.bounds, voxel_m, device)
             grid.refresh(self)
             self._proposals[key] = grid
         return self._proposals[key]

@@ -359,7 +359,7 @@ def encode(table: torch.Tensor, x01: torch.Tensor, res: torch.Tensor, offsets: t
 def march_first_crossing(grid: torch.Tensor, lo: torch.Tensor, ext: torch.Tensor, step: float, n_steps: int,
                          origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The proposal grid's march (:meth:`stages.numerics.sdf._ProposalGrid.first_crossing`) with the compiled
+    """The proposal grid's march (:meth:`stages.numerics.sdf.ProposalGrid.first_crossing`) with the compiled
     kernel, one ray after another with an early exit at its crossing.
 
     Args:

@@ -903,7 +903,7 @@ def _build_ray_bank(views, cams, hull: HullGrid, bounds: np.ndarray, stage_box: 
     )
 
 
-class _ProposalGrid:
+class ProposalGrid:
     """Cached SDF at voxel centres over the bounds; marched along rays to find each one's first crossing."""
 
     def __init__(self, bounds: np.ndarray, voxel_m: float, device: torch.device):
@@ -1200,7 +1200,7 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
     stats["hull_init_final_l1_m"] = prefit_losses[-1] if prefit_losses else None
 
     bank = _build_ray_bank(views, cams, hull, sdf_bounds, stage_box, config.grazing_cos_min, device, rng)
-    proposal = _ProposalGrid(sdf_bounds, config.proposal_voxel_m, device)
+    proposal = ProposalGrid(sdf_bounds, config.proposal_voxel_m, device)
     proposal.refresh(field_)
     hull_distance = _grid_sampler(hull, hull_sd, device)
 
@@ -1339,7 +1339,7 @@ class _Batch:
     min_sdf: torch.Tensor  # (B,) smallest cached SDF along the ray
 
 
-def _draw_batch(bank: _RayBank, proposal: _ProposalGrid, count: int, n_important: int,
+def _draw_batch(bank: _RayBank, proposal: ProposalGrid, count: int, n_important: int,
                 generator: torch.Generator, device: torch.device) -> _Batch:
     pick = _draw_rays(int(bank.dirs.shape[0]), count, bank.sample_cdf, n_important, generator, device)
     dirs = bank.dirs[pick]

@@ -129,10 +129,10 @@ def test_the_torch_path_is_taken_when_forced_or_when_the_kernel_cannot_be_built(
 def _proposal_grid():
     import numpy as np
 
-    from stages.numerics.sdf import _ProposalGrid
+    from stages.numerics.sdf import ProposalGrid
 
     bounds = np.array([[-0.4, -0.9, -0.5], [0.5, 0.9, 0.4]])
-    grid = _ProposalGrid(bounds, 0.05, torch.device("cpu"))
+    grid = ProposalGrid(bounds, 0.05, torch.device("cpu"))
     c = grid.centres
     two_balls = torch.minimum((c - torch.tensor([0.0, 0.2, 0.0])).norm(dim=1) - 0.25,
                               (c - torch.tensor([0.1, -0.4, 0.0])).norm(dim=1) - 0.15)
