@@ -1,6 +1,6 @@
 """G-buffers for held-out views (the paper's table 1): depth-guided reprojection against the photometric maps.
 
-For both actions of a release (``stages.heldout.heldout_metrics``: two held-out cameras, mesh depth,
+For both actions of a release (``evaluation.heldout.heldout_metrics``: two held-out cameras, mesh depth,
 normal and albedo reprojected from the other 30 cameras) this reports
 
 1. the held-out metrics against the held-out **photometric** maps (the paper's protocol) and against the
@@ -389,7 +389,7 @@ def main() -> int:
 
     quick = args.quick
     ks = (1, 6) if quick else (1, 2, 4, 6, 8)  # heldout_metrics' default k is 6
-    edge_samples = (1, 3) if quick else (1, 2, 3, 4)  # stages.heldout.EDGE_SAMPLES is 3
+    edge_samples = (1, 3) if quick else (1, 2, 3, 4)  # evaluation.heldout.EDGE_SAMPLES is 3
     weightings = ("uniform", "angle_distance_grazing") if quick else ("uniform", "angle", "angle_distance",
                                                                       "angle_distance_grazing")
     blend = LearnedBlendConfig(enabled=True)

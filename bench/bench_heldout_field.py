@@ -6,7 +6,7 @@ action of the release and the held-out cameras 00005 and 00021 this reports the 
 PSNR / SSIM / RMSE, normal mean angle, % under 5 and 25 degrees) against the held-out **photometric** maps
 (the protocol) and against the simulator's **truth** (``_truth``), for
 
-1. the **reprojection** (``stages.heldout.heldout_metrics``: mesh depth, K = 6 sources), with the held-out
+1. the **reprojection** (``evaluation.heldout.heldout_metrics``: mesh depth, K = 6 sources), with the held-out
    white-light albedo predicted per view (the default) and as the plain blend of the sources' white-light
    albedo (``albedo_model="white"``, view-independent as the field's);
 2. the **volume-rendered field** (:mod:`stages.numerics.appearance_field`: hash grid + MLP with albedo and

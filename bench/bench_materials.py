@@ -5,7 +5,7 @@ own files, calling the functions the stage calls (``stages.materials`` ``texel_s
 ``published_roughness``, ``texel_texture``, ``albedo_without_occlusion``, and
 ``stages.numerics.shadowing.ambient_occlusion``) with configs derived from the stage's defaults
 (:func:`default_config`, one field changed per variant: :func:`variant_configs`), and scores every
-variant like ``ultrastage evaluate`` does (``stages.evaluate._materials_overall``): the textures are seen
+variant like ``ultrastage evaluate`` does (``evaluation.release._materials_overall``): the textures are seen
 through the textured mesh from every **true** camera (pixels where the truth has the subject and the mesh
 is hit) and compared with the simulator's roughness and albedo maps.
 

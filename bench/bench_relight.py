@@ -3,12 +3,12 @@
 For each action of a release (default A0000 and A0001), each novel camera of its ``renders/cameras.json``
 and each of the stage's environments (``RelightConfig.environments``, from ../shared/data/hdri), the relight
 stage's per-view steps run on the release's files through the functions the stage calls
-(``stages.relight`` ``novel_view_gbuffer``, ``silhouette_alpha``, ``premultiply_edges``, ``shading_albedo``;
+(``stages.numerics.novel_view`` ``novel_view_gbuffer``, ``silhouette_alpha``, ``premultiply_edges``, ``shading_albedo``;
 ``fit_sg_environment``, ``direction_visibility``, ``shade_sg`` / ``shade_sg_visible``) with the stage's
 config (:func:`default_config`: sources, depth tolerance, fusion width, coverage samples, F0, SG fit height,
 lobes, visibility directions; the heuristic source weights), and every variant's image is scored like
 ``ultrastage evaluate``
-(``stages.evaluate._relit_overall``): ``relit_psnr`` against ``synthetic.relight.TruthRelighter``'s
+(``evaluation.release._relit_overall``): ``relit_psnr`` against ``synthetic.relight.TruthRelighter``'s
 rendering of the true subject (common exposure from the truth's 99th percentile, union of the masks).
 
 1. **Variants**, one change at a time from the stage's defaults (:func:`default_row`: its lobes, shadows with
@@ -188,7 +188,7 @@ class ActionScene:
                             if self.diffuse_albedo else self.asset)
 
     def gbuffer(self, cam: dict) -> dict:
-        """The stage's G-buffer of a novel camera (stages.relight.novel_view_gbuffer), with every normal
+        """The stage's G-buffer of a novel camera (stages.numerics.novel_view.novel_view_gbuffer), with every normal
         choice and both source albedos, per mask pixel, and the full maps for the decomposition;
         ``stage_seconds`` times the stage's G-buffer alone (not the variants' extra work)."""
         from stages.numerics.gbuffer import fuse_normals
