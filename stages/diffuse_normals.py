@@ -135,6 +135,73 @@ def diffuse_albedo(albedo: np.ndarray, normals: np.ndarray, cam: dict[str, Any],
     return np.clip(np.nan_to_num(albedo - specular, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class ViewInputs:
+    """What the stage reads of one camera: its calibrated record, the decoded gradient images ``pos`` and
+    ``neg`` (H, W, 3), eq. 1's ``normal_alpha`` (H, W, 4), the mask (H, W) bool and the white-light albedo
+    (H, W, 3)."""
+
+    cam: dict[str, Any]
+    pos: np.ndarray
+    neg: np.ndarray
+    normal_alpha: np.ndarray
+    mask: np.ndarray
+    albedo: np.ndarray
+
+
+def read_view_inputs(upstream: dict[str, Path], view: str) -> ViewInputs | None:
+    """One camera's :class:`ViewInputs` from the decode and photometric artifacts; None when the camera has no
+    calibration or no photometric maps."""
+    decoded, photometric = Path(upstream["decode"]), Path(upstream["photometric"])
+    cameras = load_cameras(decoded / "cameras.json")
+    normal_alpha_path = photometric / "normal_alpha" / f"{view}.exr"
+    if view not in cameras or not normal_alpha_path.exists():
+        return None
+    mask = read_png(photometric / "mask" / f"{view}.png")
+    return ViewInputs(cam=cameras[view], pos=read_exr(decoded / "pos" / f"{view}.exr"),
+                      neg=read_exr(decoded / "neg" / f"{view}.exr"), normal_alpha=read_exr(normal_alpha_path),
+                      mask=(mask[..., 0] if mask.ndim == 3 else mask) > 127,
+                      albedo=read_exr(photometric / "albedo" / f"{view}.exr")[..., :3])
+
+
+@dataclass(frozen=True)
+class DiffuseView:
+    """One camera's products: ``normals`` (H, W, 3), ``albedo_diffuse`` (H, W, 3) or None, and the stats."""
+
+    normals: np.ndarray
+    albedo_diffuse: np.ndarray | None
+    stats: dict[str, float]
+
+
+def diffuse_view(inputs: ViewInputs, light_model: Any, cfg: DiffuseNormalsConfig, scene: Any, atlas: Any,
+                 texture: np.ndarray | None, f0: float) -> DiffuseView:
+    """The stage's action on one camera: each pixel's roughness (the materials' ``texture`` seen through the
+    textured mesh's ``scene`` and ``atlas`` with ``cfg.use_materials_roughness``, else ``cfg.fit.roughness``),
+    the specular refit (:func:`refit_diffuse_normals`), the LED sphere's occlusion by the mesh divided out
+    (``cfg.occlusion``) and, with ``cfg.albedo``, the albedo less the fitted specular light for ``f0``."""
+    alpha = inputs.normal_alpha[..., 3]
+    if cfg.use_materials_roughness:
+        roughness, on_mesh = materials_roughness(scene, atlas, texture, inputs.cam, *alpha.shape, cfg.fit.roughness)
+    else:
+        roughness = np.full(alpha.shape, cfg.fit.roughness, np.float32)
+        on_mesh = np.zeros(alpha.shape, bool)
+    normals = refit_diffuse_normals(inputs.cam, inputs.pos, inputs.neg, inputs.normal_alpha, inputs.mask,
+                                    inputs.albedo, light_model, cfg, roughness)
+    stats: dict[str, float] = {}
+    if cfg.occlusion:
+        normals, stats = deocclude_view(scene, inputs.cam["K"], inputs.cam["cam_from_world"], normals,
+                                        cfg.occlusion_directions, cfg.occlusion_min_visible)
+    fitted = np.any(inputs.normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & inputs.mask
+    albedo_out = None
+    if cfg.albedo:
+        albedo_out = diffuse_albedo(inputs.albedo, normals, inputs.cam, roughness, f0)
+        taken = (inputs.albedo - albedo_out).mean(axis=-1)[fitted]
+        stats = {"albedo_f0": f0, "specular_taken_mean": float(taken.mean()) if taken.size else 0.0} | stats
+    stats = {"roughness_mean": float(roughness[fitted].mean()) if fitted.any() else 0.0,
+             "on_mesh_fraction": float(on_mesh[fitted].mean()) if fitted.any() else 0.0} | stats
+    return DiffuseView(normals=normals, albedo_diffuse=albedo_out, stats=stats)
+
+
 class DiffuseNormalsStage(Stage):
     """``normal_diffuse`` fitted with per-pixel roughness, and ``albedo_diffuse``, one task per camera (see the
     config)."""
@@ -151,52 +218,27 @@ class DiffuseNormalsStage(Stage):
         cfg: DiffuseNormalsConfig = self.config
         if not cfg.enabled:
             return {"disabled": True}
-        decoded, photometric = ctx.upstream["decode"], ctx.upstream["photometric"]
-        cameras = load_cameras(decoded / "cameras.json")
-        normal_alpha_path = photometric / "normal_alpha" / f"{view}.exr"
-        if view not in cameras or not normal_alpha_path.exists():
+        inputs = read_view_inputs(ctx.upstream, view)
+        if inputs is None:
             return {"missing": "no photometric normal_alpha for this camera"}
-        out = ctx.out_dir / "normal_diffuse" / f"{view}.exr"
-        normal_alpha = read_exr(normal_alpha_path)
-        alpha = normal_alpha[..., 3]
         start = time.perf_counter()
-        cam = cameras[view]
-        pos = read_exr(decoded / "pos" / f"{view}.exr")
-        neg = read_exr(decoded / "neg" / f"{view}.exr")
-        mask = read_png(photometric / "mask" / f"{view}.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        albedo = read_exr(photometric / "albedo" / f"{view}.exr")[..., :3]
-        if cfg.use_materials_roughness:
-            scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]),
-                                                     str(ctx.upstream["materials"]))
-            roughness, on_mesh = materials_roughness(scene, atlas, texture, cam, *alpha.shape, cfg.fit.roughness)
-        else:
-            roughness = np.full(alpha.shape, cfg.fit.roughness, np.float32)
-            on_mesh = np.zeros(alpha.shape, bool)
-        normals = refit_diffuse_normals(cam, pos, neg, normal_alpha, mask, albedo,
-                                        load_light_model(ctx.upstream["lights"]), cfg, roughness)
-        occlusion_stats: dict[str, float] = {}
-        if cfg.occlusion:
-            scene = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))[0]
-            normals, occlusion_stats = deocclude_view(scene, cam["K"], cam["cam_from_world"], normals,
-                                                      cfg.occlusion_directions, cfg.occlusion_min_visible)
-        write_exr(out, normals_with_alpha(normals, alpha), header=EXR_HEADERS["normal_diffuse"])
-        self._preview(ctx, view, normals, alpha)
-        fitted = np.any(normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & mask
-        stats = {}
-        if cfg.albedo:
+        scene = atlas = texture = None
+        if cfg.use_materials_roughness or cfg.occlusion:
+            scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))
+        f0 = cfg.fit.f0
+        if cfg.albedo and cfg.use_materials_roughness:
             from stages.artifacts import fitted_f0
 
-            f0 = fitted_f0(ctx.upstream["materials"]) if cfg.use_materials_roughness else cfg.fit.f0
-            albedo_diffuse = diffuse_albedo(albedo, normals, cam, roughness, f0)
-            write_exr(ctx.out_dir / "albedo_diffuse" / f"{view}.exr", albedo_diffuse,
+            f0 = fitted_f0(ctx.upstream["materials"])
+        result = diffuse_view(inputs, load_light_model(ctx.upstream["lights"]), cfg, scene, atlas, texture, f0)
+        alpha = inputs.normal_alpha[..., 3]
+        write_exr(ctx.out_dir / "normal_diffuse" / f"{view}.exr", normals_with_alpha(result.normals, alpha),
+                  header=EXR_HEADERS["normal_diffuse"])
+        self._preview(ctx, view, result.normals, alpha)
+        if result.albedo_diffuse is not None:
+            write_exr(ctx.out_dir / "albedo_diffuse" / f"{view}.exr", result.albedo_diffuse,
                       header=EXR_HEADERS["albedo_diffuse"])
-            taken = (albedo - albedo_diffuse).mean(axis=-1)[fitted]
-            stats = {"albedo_f0": f0, "specular_taken_mean": float(taken.mean()) if taken.size else 0.0}
-        return {"fitted": True, "seconds": time.perf_counter() - start,
-                "roughness_mean": float(roughness[fitted].mean()) if fitted.any() else 0.0,
-                "on_mesh_fraction": float(on_mesh[fitted].mean()) if fitted.any() else 0.0, **stats,
-                **occlusion_stats}
+        return {"fitted": True, "seconds": time.perf_counter() - start, **result.stats}
 
     def _preview(self, ctx: StageContext, view: str, normals: np.ndarray, alpha: np.ndarray) -> None:
         if self.config.previews:
