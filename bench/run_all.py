@@ -39,7 +39,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
 }
 """What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
 with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
-Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (README: how that was estimated). Left to
+Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (it took 23 min 54 s there; README). Left to
 the full run: the production-size memory measurements (memory) and the default capture end to end at 2 actions
 through dask (pipeline: bench_end_to_end measures the same things on small captures)."""
 SPEED_BASELINES: dict[str, str | None] = {
@@ -51,6 +51,7 @@ SPEED_BASELINES: dict[str, str | None] = {
                   "rerun and a new action (share of its task seconds skipped)",
     "executor": "the same SDF steps in the bench's own process (`worker / in_process`)",
     "gbuffer": "bilinear source lookup for the cubic one (`cubic_time_ratio`)",
+    "gpu": "the same production field step on one CPU thread (`speedup_over_cpu_thread`)",
     "geometry": "autograd's double backward for the analytic SDF gradients; the naive uniform samples for the "
                 "empty-space skipping (`samples_skipped_fraction`)",
     "hashgrid": "a copy of the feature table, and the torch path for the fused kernel",
