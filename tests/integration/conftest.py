@@ -31,9 +31,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @contextlib.contextmanager
-def dask_cluster(folder: Path, n_workers: int, env: dict[str, str] | None = None) -> Iterator[tuple[str, dict[str, int]]]:
+def dask_cluster(folder: Path, n_workers: int, env: dict[str, str] | None = None,
+                 resources: dict[int, str] | None = None) -> Iterator[tuple[str, dict[str, int]]]:
     """A ``dask scheduler`` and ``n_workers`` single-threaded ``dask worker`` processes on 127.0.0.1, as a user
-    starts them, each its own process group; ``env`` is added to their environment (e.g. dask config variables).
+    starts them, each its own process group; ``env`` is added to their environment (e.g. dask config variables);
+    ``resources``: worker index (0-based, named ``w<index + 1>``) -> its ``--resources`` (e.g. ``"GPU=1"``).
     Yields the scheduler's address and each worker's address -> the pid of its worker process."""
     env = os.environ | {"PYTHONPATH": str(ROOT), "ULTRASTAGE_NUMERIC_THREADS": "1", "OMP_NUM_THREADS": "1"} | (env or {})
     info = folder / "scheduler.json"
@@ -46,9 +48,10 @@ def dask_cluster(folder: Path, n_workers: int, env: dict[str, str] | None = None
             time.sleep(0.2)
         assert info.exists(), "the dask scheduler did not start"
         for i in range(n_workers):
+            extra = ["--resources", resources[i]] if resources and i in resources else []
             procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", "--scheduler-file",
                                            str(info), "--nworkers", "1", "--nthreads", "1", "--name", f"w{i + 1}",
-                                           "--no-dashboard", "--host", "127.0.0.1"], **common))
+                                           "--no-dashboard", "--host", "127.0.0.1", *extra], **common))
         address = json.loads(info.read_text())["address"]
         from distributed import Client
 

@@ -42,3 +42,36 @@ def test_a_cluster_of_processes_gives_the_local_release(tiny_capture, cluster, t
     actions = {p: d for p, d in local_digests.items() if p.startswith("actions/")}
     assert len(actions) > 3 * 2 * 6
     assert {p: remote_digests.get(p) for p in actions} == actions
+
+
+def _worker_name() -> str:
+    from distributed import get_worker
+
+    return str(get_worker().name)
+
+
+def test_gpu_tasks_go_to_the_worker_started_with_the_gpu_resource(tmp_path):
+    """As README says to start it: ``dask worker --resources GPU=1`` on the GPU machine, plain workers beside it. A
+    task annotated like the geometry stage runs on that worker only; unannotated tasks run anywhere; on a cluster
+    without the resource the annotation is dropped and the task still runs."""
+    from pipeline.graph import DaskExecutor
+    from stages.geometry import GeometryStage
+
+    assert GeometryStage.resources == {"GPU": 1}
+    (tmp_path / "gpu").mkdir()
+    with dask_cluster(tmp_path / "gpu", 2, resources={0: "GPU=1"}) as (address, _pids):
+        executor = DaskExecutor(address)
+        try:
+            gpu = [executor.submit(_worker_name, key=f"gpu-{i}", resources=GeometryStage.resources) for i in range(8)]
+            anywhere = [executor.submit(_worker_name, key=f"cpu-{i}") for i in range(8)]
+            assert {f.result(timeout=120) for f in gpu} == {"w1"}
+            assert {f.result(timeout=120) for f in anywhere} <= {"w1", "w2"}
+        finally:
+            executor.close()
+    (tmp_path / "plain").mkdir()
+    with dask_cluster(tmp_path / "plain", 1) as (address, _pids):
+        executor = DaskExecutor(address)
+        try:
+            assert executor.submit(_worker_name, key="gpu-0", resources={"GPU": 1}).result(timeout=120) == "w1"
+        finally:
+            executor.close()
