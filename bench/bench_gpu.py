@@ -22,6 +22,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import _field_step  # noqa: E402
+
 
 def _best_ms(step, repeats: int, inner: int, synchronize) -> float:
     """Wall milliseconds per call: the best over ``repeats`` of the mean over ``inner`` calls, after a warm-up."""
@@ -38,28 +40,13 @@ def _best_ms(step, repeats: int, inner: int, synchronize) -> float:
 
 
 def field_step_ms(device: str, points: int, repeats: int, inner: int) -> float:
-    """Milliseconds of one field step of the production preset on ``device`` ("cpu" or "cuda")."""
-    import numpy as np
+    """Milliseconds of one field step (:func:`_field_step.field_step`) of the production preset on ``device``
+    ("cpu" or "cuda")."""
     import torch
 
-    from stages.numerics.sdf import SDF_PRESETS, SDFField
+    from stages.numerics.sdf import SDF_PRESETS
 
-    cfg = SDF_PRESETS["production"]
-    field = SDFField(np.array([[-0.5, -0.9, -0.5], [0.5, 0.9, 0.5]]), cfg.encoding, cfg.hidden_width,
-                     cfg.hidden_layers).to(device)
-    with torch.no_grad():
-        field.encoding.table.normal_(0.0, 1e-2, generator=torch.Generator(device=device).manual_seed(0))
-    x = ((torch.rand(points, 3, generator=torch.Generator().manual_seed(1)) - 0.5)
-         * torch.tensor([1.0, 1.8, 1.0])).to(device)
-    optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
-
-    def step() -> None:
-        sdf, grad = field.sdf_and_gradient(x, "analytic")
-        loss = sdf.abs().mean() + 0.1 * ((grad.norm(dim=-1) - 1.0) ** 2).mean()
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
-
+    _, _, step = _field_step.field_step(SDF_PRESETS["production"], points, device)
     synchronize = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     return _best_ms(step, repeats, inner, synchronize)
 

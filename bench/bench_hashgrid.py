@@ -27,6 +27,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import _field_step  # noqa: E402
+
 
 def _cpu_best(fn, repeats: int, inner: int) -> tuple[float, float]:
     """(CPU seconds, wall seconds) per call: the mean over ``inner`` calls of the repeat with the least CPU
@@ -50,23 +52,16 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    import numpy as np
     import torch
 
     from stages.numerics import hashgrid_kernel
-    from stages.numerics.sdf import SDF_PRESETS, SDFField
+    from stages.numerics.sdf import SDF_PRESETS
 
     cfg = SDF_PRESETS["cpu"]
     repeats, inner = (1, 1) if args.quick else (args.repeats, 10)
     points = 600 if args.quick else cfg.rays_per_batch * cfg.samples_per_ray + cfg.eikonal_points
-    field = SDFField(np.array([[-0.5, -0.9, -0.5], [0.5, 0.9, 0.5]]), cfg.encoding, cfg.hidden_width,
-                     cfg.hidden_layers)
-    with torch.no_grad():
-        field.encoding.table.normal_(0.0, 1e-2, generator=torch.Generator().manual_seed(0))
+    field, x01, field_step = _field_step.field_step(cfg, points)
     encoding = field.encoding
-    x01 = torch.rand(points, 3, generator=torch.Generator().manual_seed(1))
-    x_m = (x01 - 0.5) * torch.tensor([1.0, 1.8, 1.0])
-    optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
     available = hashgrid_kernel.kernel_available()
 
     def use(kernel: bool) -> None:
@@ -76,13 +71,6 @@ def main() -> int:
         encoding.table.grad = None
         features, jac = encoding(x01, True)
         (features.sum() + (jac * jac).sum()).backward()
-
-    def field_step() -> None:
-        sdf, grad = field.sdf_and_gradient(x_m, "analytic")
-        loss = sdf.abs().mean() + 0.1 * ((grad.norm(dim=-1) - 1.0) ** 2).mean()
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
 
     def outputs() -> list[torch.Tensor]:
         encoding.table.grad = None
