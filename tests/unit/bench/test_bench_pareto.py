@@ -11,13 +11,23 @@ import pytest
 BENCH = Path(__file__).resolve().parents[3] / "bench"
 
 
+def _bench_module(name: str, file: str):
+    """A bench module loaded from its file under a name of its own, with bench/ on the path for its sibling
+    imports while it loads."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        spec = importlib.util.spec_from_file_location(name, BENCH / file)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # dataclasses look their module up by name
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(BENCH))
+    return module
+
+
 @pytest.fixture(scope="module")
 def pareto():
-    spec = importlib.util.spec_from_file_location("bench_pareto_under_test", BENCH / "_pareto.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
+    return _bench_module("bench_pareto_under_test", "_pareto.py")
 
 
 def test_front_keeps_exactly_the_undominated_points(pareto):
@@ -62,13 +72,7 @@ def test_stage_tradeoffs_mark_the_presets_from_their_configs(tmp_path):
 
     from stages.registry import PRESETS
 
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_tradeoffs_under_test", BENCH / "_tradeoffs.py")
-        tradeoffs = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(tradeoffs)
-    finally:
-        sys.path.remove(str(BENCH))
+    tradeoffs = _bench_module("bench_tradeoffs_under_test", "_tradeoffs.py")
     rows = [{"algorithm": a, "half_size": False, "ms_per_mp": t, "psnr_db": p}
             for a, t, p in (("LINEAR", 30.0, 20.0), ("AHD", 90.0, 26.0), ("VNG", 100.0, 21.0))]
     rows.append({"algorithm": "HALF (any)", "half_size": True, "ms_per_mp": 25.0, "psnr_db": 20.5})
@@ -86,13 +90,7 @@ def test_stage_tradeoffs_mark_the_presets_from_their_configs(tmp_path):
 
 def test_every_bench_says_what_its_speed_baseline_is():
     """run_all's report lists each bench's same-process baseline (or that it has none): a new bench must say."""
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_run_all_under_test", BENCH / "run_all.py")
-        run_all = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(run_all)
-    finally:
-        sys.path.remove(str(BENCH))
+    run_all = _bench_module("bench_run_all_under_test", "run_all.py")
     names = sorted(p.stem.removeprefix("bench_") for p in BENCH.glob("bench_*.py"))
     assert sorted(run_all.SPEED_BASELINES) == names
     section = run_all.baseline_section(names)
@@ -101,13 +99,7 @@ def test_every_bench_says_what_its_speed_baseline_is():
 
 
 def test_make_bench_profile_names_real_benches_and_full_runs_them_all():
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_run_all_profile", BENCH / "run_all.py")
-        run_all = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(run_all)
-    finally:
-        sys.path.remove(str(BENCH))
+    run_all = _bench_module("bench_run_all_profile", "run_all.py")
     names = {p.stem.removeprefix("bench_") for p in BENCH.glob("bench_*.py")}
     assert set(run_all.MAKE_BENCH_ARGS) <= names
     for name in names:
