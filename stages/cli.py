@@ -175,18 +175,19 @@ def _start_truth_prefetch(capture: Path, work: Path, stages: list[Any]) -> Any:
     no relit stage)."""
     import subprocess
 
+    from pipeline.capture import open_capture
+
     if not (capture / "ground_truth").is_dir() or not {"relight", "relightset"} & {s.name for s in stages}:
         return None
     try:
-        record = json.loads((capture / "capture.json").read_text())
-        if not isinstance(record.get("simulator"), dict):
-            return None
-        rig = json.loads((capture / record["sessions"][0]["rig"]).read_text())
-    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        opened = open_capture(capture)
+    except InputError:
         return None  # the run itself names what is wrong with the capture
+    if not isinstance(opened.meta.get("simulator"), dict) or not opened.sessions:
+        return None
     from evaluation.release import RELIT_CACHE, relit_truth_lights, truth_visibility_folder
 
-    lights = relit_truth_lights(rig.get("cameras", []))
+    lights = relit_truth_lights(next(iter(opened.sessions.values())).rig["cameras"])
     folder = truth_visibility_folder(work / RELIT_CACHE)
     # os.nice in the child itself: a preexec_fn is not safe once the parent runs threads
     script = ("import os, sys; os.nice(19); from synthetic.relight import prefetch_visibility; "
