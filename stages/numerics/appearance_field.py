@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from pipeline.config import Documented, to_dict
 from stages.numerics import torch_threads
 from stages.numerics.hull import check_camera
+from stages.numerics.camera import camera_centre, pixel_rays
 from stages.numerics.sdf import (
     HashEncoding,
     HashGridConfig,
@@ -55,7 +56,6 @@ from stages.numerics.sdf import (
     _adam,
     _lr_factor,
     _neus_composite,
-    _pixel_rays,
     ProposalGrid,
     _ray_box,
     resolve_device,
@@ -346,7 +346,7 @@ def _ray_samples(surface: _Surface, K: np.ndarray, T: np.ndarray, rows: np.ndarr
                  depth_m: np.ndarray | None, config: AppearanceFieldConfig, device: torch.device,
                  chunk_rays: int = 8192) -> _RaySamples:
     """Kept NeuS samples of the pixels (rows, cols) of one camera (see the module docstring)."""
-    dirs_np, origin = _pixel_rays(K, T, rows, cols)
+    dirs_np, origin = pixel_rays(K, T, cols, rows)[0], camera_centre(T)
     R_rot = T[:, :3]
     n = len(rows)
     t_c = np.full(n, np.nan)
@@ -555,7 +555,7 @@ def _sample_views(views, cams, surface: _Surface, config: AppearanceFieldConfig,
         valid_total += len(rows)
         normals = np.asarray(v.normals_world, np.float32)[rows, cols]
         if config.grazing_cos_min > 0:
-            d, _ = _pixel_rays(K, T, rows, cols)
+            d = pixel_rays(K, T, cols, rows)[0]
             cos = (normals.astype(np.float64) * d).sum(1)
             keep = cos <= -config.grazing_cos_min
             dropped_grazing += int((~keep).sum())

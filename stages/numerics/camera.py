@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Camera", "camera_centre", "as_pose", "lift_points"]
+__all__ = ["Camera", "camera_centre", "as_pose", "lift_points", "pixel_rays", "pixel_coordinates"]
 
 
 def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
@@ -51,12 +51,39 @@ def as_pose(cam_from_world: np.ndarray, name: str = "cam_from_world") -> np.ndar
     return P
 
 
+def _normalised_coordinates(K: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x, y`` of ``K^-1 [u, v, 1] = [x, y, 1]`` (skew included), the one inverse of :func:`pixel_coordinates`."""
+    y = (v - K[1, 2]) / K[1, 1]
+    return (u - K[0, 2] - K[0, 1] * y) / K[0, 0], y
+
+
+def pixel_coordinates(K: np.ndarray, points_cam: np.ndarray, z: np.ndarray | None = None) -> tuple[np.ndarray,
+                                                                                                   np.ndarray]:
+    """Pixel coordinates ``u``, ``v`` (N,) of camera-frame points (N, 3): ``K [x / z, y / z, 1]``.
+
+    ``z`` (N,) replaces the points' own depth as the divisor (callers pass a guarded depth, e.g. 1 behind the
+    camera, to keep the division finite). The arithmetic keeps the points' float type where K's scalars allow."""
+    z = points_cam[:, 2] if z is None else z
+    x, y = points_cam[:, 0] / z, points_cam[:, 1] / z
+    return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
+
+
+def pixel_rays(K: np.ndarray, cam_from_world: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray,
+                                                                                                  np.ndarray]:
+    """Unit world directions (..., 3) float64 of the rays through pixel coordinates ``u``, ``v`` (...,) of the
+    camera K (3, 3), cam_from_world (3, 4), and the camera depth per unit of ray length (...,) (``depth_m = t *
+    z_per_t``). The rays start at the camera centre (:func:`camera_centre`). Skew is included."""
+    x, y = _normalised_coordinates(K, np.asarray(u, np.float64), np.asarray(v, np.float64))
+    d_cam = np.stack([x, y, np.ones_like(x)], axis=-1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    return d_cam @ cam_from_world[:, :3], d_cam[..., 2]  # rows of R^T d
+
+
 def lift_points(K: np.ndarray, cam_from_world: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
     """World points (..., 3) at pixel coordinates ``u``, ``v`` and camera depth ``z`` (all (...,)) of the camera
     K (3, 3), cam_from_world (3, 4): :meth:`Camera.lift` for callers that hold the matrices (no image size)."""
     # x_cam = z K^-1 [u, v, 1], x_world = R^T (x_cam - t)
-    y_cam = (v - K[1, 2]) / K[1, 1]
-    x_cam = (u - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
+    x_cam, y_cam = _normalised_coordinates(K, u, v)
     pts_cam = np.stack([x_cam * z, y_cam * z, z], axis=-1)
     return (pts_cam - cam_from_world[:, 3]) @ cam_from_world[:, :3]  # rows of R^T (x - t)
 
@@ -139,37 +166,25 @@ class Camera:
         return origins, directions
 
     def rays_with_depth_scale(self, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`rays` and, per ray, the camera depth per unit of ray length (N,) (``depth_m = t * z_per_t``).
-        The skew is ignored (the pipeline's cameras have none)."""
+        """:meth:`rays` and, per ray, the camera depth per unit of ray length (N,) (``depth_m = t * z_per_t``)."""
         pixels = self.pixel_grid() if pixels is None else np.asarray(pixels, dtype=np.float64)
-        K, R, t = self.K, self.R, self.t
-        d_cam = np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
-                          np.ones(len(pixels))], axis=-1)
-        norm = np.linalg.norm(d_cam, axis=-1)
-        d_cam /= norm[:, None]
-        directions = d_cam @ R  # R^T d for each row
-        origins = np.broadcast_to(-R.T @ t, directions.shape).copy()
-        return origins, directions, d_cam[:, 2]
+        directions, z_per_t = pixel_rays(self.K, self.cam_from_world, pixels[:, 0], pixels[:, 1])
+        return np.broadcast_to(self.centre, directions.shape).copy(), directions, z_per_t
 
     def view_directions(self) -> np.ndarray:
         """(H, W, 3) float32 unit world directions from the surface seen at each pixel towards the camera (the
-        pixel's ray reversed; skew and lens distortion ignored)."""
-        K = self.K
+        pixel's ray reversed; lens distortion ignored)."""
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
-        rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-        rays_world = rays_cam @ self.R  # R^T r per pixel
-        rays_world /= np.linalg.norm(rays_world, axis=-1, keepdims=True)
-        return (-rays_world).astype(np.float32)
+        return (-pixel_rays(self.K, self.cam_from_world, u, v)[0]).astype(np.float32)
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates (..., 2) and camera depths (...,) of world points (..., 3), float64. Points behind the
         camera (depth <= 0) get coordinates too; callers test the depth."""
-        x_cam = np.asarray(points_world, dtype=np.float64) @ self.R.T + self.t
-        z = x_cam[..., 2]
-        x, y = x_cam[..., 0] / z, x_cam[..., 1] / z
-        K = self.K
-        uv = np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=-1)
-        return uv, z
+        points_world = np.asarray(points_world, dtype=np.float64)
+        x_cam = points_world.reshape(-1, 3) @ self.R.T + self.t
+        u, v = pixel_coordinates(self.K, x_cam)
+        shape = points_world.shape[:-1]
+        return np.stack([u, v], axis=-1).reshape(shape + (2,)), x_cam[:, 2].reshape(shape)
 
     def lift(self, uv: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         """World points (..., 3) float64 at pixel coordinates ``uv`` (..., 2) and camera depth ``depth_m`` (...,)

@@ -49,7 +49,7 @@ from typing import Sequence
 
 import numpy as np
 
-from stages.numerics.camera import as_pose, camera_centre, lift_points
+from stages.numerics.camera import as_pose, camera_centre, lift_points, pixel_coordinates
 
 __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "nearest_views", "source_candidates",
            "reproject_gbuffer", "fuse_normals", "interpolate_camera", "novel_camera_pairs"]
@@ -172,8 +172,7 @@ def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, 
     z = point_cam[:, 2]
     in_front = z > 1e-6
     zs = np.where(in_front, z, 1.0)
-    u = K[0, 0] * point_cam[:, 0] / zs + K[0, 1] * point_cam[:, 1] / zs + K[0, 2]
-    v = K[1, 1] * point_cam[:, 1] / zs + K[1, 2]
+    u, v = pixel_coordinates(K, point_cam, zs)
     u = np.where(in_front & np.isfinite(u), u, -10.0)
     v = np.where(in_front & np.isfinite(v), v, -10.0)
     u0 = np.floor(u).astype(np.int64)

@@ -22,6 +22,8 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
+from stages.numerics.camera import pixel_coordinates
+
 __all__ = ["HullGrid", "visual_hull", "check_camera"]
 
 
@@ -233,16 +235,15 @@ def visual_hull(
                  + T[:, 3].astype(np.float32))
         z = x_cam[:, 2]
         front = z > 1e-6
-        inv_z = 1.0 / np.where(front, z, 1.0)
-        u = (K[0, 0] * x_cam[:, 0] + K[0, 1] * x_cam[:, 1]) * inv_z + K[0, 2]
-        w = K[1, 1] * x_cam[:, 1] * inv_z + K[1, 2]
+        z_front = np.where(front, z, np.float32(1.0))
+        u, w = pixel_coordinates(K, x_cam, z_front)
         col = np.floor(u + 0.5)
         row = np.floor(w + 0.5)
         seen = front & (col >= 0) & (col <= W - 1) & (row >= 0) & (row <= H - 1)
         ci = np.clip(col, 0, W - 1).astype(np.int64)
         ri = np.clip(row, 0, H - 1).astype(np.int64)
         # + half a pixel diagonal: the centre was rounded to a pixel centre.
-        tolerance = dilate_px + (0.5 * np.sqrt(2.0) + K[0, 0] * half_diag * inv_z if conservative else 0.0)
+        tolerance = dilate_px + (0.5 * np.sqrt(2.0) + K[0, 0] * half_diag / z_front if conservative else 0.0)
         inside = dist_px[ri, ci] <= tolerance
         hits += seen & inside
         misses += seen & ~inside

@@ -54,6 +54,7 @@ from pipeline.config import Documented, to_dict
 from stages.numerics import torch_threads
 from stages.numerics import hashgrid_kernel
 from stages.numerics.hull import HullGrid, check_camera, visual_hull
+from stages.numerics.camera import camera_centre, pixel_coordinates, pixel_rays
 
 __all__ = [
     "HashGridConfig",
@@ -765,10 +766,8 @@ def default_stage_box(cams: Sequence[tuple[np.ndarray, np.ndarray]], size_m: flo
     rhs = np.zeros(3)
     centres = []
     for K, T in cams:
-        R, t = T[:, :3], T[:, 3]
-        c = -R.T @ t
-        d = R.T @ np.linalg.solve(K, np.array([K[0, 2], K[1, 2], 1.0]))
-        d = d / np.linalg.norm(d)
+        c = camera_centre(T)
+        d = pixel_rays(K, T, K[0, 2], K[1, 2])[0]  # the optical axis
         P = np.eye(3) - np.outer(d, d)
         A += P
         rhs += P @ c
@@ -796,15 +795,6 @@ def _ray_box(origins: np.ndarray, dirs: np.ndarray, bounds: np.ndarray) -> tuple
     return near, far
 
 
-def _pixel_rays(K: np.ndarray, T: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit world directions (N, 3) and the camera centre (3,) of pixel centres (u = col, v = row)."""
-    R, t = T[:, :3], T[:, 3]
-    pix = np.stack([cols.astype(np.float64), rows.astype(np.float64), np.ones(len(rows))], axis=1)
-    d = np.linalg.solve(K, pix.T).T @ R  # R^T K^-1 p, row-wise
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return d, -R.T @ t
-
-
 def _hull_footprint(hull: HullGrid, K: np.ndarray, T: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(H, W) bool: pixels whose ray may meet an occupied hull voxel (voxel centres splatted, dilated by the
     voxel's projected radius)."""
@@ -816,11 +806,9 @@ def _hull_footprint(hull: HullGrid, K: np.ndarray, T: np.ndarray, shape: tuple[i
     if len(centres) == 0:
         return out
     x = centres @ T[:, :3].T + T[:, 3]
+    x = x[x[:, 2] > 1e-6]
     z = x[:, 2]
-    front = z > 1e-6
-    x, z = x[front], z[front]
-    u = np.rint(K[0, 0] * x[:, 0] / z + K[0, 1] * x[:, 1] / z + K[0, 2]).astype(np.int64)
-    v = np.rint(K[1, 1] * x[:, 1] / z + K[1, 2]).astype(np.int64)
+    u, v = (np.rint(c).astype(np.int64) for c in pixel_coordinates(K, x))
     ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
     out[v[ok], u[ok]] = True
     if len(z):
@@ -862,7 +850,7 @@ def _build_ray_bank(views, cams, hull: HullGrid, bounds: np.ndarray, stage_box: 
         pixels_total += H * W
         cand = mask | _hull_footprint(hull, K, T, (H, W))
         rows, cols = np.nonzero(cand)
-        d, o = _pixel_rays(K, T, rows, cols)
+        d, o = pixel_rays(K, T, cols, rows)[0], camera_centre(T)
         near, far = _ray_box(o[None], d, bounds)
         hit = far > near + 1e-6
         rows, cols, d, near, far = rows[hit], cols[hit], d[hit], near[hit], far[hit]
@@ -882,7 +870,7 @@ def _build_ray_bank(views, cams, hull: HullGrid, bounds: np.ndarray, stage_box: 
         fars.append(far.astype(np.float32))
         # Naive sampler reference: chords of a random subset of all pixel rays through the stage box.
         sub = rng.integers(0, H * W, size=min(2000, H * W))
-        ds, _ = _pixel_rays(K, T, sub // W, sub % W)
+        ds = pixel_rays(K, T, sub % W, sub // W)[0]
         n0, f0 = _ray_box(o[None], ds, stage_box)
         chord_sum += float(np.maximum(f0 - n0, 0).sum())
         chord_count += len(sub)
@@ -1641,7 +1629,7 @@ def render_view(field_: SDFField, K: np.ndarray, cam_from_world: np.ndarray, hei
         raise ValueError(f"height and width must be >= 1, got {height}, {width}")
     rows, cols = np.mgrid[0:height, 0:width]
     rows, cols = rows.ravel(), cols.ravel()
-    d, o = _pixel_rays(K, T, rows, cols)
+    d, o = pixel_rays(K, T, cols, rows)[0], camera_centre(T)
     near, far = _ray_box(o[None], d, field_.bounds)
     live = far > near
     if hull is not None:

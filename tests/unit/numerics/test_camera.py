@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from stages.numerics.camera import Camera, camera_centre
+from stages.numerics.camera import Camera, camera_centre, pixel_coordinates, pixel_rays
 
 K = np.array([[100.0, 0.0, 32.0], [0.0, 110.0, 24.0], [0.0, 0.0, 1.0]])
 
@@ -73,6 +73,36 @@ def test_rays_start_at_the_centre_and_pass_through_their_pixels():
     # depth per unit of ray length: a point t along the ray lies at camera depth t * z_per_t
     _, _, z_per_t = camera.rays_with_depth_scale()
     np.testing.assert_allclose(depth, 1.7 * z_per_t, atol=1e-12)
+
+
+def test_rays_of_a_skewed_camera_pass_through_their_pixels():
+    # the skew is part of K^-1: every consumer of rays (SDF training, ray casting, view directions) sees it
+    posed = _posed_camera()
+    skewed = Camera(K + np.array([[0.0, 4.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), posed.cam_from_world, 64, 48)
+    origins, directions = skewed.rays()
+    uv, _ = skewed.project(origins + 2.3 * directions)
+    np.testing.assert_allclose(uv, skewed.pixel_grid(), atol=1e-9)
+    np.testing.assert_allclose(skewed.view_directions().reshape(-1, 3), -directions, atol=1e-6)
+
+
+def test_pixel_rays_hand_computed_case():
+    # identity pose: the ray through (u, v) = (132, 24) is along K^-1 [u, v, 1] = [1, 0, 1] / sqrt(2)
+    directions, z_per_t = pixel_rays(K, np.column_stack([np.eye(3), np.zeros(3)]), np.array([132.0]), np.array([24.0]))
+    np.testing.assert_allclose(directions, [[2 ** -0.5, 0.0, 2 ** -0.5]], atol=1e-15)
+    np.testing.assert_allclose(z_per_t, [2 ** -0.5], atol=1e-15)
+    # scalars give one ray (the optical axis here)
+    axis, _ = pixel_rays(K, np.column_stack([np.eye(3), np.zeros(3)]), K[0, 2], K[1, 2])
+    np.testing.assert_array_equal(axis, [0.0, 0.0, 1.0])
+
+
+def test_pixel_coordinates_divide_by_the_given_depth():
+    points_cam = np.array([[0.5, -0.25, 2.0], [0.1, 0.2, -1.0]])
+    u, v = pixel_coordinates(K, points_cam)
+    np.testing.assert_allclose(u, [100 * 0.25 + 32, 100 * -0.1 + 32])
+    np.testing.assert_allclose(v, [110 * -0.125 + 24, 110 * -0.2 + 24])
+    # a guarded depth (1 behind the camera) replaces the divisor, float32 points stay float32 before K
+    u_guarded, _ = pixel_coordinates(K, points_cam.astype(np.float32), np.array([2.0, 1.0], np.float32))
+    np.testing.assert_allclose(u_guarded, [57.0, 42.0], rtol=1e-6)
 
 
 def test_view_directions_are_the_rays_reversed_per_pixel():
