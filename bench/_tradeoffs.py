@@ -134,6 +134,35 @@ def calibration_tradeoffs(out: Path) -> list[Tradeoff]:
                          "Centre errors per row are in bench_calibration's JSON."))]
 
 
+def markers_tradeoffs(out: Path) -> list[Tradeoff]:
+    """The cameras stage's default source (marker frames): its variants' time against the stage-frame centre
+    error, per simulated width, the baseline being the decode of the marker frames."""
+    data = _load(out, "bench_calibration_markers")
+    if not data or "rows" not in data:
+        return []
+    from calibration.markers import MarkerCalibrationConfig
+
+    variants = {"markers": MarkerCalibrationConfig(), "markers_rig_frame": MarkerCalibrationConfig(frame="rig"),
+                "markers_fixed_focal": MarkerCalibrationConfig(refine_focal_length=False)}
+    points, references = [], []
+    for r in data["rows"]:
+        if r["method"] in variants:
+            presets = _presets_where(lambda c, v=variants[r["method"]]: c.cameras.source in ("auto", "markers")
+                                     and c.cameras.markers == v)
+            points.append(TradeoffPoint(r["method"], r["seconds"], r["centre_mm_mean"], series=f"{r['width']} px",
+                                        presets=presets, baseline_seconds=r.get("decode_s")))
+        else:
+            references.append(f"{r['method']} {r['centre_mm_mean']:.2f} mm at {r['width']} px")
+    if not points:
+        return []
+    return [Tradeoff("cameras (marker frames)", "cameras.markers (frame, refine_focal_length)",
+                     "seconds (32 cameras, decode included)", "camera centre error (mm, stage frame, mean)",
+                     tuple(points), "bench_calibration_markers", notes=(
+                         "The baseline is the decode of the 32 marker frames, timed in the same process; without "
+                         "calibration (no time): " + "; ".join(references) + " (`floor_nominal_gauge`: the best any "
+                         "calibration aligned to the rig spec's centres can do).",))]
+
+
 def geometry_tradeoffs(out: Path) -> list[Tradeoff]:
     result = []
     schedule = _load(out, "bench_sdf_schedule")
@@ -234,8 +263,8 @@ def relight_tradeoffs(out: Path) -> list[Tradeoff]:
 
 
 EXTRACTORS: tuple[Callable[[Path], list[Tradeoff]], ...] = (
-    decode_tradeoffs, photometric_tradeoffs, calibration_tradeoffs, geometry_tradeoffs, textures_tradeoffs,
-    relight_tradeoffs)
+    decode_tradeoffs, photometric_tradeoffs, calibration_tradeoffs, markers_tradeoffs, geometry_tradeoffs,
+    textures_tradeoffs, relight_tradeoffs)
 """In pipeline order."""
 
 

@@ -22,7 +22,9 @@ is found in the store; what a rerun costs before any work). Phases, in seconds a
 
 ``max_in_flight`` is the largest number of executor tasks submitted and not yet finished at any moment:
 how much of the graph the scheduler holds. Each configuration runs in its own process (``peak_rss_mib``
-is that process's peak). Writes bench_scale.json and bench_scale.md.
+is that process's peak). The speed baseline, timed in the same process after the cold run: the same number of
+executor tasks, each writing one stub file, through the executor alone (``bare_ms``, ``x_bare``), and on dask as one
+``client.map`` (``bare_map_ms``). Writes bench_scale.json and bench_scale.md.
 
 ``python bench/bench_scale.py --out bench/out [--sizes 20,200,2000] [--executors sync,dask] [--quick]``
 """
@@ -293,6 +295,41 @@ def run_once(capture: Path, work: Path, release: Path, scheduler: str, workers: 
             "phases_s": phases, "per_task": per_task}
 
 
+def write_stub_file(path: str) -> int:
+    """The work of one stub task without the engine: write one small file."""
+    Path(path).write_text(path)
+    return 1
+
+
+def bare_executor(n_tasks: int, scheduler: str, root: Path, workers: int) -> dict[str, Any]:
+    """The speed baseline, timed in the same process: ``n_tasks`` stub files written through the engine's executor
+    alone (no plan, store, commits or release), submitted one at a time as the engine does (``submit_s``), and on
+    dask also as one ``client.map`` (``map_s``: the scheduler's floor for the same tasks)."""
+    from pipeline.runner import ExecutionConfig, make_executor
+
+    folder = root / "bare"
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = [str(folder / f"{i}.txt") for i in range(n_tasks)]
+    executor = make_executor(ExecutionConfig(scheduler=scheduler, workers=workers))
+    try:
+        start = time.perf_counter()
+        handles = [executor.submit(write_stub_file, path, key=f"bare-{i}") for i, path in enumerate(paths)]
+        done = sum(result for _, result in executor.as_completed(handles))
+        result = {"tasks": n_tasks, "submit_s": time.perf_counter() - start}
+        if done != n_tasks:
+            raise RuntimeError(f"bare executor: {done} of {n_tasks} tasks finished")
+        if scheduler != "sync":
+            client = executor.client
+            start = time.perf_counter()
+            futures = client.map(write_stub_file, [p + ".map" for p in paths], pure=False)
+            if sum(client.gather(futures)) != n_tasks:
+                raise RuntimeError("bare executor: client.map did not finish every task")
+            result["map_s"] = time.perf_counter() - start
+    finally:
+        executor.close()
+    return result
+
+
 def measure(n_actions: int, executor: str, root: Path, workers: int = 2) -> dict[str, Any]:
     """A fresh capture of ``n_actions`` actions, run cold then cached with ``executor`` ("sync" or "dask"),
     after a one-action warm-up run (imports, code digests: once per process, not per task)."""
@@ -306,8 +343,14 @@ def measure(n_actions: int, executor: str, root: Path, workers: int = 2) -> dict
     scheduler = {"sync": "sync", "dask": "local"}[executor]
     runs = {label: run_once(capture, root / "work", root / "release", scheduler, workers)
             for label in ("cold", "cached")}
+    cold = runs["cold"]
+    bare = bare_executor(cold["executor_tasks"], scheduler, root, workers)
+    cold["per_task"]["bare_ms"] = 1e3 * bare["submit_s"] / bare["tasks"]
+    cold["per_task"]["x_bare"] = cold["per_task"]["execute_ms"] / cold["per_task"]["bare_ms"]
+    if "map_s" in bare:
+        cold["per_task"]["bare_map_ms"] = 1e3 * bare["map_s"] / bare["tasks"]
     return {"actions": n_actions, "cameras": CAMERAS, "executor": executor, "workers": workers if executor == "dask" else 0,
-            "warmup_s": warmup_s, "make_capture_s": capture_s, "runs": runs,
+            "warmup_s": warmup_s, "make_capture_s": capture_s, "runs": runs, "bare_executor": bare,
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -328,16 +371,19 @@ def table(results: list[dict[str, Any]]) -> str:
              "plan and bookkeeping per plan task (stage x scope), submission and the whole execution per "
              "executor task (camera pieces + commits); bookkeeping also per graph task (plan tasks + camera "
              "pieces, one published file each). Goal: under 1 ms. `in flight`: most executor tasks "
-             "submitted and not finished at once.", "",
-             "| actions | executor | run | plan tasks | exec tasks | plan ms | submit ms | execute ms | "
-             "bookkeeping ms | bookkeeping ms / graph task | in flight | total s | peak RSS MiB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "submitted and not finished at once. Baseline (`bare ms`, timed in the same process): the same number "
+             "of stub tasks through the executor alone, submitted one at a time as the engine does; `x bare` is the "
+             "engine's execute time over it; `map ms`: the same tasks as one `client.map` on dask.", "",
+             "| actions | executor | run | plan tasks | exec tasks | plan ms | submit ms | execute ms | bare ms | "
+             "x bare | map ms | bookkeeping ms | bookkeeping ms / graph task | in flight | total s | peak RSS MiB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         for label, run in r["runs"].items():
             p = run["per_task"]
             fmt = lambda k: f"{p[k]:.3f}" if k in p else "-"  # noqa: E731
             lines.append(f"| {r['actions']} | {r['executor']} | {label} | {run['plan_tasks']} | {run['executor_tasks']} | "
-                         f"{fmt('plan_ms')} | {fmt('submit_ms')} | {fmt('execute_ms')} | {fmt('bookkeeping_ms')} | "
+                         f"{fmt('plan_ms')} | {fmt('submit_ms')} | {fmt('execute_ms')} | {fmt('bare_ms')} | "
+                         f"{fmt('x_bare')} | {fmt('bare_map_ms')} | {fmt('bookkeeping_ms')} | "
                          f"{fmt('bookkeeping_per_graph_task_ms')} | "
                          f"{run['max_in_flight']} | {run['phases_s']['total_s']:.1f} | {r['peak_rss_mib']:.0f} |")
     lines += ["", "Bookkeeping split (seconds: publish / manifests / page):", ""]

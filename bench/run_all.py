@@ -22,7 +22,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
-    "calibration": ["--sizes", "480,-1"],
+    "calibration": ["--markers", "--widths", "320"],
     "diffuse_normals": ["--stride", "8"],
     "executor": ["--steps", "75"],
     "geometry": ["--checkpoints", "4", "--no-ablation"],
@@ -43,7 +43,7 @@ Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (it t
 the full run: the production-size memory measurements (memory) and the default capture end to end at 2 actions
 through dask (pipeline: bench_end_to_end measures the same things on small captures)."""
 SPEED_BASELINES: dict[str, str | None] = {
-    "calibration": None,
+    "calibration": "decoding the 32 marker frames it reads (`x_decode`; `--markers`, the cameras stage's default source)",
     "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
               "decode reads and writes (`x_rawpy_default`, `x_memcpy`)",
     "diffuse_normals": "the fit with one roughness prior (`time_vs_one_prior`)",
@@ -66,7 +66,7 @@ SPEED_BASELINES: dict[str, str | None] = {
     "projection": "no speed figure of its own (a projection from a run's stage seconds)",
     "relight": "the simplest variant (no shadows, photometric albedo; `x_baseline`)",
     "relightset": "the simulator's render of the same view (`x_truth`)",
-    "scale": None,
+    "scale": "the same number of stub tasks through the executor alone (`x_bare`), and as one `client.map` on dask",
     "sdf_schedule": "the 1800+1800 schedule (`vs 1800+1800`)",
     "sg": "the map's order-2 SH projection (`x_sh_projection`)",
     "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",

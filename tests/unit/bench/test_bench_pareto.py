@@ -88,6 +88,26 @@ def test_stage_tradeoffs_mark_the_presets_from_their_configs(tmp_path):
     assert (tmp_path / "tradeoff_00_decode.png").is_file()
 
 
+def test_marker_calibration_tradeoff_marks_the_default_source_and_its_baseline(tmp_path):
+    import json
+
+    tradeoffs = _bench_module("bench_tradeoffs_markers_under_test", "_tradeoffs.py")
+    common = {"width": 320, "decode_s": 0.5}
+    rows = [{"method": "rig_spec", "width": 320, "seconds": 0.0, "centre_mm_mean": 4.7},
+            {"method": "markers", "seconds": 1.5, "centre_mm_mean": 0.16} | common,
+            {"method": "markers_rig_frame", "seconds": 1.4, "centre_mm_mean": 1.36} | common,
+            {"method": "markers_fixed_focal", "seconds": 1.45, "centre_mm_mean": 8.7} | common,
+            {"method": "floor_nominal_gauge", "width": 320, "seconds": 0.0, "centre_mm_mean": 1.46}]
+    (tmp_path / "bench_calibration_markers.json").write_text(json.dumps({"rows": rows}))
+    [markers] = tradeoffs.markers_tradeoffs(tmp_path)
+    marks = {p.label: p.presets for p in markers.points}
+    assert set(marks) == {"markers", "markers_rig_frame", "markers_fixed_focal"}  # no time: references in the notes
+    assert "default" in marks["markers"] and marks["markers_fixed_focal"] == ()
+    assert all(p.baseline_seconds == 0.5 for p in markers.points)
+    assert markers.front() == [True, True, False]
+    assert "rig_spec 4.70 mm" in markers.notes[0] and "floor_nominal_gauge 1.46 mm" in markers.notes[0]
+
+
 def test_every_bench_says_what_its_speed_baseline_is():
     """run_all's report lists each bench's same-process baseline (or that it has none): a new bench must say."""
     run_all = _bench_module("bench_run_all_under_test", "run_all.py")

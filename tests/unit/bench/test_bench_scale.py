@@ -29,7 +29,10 @@ def test_quick_mode_writes_finite_positive_per_task_figures(tmp_path):
         assert cold["ran"] == cold["plan_tasks"] and cached["cached"] == cached["plan_tasks"] == cold["plan_tasks"]
         assert cold["executor_tasks"] == cold["graph_tasks"] > cold["plan_tasks"] and cached["executor_tasks"] == 0
         assert set(cold["per_task"]) == {"plan_ms", "submit_ms", "execute_ms", "bookkeeping_ms",
-                                         "bookkeeping_per_graph_task_ms"}
+                                         "bookkeeping_per_graph_task_ms", "bare_ms", "x_bare"}
+        # the baseline ran as many tasks as the engine submitted, and its ratio is the two times' quotient
+        assert r["bare_executor"]["tasks"] == cold["executor_tasks"]
+        assert math.isclose(cold["per_task"]["x_bare"], cold["per_task"]["execute_ms"] / cold["per_task"]["bare_ms"])
         assert set(cached["per_task"]) == {"plan_ms", "bookkeeping_ms", "bookkeeping_per_graph_task_ms"}
         for run in (cold, cached):
             assert all(math.isfinite(v) and v > 0 for v in run["per_task"].values()), run["per_task"]
