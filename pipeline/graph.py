@@ -185,32 +185,41 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
     The raw inputs of every task are listed first and the ones whose digest is not known yet hashed together,
     ``hash_threads`` files at a time (:meth:`DigestCache.digest_all`; 0 = one per CPU core), before any key is
     computed."""
-    force = force or set()
     ordered = topo_order(stages)
-    by_name = {s.name: s for s in ordered}
     wanted = list(actions) if actions is not None else [a.action_id for a in capture.actions]
     unknown = [a for a in wanted if a not in {x.action_id for x in capture.actions}]
     if unknown:
         raise InputError(capture.root / "capture.json", f"unknown action(s) {unknown}")
-    stage_code: dict[str, dict[str, str]] = {}
-    stage_config = {stage.name: key_fields(stage.config) for stage in ordered}  # one record, shared by its tasks
-    for stage in ordered:
-        try:
-            stage_code[stage.name] = code_digests(stage.code_module, stage.code_packages)
-        except ValueError as exc:
-            raise ValueError(f"stage {stage.name}: {exc}") from exc
-    tasks: list[Task] = []
-    index: dict[tuple[str, str], Task] = {}
     emit = echo or (lambda line: log.info(line))
     for stage in ordered:
         stage.preflight(capture, emit)
+    scopes = _scopes(capture, ordered, wanted)
+    raw_of = _raw_inputs(capture, scopes)
+    digests.digest_all((path for raw in raw_of.values() if isinstance(raw, dict) for path in raw.values()),
+                       threads=hash_threads)
+    planner = _Planner(capture, ordered, store, digests, force or set(), raw_of)
+    tasks = []
+    for stage, scope_id, session_id, action_id in scopes:
+        task = planner.plan(stage, scope_id, session_id, action_id)
+        emit(f"{stage.name:<12} {scope_id:<8} {task.status:<7} {task.reason}")
+        tasks.append(task)
+    return Plan(tasks, store)
 
+
+def _scopes(capture: Capture, ordered: Sequence[Stage], wanted: Sequence[str]) -> list[tuple[Stage, str, str, str | None]]:
+    """``(stage, scope_id, session_id, action_id)`` of every task, in plan order: the session stages of every
+    session the wanted actions belong to, then each action's stages."""
     sessions_needed = sorted({capture.action(a).session_id for a in wanted})
     scopes = [(stage, session_id, session_id, None) for session_id in sessions_needed
               for stage in ordered if stage.scope == "session"]
-    scopes += [(stage, action_id, capture.action(action_id).session_id, action_id) for action_id in wanted
-               for stage in ordered if stage.scope == "action"]
-    # the raw inputs as strings (the Paths made by raw_inputs are let go scope by scope), or why they cannot be had
+    return scopes + [(stage, action_id, capture.action(action_id).session_id, action_id) for action_id in wanted
+                     for stage in ordered if stage.scope == "action"]
+
+
+def _raw_inputs(capture: Capture, scopes: Sequence[tuple[Stage, str, str, str | None]]
+                ) -> dict[tuple[str, str], dict[str, str] | str]:
+    """(stage, scope_id) -> the task's raw inputs as strings (the Paths made by ``raw_inputs`` are let go scope by
+    scope), or why they cannot be had."""
     raw_of: dict[tuple[str, str], dict[str, str] | str] = {}
     for stage, scope_id, _, _ in scopes:
         try:
@@ -220,65 +229,82 @@ def make_plan(capture: Capture, stages: Sequence[Stage], store: ArtifactStore, d
             raw_of[(stage.name, scope_id)] = str(exc)
         except FileNotFoundError as exc:
             raw_of[(stage.name, scope_id)] = f"{exc.filename}: file disappeared while planning"
-    digests.digest_all((path for raw in raw_of.values() if isinstance(raw, dict) for path in raw.values()),
-                       threads=hash_threads)
+    return raw_of
 
-    session_views: dict[str, list[str]] = {}
 
-    def plan_one(stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
-        upstream = {}
-        for req in stage.requires:
-            req_scope = session_id if by_name[req].scope == "session" else scope_id
-            upstream[req] = index[(req, req_scope)]
-        error = None
-        raw = raw_of.pop((stage.name, scope_id))
-        inputs: dict[str, str] = {}
+class _Planner:
+    """Plans one task at a time, in an order where each task's upstream tasks come first."""
+
+    def __init__(self, capture: Capture, ordered: Sequence[Stage], store: ArtifactStore, digests: DigestCache,
+                 force: set[str], raw_of: dict[tuple[str, str], dict[str, str] | str]):
+        self.capture, self.store, self.digests, self.force, self.raw_of = capture, store, digests, force, raw_of
+        self.by_name = {s.name: s for s in ordered}
+        self.stage_config = {stage.name: key_fields(stage.config) for stage in ordered}  # one record per stage
+        self.stage_code: dict[str, dict[str, str]] = {}
+        for stage in ordered:
+            try:
+                self.stage_code[stage.name] = code_digests(stage.code_module, stage.code_packages)
+            except ValueError as exc:
+                raise ValueError(f"stage {stage.name}: {exc}") from exc
+        self.index: dict[tuple[str, str], Task] = {}
+        self.session_views: dict[str, list[str]] = {}
+
+    def plan(self, stage: Stage, scope_id: str, session_id: str, action_id: str | None) -> Task:
+        upstream = {req: self.index[(req, session_id if self.by_name[req].scope == "session" else scope_id)]
+                    for req in stage.requires}
+        raw, inputs, error = self._inputs(stage, scope_id)
+        views = self.session_views.setdefault(session_id, list(self.capture.sessions[session_id].camera_ids))
+        record = {"stage": stage.name, "version": stage.version, "code": self.stage_code[stage.name],
+                  "scope": scope_id, "config": self.stage_config[stage.name],
+                  "upstream": {n: t.key for n, t in sorted(upstream.items())}, "inputs": inputs}
+        key = record_key(record)
+        status, reason, error, failed_stage, retrying = self._decide(stage, scope_id, key, record, upstream, error)
+        task = Task(stage, scope_id, session_id, action_id, key, record, status, reason, upstream, raw,
+                    views=views, error=error, failed_stage=failed_stage, retrying=retrying)
+        self.index[(stage.name, scope_id)] = task
+        return task
+
+    def _inputs(self, stage: Stage, scope_id: str) -> tuple[dict[str, str], dict[str, str], str | None]:
+        """The task's raw input paths, their digests by name, and why they cannot be had (or None)."""
+        raw = self.raw_of.pop((stage.name, scope_id))
         if isinstance(raw, str):
-            error, raw = raw, {}
+            return {}, {}, raw
+        inputs: dict[str, str] = {}
         try:
             for name, path in sorted(raw.items()):
-                inputs[name] = digests.digest(path)["sha256"]
+                inputs[name] = self.digests.digest(path)["sha256"]
         except FileNotFoundError as exc:
-            error = f"{exc.filename}: file disappeared while planning"
-        views = session_views.setdefault(session_id, list(capture.sessions[session_id].camera_ids))  # one list
-        record = {"stage": stage.name, "version": stage.version, "code": stage_code[stage.name], "scope": scope_id,
-                  "config": stage_config[stage.name], "upstream": {n: t.key for n, t in sorted(upstream.items())},
-                  "inputs": inputs}
-        key = record_key(record)
+            return raw, inputs, f"{exc.filename}: file disappeared while planning"
+        return raw, inputs, None
+
+    def _decide(self, stage: Stage, scope_id: str, key: str, record: dict[str, Any], upstream: dict[str, Task],
+                error: str | None) -> tuple[str, str, str | None, str | None, str | None]:
+        """``(status, reason, error, failed_stage, retrying)`` of a task: failed (its inputs), blocked (an upstream
+        task failed), run (forced, failed last time, or changed: the reason says what) or cached."""
         bad_up = [t for t in upstream.values() if t.status in ("failed", "blocked")]
         failed_stage = last_error = None
         if error:
-            status, reason = "failed", error
-        elif bad_up:
+            return "failed", error, error, None, None
+        if bad_up:
             failed_stage = bad_up[0].failed_stage or bad_up[0].stage.name  # the root, not the chain
-            status, reason = "blocked", f"upstream {failed_stage} failed"
-            error = f"not run: upstream {failed_stage} failed"
-        elif stage.name in force:
+            return "blocked", f"upstream {failed_stage} failed", f"not run: upstream {failed_stage} failed", \
+                failed_stage, None
+        if stage.name in self.force:
             status, reason = "run", "forced by --only/--from"
-        elif store.is_complete(stage.name, scope_id, key):
-            status, reason = "cached", f"key {short(key)} already in store"
-        elif (last_error := store.last_failure(stage.name, scope_id, key)) is not None:
+        elif self.store.is_complete(stage.name, scope_id, key):
+            return "cached", f"key {short(key)} already in store", None, None, None
+        elif (last_error := self.store.last_failure(stage.name, scope_id, key)) is not None:
             status, reason = "run", f"failed last run: {last_error}; will retry"
         else:
-            status, reason = "run", _why(record, store.latest_record(stage.name, scope_id))
+            status, reason = "run", _why(record, self.store.latest_record(stage.name, scope_id))
         retrying = None
-        if status == "run":
-            retried_up = next((t.retrying for t in upstream.values() if t.retrying), None)
-            if last_error is not None and stage.name not in force:
-                retrying = stage.name
-            elif retried_up and reason in ("no earlier result", "result missing from store"):
-                retrying = retried_up  # it never ran because that upstream stage failed
-                reason = f"upstream {retried_up} failed last run; runs after its retry"
-        task = Task(stage, scope_id, session_id, action_id, key, record, status, reason, upstream, raw,
-                    views=views, error=error, failed_stage=failed_stage, retrying=retrying)
-        emit(f"{stage.name:<12} {scope_id:<8} {status:<7} {reason}")
-        index[(stage.name, scope_id)] = task
-        tasks.append(task)
-        return task
-
-    for stage, scope_id, session_id, action_id in scopes:
-        plan_one(stage, scope_id, session_id, action_id)
-    return Plan(tasks, store)
+        retried_up = next((t.retrying for t in upstream.values() if t.retrying), None)
+        if last_error is not None and stage.name not in self.force:
+            retrying = stage.name
+        elif retried_up and reason in ("no earlier result", "result missing from store"):
+            retrying = retried_up  # it never ran because that upstream stage failed
+            reason = f"upstream {retried_up} failed last run; runs after its retry"
+        return status, reason, None, None, retrying
 
 
 # --- execution -------------------------------------------------------------------------------------
