@@ -60,73 +60,11 @@ def write_run_manifests(release: Path, capture: Capture, plan: Plan, digests: Di
     (``table_rows``, e.g. relight_examples). ``action_errors`` are portable already; the frames' and stages'
     errors are made so with ``places`` (:func:`portable_message`)."""
     action_rows, frame_tables, metric_tables = [], [], []
-    for action_id, status in action_status.items():
-        frame_rows, metric_rows = [], []  # made into Arrow one action at a time: never the release's as dicts
-        info = capture.action(action_id)
-        session = capture.sessions[info.session_id]
-        tasks = plan.of_scopes(action_id)
-        decode = next((t for t in tasks if t.stage.name == "decode"), None)
-        views = (decode.stats.get("views", {}) if decode else {}) or {}
-        first_view = next(iter(views.values()), {})
-        cams = session.rig["cameras"]
-        action_rows.append({
-            "action_id": action_id, "session_id": info.session_id, "subject": info.subject, "status": status,
-            "error": action_errors.get(action_id), "n_cameras": len(cams),
-            "width": int(first_view.get("width", cams[0]["width"])),
-            "height": int(first_view.get("height", cams[0]["height"])),
-            "stages_run": sum(t.status == "ran" for t in tasks), "stages_cached": sum(t.status == "cached" for t in tasks),
-            "seconds": float(sum(t.seconds for t in tasks))})
-        error = action_errors.get(action_id, "")
-        # Stages may report cameras they had to leave out (e.g. not calibrated): those frames failed.
-        missing_views: dict[str, str] = {}
-        for task in plan.of_scopes(info.session_id, action_id):
-            missing_views |= task.stats.get("missing_views", {}) or {}
-        for illum in capture.illuminations:
-            paths = capture.raw_paths(action_id, illum, [cam["camera_id"] for cam in cams])  # one folder listing
-            for cam in cams:
-                path = paths[cam["camera_id"]]
-                row = {"action_id": action_id, "camera_id": cam["camera_id"], "illumination": illum,
-                       "raw_path": None, "raw_bytes": None, "raw_sha256": None,
-                       "exposure_s": cam.get("exposure_s"), "width": cam["width"], "height": cam["height"],
-                       "status": "missing", "error": f"no raw file for camera {cam['camera_id']} under '{illum}'"}
-                if path is not None:
-                    d = digests.digest(path)
-                    failed_here = status == "failed" and portable_message(str(path), places) in error
-                    left_out = missing_views.get(cam["camera_id"])
-                    row |= {"raw_path": path.relative_to(capture.root).as_posix(), "raw_bytes": d["bytes"],
-                            "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
-                            "error": error if failed_here else (portable_message(f"camera {cam['camera_id']}: {left_out}", places) if left_out else None)}
-                frame_rows.append(row)
-        # Calibration frames a session stage left out (its stats' "calibration_left_out": camera -> file and
-        # reason, also logged): one row per camera and stage for every action the calibration feeds.
-        for task in plan.of_scopes(info.session_id):
-            for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
-                metric_rows.append({"action_id": action_id, "camera_id": cam,
-                                    "metric": f"{task.stage.name}_calibration_frame_left_out", "region": None,
-                                    "environment": None, "value": 1.0, "unit": "count",
-                                    "source": task.stage.name, "run_id": run_id})
-        for task in tasks:
-            if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
-                continue
-            for cam, stats in (task.stats.get("views", {}) or {}).items():
-                for metric, value in (stats or {}).items():
-                    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-                        # named after the stage: its 'valid_fraction' is not evaluate's (one name, one quantity)
-                        metric_rows.append({"action_id": action_id, "camera_id": cam,
-                                            "metric": f"{task.stage.name}_{metric}",
-                                            "region": None, "environment": None, "value": float(value),
-                                            "unit": metric_unit(metric), "source": task.stage.name,
-                                            "run_id": run_id})
-        frame_tables.append(validate_rows("frames", frame_rows))
-        metric_tables.append(validate_rows("metrics", metric_rows))
-    config_json: dict[str, str] = {}  # one string per stage, not per task (its tasks share the config record)
-    stage_rows = [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
-                   "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
-                   "seconds": float(t.seconds), "error": portable_message(t.error, places),
-                   "started_at": _utc(t.started_at),
-                   "config_json": config_json.get(t.stage.name) or config_json.setdefault(
-                       t.stage.name, json.dumps(t.record["config"], sort_keys=True))}
-                  for t in plan.tasks]
+    for action_id, status in action_status.items():  # made into Arrow one action at a time: never all as dicts
+        action_rows.append(_action_row(capture, plan, action_id, status, action_errors.get(action_id)))
+        frame_tables.append(validate_rows("frames", _frame_rows(capture, plan, digests, action_id, status,
+                                                                action_errors.get(action_id, ""), places)))
+        metric_tables.append(validate_rows("metrics", _stage_metric_rows(capture, plan, action_id, run_id)))
     for name in ("CONVENTIONS.md", "DATASHEET.md", "config.yaml", RUN_RECORD):
         asset_rows.append(asset_row(release, release / name, "document"))
     # A run over some actions (--actions) leaves the other published actions' rows in place.
@@ -141,12 +79,94 @@ def write_run_manifests(release: Path, capture: Capture, plan: Plan, digests: Di
     write_table_keeping(release, "actions", action_rows, keep)
     write_table_keeping(release, "frames", concat_validated("frames", frame_tables), keep)
     write_table_keeping(release, "assets", asset_rows, keep)
-    append_rows(release, "stage_runs", stage_rows, ["run_id", "stage", "scope_id"])
+    append_rows(release, "stage_runs", _stage_run_rows(plan, run_id, places), ["run_id", "stage", "scope_id"])
     # This run's actions get their stage statistics anew; a failed action keeps no numbers at all (its
     # accuracy rows described files that are gone); evaluate owns the other rows of the published ones.
     replace_rows(release, "metrics", concat_validated("metrics", metric_tables),
                  drop=lambda row: row["action_id"] in action_status and (
                      row["source"] != "evaluate" or action_status[row["action_id"]] != "ok"))
+
+
+def _action_row(capture: Capture, plan: Plan, action_id: str, status: str, error: str | None) -> dict[str, Any]:
+    """The action's row of the actions table: its session, subject, status, camera count, decoded image size
+    (the rig's when nothing was decoded) and its tasks' counts and seconds."""
+    info = capture.action(action_id)
+    cams = capture.sessions[info.session_id].rig["cameras"]
+    tasks = plan.of_scopes(action_id)
+    decode = next((t for t in tasks if t.stage.name == "decode"), None)
+    views = (decode.stats.get("views", {}) if decode else {}) or {}
+    first_view = next(iter(views.values()), {})
+    return {"action_id": action_id, "session_id": info.session_id, "subject": info.subject, "status": status,
+            "error": error, "n_cameras": len(cams),
+            "width": int(first_view.get("width", cams[0]["width"])),
+            "height": int(first_view.get("height", cams[0]["height"])),
+            "stages_run": sum(t.status == "ran" for t in tasks), "stages_cached": sum(t.status == "cached" for t in tasks),
+            "seconds": float(sum(t.seconds for t in tasks))}
+
+
+def _frame_rows(capture: Capture, plan: Plan, digests: DigestCache, action_id: str, status: str, error: str,
+                places: dict[Path, str]) -> list[dict[str, Any]]:
+    """The action's rows of the frames table, one per camera and illumination: the raw file's path, size and
+    digest, and whether the frame was missing, failed the action (its file named in ``error``), was left out by
+    a stage (a camera it could not use) or is ok."""
+    info = capture.action(action_id)
+    cams = capture.sessions[info.session_id].rig["cameras"]
+    missing_views: dict[str, str] = {}
+    for task in plan.of_scopes(info.session_id, action_id):
+        missing_views |= task.stats.get("missing_views", {}) or {}
+    rows = []
+    for illum in capture.illuminations:
+        paths = capture.raw_paths(action_id, illum, [cam["camera_id"] for cam in cams])  # one folder listing
+        for cam in cams:
+            path = paths[cam["camera_id"]]
+            row = {"action_id": action_id, "camera_id": cam["camera_id"], "illumination": illum,
+                   "raw_path": None, "raw_bytes": None, "raw_sha256": None,
+                   "exposure_s": cam.get("exposure_s"), "width": cam["width"], "height": cam["height"],
+                   "status": "missing", "error": f"no raw file for camera {cam['camera_id']} under '{illum}'"}
+            if path is not None:
+                d = digests.digest(path)
+                failed_here = status == "failed" and portable_message(str(path), places) in error
+                left_out = missing_views.get(cam["camera_id"])
+                row |= {"raw_path": path.relative_to(capture.root).as_posix(), "raw_bytes": d["bytes"],
+                        "raw_sha256": d["sha256"], "status": "failed" if failed_here or left_out else "ok",
+                        "error": error if failed_here else (portable_message(f"camera {cam['camera_id']}: {left_out}", places) if left_out else None)}
+            rows.append(row)
+    return rows
+
+
+def _stage_metric_rows(capture: Capture, plan: Plan, action_id: str, run_id: str) -> list[dict[str, Any]]:
+    """The action's metrics rows from its stages' statistics: a count per calibration frame a session stage left
+    out (its stats' ``calibration_left_out``), and each per-camera stage's finite per-view numbers, named after
+    the stage (its 'valid_fraction' is not evaluate's: one name, one quantity)."""
+    rows = []
+    for task in plan.of_scopes(capture.action(action_id).session_id):
+        for cam in sorted(task.stats.get("calibration_left_out", {}) or {}):
+            rows.append({"action_id": action_id, "camera_id": cam,
+                         "metric": f"{task.stage.name}_calibration_frame_left_out", "region": None,
+                         "environment": None, "value": 1.0, "unit": "count", "source": task.stage.name,
+                         "run_id": run_id})
+    for task in plan.of_scopes(action_id):
+        if not task.stage.per_view:  # only per-camera stages report per-view stats under "views"
+            continue
+        for cam, stats in (task.stats.get("views", {}) or {}).items():
+            for metric, value in (stats or {}).items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+                    rows.append({"action_id": action_id, "camera_id": cam, "metric": f"{task.stage.name}_{metric}",
+                                 "region": None, "environment": None, "value": float(value),
+                                 "unit": metric_unit(metric), "source": task.stage.name, "run_id": run_id})
+    return rows
+
+
+def _stage_run_rows(plan: Plan, run_id: str, places: dict[Path, str]) -> list[dict[str, Any]]:
+    """One stage_runs row per task of the plan (a blocked task is 'skipped')."""
+    config_json: dict[str, str] = {}  # one string per stage, not per task (its tasks share the config record)
+    return [{"run_id": run_id, "stage": t.stage.name, "version": t.stage.version, "scope": t.stage.scope,
+             "scope_id": t.scope_id, "cache_key": t.key, "status": t.status if t.status != "blocked" else "skipped",
+             "seconds": float(t.seconds), "error": portable_message(t.error, places),
+             "started_at": _utc(t.started_at),
+             "config_json": config_json.get(t.stage.name) or config_json.setdefault(
+                 t.stage.name, json.dumps(t.record["config"], sort_keys=True))}
+            for t in plan.tasks]
 
 
 def _write_split_lists(release: Path) -> list[dict[str, Any]]:
