@@ -12,7 +12,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import open3d as o3d
@@ -147,8 +147,37 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
     base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
     clear_previous_capture(out)
     say(f"subject {base.name}: {len(base.vertices)} vertices, {len(base.triangles)} triangles")
-
+    sessions, responses, frames = _write_sessions(out, config, base, calibration, say)
     blocks = np.array_split(np.arange(config.actions), config.sessions)
+    jobs = [(session_pos, int(action_index)) for session_pos, block in enumerate(blocks) for action_index in block]
+    workers = action_workers(len(jobs))
+    if workers > 1:
+        labels = _render_forked_actions(out, config, base, sessions, responses, jobs, workers, calibration, frames,
+                                        say)
+    else:
+        _write_session_frames(out, config, calibration, frames, say)
+        labels = [render_action(out, config, base, sessions[s], a, f"A{a:04d}", say, responses[s]) for s, a in jobs]
+    actions = [{"action_id": f"A{a:04d}", "session_id": sessions[s].session_id, "subject": label}
+               for (s, a), label in zip(jobs, labels)]
+    capture = {"format": CAPTURE_FORMAT,
+               "sessions": [{"session_id": s.session_id, "rig": f"sessions/{s.session_id}/rig.json"}
+                            for s in sessions],
+               "actions": actions,
+               "illuminations": list(ILLUMINATIONS),
+               "camera_ids": [cam.camera_id for cam in sessions[0].cameras],
+               "simulator": config.to_json()}
+    if calibration is not None:
+        capture["simulator_calibration"] = calibration.to_json()
+    files.write_json(out / "capture.json", capture)
+    say(f"capture written to {out} in {time.perf_counter() - started:.1f} s")
+    return out
+
+
+def _write_sessions(out: Path, config: SimConfig, base: BaseSubject, calibration: CalibrationConfig | None,
+                    say: Callable[[str], None]) -> tuple[list[Session], list[Any], list[tuple[Session, Any, Any]]]:
+    """Each session's rig and true cameras written; returns the sessions, their cameras' colour responses (None
+    without calibration) and ``(session, response, sphere centre)`` of the sessions that have calibration frames
+    or clean plates to write."""
     sessions, responses, frames = [], [], []
     for index in range(config.sessions):
         session = make_session(config, base, index)
@@ -165,69 +194,57 @@ def _simulate(out_dir: Path, config: SimConfig, progress: Callable[[str], None] 
         say(f"session {session.session_id}: rig with {len(session.cameras)} cameras, {session.leds.count} LEDs")
         if calibration is not None or config.background:
             frames.append((session, response, centre))
+    return sessions, responses, frames
 
-    def write_frames(say: Callable[[str], None]) -> None:
-        """Every session's calibration frames and clean plates (the actions do not read them)."""
-        for session, response, centre in frames:
-            begun = time.perf_counter()
-            if calibration is not None:
-                calib_frames.write_session_calibration(out, config.seed, config.noise, config.full_well_e,
-                                                       config.read_noise_dn, calibration, session, response,
-                                                       centre)
-            if config.background:
-                write_clean_plates(out, config, session, response)
-            written = [name for name, on in (("calibration frames", calibration is not None),
-                                             ("clean plates", config.background)) if on]
-            say(f"session {session.session_id}: {' and '.join(written)} in {time.perf_counter() - begun:.1f} s")
 
-    jobs = [(session_pos, int(action_index)) for session_pos, block in enumerate(blocks) for action_index in block]
-    workers = action_workers(len(jobs))
-    if workers > 1:
-        # Forked children see the subject, sessions and responses without pickling them; each action's random
-        # numbers come from its own seeded generators, so the files do not depend on which process wrote them.
-        # Once they are forked, a thread of this process writes the sessions' frames beside them. Progress
-        # messages of both come back through a queue and reach `say` in this process's main thread, whole.
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
+def _write_session_frames(out: Path, config: SimConfig, calibration: CalibrationConfig | None,
+                          frames: list[tuple[Session, Any, Any]], say: Callable[[str], None]) -> None:
+    """Every session's calibration frames and clean plates (the actions do not read them)."""
+    for session, response, centre in frames:
+        begun = time.perf_counter()
+        if calibration is not None:
+            calib_frames.write_session_calibration(out, config.seed, config.noise, config.full_well_e,
+                                                   config.read_noise_dn, calibration, session, response, centre)
+        if config.background:
+            write_clean_plates(out, config, session, response)
+        written = [name for name, on in (("calibration frames", calibration is not None),
+                                         ("clean plates", config.background)) if on]
+        say(f"session {session.session_id}: {' and '.join(written)} in {time.perf_counter() - begun:.1f} s")
 
-        global _FORKED
-        context = multiprocessing.get_context("fork")
-        messages = context.SimpleQueue()
-        _FORKED = (out, config, base, sessions, responses, messages.put)
-        try:
-            with ProcessPoolExecutor(workers, mp_context=context) as pool:
-                futures = [pool.submit(_render_forked, job) for job in jobs]  # forks every worker
-                with ThreadPoolExecutor(1) as side:
-                    written = side.submit(write_frames, messages.put)
-                    pending = set(futures) | {written}
-                    while pending:
-                        _, pending = wait(pending, timeout=0.2)
-                        while not messages.empty():
-                            say(messages.get())
-                while not messages.empty():
-                    say(messages.get())
-                written.result()
-                labels = [f.result() for f in futures]
-        finally:
-            _FORKED = None
-    else:
-        write_frames(say)
-        labels = [render_action(out, config, base, sessions[s], a, f"A{a:04d}", say, responses[s]) for s, a in jobs]
-    actions = [{"action_id": f"A{a:04d}", "session_id": sessions[s].session_id, "subject": label}
-               for (s, a), label in zip(jobs, labels)]
 
-    capture = {"format": CAPTURE_FORMAT,
-               "sessions": [{"session_id": s.session_id, "rig": f"sessions/{s.session_id}/rig.json"}
-                            for s in sessions],
-               "actions": actions,
-               "illuminations": list(ILLUMINATIONS),
-               "camera_ids": [cam.camera_id for cam in sessions[0].cameras],
-               "simulator": config.to_json()}
-    if calibration is not None:
-        capture["simulator_calibration"] = calibration.to_json()
-    files.write_json(out / "capture.json", capture)
-    say(f"capture written to {out} in {time.perf_counter() - started:.1f} s")
-    return out
+def _render_forked_actions(out: Path, config: SimConfig, base: BaseSubject, sessions: list[Session],
+                           responses: list[Any], jobs: list[tuple[int, int]], workers: int,
+                           calibration: CalibrationConfig | None, frames: list[tuple[Session, Any, Any]],
+                           say: Callable[[str], None]) -> list[str]:
+    """The actions rendered by ``workers`` forked processes while a thread of this one writes the sessions'
+    frames; returns each job's subject label.
+
+    Forked children see the subject, sessions and responses without pickling them; each action's random numbers
+    come from its own seeded generators, so the files do not depend on which process wrote them. Progress
+    messages of both come back through a queue and reach ``say`` in this process's main thread, whole."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, wait
+
+    global _FORKED
+    context = multiprocessing.get_context("fork")
+    messages = context.SimpleQueue()
+    _FORKED = (out, config, base, sessions, responses, messages.put)
+    try:
+        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+            futures = [pool.submit(_render_forked, job) for job in jobs]  # forks every worker
+            with ThreadPoolExecutor(1) as side:
+                written = side.submit(_write_session_frames, out, config, calibration, frames, messages.put)
+                pending = set(futures) | {written}
+                while pending:
+                    _, pending = wait(pending, timeout=0.2)
+                    while not messages.empty():
+                        say(messages.get())
+            while not messages.empty():
+                say(messages.get())
+            written.result()
+            return [f.result() for f in futures]
+    finally:
+        _FORKED = None
 
 
 _FORKED: tuple | None = None  # what the forked action renderers share (set only while a pool runs)
