@@ -260,7 +260,8 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
 
 
 def from_dict(cls: type, data: dict[str, Any], where: str = "config") -> Any:
-    """Build ``cls`` from a dict, rejecting unknown keys and mistyped values."""
+    """Build ``cls`` from a dict, rejecting unknown keys and mistyped values (a ConfigError for the first) and
+    values that break the rules (one :class:`InvalidConfig` naming all of them, ``<where>.<dotted field>``)."""
     types_by_name = _field_types(cls)
     unknown = sorted(set(data) - set(types_by_name))
     if unknown:
@@ -305,7 +306,8 @@ def _checked(build: Any, where: str) -> Any:
 
 
 def merge(config: Any, overrides: dict[str, Any], where: str = "config") -> Any:
-    """A copy of ``config`` with ``overrides`` (a nested dict) applied; unknown keys are errors."""
+    """A copy of ``config`` with ``overrides`` (a nested dict) applied; unknown keys and mistyped values are
+    errors, and so are the values that break the rules (one :class:`InvalidConfig` naming all of them)."""
     if not isinstance(overrides, dict):
         raise ConfigError(f"{where}: expected a mapping, got {overrides!r}")
     types_by_name = _field_types(type(config))
