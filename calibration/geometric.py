@@ -39,19 +39,21 @@ from typing import Any, Callable
 
 import numpy as np
 
+from pipeline.config import Documented, broken, checked
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
 RAW_SUFFIXES = (".dng", ".nef", ".cr2", ".cr3", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw", ".raw")
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
 @dataclass(frozen=True)
-class GeometricConfig:
+class GeometricConfig(Documented):
     """Options of :func:`calibrate_images`."""
 
     max_image_size: int = 1600
     """Longest image side (pixels) at which SIFT features are extracted; larger images are downscaled
     for extraction (keypoints are reported in full-resolution pixels). -1: full resolution."""
-    max_num_features: int = 8192
+    max_num_features: int = checked(8192, ge=64)
     """Maximum SIFT features per image."""
     peak_threshold: float = 0.0066666
     """SIFT difference-of-Gaussian peak threshold (COLMAP default 0.02/3); lower finds more features on
@@ -62,7 +64,7 @@ class GeometricConfig:
     """DSP-SIFT descriptors (pooled over scales): more and better matches on wide baselines, slower."""
     estimate_affine_shape: bool = False
     """Affine-adapted SIFT keypoints (more robust to oblique views, slower)."""
-    camera_model: str = "SIMPLE_RADIAL"
+    camera_model: str = checked("SIMPLE_RADIAL", one_of=CAMERA_MODELS)
     """COLMAP camera model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV. Exported as OpenCV
     K and a 5-vector dist (k1 k2 p1 p2 k3)."""
     shared_camera: bool = False
@@ -73,7 +75,7 @@ class GeometricConfig:
     """Refine principal points in bundle adjustment (poorly constrained; off by default)."""
     refine_extra_params: bool = True
     """Refine distortion parameters in bundle adjustment."""
-    matcher: str = "auto"
+    matcher: str = checked("auto", one_of=("auto", "exhaustive", "sequential"))
     """"exhaustive", "sequential" (loop closure on, for an ordered ring) or "auto": exhaustive up to
     ``exhaustive_max_images`` images, sequential above."""
     exhaustive_max_images: int = 64
@@ -82,7 +84,7 @@ class GeometricConfig:
     """Neighbours matched on each side by sequential matching."""
     guided_matching: bool = False
     """Second, epipolar-guided matching pass per pair (more inliers, slower)."""
-    min_num_matches: int = 15
+    min_num_matches: int = checked(15, ge=4)
     """Minimum verified matches for an image pair to be used by the mapper."""
     retry_unregistered: bool = True
     """When images stay unregistered, continue the largest model with relaxed registration thresholds."""
@@ -101,7 +103,7 @@ class GeometricConfig:
     """Observations with a larger reprojection error are dropped between final BA rounds."""
     final_retriangulate: bool = False
     """Re-triangulate all matches with the registered poses before the final bundle adjustment."""
-    alignment_max_error: float = 0.05
+    alignment_max_error: float = checked(0.05, gt=0.0)
     """RANSAC inlier threshold (units of ``known_centres``, metres on the stage) of the similarity
     alignment of reconstructed to known camera centres."""
     num_threads: int = -1
@@ -111,15 +113,10 @@ class GeometricConfig:
     verbose: bool = False
     """Let COLMAP log to stderr."""
 
-    def __post_init__(self) -> None:
-        if self.camera_model not in CAMERA_MODELS:
-            raise ValueError(f"camera_model must be one of {CAMERA_MODELS}, got {self.camera_model!r}")
-        if self.matcher not in ("auto", "exhaustive", "sequential"):
-            raise ValueError(f"matcher must be auto, exhaustive or sequential, got {self.matcher!r}")
-        if self.max_image_size != -1 and self.max_image_size < 64:
-            raise ValueError("max_image_size must be -1 or >= 64")
-        if self.max_num_features < 64 or self.min_num_matches < 4 or self.alignment_max_error <= 0:
-            raise ValueError("max_num_features >= 64, min_num_matches >= 4 and alignment_max_error > 0")
+    def _checks(self) -> list[str]:
+        if self.max_image_size != -1 and not self.max_image_size >= 64:
+            return [broken(self, "max_image_size", "must be -1 or >= 64")]
+        return []
 
 
 @dataclass
@@ -934,22 +931,22 @@ def calibrate_folder(images_dir: Path, out_dir: Path, intrinsics_file: Path | No
 
 
 @dataclass(frozen=True)
-class RigRefineConfig:
+class RigRefineConfig(Documented):
     """Options of :func:`calibrate_rig` beyond the shared :class:`GeometricConfig` (features, matching,
     threads, seed, BA iterations and tolerance, ``alignment_max_error``)."""
 
-    ba_rounds: int = 4
+    ba_rounds: int = checked(4, ge=1)
     """Rounds of (bundle adjust poses [and focal], drop observations with reprojection error above
     ``filter_max_error_px``, re-triangulate with the refined poses)."""
     refine_focal_length: bool = True
     """Refine each camera's focal lengths (fx, fy) in the bundle adjustment; the principal point stays at
     the nominal one unless ``GeometricConfig.refine_principal_point``."""
-    loss: str = "cauchy"
+    loss: str = checked("cauchy", one_of=("cauchy", "huber", "trivial"))
     """Robust loss of the bundle adjustment: "cauchy" or "huber" (scale ``loss_scale_px``) or "trivial"."""
     loss_scale_px: float = 1.0
-    filter_max_error_px: float = 2.0
+    filter_max_error_px: float = checked(2.0, gt=0.0)
     """Observations with a larger reprojection error are dropped between rounds."""
-    min_observations: int = 30
+    min_observations: int = checked(30, ge=1)
     """Images observing fewer triangulated points than this keep their nominal pose (held constant in
     the bundle adjustment) and are listed in ``unregistered``."""
     max_change_m: float = 0.05
@@ -971,7 +968,7 @@ class RigRefineConfig:
     """Per-axis sigma (rotation vector) of a camera orientation around the nominal one."""
     prior_focal_pct: float = 0.5
     """Sigma of the focal length around the nominal one, percent."""
-    matching: str = "guided"
+    matching: str = checked("guided", one_of=("guided", "colmap"))
     """"guided": match SIFT descriptors only along the epipolar band the nominal (later: refined) poses
     predict and only where the two rays meet inside ``scene_radius_m`` of the stage origin (many more
     correct matches on weakly textured, repetitive scenes); "colmap": COLMAP's exhaustive matching with
@@ -993,14 +990,6 @@ class RigRefineConfig:
     scene_radius_m: float = 1.8
     """Guided matching: matched rays must meet within this distance of the stage origin (the LED sphere
     and what is inside it)."""
-
-    def __post_init__(self) -> None:
-        if self.ba_rounds < 1 or self.min_observations < 1 or self.filter_max_error_px <= 0:
-            raise ValueError("RigRefineConfig: ba_rounds >= 1, min_observations >= 1, filter_max_error_px > 0")
-        if self.loss not in ("cauchy", "huber", "trivial"):
-            raise ValueError(f"RigRefineConfig.loss must be cauchy, huber or trivial, got {self.loss!r}")
-        if self.matching not in ("guided", "colmap"):
-            raise ValueError(f"RigRefineConfig.matching must be guided or colmap, got {self.matching!r}")
 
 
 def _rigid3d(cam_from_world: np.ndarray) -> Any:

@@ -36,27 +36,28 @@ import numpy as np
 
 from calibration.geometric import (CalibrationResult, CameraCalibration, K_to_colmap, camera_centre,
                                    colmap_params_from_K, rotation_angle_deg, transform_cam_from_world, umeyama)
+from pipeline.config import Documented, checked
 
 
 @dataclass(frozen=True)
-class MarkerCalibrationConfig:
+class MarkerCalibrationConfig(Documented):
     """Options of :func:`calibrate_markers`."""
 
-    threshold: float = 0.2
+    threshold: float = checked(0.2, gt=0.0)
     """Blob detection threshold above the local background, in units of the image (the stage passes
     images scaled so a white surface is ~1: balls are ~0.9, the stage background ~0.03)."""
     background_window_px: int = 21
     """Side of the grey opening that estimates the background under the balls (> the largest ball image)."""
-    shift_search_px: float = 20.0
+    shift_search_px: float = checked(20.0, gt=0.0)
     """Largest common image shift between nominal predictions and blobs that the first pass looks for
     (nominal orientation error 0.2 deg sigma: ~20 px is 0.5 deg at 320 px with the longest lens)."""
     zoom_search: float = 0.05
     """Largest image zoom about the principal point (nominal focal length or distance error) the first
     pass looks for, in steps of 1%."""
-    first_search_px: float = 4.0
+    first_search_px: float = checked(4.0, gt=0.0)
     """Search radius of the first identification, after the common zoom and shift are removed (what is
     left of the nominal camera's errors: roll, parallax, the zoom's 0.5% step)."""
-    search_px: float = 1.5
+    search_px: float = checked(1.5, gt=0.0)
     """Search radius of the later identifications, from the refined camera."""
     clearance_px: float = 3.0
     """A ball is used only when every other ball's predicted image is further than the two apparent
@@ -65,17 +66,17 @@ class MarkerCalibrationConfig:
     """The same clearance in the first identification (predictions are still a few pixels off)."""
     border_px: float = 2.0
     """Balls whose image comes closer than this to the image border are not used."""
-    passes: int = 3
+    passes: int = checked(3, ge=1)
     """Identify + fit rounds (the first from the nominal camera)."""
-    min_markers: int = 12
+    min_markers: int = checked(12, ge=6)
     """Fewest identified balls for a camera to be calibrated; fewer: the camera is unregistered."""
     ransac_max_error_px: float = 3.0
     """Inlier threshold of the first, RANSAC pose estimate (the nominal focal length may be 1.5% off)."""
-    max_residual_px: float = 0.6
+    max_residual_px: float = checked(0.6, gt=0.0)
     """Correspondences with a larger reprojection error after a refinement are dropped in the next round."""
     refine_focal_length: bool = True
     """Fit the focal length (pixel aspect kept at the rig spec's); False keeps the nominal focal length."""
-    frame: str = "target"
+    frame: str = checked("target", one_of=("target", "rig"))
     """Gauge: "target": the surveyed ball positions define the stage frame (the frame is registered to the
     stage); "rig": move the calibrated cameras by the rigid transform that best maps their centres onto
     the nominal ones (when the frame's placement in the stage is not known; scale stays the frame's)."""
@@ -83,14 +84,6 @@ class MarkerCalibrationConfig:
     """A calibrated centre further than this from the nominal one, or ..."""
     max_change_deg: float = 2.0
     """... an orientation further than this, marks a failed calibration: the camera is unregistered."""
-
-    def __post_init__(self) -> None:
-        if self.frame not in ("target", "rig"):
-            raise ValueError(f"MarkerCalibrationConfig.frame must be 'target' or 'rig', got {self.frame!r}")
-        if self.passes < 1 or self.min_markers < 6 or self.threshold <= 0:
-            raise ValueError("MarkerCalibrationConfig: passes >= 1, min_markers >= 6 (pose + focal), threshold > 0")
-        if min(self.search_px, self.first_search_px, self.shift_search_px, self.max_residual_px) <= 0:
-            raise ValueError("MarkerCalibrationConfig: search radii and max_residual_px must be > 0")
 
 
 def sphere_image_centres(K: np.ndarray, cam_from_world: np.ndarray, centres_world: np.ndarray, radius: float

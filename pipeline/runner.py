@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from pipeline.capture import Capture, open_capture
-from pipeline.config import Documented, dump_yaml
+from pipeline.config import Documented, checked, dump_yaml
 from pipeline.graph import DaskExecutor, Plan, SyncExecutor, Task, downstream_of, execute, make_plan
 from pipeline.hashing import DigestCache
 from pipeline.errors import WriteError
@@ -35,29 +35,23 @@ CONVENTIONS = Path(__file__).with_name("conventions.md")
 
 @dataclass(frozen=True)
 class ExecutionConfig(Documented):
-    scheduler: str = "local"
+    scheduler: str = checked("local", nonempty=True)
     """"local" (a dask.distributed cluster on this machine), "sync" (in this process), or the address
     of an existing dask scheduler (e.g. tcp://10.0.0.5:8786)."""
-    workers: int = 0
+    workers: int = checked(0, ge=0)
     """Worker processes of the local cluster; 0 = one per CPU core (at most 8)."""
     memory_limit: str = "auto"
     """Memory limit per local worker (dask syntax, e.g. "4GiB")."""
-    scopes_in_flight: int = 0
+    scopes_in_flight: int = checked(0, ge=0)
     """At most this many actions (or sessions) submitted to the executor and not finished; the next goes in as
     one finishes, so the scheduler holds a few actions' tasks, not the release's. 0 = twice the executor's
     worker threads, at least 4."""
 
-    hash_threads: int = 0
+    hash_threads: int = checked(0, ge=0)
     """Threads that hash the raw frames not hashed before (their digests enter the cache keys) while planning;
     0 = one per CPU core of the machine that runs the plan."""
 
     not_in_key = ("scheduler", "workers", "memory_limit", "scopes_in_flight", "hash_threads")
-
-    def __post_init__(self) -> None:
-        if self.workers < 0 or not self.scheduler or self.scopes_in_flight < 0 or self.hash_threads < 0:
-            raise ValueError(f"execution: need workers >= 0, scopes_in_flight >= 0, hash_threads >= 0 and a "
-                             f"scheduler, got {self.workers!r}, {self.scopes_in_flight!r}, {self.hash_threads!r}, "
-                             f"{self.scheduler!r}")
 
 
 @dataclass

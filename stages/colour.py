@@ -20,7 +20,7 @@ import numpy as np
 
 from calibration.colour import apply_colour_matrix, chart_patch_means, delta_e_2000, fit_colour_matrix
 from pipeline.codecs.raw import decode_raw
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 
@@ -31,12 +31,8 @@ class ColourConfig(Documented):
     """Fit per-camera colour matrices when the session has chart frames (else identity)."""
     white_preserving: bool = False
     """Constrain the fit so the chart's grey ramp maps exactly onto the reference greys."""
-    erode_px: int = 2
+    erode_px: int = checked(2, ge=0)
     """Pixels trimmed from each patch box (demosaicing blur at patch edges)."""
-
-    def __post_init__(self) -> None:
-        if self.erode_px < 0:
-            raise ValueError(f"colour.erode_px must be >= 0, got {self.erode_px!r}")
 
 
 def _left_out(ctx: StageContext, view: str, reason: str) -> dict[str, Any]:

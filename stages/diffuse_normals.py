@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.codecs.exr import read_exr, write_exr
 from pipeline.codecs.image import preview_normals, read_png, write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
 from stages.exr_headers import EXR_HEADERS
@@ -69,18 +69,12 @@ class DiffuseNormalsConfig(Documented):
     *visible* directions, which leans away from an arm or the other leg). On the default capture the maps
     come closer to the simulator's normals, most where much of the cosine-weighted sphere is hidden
     (bench/bench_diffuse_normals.py measures the error with and without). About 1 s per camera."""
-    occlusion_directions: int = 256
+    occlusion_directions: int = checked(256, ge=16)
     """Directions (Fibonacci sphere) of the visibility."""
-    occlusion_min_visible: float = 0.1
+    occlusion_min_visible: float = checked(0.1, ge=0.0, lt=1.0)
     """Pixels whose cosine-weighted visible fraction is below this keep the fitted normal."""
     previews: bool = True
     """Write a PNG preview per camera and a contact sheet."""
-
-    def __post_init__(self) -> None:
-        if int(self.occlusion_directions) < 16:
-            raise ValueError(f"occlusion_directions must be >= 16, got {self.occlusion_directions!r}")
-        if not 0.0 <= float(self.occlusion_min_visible) < 1.0:
-            raise ValueError(f"occlusion_min_visible must be in [0, 1), got {self.occlusion_min_visible!r}")
 
 
 @functools.lru_cache(maxsize=2)

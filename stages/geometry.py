@@ -14,7 +14,6 @@ stage's time over the two passes' step counts.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.image import preview_normals, write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import camera_maps
@@ -49,48 +48,32 @@ class GeometryConfig(Documented):
     surface bulges out where it is occluded (inner thighs, armpits, neck: 4-5 mm on A0000). The first pass runs
     ``first_pass_iterations`` steps (the published mesh and ``sdf/sdf.pt`` are the second pass's;
     ``training.json`` keeps both)."""
-    deocclude_iterations: int = 0
+    deocclude_iterations: int = checked(0, ge=0)
     """0: the second pass trains a new field with the full schedule. N > 0: it continues the first field for N
     steps at the schedule's final sharpness with every hash level on (cheaper, and a worse mesh than a new
     field on the default capture)."""
-    first_pass_iterations: int = 600
+    first_pass_iterations: int = checked(600, ge=0)
     """Steps of the first SDF pass when ``deocclude`` trains two (0: ``sdf.iterations``; the schedule's warm-up,
     sharpness ramp and coarse-to-fine are scaled to it). The first mesh only has to give the body's occlusion
     of the LED sphere and where it misses the normals; the published mesh is the second pass's
     (bench/bench_sdf_schedule.py: time against Chamfer over both passes' steps)."""
-    first_pass_mesh_resolution: int = 256
+    first_pass_mesh_resolution: int = checked(256, ge=0)
     """Marching-cubes cells of the first pass's mesh (0: ``mesh_resolution``)."""
-    deocclude_directions: int = 128
+    deocclude_directions: int = checked(128, ge=16)
     """Directions (Fibonacci sphere) of the visibility traced for the second pass."""
-    deocclude_min_visible: float = 0.1
+    deocclude_min_visible: float = checked(0.1, ge=0.0, lt=1.0)
     """Pixels whose cosine-weighted visible fraction is below this keep eq. 1's normal."""
-    second_pass_importance: float = 0.2
+    second_pass_importance: float = checked(0.2, ge=0.0, lt=1.0)
     """Share of the second pass's rays drawn where the first mesh's normal is more than
     ``second_pass_error_floor_deg`` off the de-occluded normal, in proportion to the excess (the fingers, the
     face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. On the
     default capture the share lowers the second pass's Chamfer together with the cpu SDF preset's table size
     and grazing/outlier settings; a share of 0.5 leaves too few rays for the rest. The mask loss counts only
     the uniform rays."""
-    second_pass_error_floor_deg: float = 10.0
+    second_pass_error_floor_deg: float = checked(10.0, ge=0.0)
     """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
     previews: bool = True
     """Write a loss-curve plot and rendered normals of the mesh beside the photometric ones."""
-
-    def __post_init__(self) -> None:
-        if int(self.deocclude_iterations) < 0:
-            raise ValueError(f"deocclude_iterations must be >= 0, got {self.deocclude_iterations!r}")
-        if int(self.first_pass_iterations) < 0:
-            raise ValueError(f"first_pass_iterations must be >= 0, got {self.first_pass_iterations!r}")
-        if int(self.first_pass_mesh_resolution) < 0:
-            raise ValueError(f"first_pass_mesh_resolution must be >= 0, got {self.first_pass_mesh_resolution!r}")
-        if int(self.deocclude_directions) < 16:
-            raise ValueError(f"deocclude_directions must be >= 16, got {self.deocclude_directions!r}")
-        if not 0.0 <= float(self.deocclude_min_visible) < 1.0:
-            raise ValueError(f"deocclude_min_visible must be in [0, 1), got {self.deocclude_min_visible!r}")
-        if not 0.0 <= float(self.second_pass_importance) < 1.0:
-            raise ValueError(f"second_pass_importance must be in [0, 1), got {self.second_pass_importance!r}")
-        if not (math.isfinite(float(self.second_pass_error_floor_deg)) and self.second_pass_error_floor_deg >= 0):
-            raise ValueError(f"second_pass_error_floor_deg must be >= 0, got {self.second_pass_error_floor_deg!r}")
 
 
 def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:

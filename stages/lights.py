@@ -22,7 +22,7 @@ import numpy as np
 from calibration.colour import apply_colour_matrix
 from calibration.light import ideal_light_model
 from pipeline.codecs.raw import decode_raw
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import colour_matrix
@@ -36,19 +36,14 @@ ILLUMINATIONS = ("full_on", "pos", "neg")
 class LightsConfig(Documented):
     enabled: bool = True
     """Fit the LED ratio model when the session has sphere frames (else the ideal d = 2/3 n)."""
-    degree: int = 2
+    degree: int = checked(2, one_of=(1, 2, 3))
     """Spherical-harmonic degree of the ratio model (1 = affine, 2, 3)."""
-    iterations: int = 4
+    iterations: int = checked(4, ge=0)
     """Gauss-Newton iterations when inverting the model per pixel."""
-    erode_px: int = 2
+    erode_px: int = checked(2, ge=0)
     """Pixels trimmed from the sphere's silhouette (demosaicing blur, grazing angles)."""
-    min_gain: float = 0.05
+    min_gain: float = checked(0.05, ge=0.0, lt=1.0)
     """Use the fitted model only if it lowers the held-out sphere error by at least this fraction."""
-
-    def __post_init__(self) -> None:
-        if self.degree not in (1, 2, 3) or self.iterations < 0 or self.erode_px < 0 or not 0.0 <= self.min_gain < 1.0:
-            raise ValueError(f"lights: need degree 1, 2 or 3, iterations >= 0, erode_px >= 0 and 0 <= min_gain < 1; "
-                             f"got {self.degree!r}, {self.iterations!r}, {self.erode_px!r}, {self.min_gain!r}")
 
 
 class LightsStage(Stage):

@@ -46,7 +46,7 @@ import numpy as np
 from pipeline.codecs.exr import write_exr
 from stages.exr_headers import EXR_HEADERS
 from pipeline.codecs.image import preview_linear, preview_scalar, write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
@@ -57,27 +57,27 @@ ILLUMINATION_DIRS = ("full_on", "pos", "neg")
 
 @dataclass(frozen=True)
 class MaterialsConfig(Documented):
-    texture_size: int = 256
+    texture_size: int = checked(256, ge=1)
     """Width and height of the roughness texture (the atlas of the textures stage; roughness varies slowly)."""
-    max_views: int = 16
+    max_views: int = checked(16, ge=1)
     """Cameras used per texel (the best by angle, distance and support). On the simulator with the mesh of the
     one-pass SDF 8 and 16 were close (MAE 0.061/0.067 vs 0.068/0.068 on A0000/A0001); with the two-pass mesh
     (geometry.deocclude) 8 views fit too smooth (0.067/0.082, bias -0.025/-0.040) and 16 views give
     0.061/0.067 (bias +0.041/+0.015), for 2.5 s more per action (bench_materials)."""
-    specular_model: str = "ggx_table"
+    specular_model: str = checked("ggx_table", one_of=("ggx_table", "sg"))
     """"ggx_table" (exact GGX lobe moments under the linear gradients) or "sg" (the spherical-Gaussian lobes
     relighting uses). Measured on the simulator the table is the more accurate (see bench_materials)."""
     f0: float = 0.02
     """Fresnel reflectance at normal incidence (skin, as the paper)."""
     fit_albedo: bool = True
     """Solve the diffuse albedo with the roughness (the white-light albedo still holds specular light)."""
-    roughness_min: float = 0.05
+    roughness_min: float = checked(0.05, gt=0.0, lt="roughness_max")
     """Lower bound of the fitted perceptual roughness."""
-    roughness_max: float = 1.0
+    roughness_max: float = checked(1.0, le=1.0)
     """Upper bound of the fitted perceptual roughness."""
-    median_neighbours: int = 100
+    median_neighbours: int = checked(100, ge=1)
     """Texels (nearest on the surface) whose median gives the published roughness; 1 = no smoothing."""
-    median_min_visibility: float = 0.95
+    median_min_visibility: float = checked(0.95, ge=0.0, le=1.0)
     """Only texels whose ambient visibility on the mesh (cosine-weighted visible fraction, ``occlusion_rays``
     rays) reaches this vote in that median; the others take the median of their nearest voters. The fit
     assumes every LED above a texel's horizon lights it, so texels the body itself shadows come out too rough:
@@ -85,11 +85,11 @@ class MaterialsConfig(Documented):
     0.51-0.54 below 0.85, skin (0.45) 0.47 and 0.60-0.68. Roughness MAE (bench scratch, A0000 / A0001) 0.078 /
     0.080 with every fitted texel voting, 0.074 / 0.076 at 0.85, 0.061 / 0.067 at 0.95 (the voters: 60% of
     the texels). 0 = every fitted texel votes."""
-    occlusion_rays: int = 64
+    occlusion_rays: int = checked(64, ge=1)
     """Cosine-weighted rays per texel for the ambient occlusion."""
-    occlusion_size: int = 512
+    occlusion_size: int = checked(512, ge=1)
     """Texture size at which the occlusion is computed (then sampled at the albedo texture's size)."""
-    min_occlusion: float = 0.2
+    min_occlusion: float = checked(0.2, gt=0.0, le=1.0)
     """Floor of the visible fraction the albedo is divided by (deep creases would blow up noise)."""
     min_alpha: float = 0.5
     """Map pixels with a lower photometric validity alpha are not used."""
@@ -99,19 +99,6 @@ class MaterialsConfig(Documented):
     """Cameras at more grazing angles to a texel than this cosine are not used."""
     previews: bool = True
     """Write PNG previews of roughness, fit error, occlusion and the de-occluded albedo."""
-
-    def __post_init__(self) -> None:
-        if self.specular_model not in ("ggx_table", "sg"):
-            raise ValueError(f"materials.specular_model must be 'ggx_table' or 'sg', got {self.specular_model!r}")
-        if not 0 < self.roughness_min < self.roughness_max <= 1:
-            raise ValueError("materials: need 0 < roughness_min < roughness_max <= 1")
-        if not 0 < self.min_occlusion <= 1:
-            raise ValueError("materials.min_occlusion must be in (0, 1]")
-        if not 0 <= self.median_min_visibility <= 1:
-            raise ValueError("materials.median_min_visibility must be in [0, 1]")
-        for name in ("texture_size", "max_views", "median_neighbours", "occlusion_rays", "occlusion_size"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"materials.{name} must be >= 1")
 
 
 class MaterialsStage(Stage):

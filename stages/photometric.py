@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.codecs.exr import read_exr, write_exr
 from pipeline.codecs.image import label_picture, preview_linear, preview_normals, read_png, write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.cameras import load_cameras
@@ -32,24 +32,18 @@ class SpecularConfig(Documented):
     of eq. 1's ratio alone: a lower mean error against the simulator's normals over valid pixels, also on a
     subject the roughness prior was not chosen on (bench/bench_specular_normals.py measures it there)."""
 
-    roughness: float = 0.6
+    roughness: float = checked(0.6, gt=0.0, le=1.0)
     """Perceptual GGX roughness assumed for every pixel the materials' roughness does not reach (a prior: one
     pixel cannot also pin it down)."""
-    f0: float = 0.04
+    f0: float = checked(0.04, ge=0.0, le=1.0)
     """Schlick Fresnel reflectance at normal incidence assumed (dielectrics: 0.02-0.05)."""
-    solver: str = "levenberg_marquardt"
+    solver: str = checked("levenberg_marquardt", one_of=SOLVERS)
     """``levenberg_marquardt`` or ``adam``. On the default capture 6 Levenberg-Marquardt steps reach the
     error against the simulator's normals that 40 Adam steps do, in about a third of the time."""
-    steps: int = 6
+    steps: int = checked(6, ge=0)
     """Iterations of the per-pixel fit per start (Adam needs about 40)."""
-    lr: float = 0.03
+    lr: float = checked(0.03, gt=0.0)
     """Adam's step size (``solver: adam`` only)."""
-
-    def __post_init__(self) -> None:
-        if self.solver not in SOLVERS:
-            raise ValueError(f"diffuse_normals.fit.solver must be one of {SOLVERS}, got {self.solver!r}")
-        if not (0.0 < self.roughness <= 1.0 and 0.0 <= self.f0 <= 1.0 and self.steps >= 0 and self.lr > 0):
-            raise ValueError("diffuse_normals.fit: need 0 < roughness <= 1, 0 <= f0 <= 1, steps >= 0, lr > 0")
 
 
 @dataclass(frozen=True)
@@ -68,17 +62,13 @@ class DenoiseConfig(Documented):
     """Also filter ``normal_alpha``, the maps the SDF is fitted to. Off: filtered, they are closer to the truth
     on the default capture, but the mesh came out worse (Chamfer and F-score at 1 mm), and the relit views
     with it."""
-    spatial_sigma_px: float = 1.0
+    spatial_sigma_px: float = checked(1.0, gt=0.0)
     """Gaussian width of the spatial weight, pixels."""
-    range_sigma: float = 0.03
+    range_sigma: float = checked(0.03, gt=0.0)
     """Gaussian width of the weight on albedo differences (albedo units): a few times the per-pixel noise,
     well under the contrast of a material edge."""
-    radius: int = 2
+    radius: int = checked(2, ge=0)
     """Half-size of the square window, pixels."""
-
-    def __post_init__(self) -> None:
-        if not (self.spatial_sigma_px > 0 and self.range_sigma > 0 and self.radius >= 0):
-            raise ValueError("photometric.denoise: need spatial_sigma_px > 0, range_sigma > 0, radius >= 0")
 
 
 @dataclass(frozen=True)

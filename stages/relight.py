@@ -44,7 +44,7 @@ import numpy as np
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import label_picture, preview_linear, preview_normals, write_png
 from stages.exr_headers import EXR_HEADERS
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from stages.numerics import numeric_threads
 from stages.numerics.camera import Camera
@@ -60,20 +60,21 @@ TURNTABLE_SIZE = (240, 160)
 
 @dataclass(frozen=True)
 class RelightConfig(Documented):
-    environments: tuple[str, ...] = ("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k")
+    environments: tuple[str, ...] = checked(("studio_small_03_1k", "kiara_1_dawn_1k", "forest_slope_1k"),
+                                            nonempty=True)
     """Environment maps: a file path, a file name (stem) looked up in $ULTRASTAGE_HDRI, the capture's
     ``environments/`` folder and ../shared/data/hdri, or ``procedural:sky`` / ``procedural:studio``. A name
     found nowhere is replaced by the procedural sky (named and labelled so), with a warning in the log and
     its request in environments.json."""
-    novel_views: int = 3
+    novel_views: int = checked(3, ge=1)
     """Novel cameras per action, each halfway between two neighbouring captured cameras."""
-    sources: int = 6
+    sources: int = checked(6, ge=1)
     """Nearest captured views the G-buffer is reprojected from (the paper's 6)."""
-    sg_lobes: int = 32
+    sg_lobes: int = checked(32, ge=1)
     """Spherical Gaussians per environment (bench_sg: 0.9% median irradiance error at 32)."""
-    fit_height: int = 64
+    fit_height: int = checked(64, ge=1)
     """Rows of the downsampled map the SG fit works on."""
-    normals: str = "fused"
+    normals: str = checked("fused", one_of=("fused", "reprojected", "mesh"))
     """Shading normals (also released as ``renders/<view>/normal.exr``): "fused" (the reprojected normals'
     detail on the mesh normals' low frequencies, :func:`stages.numerics.gbuffer.fuse_normals`), "reprojected"
     (the G-buffer's, blended from the photometric maps, as the paper) or "mesh" (the mesh's smooth normals).
@@ -83,7 +84,7 @@ class RelightConfig(Documented):
     5.45, 30 mm: 5.67); relit 23.37 dB reprojected, 23.24 mesh, 23.47 fused (8 mm: 23.43, 30 mm: 23.48). The
     mesh's normals alone relight worse than they measure: the reprojected albedo's errors partly cancel the
     reprojected normals' at the scale of the detail, which the fusion keeps."""
-    normal_fusion_m: float = 0.015
+    normal_fusion_m: float = checked(0.015, gt=0.0)
     """Frequency split of the "fused" normals: the Gaussian's sigma on the surface, metres (turned into pixels
     at each novel view's median depth; 3 px on the default capture)."""
     diffuse_normals: bool = True
@@ -97,13 +98,13 @@ class RelightConfig(Documented):
     capture (bench/bench_relight.py scores the white-light albedo sources beside the default)."""
     shadows: bool = True
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
-    visibility_directions: int = 256
+    visibility_directions: int = checked(256, ge=1)
     """Directions per pixel for the self-occlusion (Fibonacci sphere)."""
     f0: float = 0.02
     """Fresnel reflectance at normal incidence."""
     depth_tolerance_m: float = 0.01
     """A source pixel is visible when its mesh depth agrees with the point's within this."""
-    coverage_samples: int = 4
+    coverage_samples: int = checked(4, ge=1)
     """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
     whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
     still sampled at pixel centres; a covered pixel whose centre misses the mesh takes the mean of its shaded
@@ -120,17 +121,6 @@ class RelightConfig(Documented):
     views (the paper's blending network, :mod:`stages.numerics.learned_blend`) instead of the heuristic
     weights. Off by default: on the default capture the relit novel views came no closer to the simulator's
     with it (:class:`stages.numerics.learned_blend.LearnedBlendConfig`)."""
-
-    def __post_init__(self) -> None:
-        if not self.environments:
-            raise ValueError("relight.environments must name at least one environment")
-        if self.normals not in ("mesh", "reprojected", "fused"):
-            raise ValueError(f"relight.normals must be 'fused', 'reprojected' or 'mesh', got {self.normals!r}")
-        if not (np.isfinite(self.normal_fusion_m) and self.normal_fusion_m > 0):
-            raise ValueError(f"relight.normal_fusion_m must be positive, got {self.normal_fusion_m!r}")
-        for name in ("novel_views", "sources", "sg_lobes", "fit_height", "visibility_directions", "coverage_samples"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"relight.{name} must be >= 1")
 
 
 def novel_cameras(cameras: dict[str, Camera], count: int) -> list[Camera]:

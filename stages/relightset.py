@@ -36,7 +36,7 @@ import numpy as np
 
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, broken, checked
 from pipeline.errors import InputError
 from pipeline.hashing import code_digests
 from pipeline.stage import Stage, StageContext
@@ -57,48 +57,39 @@ RENDER_FORMAT = 1
 
 @dataclass(frozen=True)
 class RelightSetConfig(Documented):
-    examples_per_action: int = 3
+    examples_per_action: int = checked(3, ge=1)
     """Examples (views) per action; the paper's set has 3 per model."""
-    size: int = 256
+    size: int = checked(256, ge=16)
     """Width and height of each example's images, pixels."""
-    environments: tuple[str, ...] = (HDRI_FOLDERS,)
+    environments: tuple[str, ...] = checked((HDRI_FOLDERS,), nonempty=True)
     """The environment pool: folders (every .hdr / .exr in them), files, names looked up as the relight
     stage's, ``procedural:sky`` / ``procedural:studio``, or ``hdri-folders``. A map that cannot be read is
     named in the log and the stage's stats and left out; an empty pool or a name found nowhere is an error."""
-    seed: int = 0
+    seed: int = checked(0, ge=0)
     """Seed of every draw: views, environments, rotations and splits."""
     split_ratios: tuple[float, ...] = (0.8, 0.1, 0.1)
     """Shares of subjects in train, validation and test (each subject's examples are in one split)."""
     elevation_deg: tuple[float, ...] = (-10.0, 30.0)
     """Range of the cameras' elevation above the horizontal plane through the subject's centre, degrees."""
-    margin: float = 0.05
+    margin: float = checked(0.05, ge=0.0, lt=0.5)
     """Share of the image width left free on each side of the subject's bounding sphere."""
-    sg_lobes: int = 32
+    sg_lobes: int = checked(32, ge=1)
     """Spherical Gaussians fitted to each environment map."""
-    fit_height: int = 64
+    fit_height: int = checked(64, ge=4)
     """Rows of the downsampled map the SG fit works on."""
-    png_level: float = 0.8
+    png_level: float = checked(0.8, gt=0.0)
     """The tone-mapped PNG puts the 99th percentile of the subject's radiance at this linear level."""
     shading: ViewShading = field(default_factory=ViewShading)
     """Reprojection and shading of each view (the relight stage's)."""
 
-    def __post_init__(self) -> None:
-        if self.examples_per_action < 1 or self.size < 16:
-            raise ValueError("relightset: examples_per_action must be >= 1 and size >= 16")
-        if not self.environments:
-            raise ValueError("relightset.environments must name at least one map, folder or 'hdri-folders'")
+    def _checks(self) -> list[str]:
+        problems = []
         ratios = np.asarray(self.split_ratios, np.float64)
-        if ratios.shape != (3,) or np.any(ratios < 0) or abs(ratios.sum() - 1.0) > 1e-6:
-            raise ValueError(f"relightset.split_ratios must be 3 non-negative shares summing to 1, "
-                             f"got {list(self.split_ratios)}")
-        low, high = (self.elevation_deg + (None, None))[:2]
-        if len(self.elevation_deg) != 2 or not (-80.0 <= low <= high <= 80.0):
-            raise ValueError(f"relightset.elevation_deg must be [low, high] within [-80, 80], "
-                             f"got {list(self.elevation_deg)}")
-        if not (0.0 <= self.margin < 0.5) or not (self.png_level > 0) or self.seed < 0:
-            raise ValueError("relightset: margin must be in [0, 0.5), png_level > 0 and seed >= 0")
-        if self.sg_lobes < 1 or self.fit_height < 4:
-            raise ValueError("relightset: sg_lobes must be >= 1 and fit_height >= 4")
+        if ratios.shape != (3,) or np.any(ratios < 0) or not abs(ratios.sum() - 1.0) <= 1e-6:
+            problems.append(broken(self, "split_ratios", "must be 3 shares >= 0 that sum to 1"))
+        if len(self.elevation_deg) != 2 or not -80.0 <= self.elevation_deg[0] <= self.elevation_deg[1] <= 80.0:
+            problems.append(broken(self, "elevation_deg", "must be (low, high) with -80 <= low <= high <= 80"))
+        return problems
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.colour import REFERENCE_CHART, reference_chart_srgb
+from pipeline.config import Documented, broken, checked
 
 from . import files, sensor, shading
 from .rig import Camera, LedSphere
@@ -47,30 +48,30 @@ CARD_ALBEDO = 0.05
 
 
 @dataclass(frozen=True)
-class CalibrationConfig:
+class CalibrationConfig(Documented):
     """What the simulator adds per session for colour and light calibration."""
 
     chart: bool = True
     """Write the colour chart frames (sessions/<sid>/calibration/chart/<cam>.dng + chart.json)."""
     sphere: bool = True
     """Write the diffuse sphere frames (sessions/<sid>/calibration/sphere/{full_on,pos,neg}/<cam>.dng)."""
-    colour_error: float = 0.03
+    colour_error: float = checked(0.03, ge=0.0, lt=0.3)
     """Half-width of the uniform per-element error of each camera's 3x3 colour response R_k = I + E
     (0 = every camera has the nominal response)."""
-    sphere_radius_m: float = 0.15
+    sphere_radius_m: float = checked(0.15, gt=0.0)
     """Radius of the calibration sphere, metres."""
-    sphere_albedo: float = 0.8
+    sphere_albedo: float = checked(0.8, gt=0.0, le=1.0)
     """Grey Lambertian albedo of the calibration sphere."""
-    chart_width_fraction: float = 0.8
+    chart_width_fraction: float = checked(0.8, ge=0.2, le=1.0)
     """Width of the chart's patch grid as a fraction of the image width (centred)."""
     target: bool = True
     """Write the geometric calibration target frames (sessions/<sid>/calibration/cameras/<cam>.dng): a
     speckled cylinder at the stage centre for structure-from-motion calibration of the cameras."""
-    target_radius_m: float = 0.45
+    target_radius_m: float = checked(0.45, gt=0.0)
     """Radius of the target cylinder, metres (the default subject's bounding cylinder is ~0.52 m)."""
-    target_height_m: float = 1.6
+    target_height_m: float = checked(1.6, gt=0.0)
     """Height of the target cylinder, metres, centred on the point the cameras look at."""
-    speckle_size_m: float = 0.016
+    speckle_size_m: float = checked(0.016, gt=0.0)
     """Cell size of the finer of the two value-noise octaves of the speckle (the coarser is 2.5x):
     ~4 px at 320 px wide, where a pixel covers ~4 mm of the target."""
     speckle_albedo: tuple[float, float] = (0.1, 0.8)
@@ -79,44 +80,36 @@ class CalibrationConfig:
     """Write the marker-frame calibration frames (sessions/<sid>/calibration/markers/<cam>.dng): white balls
     of known (surveyed) positions on a rigid frame filling the capture volume (the frame's rods are thin
     and dark and not rendered). The ``cameras`` stage calibrates from them (source "markers")."""
-    marker_count: int = 300
+    marker_count: int = checked(300, ge=4)
     """Number of balls on the marker frame."""
-    marker_radius_m: float = 0.012
+    marker_radius_m: float = checked(0.012, gt=0.0)
     """Radius of each ball, metres (~1.7-6 px at 320 px wide, from 4.6 m to 0.76 m away)."""
-    marker_volume_radius_m: float = 1.3
+    marker_volume_radius_m: float = checked(1.3, gt=0.0)
     """The balls fill a ball of this radius around the point the cameras look at: they span the depth of
     every view (0.76 m to 4.6 m away), which pins each camera's distance and focal length apart, and stay
     > 0.7 m from every camera (the nearest cameras are ~2 m from that point)."""
     marker_min_separation_m: float = 0.1
     """Smallest distance between two balls' centres."""
-    marker_albedo: float = 0.9
+    marker_albedo: float = checked(0.9, gt=0.0, le=1.0)
     """Grey Lambertian albedo of the balls."""
-    marker_survey_error_mm: float = 0.1
+    marker_survey_error_mm: float = checked(0.1, ge=0.0)
     """Per-axis standard deviation of the error of the surveyed ball positions published in rig.json
     (the balls are rendered at the true positions, ground_truth/calibration/<sid>.json)."""
     marker_seed: int = 0
     """Which frame: the layout is a property of the physical frame (the same in every session and for
     every simulator seed), not of a session."""
-    marker_supersample: int = 4
+    marker_supersample: int = checked(4, ge=1)
     """Sub-samples per pixel side when rendering the balls (anti-aliased edges: the blob centroids the
     calibration measures are unbiased to ~0.01 px)."""
 
-    def __post_init__(self) -> None:
-        if not (0.0 <= self.colour_error < 0.3):
-            raise ValueError("CalibrationConfig: colour_error must be in [0, 0.3)")
-        if not (self.sphere_radius_m > 0 and 0 < self.sphere_albedo <= 1):
-            raise ValueError("CalibrationConfig: sphere radius must be > 0 and albedo in (0, 1]")
-        if not (0.2 <= self.chart_width_fraction <= 1.0):
-            raise ValueError("CalibrationConfig: chart_width_fraction must be in [0.2, 1]")
-        if not (self.target_radius_m > 0 and self.target_height_m > 0 and self.speckle_size_m > 0):
-            raise ValueError("CalibrationConfig: target radius, height and speckle size must be > 0")
-        if not (0 <= self.speckle_albedo[0] < self.speckle_albedo[1] <= 1):
-            raise ValueError("CalibrationConfig: speckle_albedo must be (dark, bright) with 0 <= dark < bright <= 1")
-        if not (self.marker_count >= 4 and self.marker_radius_m > 0 and self.marker_volume_radius_m > 0
-                and self.marker_min_separation_m > 2 * self.marker_radius_m and 0 < self.marker_albedo <= 1
-                and self.marker_survey_error_mm >= 0 and self.marker_supersample >= 1):
-            raise ValueError("CalibrationConfig: marker_count >= 4, radii > 0, marker_min_separation_m > 2 x "
-                             "marker_radius_m, marker_albedo in (0, 1], survey error >= 0, supersample >= 1")
+    def _checks(self) -> list[str]:
+        problems = []
+        if not (len(self.speckle_albedo) == 2 and 0 <= self.speckle_albedo[0] < self.speckle_albedo[1] <= 1):
+            problems.append(broken(self, "speckle_albedo", "must be (dark, bright) with 0 <= dark < bright <= 1"))
+        if not self.marker_min_separation_m > 2 * self.marker_radius_m:
+            problems.append(broken(self, "marker_min_separation_m",
+                                   f"must be > 2 x marker_radius_m ({2 * self.marker_radius_m!r})"))
+        return problems
 
     def to_json(self) -> dict:
         return asdict(self)

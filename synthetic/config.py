@@ -4,15 +4,17 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from pipeline.config import Documented, checked
+
 
 @dataclass(frozen=True)
-class SimConfig:
+class SimConfig(Documented):
     """What `synthetic.simulate` renders: subject, rig, lighting, sensor and output options."""
 
-    actions: int = 2
+    actions: int = checked(2, ge=1)
     """Number of actions (poses) to render; each gets its own skin, yaw, cloth pattern and folds (and
     joint angles when pose_variation > 0)."""
-    width: int = 320
+    width: int = checked(320, ge=16)
     """Image width in pixels. Height is `width * 6016 / 4016` rounded to an even number: the D750s are
     mounted in portrait, so the 24 x 35.9 mm sensor is 24 mm wide and 35.9 mm tall."""
     seed: int = 0
@@ -22,76 +24,56 @@ class SimConfig:
     exists, else the procedural subject. "procedural" forces the procedural subject. An OBJ with a
     MakeHuman `body` group gets skins, clothes and folds; any other OBJ, or a PLY / glTF / GLB / STL / OFF
     file (read with trimesh), gets a procedural albedo."""
-    pose_variation: float = 0.0
+    pose_variation: float = checked(0.0, ge=0.0, le=1.0)
     """How far each action's pose departs from the rest A-pose, in [0, 1]: every joint angle (neck turn /
     bend / tilt, shoulders, elbows, hips, knees; synthetic.pose.POSE_RANGES_DEG) is this times a uniform
     draw in its range, keyed by (seed, action index). 0 renders the rest pose exactly (the same files as
     without posing). Only subjects with a skeleton are posed: the MakeHuman body (its joint groups); the
     procedural subject and other meshes stay in their rest pose."""
-    n_leds: int = 512
+    n_leds: int = checked(512, ge=16)
     """Number of LEDs on the sphere (Fibonacci directions)."""
-    led_error: float = 0.03
+    led_error: float = checked(0.03, ge=0.0)
     """Relative standard deviation of the per-LED, per-channel intensity errors (fixed per session)."""
     noise: bool = True
     """Add shot and read noise to the raw frames."""
-    sessions: int = 1
+    sessions: int = checked(1, ge=1, le="actions")
     """Number of capture sessions; actions are split into contiguous blocks, one per session. Each
     session has its own slightly perturbed rig, LED errors and clean plates."""
     background: bool = True
     """Write clean plates (`sessions/<sid>/background/<cam>.dng`, full_on, no subject)."""
-    n_cameras: int = 32
+    n_cameras: int = checked(32, ge=1, le=99999)
     """Number of cameras. The stage has 32; tests use fewer. Cameras are spread over four rings."""
     specular: bool = True
     """Render the GGX specular lobe. False gives a purely Lambertian subject (physics tests)."""
     specular_led_clusters: bool = False
     """Evaluate the specular lobe against LED direction clusters sized to the lobe width instead of every
     LED (~40% faster per camera, ~1.7% RMS radiance error; see synthetic.shading)."""
-    fold_amplitude_m: float = 0.004
+    fold_amplitude_m: float = checked(0.004, ge=0.0)
     """Peak displacement of the cloth folds along the normal, metres (0 disables folds)."""
-    subdivisions: int = 1
+    subdivisions: int = checked(1, ge=0, le=3)
     """Loop subdivision steps applied to a mesh subject before the folds are displaced."""
     led_radius_m: float = 1.6
     """Radius of the LED sphere, metres (lights are treated as distant: the sphere is much larger
     than the subject)."""
-    full_well_e: float = 40000.0
+    full_well_e: float = checked(40000.0, gt=0.0)
     """Electrons at the raw clip level; shot-noise variance of a normalised raw value s is s / full_well_e."""
-    read_noise_dn: float = 2.5
+    read_noise_dn: float = checked(2.5, ge=0.0)
     """Standard deviation of the Gaussian read noise in 14-bit digital numbers."""
-    spec_shift_mm: float = 3.0
+    spec_shift_mm: float = checked(3.0, ge=0.0)
     """Standard deviation of the difference between each camera's true centre and the rig spec's
     nominal one, per axis, millimetres (mounting tolerance; 0 = the rig spec is exact)."""
-    spec_angle_deg: float = 0.2
+    spec_angle_deg: float = checked(0.2, ge=0.0)
     """Standard deviation of the angle between each camera's true and nominal orientation, degrees."""
-    spec_focal_pct: float = 0.5
+    spec_focal_pct: float = checked(0.5, ge=0.0)
     """Standard deviation of the nominal focal length's error, percent."""
-    supersample: int = 2
+    supersample: int = checked(2, ge=1, le=8)
     """Rays per pixel side: each pixel averages s x s rays over its square, as a sensor pixel integrates the
     light over its area (1 = one ray through the pixel centre, which aliases detail finer than a pixel
     and gives silhouette pixels that are all subject or all stage). The ground-truth maps are the same
     pixel averages (synthetic.shading.render_view)."""
-    exposure_target: float = 0.5
+    exposure_target: float = checked(0.5, gt=0.0, lt=0.9)
     """Normalised green raw value of an albedo-1 unoccluded Lambertian under full_on (per-camera
     exposures jitter by +-8% around it)."""
-
-    def __post_init__(self) -> None:
-        checks = [
-            (self.actions >= 1, "actions must be >= 1"),
-            (self.width >= 16, "width must be >= 16"),
-            (self.n_leds >= 16, "n_leds must be >= 16"),
-            (self.led_error >= 0.0, "led_error must be >= 0"),
-            (1 <= self.sessions <= self.actions, "sessions must be in 1..actions"),
-            (1 <= self.n_cameras <= 99999, "n_cameras must be >= 1"),
-            (self.fold_amplitude_m >= 0.0, "fold_amplitude_m must be >= 0"),
-            (0 <= self.subdivisions <= 3, "subdivisions must be in 0..3"),
-            (0.0 <= self.pose_variation <= 1.0, "pose_variation must be in [0, 1]"),
-            (self.full_well_e > 0.0 and self.read_noise_dn >= 0.0, "noise parameters must be positive"),
-            (0.0 < self.exposure_target < 0.9, "exposure_target must be in (0, 0.9)"),
-            (1 <= self.supersample <= 8, "supersample must be in 1..8"),
-            (min(self.spec_shift_mm, self.spec_angle_deg, self.spec_focal_pct) >= 0.0, "rig spec errors must be >= 0"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(f"SimConfig: {message}")
 
     @property
     def height(self) -> int:

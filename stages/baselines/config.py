@@ -5,6 +5,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
+from pipeline.config import Documented, broken, checked
 from pipeline.errors import ConfigError
 
 NETWORKS = ("albedonet", "normalnet")
@@ -12,58 +13,49 @@ NETWORKS = ("albedonet", "normalnet")
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Documented):
     """How a baseline U-Net is built and trained (MSE on the masked pixels, Adam)."""
 
     network: Literal["albedonet", "normalnet"] = "albedonet"
     """Which baseline: 'albedonet' or 'normalnet' (the command line's positional argument sets it)."""
-    width: int = 32
+    width: int = checked(32, ge=1)
     """Channels of the U-Net's first level; each level down doubles them."""
-    depth: int = 4
+    depth: int = checked(4, ge=1)
     """Levels of the U-Net (poolings = depth - 1); inputs are padded to a multiple of 2^(depth - 1)."""
-    crop: int = 256
+    crop: int = checked(256, ge=8)
     """Side of the square random crop of each training example, pixels (images smaller than it are
     zero-padded, the padding outside the mask)."""
-    batch_size: int = 8
+    batch_size: int = checked(8, ge=1)
     """Examples per step."""
-    steps: int = 20000
+    steps: int = checked(20000, ge=1)
     """Optimiser steps in all (a resumed run trains up to this count)."""
-    lr: float = 1e-4
+    lr: float = checked(1e-4, gt=0.0)
     """Adam learning rate (the paper: 1e-5 for 24 h on an A6000)."""
     flip: bool = True
     """Random horizontal flips (the normal's x negated)."""
-    seed: int = 0
+    seed: int = checked(0, ge=0)
     """Seed of the initial weights and of every step's examples, crops and flips (step s draws from
     (seed, s), so a resumed run sees what an uninterrupted one would)."""
-    device: str = "auto"
+    device: str = checked("auto", one_of=("auto", "cpu", "cuda"))
     """'auto' (CUDA when torch sees it, else CPU), 'cpu' or 'cuda'."""
-    checkpoint_every: int = 500
+    checkpoint_every: int = checked(500, ge=1)
     """Steps between checkpoints (one is always written at the end)."""
-    eval_every: int = 0
+    eval_every: int = checked(0, ge=0)
     """Steps between evaluations on the validation split printed during training (0: never)."""
     cache_examples: bool = True
     """Keep the decoded training examples in memory (a 1,500-example set at 512 x 512 is ~9 GB as float32:
     turn it off for big sets)."""
-    threads: int = 0
+    threads: int = checked(0, ge=0)
     """CPU threads of torch (0: torch's default)."""
 
     not_in_key: ClassVar[tuple[str, ...]] = ("steps", "device", "checkpoint_every", "eval_every",
                                              "cache_examples", "threads")
     """Fields a checkpoint may be resumed with different values of (they do not change what a step does)."""
 
-    def __post_init__(self) -> None:
-        if self.network not in NETWORKS:
-            raise ConfigError(f"network {self.network!r}: expected one of {list(NETWORKS)}")
-        for name, low in (("width", 1), ("depth", 1), ("crop", 8), ("batch_size", 1), ("steps", 1),
-                          ("checkpoint_every", 1), ("eval_every", 0), ("threads", 0), ("seed", 0)):
-            if getattr(self, name) < low:
-                raise ConfigError(f"{name} = {getattr(self, name)}: must be at least {low}")
-        if not self.lr > 0:
-            raise ConfigError(f"lr = {self.lr}: must be positive")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConfigError(f"device {self.device!r}: expected 'auto', 'cpu' or 'cuda'")
-        if self.crop % (2 ** (self.depth - 1)):
-            raise ConfigError(f"crop {self.crop} is not a multiple of 2^(depth - 1) = {2 ** (self.depth - 1)}")
+    def _checks(self) -> list[str]:
+        if self.depth >= 1 and self.crop % (2 ** (self.depth - 1)):
+            return [broken(self, "crop", f"must be a multiple of 2^(depth - 1) = {2 ** (self.depth - 1)}")]
+        return []
 
 
 PRESETS: dict[str, TrainConfig] = {

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.config import Documented, to_dict
+from pipeline.config import Documented, checked, to_dict
 from stages.numerics import torch_threads
 from stages.numerics.hull import check_camera
 from stages.numerics.camera import camera_centre, pixel_rays
@@ -52,7 +52,6 @@ from stages.numerics.sdf import (
     HashEncoding,
     HashGridConfig,
     SDFField,
-    hash_grid_problems,
     _adam,
     _lr_factor,
     _neus_composite,
@@ -93,55 +92,55 @@ class AppearanceFieldConfig(Documented):
     footprint on the surface: finer grids memorise each view's noise (on the default capture, 5 mm pixels and a
     1.76 m cube, finest 1024 reached 3.6 deg on the training pixels but 10.9 deg on the held-out views after 1500
     steps; finest 512: 8.9 deg)."""
-    hidden_width: int = 64
+    hidden_width: int = checked(64, ge=1)
     """Width of the MLP's hidden layers (ReLU, as Instant-NGP's colour network)."""
-    hidden_layers: int = 2
+    hidden_layers: int = checked(2, ge=0)
     """Number of hidden layers of the MLP."""
-    albedo_max: float = 1.0
+    albedo_max: float = checked(1.0, gt=0.0)
     """The albedo head is ``albedo_max * sigmoid(.)``: diffuse albedo lies in [0, 1]; highlights above it in the
     photometric maps are view-dependent residue a view-independent field should not chase."""
-    iterations: int = 2000
+    iterations: int = checked(2000, ge=1)
     """Training steps."""
-    rays_per_batch: int = 4096
+    rays_per_batch: int = checked(4096, ge=1)
     """Training pixels drawn per step (uniformly over the valid pixels of all training views)."""
-    samples_per_ray: int = 8
+    samples_per_ray: int = checked(8, ge=1)
     """SDF samples per ray in the window around the surface crossing (NeuS weights)."""
-    samples_kept: int = 4
+    samples_kept: int = checked(4, ge=1, le="samples_per_ray")
     """The samples of largest weight kept per ray for the field (its cost is per sample)."""
-    window_m: float = 0.006
+    window_m: float = checked(0.006, gt=0.0)
     """Half-width of the sampling window around the crossing, metres along the ray (NeuS's density at the
     SDF's sharpness ``inv_s`` spans about ``+-4 / inv_s`` metres of depth head-on)."""
-    inv_s: float = 800.0
+    inv_s: float = checked(800.0, gt=0.0)
     """NeuS sharpness (1 / metres) of the weights: the value the SDF was trained to (its ``final_inv_s``)."""
-    min_opacity: float = 0.5
+    min_opacity: float = checked(0.5, ge=0.0, le=1.0)
     """A pixel is rendered (valid) where the NeuS opacity of its window exceeds this; training pixels below it
     are dropped (the SDF puts no surface there)."""
-    proposal_voxel_m: float = 0.008
+    proposal_voxel_m: float = checked(0.008, gt=0.0)
     """Without depth maps, the crossing is the first zero of the SDF cached on voxels of this size (metres)."""
-    grazing_cos_min: float = 0.15
+    grazing_cos_min: float = checked(0.15, ge=0.0, lt=1.0)
     """Training pixels whose photometric normal has ``|n . d|`` below this, or faces away from the camera, get no
     loss (0 keeps every valid pixel)."""
     albedo_loss: Literal["l1", "l2"] = "l1"
     """Albedo loss per pixel: mean absolute (robust to the highlights of the photometric albedo) or squared error."""
-    weight_albedo: float = 1.0
+    weight_albedo: float = checked(1.0, ge=0.0)
     """Weight of the albedo loss."""
-    weight_normal: float = 1.0
+    weight_normal: float = checked(1.0, ge=0.0)
     """Weight of the normal loss ``1 - cos(n_r, n)``."""
-    learning_rate: float = 1e-2
+    learning_rate: float = checked(1e-2, gt=0.0)
     """Adam learning rate of the hash table after warm-up (Instant-NGP's)."""
-    mlp_lr_factor: float = 1.0
+    mlp_lr_factor: float = checked(1.0, gt=0.0)
     """The MLP's learning rate is ``learning_rate`` times this."""
-    warmup_iterations: int = 20
+    warmup_iterations: int = checked(20, ge=0)
     """Linear learning-rate warm-up (steps)."""
-    final_lr_fraction: float = 0.05
+    final_lr_fraction: float = checked(0.05, ge=0.0, le=1.0)
     """The learning rate decays (cosine) to this fraction of ``learning_rate`` at the last step."""
     seed: int = 0
     """Seed of every random choice (initial MLP weights, pixels drawn)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Where to train and render: ``auto`` uses CUDA when available. The result's field is on the CPU."""
-    threads: int = 0
+    threads: int = checked(0, ge=0)
     """torch CPU threads while training or rendering (restored afterwards); 0 leaves torch's setting alone."""
-    log_every: int = 100
+    log_every: int = checked(100, ge=1)
     """Steps between history entries (and progress / checkpoint calls)."""
 
 
@@ -166,36 +165,9 @@ APPEARANCE_PRESETS: dict[str, AppearanceFieldConfig] = {
 
 
 def _check_config(config: AppearanceFieldConfig) -> None:
+    """Refuse what is not an AppearanceFieldConfig (one is validated when it is built)."""
     if not isinstance(config, AppearanceFieldConfig):
         raise ValueError(f"config must be an AppearanceFieldConfig, got {type(config).__name__}")
-    problems = hash_grid_problems(config.encoding)
-    for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "samples_kept", "log_every"):
-        if getattr(config, name) < 1:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 1)")
-    if config.samples_kept > config.samples_per_ray:
-        problems.append(f"samples_kept={config.samples_kept} > samples_per_ray={config.samples_per_ray}")
-    for name in ("hidden_layers", "warmup_iterations", "threads"):
-        if getattr(config, name) < 0:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 0)")
-    for name in ("albedo_max", "window_m", "inv_s", "proposal_voxel_m", "learning_rate", "mlp_lr_factor"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value > 0):
-            problems.append(f"{name}={value} (must be > 0)")
-    for name in ("weight_albedo", "weight_normal"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value >= 0):
-            problems.append(f"{name}={value} (must be >= 0)")
-    for name in ("min_opacity", "final_lr_fraction"):
-        if not 0 <= getattr(config, name) <= 1:
-            problems.append(f"{name}={getattr(config, name)} (must be in [0, 1])")
-    if not 0 <= config.grazing_cos_min < 1:
-        problems.append(f"grazing_cos_min={config.grazing_cos_min} (must be in [0, 1))")
-    if config.albedo_loss not in ("l1", "l2"):
-        problems.append(f"albedo_loss={config.albedo_loss!r} ('l1' or 'l2')")
-    if config.device not in ("auto", "cpu", "cuda"):
-        problems.append(f"device={config.device!r}")
-    if problems:
-        raise ValueError("invalid AppearanceFieldConfig: " + "; ".join(problems))
 
 
 # ------------------------------------------------------------------------------------------------ field

@@ -30,7 +30,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from stages.numerics.gbuffer import SourceView, source_candidates
 
 __all__ = ["LearnedBlendConfig", "LearnedBlend", "BlendNet", "candidate_features", "fit_learned_blend"]
@@ -53,26 +53,19 @@ class LearnedBlendConfig(Documented):
     view-dependent residue that neighbouring photometric maps share (eq. 1's specular tilt, highlights),
     which the truth does not hold. bench/bench_gbuffer.py reports its held-out metrics beside the heuristic
     weights' and its fit time (tens of seconds for 30 views of 320 x 480 on 2 cores)."""
-    hidden_width: int = 32
+    hidden_width: int = checked(32, ge=1)
     """Width of the MLP's two hidden layers."""
-    steps: int = 400
+    steps: int = checked(400, ge=1)
     """Adam steps."""
-    batch_pixels: int = 8192
+    batch_pixels: int = checked(8192, ge=1)
     """Target pixels per step (drawn from every training view's pixels)."""
-    pixels_per_view: int = 20000
+    pixels_per_view: int = checked(20000, ge=1)
     """At most this many pixels of each training view are kept (a random subset): bounds memory and the time
     of gathering at full resolution."""
-    learning_rate: float = 3e-3
+    learning_rate: float = checked(3e-3, gt=0.0)
     """Adam learning rate."""
     seed: int = 0
     """Seed of the pixel subsets, the batches and the initial weights."""
-
-    def __post_init__(self) -> None:
-        for name in ("hidden_width", "steps", "batch_pixels", "pixels_per_view"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"learned_blend.{name} must be >= 1, got {getattr(self, name)!r}")
-        if not self.learning_rate > 0:
-            raise ValueError("learned_blend.learning_rate must be > 0")
 
 
 def candidate_features(cand: dict[str, Any]) -> dict[str, torch.Tensor]:

@@ -15,6 +15,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from pipeline.config import Documented, checked
 from stages.numerics.camera import Camera
 
 HALF_MAX = 60000.0
@@ -161,32 +162,25 @@ def auto_exposure(image: np.ndarray, mask: np.ndarray, level: float = 0.8) -> fl
 
 
 @dataclass(frozen=True)
-class ViewShading:
+class ViewShading(Documented):
     """How a novel view is reprojected and shaded (the fields of the relight stage's config that say so)."""
 
-    sources: int = 6
+    sources: int = checked(6, ge=1)
     """Nearest captured views the G-buffer is reprojected from."""
     depth_tolerance_m: float = 0.01
     """A source pixel is visible when its mesh depth agrees with the point's within this."""
     normal_fusion_m: float = 0.015
     """Frequency split of the fused normals on the surface, metres."""
-    normals: str = "fused"
+    normals: str = checked("fused", one_of=("fused", "reprojected", "mesh"))
     """Shading normals: "fused", "reprojected" or "mesh" (:func:`novel_view_gbuffer`'s ``normal_<kind>``)."""
     shadows: bool = True
     """Occlude the environment by the mesh itself."""
-    visibility_directions: int = 256
+    visibility_directions: int = checked(256, ge=1)
     """Directions per pixel for the self-occlusion."""
     f0: float = 0.02
     """Fresnel reflectance at normal incidence."""
-    coverage_samples: int = 4
+    coverage_samples: int = checked(4, ge=1)
     """Rays per pixel side measuring the mesh's coverage of each pixel (the images' alpha); 1 = hard edges."""
-
-    def __post_init__(self) -> None:
-        if self.normals not in ("mesh", "reprojected", "fused"):
-            raise ValueError(f"normals must be 'fused', 'reprojected' or 'mesh', got {self.normals!r}")
-        for name in ("sources", "visibility_directions", "coverage_samples"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
 
 
 def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,

@@ -29,6 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from calibration.light import LightModel, correct_normals
+from pipeline.config import Documented, checked
 from stages.numerics import numeric_threads
 
 __all__ = [
@@ -54,87 +55,68 @@ _LUMA = (0.2126, 0.7152, 0.0722)  # Rec. 709 luminance weights (linear sRGB)
 
 
 @dataclass(frozen=True)
-class PhotometricParams:
+class PhotometricParams(Documented):
     """Thresholds of the photometric maps. Every term of the alpha is 0.5 exactly at its threshold."""
 
-    eps: float = 1e-6
+    eps: float = checked(1e-6, gt=0.0)
     """Floor of the ratio's denominator (decoded linear units): ``d_c = (g+ - g-) / max(g+ + g-, eps)``, so a
     channel's ratio fades continuously to 0 as its signal vanishes (alpha is 0 there long before)."""
-    min_signal: float = 0.03
+    min_signal: float = checked(0.03, ge=0.0)
     """Low-signal threshold relative to ``white_reference``: the darkest channel of ``full_on`` must reach
     this fraction of the white reference (an albedo-times-visibility of 3%) for alpha > 0.5."""
-    min_signal_abs: float = 0.002
+    min_signal_abs: float = checked(0.002, gt=0.0)
     """Absolute floor of the low-signal threshold in decoded linear units (guards against a tiny
     ``white_reference``): the threshold per channel is ``max(min_signal * white_reference, min_signal_abs)``."""
-    signal_softness: float = 1.0
+    signal_softness: float = checked(1.0, gt=0.0)
     """Width of the low-signal ramp as a multiple of the threshold: alpha's signal term goes smoothly from 0
     at ``(1 - s/2)`` times the threshold to 1 at ``(1 + s/2)`` times it."""
-    ratio_min: float = 0.3
+    ratio_min: float = checked(0.3, ge=0.0, lt="ratio_max")
     """Smallest plausible ``|d|`` (ideal 2/3): below it the point is heavily occluded or the ratio is noise."""
     ratio_max: float = 1.05
     """Largest plausible ``|d|``: above it the ratio is dominated by specular reflection or a bad exposure."""
-    ratio_softness: float = 0.1
+    ratio_softness: float = checked(0.1, gt=0.0)
     """Width of the smooth ramps at ``ratio_min`` and ``ratio_max`` (in units of ``|d|``)."""
-    albedo_max: float = 4.0
+    albedo_max: float = checked(4.0, gt=0.0)
     """Albedo values are clipped to ``[0, albedo_max]`` (specular highlights can exceed 1)."""
-    plate_brighter: float = 0.15
+    plate_brighter: float = checked(0.15, ge=0.0)
     """With a clean plate: a pixel is foreground where some channel exceeds the plate by this fraction of the
     plate's value (plus the noise term)."""
-    plate_darker: float = 0.5
+    plate_darker: float = checked(0.5, ge=0.0)
     """With a clean plate: ... or falls below the plate by this fraction (larger than ``plate_brighter``
     because the subject's occlusion of the LEDs darkens the background around it)."""
-    plate_noise_sigmas: float = 4.0
+    plate_noise_sigmas: float = checked(4.0, ge=0.0)
     """With a clean plate: noise term of the threshold, in standard deviations of the frame-minus-plate
     difference (estimated robustly, per channel, from the plate's own pixel-to-pixel differences)."""
-    plate_min_diff: float = 0.002
+    plate_min_diff: float = checked(0.002, ge=0.0)
     """With a clean plate: absolute floor of the difference threshold (decoded linear units)."""
-    no_plate_threshold: float = 0.15
+    no_plate_threshold: float = checked(0.15, gt=0.0, lt=1.0)
     """Without a plate: foreground where luminance exceeds this fraction of the image's 99.5th percentile
     luminance (the stage background is dim, 2-5% grey)."""
-    majority_radius: float = 0.002
+    majority_radius: float = checked(0.002, ge=0.0)
     """Radius of the majority (binary median) filter over a (2r+1) square that removes specks and fills
     pinholes (a speckled threshold on dark, textured or noisy regions), as a fraction of min(H, W); at least
     1 pixel, 0 = off."""
-    close_radius: float = 0.004
+    close_radius: float = checked(0.004, ge=0.0)
     """Morphological closing radius (bridges cracks), as a fraction of min(H, W); at least 1 pixel, 0 = off."""
     refine_edges: bool = True
     """Place the mask's edge where the subject covers half of a pixel: pixels in a 2-pixel band around the
     edge are kept where ``|f - b| >= 0.5 |s - b|`` (L1 over channels), with ``s`` the mean of nearby interior
     pixels and ``b`` the plate (or the mean of nearby exterior pixels without one). Without it, a sensitive
     plate difference also takes the half-covered and demosaic-blurred rim."""
-    max_hole: float = 0.002
+    max_hole: float = checked(0.002, ge=0.0)
     """Background holes enclosed by the foreground and smaller than this fraction of the image are filled
     (dark eyes, nostrils); larger enclosed regions (gaps between arm and body) stay background."""
-    min_component: float = 0.0002
+    min_component: float = checked(0.0002, ge=0.0)
     """Foreground components smaller than this fraction of the image (or than 1% of the largest component)
     are dropped."""
-    edge_px: int = 1
+    edge_px: int = checked(1, ge=0)
     """Foreground pixels within this many pixels (8-connected) of the background are mixed pixels: part of
     their light comes from behind the subject and demosaicing interpolates across the silhouette (on the
     default capture, eq. 1's normals there are 24-28 deg off the truth and the albedo 0.14 RMSE, against 9.7
     deg and 0.04 inside; the next ring, 19 deg and 0.09, stays valid at 1). Their alpha is capped at
     ``edge_alpha`` (invalid); they stay in the mask. 0 = off."""
-    edge_alpha: float = 0.25
+    edge_alpha: float = checked(0.25, ge=0.0, le=1.0)
     """Alpha cap of the mixed pixels at the mask's edge (below 0.5: not valid)."""
-
-    def __post_init__(self) -> None:
-        if int(self.edge_px) != self.edge_px or self.edge_px < 0 or not 0.0 <= self.edge_alpha <= 1.0:
-            raise ValueError(f"photometric params: edge_px must be an integer >= 0 and edge_alpha in [0, 1], "
-                             f"got {self.edge_px!r}, {self.edge_alpha!r}")
-        if not 0.0 <= self.ratio_min < self.ratio_max:
-            raise ValueError(f"photometric params: need 0 <= ratio_min < ratio_max, got {self.ratio_min!r}, "
-                             f"{self.ratio_max!r}")
-        positive = ("eps", "min_signal_abs", "signal_softness", "ratio_softness", "albedo_max")
-        bad = [f"{name}={getattr(self, name)!r}" for name in positive if not getattr(self, name) > 0]
-        bad += [f"{name}={getattr(self, name)!r}" for name in ("min_signal", "plate_brighter", "plate_darker",
-                                                                 "plate_noise_sigmas", "plate_min_diff",
-                                                                 "majority_radius", "close_radius", "max_hole",
-                                                                 "min_component") if not getattr(self, name) >= 0]
-        if not 0.0 < self.no_plate_threshold < 1.0:
-            bad.append(f"no_plate_threshold={self.no_plate_threshold!r} (must be in (0, 1))")
-        if bad:
-            raise ValueError(f"photometric params: {', '.join(positive)} must be > 0 and the other thresholds "
-                             f">= 0; got {', '.join(bad)}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipeline.config import Documented, to_dict
+from pipeline.config import Documented, checked, to_dict
 from stages.numerics import torch_threads
 from stages.numerics import hashgrid_kernel
 from stages.numerics.hull import HullGrid, check_camera, visual_hull
@@ -108,13 +108,13 @@ _INV_S_RAMP = 0.7
 class HashGridConfig(Documented):
     """Multiresolution hash encoding (Instant-NGP) over the cube around the SDF's bounds."""
 
-    levels: int = 12
+    levels: int = checked(12, ge=1, le=32)
     """Number of resolution levels ``L``, geometrically spaced from ``base_resolution`` to ``finest_resolution``."""
-    features_per_level: int = 2
+    features_per_level: int = checked(2, ge=1, le=8)
     """Features per level ``F`` (the MLP's input is ``3 + L * F``: the position plus the features)."""
-    log2_table_size: int = 16
+    log2_table_size: int = checked(16, ge=8, le=24)
     """log2 of the entries per level ``T``; coarse levels with ``(res + 1)^3 <= T`` use a dense table instead."""
-    base_resolution: int = 16
+    base_resolution: int = checked(16, ge=1, le="finest_resolution")
     """Grid cells along the cube's edge at the coarsest level."""
     finest_resolution: int = 512
     """Grid cells along the cube's edge at the finest level (the cube is the bounds' longest edge, so
@@ -129,151 +129,98 @@ class SDFConfig(Documented):
 
     encoding: HashGridConfig = HashGridConfig()
     """The hash encoding."""
-    hidden_width: int = 64
+    hidden_width: int = checked(64, ge=1)
     """Width of the MLP's hidden layers."""
-    hidden_layers: int = 2
+    hidden_layers: int = checked(2, ge=0)
     """Number of hidden layers of the MLP (softplus, beta 100)."""
-    iterations: int = 1800
+    iterations: int = checked(1800, ge=1)
     """Training steps with the rendering losses (after the hull pre-fit)."""
-    rays_per_batch: int = 512
+    rays_per_batch: int = checked(512, ge=1)
     """Rays drawn per step from the pixels worth drawing (on the mask or meeting the hull)."""
-    samples_per_ray: int = 8
+    samples_per_ray: int = checked(8, ge=1)
     """Network samples per ray, stratified over the window around the ray's first zero crossing."""
-    learning_rate: float = 1e-2
+    learning_rate: float = checked(1e-2, gt=0.0)
     """Adam learning rate (hash table and MLP) after warm-up."""
-    warmup_iterations: int = 50
+    warmup_iterations: int = checked(50, ge=0)
     """Linear learning-rate warm-up (steps)."""
-    weight_normal: float = 1.0
+    weight_normal: float = checked(1.0, ge=0.0)
     """Weight of the normal loss ``|n_r - n|_1 + (1 - cos)`` (mean over the valid rays kept)."""
-    weight_mask: float = 0.1
+    weight_mask: float = checked(0.1, ge=0.0)
     """Weight of the mask BCE (mean over the rays drawn)."""
-    weight_eikonal: float = 0.1
+    weight_eikonal: float = checked(0.1, ge=0.0)
     """Weight of the eikonal term ``(|grad f| - 1)^2`` (mean over ray samples and random points)."""
-    weight_curvature: float = 0.0
+    weight_curvature: float = checked(0.0, ge=0.0)
     """Weight of a smoothness term ``|n(x) - n(x + e)|^2`` between unit SDF normals at each opaque ray's surface
     sample ``x`` and at a random offset ``|e| = _CURVATURE_STEP_M`` (0 = off). It damps the photometric normals'
     noise and the surface's high frequencies; one extra gradient evaluation per ray."""
-    importance_fraction: float = 0.0
+    importance_fraction: float = checked(0.0, ge=0.0, lt=1.0)
     """Share of each batch's rays drawn in proportion to the views' :attr:`SDFView.sample_weight` (the rest
     uniformly from every ray worth drawing); 0 = uniform only. Views without weights count as weight 0."""
-    weight_hull: float = 1.0
+    weight_hull: float = checked(1.0, ge=0.0)
     """Weight of the hull prior ``relu(d_hull(x) - f(x))`` at sample and random points outside the hull: the
     subject lies inside its visual hull, so the SDF there is at least the distance to the hull. It keeps
     spurious surfaces out of space that no drawn ray crosses."""
-    eikonal_points: int = 256
+    eikonal_points: int = checked(256, ge=0)
     """Random points per step, uniform in the bounds, for the eikonal term (besides the ray samples)."""
-    grazing_cos_min: float = 0.15
+    grazing_cos_min: float = checked(0.15, ge=0.0, lt=1.0)
     """Pixels whose photometric normal is this close to perpendicular to the view ray (``|n . d|`` below it)
     or faces away from the camera get no normal loss: their photometric normal is unreliable and a pixel
     there spans a long stretch of surface."""
-    outlier_fraction: float = 0.05
+    outlier_fraction: float = checked(0.05, ge=0.0, lt=1.0)
     """Share of each batch's valid rays with the largest normal residual left out of the normal loss
     (specular highlights, occlusion, wrong masks)."""
     normal_supervision: bool = True
     """False: mask and eikonal losses only (the mask-only ablation)."""
-    hull_resolution: int = 96
+    hull_resolution: int = checked(96, ge=1)
     """Voxels per axis of the visual hull over the tight bounds (and of the coarse hull over the stage box
     that finds them when no bounds are given)."""
-    hull_max_misses: int = 1
+    hull_max_misses: int = checked(1, ge=0)
     """A hull voxel may fall outside the (dilated) masks of this many views that see it."""
-    hull_dilate_px: float = 2.0
+    hull_dilate_px: float = checked(2.0, ge=0.0)
     """Extra mask dilation of the hull test, pixels (beyond the voxel's own projected size)."""
-    hull_margin_m: float = 0.03
+    hull_margin_m: float = checked(0.03, ge=0.0)
     """The SDF's bounds are the hull's bounding box grown by this margin."""
     hull_init_tight: bool = True
     """Pre-fit to the classic visual hull (voxel centres inside the masks, dilated by ``hull_init_dilate_px``)
     instead of the conservative one that bounds the samples: a start within a few mm of the silhouettes."""
-    hull_init_dilate_px: float = 0.5
+    hull_init_dilate_px: float = checked(0.5, ge=0.0)
     """Mask dilation of the pre-fit hull, pixels (tolerance to calibration errors)."""
-    hull_init_steps: int = 200
+    hull_init_steps: int = checked(200, ge=0)
     """Regression steps of the network to the hull's signed distance before the rendering losses."""
     hull_init_points: int = 2048
     """Points per regression step (half near the hull surface, half uniform in the bounds)."""
-    proposal_voxel_m: float = 0.015
+    proposal_voxel_m: float = checked(0.015, gt=0.0)
     """Voxel size of the cached SDF grid that proposes each ray's window, metres (0 is refused)."""
-    proposal_update_every: int = 100
+    proposal_update_every: int = checked(100, ge=1)
     """Steps between refreshes of the cached SDF grid from the network."""
-    window_m: float = 0.03
+    window_m: float = checked(0.03, gt=0.0)
     """Half-width of the sampling window (metres along the ray) around the proposed crossing at the start;
     it shrinks with the NeuS sharpness to ``max(window_min_m, _WINDOW_SHARPNESS / inv_s)``."""
-    window_min_m: float = 0.008
+    window_min_m: float = checked(0.008, gt=0.0)
     """Smallest half-width of the sampling window, metres (covers the cached grid's crossing error)."""
-    inv_s_start: float = 50.0
+    inv_s_start: float = checked(50.0, gt=0.0)
     """NeuS sharpness ``inv_s`` (1 / metres) at the first step; the logistic density of NeuS is
     ``s exp(-s f) / (1 + exp(-s f))^2`` with ``s = inv_s``."""
-    inv_s_end: float = 800.0
+    inv_s_end: float = checked(800.0, gt=0.0)
     """``inv_s`` reached (geometrically) at ``_INV_S_RAMP`` of the steps, kept to the end."""
-    coarse_to_fine: float = 0.5
+    coarse_to_fine: float = checked(0.5, ge=0.0, le=1.0)
     """Fraction of the steps over which the hash levels are switched on one by one (from
     ``initial_levels``), as Neuralangelo; 0 = all levels from the start."""
-    initial_levels: int = 4
+    initial_levels: int = checked(4, ge=1)
     """Active hash levels during the hull pre-fit and the first step."""
     gradient: Literal["analytic", "finite_difference", "autograd"] = "analytic"
     """How SDF gradients are computed: forward-mode Jacobian of the encoding and MLP (no double backward),
     central finite differences (6 extra evaluations, step ``fd_step_m``), or autograd double backward."""
-    fd_step_m: float = 0.002
+    fd_step_m: float = checked(0.002, gt=0.0)
     """Step of the finite-difference gradient, metres."""
     seed: int = 0
     """Seed of every random choice (rays, jitter, initial weights)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Where to train: ``auto`` uses CUDA when available. The result's field is on the CPU."""
-    threads: int = 0
+    threads: int = checked(0, ge=0)
     """torch CPU threads while training (restored afterwards); 0 leaves torch's setting alone."""
-    log_every: int = 50
+    log_every: int = checked(50, ge=1)
     """Steps between history entries (and progress calls)."""
-
-    def __post_init__(self) -> None:
-        _check_config(self)
-
-
-def hash_grid_problems(enc: HashGridConfig) -> list[str]:
-    """What is out of range in a hash-grid encoding's config (empty when nothing is)."""
-    problems = []
-    if not 1 <= enc.levels <= 32:
-        problems.append(f"encoding.levels={enc.levels} (1..32)")
-    if not 1 <= enc.features_per_level <= 8:
-        problems.append(f"encoding.features_per_level={enc.features_per_level} (1..8)")
-    if not 8 <= enc.log2_table_size <= 24:
-        problems.append(f"encoding.log2_table_size={enc.log2_table_size} (8..24)")
-    if not 1 <= enc.base_resolution <= enc.finest_resolution:
-        problems.append(f"encoding resolutions {enc.base_resolution}..{enc.finest_resolution}")
-    return problems
-
-
-def _check_config(config: SDFConfig) -> None:
-    problems = hash_grid_problems(config.encoding)
-    for name in ("hidden_width", "iterations", "rays_per_batch", "samples_per_ray", "hull_resolution",
-                 "proposal_update_every", "log_every", "initial_levels"):
-        if getattr(config, name) < 1:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 1)")
-    for name in ("hidden_layers", "hull_init_steps", "eikonal_points", "warmup_iterations", "hull_max_misses",
-                 "threads"):
-        if getattr(config, name) < 0:
-            problems.append(f"{name}={getattr(config, name)} (must be >= 0)")
-    for name in ("learning_rate", "proposal_voxel_m", "window_m", "window_min_m", "inv_s_start", "inv_s_end",
-                 "fd_step_m"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value > 0):
-            problems.append(f"{name}={value} (must be > 0)")
-    for name in ("outlier_fraction", "coarse_to_fine"):
-        value = getattr(config, name)
-        if not 0 <= value <= 1:
-            problems.append(f"{name}={value} (must be in [0, 1])")
-    if not 0 <= config.importance_fraction < 1:
-        problems.append(f"importance_fraction={config.importance_fraction} (must be in [0, 1))")
-    if not 0 <= config.outlier_fraction < 1:
-        problems.append(f"outlier_fraction={config.outlier_fraction} (must be < 1)")
-    if not 0 <= config.grazing_cos_min < 1:
-        problems.append(f"grazing_cos_min={config.grazing_cos_min} (must be in [0, 1))")
-    for name in ("weight_normal", "weight_mask", "weight_eikonal", "weight_curvature", "weight_hull", "hull_margin_m",
-                 "hull_dilate_px", "hull_init_dilate_px"):
-        value = getattr(config, name)
-        if not (math.isfinite(value) and value >= 0):
-            problems.append(f"{name}={value} (must be >= 0)")
-    if config.gradient not in ("analytic", "finite_difference", "autograd"):
-        problems.append(f"gradient={config.gradient!r}")
-    if problems:
-        raise ValueError("invalid SDFConfig: " + "; ".join(problems))
 
 
 SDF_PRESETS: dict[str, SDFConfig] = {

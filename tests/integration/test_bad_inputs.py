@@ -23,7 +23,7 @@ folder, no asset rows).
 | stray non-raw files (notes, sidecars, dirs) | ignored: the action is published as without them                   |
 | non-finite values in an intermediate map    | degrades: those pixels get normal 0 and alpha 0; maps stay finite   |
 | config: unknown key                         | refused: `<config file>.<section>: unknown key(s) [...]`            |
-| config: impossible value (ratio_min > max)  | refused: `<config file>.<section>: ... need 0 <= ratio_min < ...`   |
+| config: impossible value (ratio_min > max)  | refused, each: `<config file>.<section>.<key> = <value>: <rule>`    |
 | config: wrong type / NaN                    | refused: `<config file>.<key>: expected a (finite) number, got ...` |
 
 Before issue 23's work, the duplicate frames were taken silently (the first file by name; the byte-identical
@@ -256,9 +256,10 @@ def test_non_finite_values_in_an_intermediate_map_degrade_to_invalid_pixels(clea
 
 CONFIGS = {
     "unknown_key": ("photometric:\n  params:\n    ratio_minimum: 0.3\n", ".photometric.params: unknown key(s) ['ratio_minimum']"),
-    "impossible": ("photometric:\n  params:\n    ratio_min: 1.2\n", "need 0 <= ratio_min < ratio_max"),
-    "negative_size": ("colour:\n  erode_px: -2\n", ".colour: colour.erode_px must be >= 0"),
-    "bad_degree": ("lights:\n  degree: 7\n", ".lights: lights: need degree 1, 2 or 3"),
+    "impossible": ("photometric:\n  params:\n    ratio_min: 1.2\n",
+                   ".photometric.params.ratio_min = 1.2: must be >= 0 and < ratio_max (1.05)"),
+    "negative_size": ("colour:\n  erode_px: -2\n", ".colour.erode_px = -2: must be >= 0"),
+    "bad_degree": ("lights:\n  degree: 7\n", ".lights.degree = 7: must be one of 1, 2, 3"),
     "nan": ("photometric:\n  params:\n    eps: .nan\n", ".photometric.params.eps: expected a finite number"),
     "wrong_type": ("decode:\n  half_size: maybe\n", ".decode.half_size: expected true/false"),
 }

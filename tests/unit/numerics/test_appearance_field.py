@@ -268,8 +268,8 @@ def test_bad_inputs_raise():
 
 
 def test_presets_are_valid_configs():
-    from stages.numerics.appearance_field import _check_config
+    from pipeline.config import config_problems
 
     for name, preset in APPEARANCE_PRESETS.items():
         assert isinstance(preset, AppearanceFieldConfig), name
-        _check_config(preset)
+        assert config_problems(preset) == [], name

@@ -386,10 +386,10 @@ def test_a_bad_setting_is_refused_when_the_config_is_built_not_when_training_sta
     from pipeline.errors import ConfigError
     from stages.registry import PRESETS
 
-    with pytest.raises(ValueError, match=r"iterations=0 \(must be >= 1\)"):
+    with pytest.raises(ValueError, match=r"SDFConfig\.iterations = 0: must be >= 1"):
         SDFConfig(iterations=0)
     # a YAML override is refused as it is merged, naming the file and the section, before any stage runs
-    with pytest.raises(ConfigError, match=r"o\.yaml\.geometry\.sdf: invalid SDFConfig: .*encoding\.levels=0"):
+    with pytest.raises(ConfigError, match=r"o\.yaml\.geometry\.sdf\.encoding\.levels = 0: must be in \[1, 32\]"):
         merge(PRESETS["default"], {"geometry": {"sdf": {"encoding": {"levels": 0}}}}, where="o.yaml")
 
 
