@@ -72,7 +72,7 @@ def test_hand_computed_trilinear_value_and_slope():
     # one dense level of 2 cells per edge: a point at (0.25, 0.5, 0.75) lies in cell (0, 1, 1) at fractions
     # (0.5, 0, 0.5); with table value = the vertex's x index (feature 0) the feature is the x position in cells
     # (0.5) and its x derivative is res = 2 per unit cube; feature 1 = z index: 1.5, d/dz = 2.
-    config = HashGridConfig(levels=1, features_per_level=2, log2_table_size=6, base_resolution=2,
+    config = HashGridConfig(levels=1, features_per_level=2, log2_table_size=8, base_resolution=2,
                             finest_resolution=2)
     enc = HashEncoding(config)
     ix, iy, iz = torch.meshgrid(torch.arange(3), torch.arange(3), torch.arange(3), indexing="ij")
