@@ -143,7 +143,7 @@ class MaterialsStage(Stage):
                                   K=cam.K, cam_from_world=cam.cam_from_world))
             white.append(np.asarray(cam.record["white_reference"], np.float32))
         if not views:
-            raise InputError(artifacts.path("normal_alpha", "00000").parent, "no camera has photometric maps")
+            raise InputError(artifacts.where(), "no camera has photometric maps")
         load_s = time.perf_counter() - t0
         result = material_textures(vertices, faces, atlas, albedo_texture, views, np.stack(white), cfg,
                                    progress=ctx.progress)
