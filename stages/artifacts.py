@@ -61,6 +61,8 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     **{f"render_{name}": ("relight", f"renders/{{camera}}/{name}.{'png' if name == 'mask' else 'exr'}")
        for name in ("normal", "albedo", "roughness", "mask")},
     "relit": ("relight", "renders/{camera}/{environment}.exr"),
+    "relight_examples": ("relightset", "relight/examples.json"),
+    "relight_example": ("relightset", "relight/{example}/example.json"),
 }
 
 #: The release's asset kind of each product a release holds (the kinds the stages' ``release_files`` give;
@@ -360,6 +362,13 @@ class ActionArtifacts:
         """The session's clean plate (H, W, 3) of a camera, or None when it has none."""
         return read_exr(self.path("plate", camera)) if self.has("plate", camera) else None
 
+    def materials_f0(self) -> float:
+        """The Fresnel F0 the materials stage fitted the roughness texture with (:func:`fitted_f0` of its
+        artifact's record; the work store keeps it, a release does not: AttributeError there)."""
+        if "materials" not in self.upstream:
+            raise KeyError(f"stage 'materials' is not upstream (upstream: {sorted(self.upstream)})")
+        return fitted_f0(self.upstream["materials"])
+
     def light_model(self) -> Any:
         """The session's fitted :class:`calibration.light.LightModel`, or None when it uses the ideal one."""
         from calibration.light import LightModel
@@ -382,6 +391,10 @@ class ArtifactWriter:
         if stage != self.stage:
             raise KeyError(f"product {product!r} is written by stage {stage!r}, not {self.stage!r}")
         return self.out_dir / rel.format(camera=camera, **fields)
+
+    def folder(self, product: str) -> Path:
+        """The folder of one of this stage's per-camera products (``colour/``, ``normal_alpha/``, ...)."""
+        return self.path(product, "_").parent
 
 
 def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, diffuse_normals: bool = True,

@@ -24,7 +24,7 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
-from stages.artifacts import colour_matrix
+from stages.artifacts import ActionArtifacts, ArtifactWriter
 from stages.cameras import load_cameras, unregistered_cameras
 from stages.exr_headers import EXR_HEADERS
 
@@ -158,7 +158,9 @@ class DecodeStage(Stage):
         return {f"{illum}/{cam}": path for (illum, cam), path in frames.items()}
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        cameras_json = ctx.upstream["cameras"] / "cameras.json"
+        upstream = ActionArtifacts(ctx.upstream)
+        out = ArtifactWriter(self.name, ctx.out_dir)
+        cameras_json = upstream.existing("session_cameras")
         cameras = load_cameras(cameras_json)
         if view not in cameras:  # the session's calibration could not register it: a missing camera
             return {"missing": unregistered_cameras(cameras_json).get(view, "camera has no calibration")}
@@ -167,7 +169,7 @@ class DecodeStage(Stage):
         clipped = None
         stats: dict[str, Any] = {}
         shape = None
-        matrix = colour_matrix(ctx.upstream["colour"], view)
+        matrix = upstream.colour_matrix(view)
         stats["raw_blake2b"] = {}
         for illum in ILLUMINATIONS:
             path = ctx.raw_inputs[f"{illum}/{view}"]
@@ -181,22 +183,22 @@ class DecodeStage(Stage):
             if matrix is not None:
                 apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
                 np.maximum(frame.rgb, 0.0, out=frame.rgb)
-            write_exr(ctx.out_dir / illum / f"{view}.exr", frame.rgb, header=EXR_HEADERS[illum])
-            write_png(ctx.out_dir / illum / f"{view}.png", srgb_png(frame.rgb))
+            write_exr(out.path(illum, view), frame.rgb, header=EXR_HEADERS[illum])
+            write_png(out.path(f"{illum}_png", view), srgb_png(frame.rgb))
             clipped = frame.clipped if clipped is None else (clipped | frame.clipped)
             stats[f"{illum}_mean"] = float(frame.rgb.mean())
             stats[f"{illum}_clipped_fraction"] = float(frame.clipped.mean())
-        write_png(ctx.out_dir / "clipped" / f"{view}.png", clipped)
+        write_png(out.path("clipped", view), clipped)
         stats["height"], stats["width"] = int(shape[0]), int(shape[1])
         return stats
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         check_no_duplicate_frames(ctx.raw_inputs, view_stats)
+        out = ArtifactWriter(self.name, ctx.out_dir)
         cameras = [scale_camera(c, self.config.half_size)
-                   for c in load_cameras(ctx.upstream["cameras"] / "cameras.json").values()]
-        (ctx.out_dir / "cameras.json").write_text(json.dumps({"camera_convention": "opencv",
-                                                              "cameras": cameras}, indent=1))
-        (ctx.out_dir / "transforms.json").write_text(json.dumps(transforms_json(cameras), indent=1))
+                   for c in load_cameras(ActionArtifacts(ctx.upstream).existing("session_cameras")).values()]
+        out.path("cameras").write_text(json.dumps({"camera_convention": "opencv", "cameras": cameras}, indent=1))
+        out.path("transforms").write_text(json.dumps(transforms_json(cameras), indent=1))
         return {"views": view_stats}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:

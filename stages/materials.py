@@ -49,7 +49,7 @@ from pipeline.codecs.image import preview_linear, preview_scalar, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
+from stages.artifacts import ActionArtifacts, ArtifactWriter
 from stages.numerics import numeric_threads
 
 ILLUMINATION_DIRS = ("full_on", "pos", "neg")
@@ -147,9 +147,10 @@ class MaterialsStage(Stage):
         load_s = time.perf_counter() - t0
         result = material_textures(vertices, faces, atlas, albedo_texture, views, np.stack(white), cfg,
                                    progress=ctx.progress)
+        out = ArtifactWriter(self.name, ctx.out_dir)
         for name in ("roughness", "roughness_fit_rms", "occlusion", "albedo_deoccluded", "diffuse_ratio",
                      "albedo_intrinsic"):
-            write_exr(ctx.out_dir / "textures" / f"{name}.exr", getattr(result, name),
+            write_exr(out.path(f"{name}_texture"), getattr(result, name),
                       header=EXR_HEADERS[f"texture_{name}"])
         if cfg.previews:
             previews = ctx.out_dir / "previews"
