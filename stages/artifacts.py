@@ -313,6 +313,16 @@ class ActionArtifacts:
         """camera_id -> :class:`Camera` of every calibrated camera of the action, at the decoded maps' size."""
         return self.backend.camera_records(self)
 
+    def camera_records(self, product: str = "cameras") -> dict[str, dict[str, Any]]:
+        """camera_id -> record (``K``, ``cam_from_world``, ``width``, ``height``, ``white_reference``, ...) of the
+        calibrated cameras of a ``cameras.json`` product: ``cameras`` (the decoded maps') or
+        ``session_cameras`` (the session calibration's, at the sensor's size)."""
+        return {record["camera_id"]: record for record in self.json(product)["cameras"]}
+
+    def unregistered_cameras(self) -> dict[str, str]:
+        """camera_id -> why, for the cameras of the session its calibration could not register."""
+        return dict(self.json("session_cameras").get("unregistered", {}))
+
     def cameras(self) -> dict[str, Camera]:
         """camera_id -> :class:`Camera` of the calibrated cameras that have a photometric normal map, sorted by
         id (a missing camera, with no calibration or failed frames, has none)."""

@@ -18,7 +18,6 @@ from pipeline.codecs.exr import read_exr, write_exr
 from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
 from stages.exr_headers import EXR_HEADERS
 from stages.artifacts import ActionArtifacts, ArtifactWriter
 from stages.numerics.photometric import normals_with_alpha
@@ -153,7 +152,7 @@ class ViewInputs:
 def read_view_inputs(artifacts: ActionArtifacts, view: str) -> ViewInputs | None:
     """One camera's :class:`ViewInputs` from the decode and photometric artifacts; None when the camera has no
     calibration or no photometric maps."""
-    cameras = load_cameras(artifacts.existing("cameras"))
+    cameras = artifacts.camera_records()
     if view not in cameras or not artifacts.has("normal_alpha", view):
         return None
     return ViewInputs(cam=cameras[view], pos=artifacts.exr("pos", view), neg=artifacts.exr("neg", view),

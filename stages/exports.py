@@ -24,8 +24,7 @@ import numpy as np
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
-from stages.cameras import load_cameras
-from stages.decode import COLMAP_MODEL_DIR, distortion_fields, srgb_png
+from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
 
 
 @dataclass(frozen=True)
@@ -155,7 +154,7 @@ class ExportsStage(Stage):
         cfg: ExportsConfig = self.config
         out = ctx.out_dir
         upstream = ActionArtifacts(ctx.upstream)
-        cameras = [c for c in load_cameras(upstream.existing("cameras")).values()
+        cameras = [c for c in upstream.camera_records().values()
                    if upstream.has("full_on_png", c["camera_id"])]
 
         mesh = out / "mesh"

@@ -26,7 +26,6 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts, ArtifactWriter
-from stages.cameras import load_cameras
 from stages.numerics.light_model import sphere_samples, validated_light_model
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
@@ -97,7 +96,7 @@ class LightsStage(Stage):
         or unreadable: one broken frame costs that camera's samples, not the session's calibration)."""
         sphere = ctx.rig["calibration_objects"]["sphere"]
         upstream = ActionArtifacts(ctx.upstream)
-        cameras = load_cameras(upstream.existing("session_cameras"))
+        cameras = upstream.camera_records("session_cameras")
         folder = ctx.capture_root / "sessions" / ctx.scope_id / "calibration" / "sphere"
         ratios, truths, left_out = [], [], {}
         for cam_id, cam in sorted(cameras.items()):

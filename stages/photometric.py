@@ -16,7 +16,6 @@ from pipeline.codecs.image import label_picture, preview_linear, preview_normals
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
 from stages.artifacts import ActionArtifacts, ArtifactWriter
 from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
@@ -169,7 +168,7 @@ class PhotometricStage(Stage):
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
         upstream = ActionArtifacts(ctx.upstream)
-        cameras = load_cameras(upstream.existing("cameras"))
+        cameras = upstream.camera_records()
         if view not in cameras:
             return {"missing": "camera has no calibration"}
         cam = cameras[view]
