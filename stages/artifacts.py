@@ -70,7 +70,7 @@ PRODUCTS: dict[str, tuple[str, str]] = {
 RELEASE_KINDS: dict[str, str] = {
     **{p: p for p in ("transforms", "full_on", "pos", "neg", "full_on_png", "pos_png", "neg_png", "normal_alpha",
                       "albedo", "mask", "normal_diffuse", "albedo_diffuse", "mesh", "render_cameras",
-                      "render_normal", "render_albedo", "render_roughness", "render_mask")},
+                      "render_environments", "render_normal", "render_albedo", "render_roughness", "render_mask")},
     "textured_mesh": "mesh_textured",
     "textured_material": "mesh_material",
     "albedo_texture_png": "texture_albedo_preview",
@@ -99,17 +99,18 @@ class StoreBackend:
                            f"(upstream: {sorted(self.upstream)})")
         return self.upstream[stage] / rel.format(camera=camera, **fields)
 
-    def missing(self, product: str, camera: str | None, path: Path) -> FileNotFoundError:
-        """The error for a product whose file is not there."""
+    def missing(self, product: str, camera: str | None, path: Path, **fields: str) -> FileNotFoundError:
+        """The error for a product whose file is not there (naming the stage, camera, product and file)."""
         what = f"camera {camera}" if camera is not None else "no camera"
         return FileNotFoundError(f"{PRODUCTS[product][0]} artifact, {what}, {product}: file {path} not found")
 
     def where(self) -> Path:
+        """The folder an error about the action's maps names: the photometric normal maps'."""
         if "photometric" in self.upstream:
             return self.upstream["photometric"] / "normal_alpha"
         return next(iter(self.upstream.values()), Path("."))
 
-    def camera_records(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
+    def calibrated_cameras(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
         """camera_id -> :class:`Camera` of every calibrated camera (``cameras.json``; the record in ``record``)."""
         return read_cameras(artifacts.existing("cameras"))
 
@@ -132,16 +133,19 @@ class ReleaseBackend:
                            f"{sorted(RELEASE_KINDS) + ['cameras']}")
         return self.view.path(RELEASE_KINDS[product].format(**fields), camera)
 
-    def missing(self, product: str, camera: str | None, path: Path) -> FileNotFoundError:
+    def missing(self, product: str, camera: str | None, path: Path, **fields: str) -> FileNotFoundError:
+        """The error for a product listed in the assets manifest whose file is not there (naming the action,
+        camera, kind and file, as :class:`manifests.consumer.ActionView` does)."""
         what = f"camera {camera}" if camera is not None else "no camera"
-        kind = RELEASE_KINDS[product]
+        kind = RELEASE_KINDS[product].format(**fields)
         return FileNotFoundError(f"action {self.view.action_id}, {what}, {kind}: file {path} is listed in the "
                                  "assets table but missing on disk")
 
     def where(self) -> Path:
+        """The folder an error about the action's maps names: the action's folder of the release."""
         return self.view.release.root / "actions" / self.view.action_id
 
-    def camera_records(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
+    def calibrated_cameras(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
         """camera_id -> :class:`Camera` of the frames of the action's ``transforms.json`` (OpenCV ``K``,
         ``cam_from_world_opencv``, ``w``, ``h``; the frame in ``record``)."""
         frames = artifacts.json("transforms")["frames"]
@@ -157,27 +161,10 @@ def read_cameras(cameras_json: Path) -> dict[str, Camera]:
     return {r["camera_id"]: Camera.from_json(r) for r in records}
 
 
-def colour_matrix(colour_dir: Path, camera_id: str) -> np.ndarray | None:
-    """The fitted matrix (3, 3) float32 of one camera from a ``colour`` artifact, or None (identity)."""
-    return ActionArtifacts({"colour": colour_dir}).colour_matrix(camera_id)
-
-
 def load_light_model(lights_dir: Path) -> Any:
     """The fitted :class:`calibration.light.LightModel` of a ``lights`` artifact, or None when the session uses
     the ideal one."""
     return ActionArtifacts({"lights": lights_dir}).light_model()
-
-
-def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, Camera]:
-    """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
-    missing camera, with no calibration or failed frames, has none)."""
-    return ActionArtifacts({"decode": decode_dir, "photometric": photometric_dir}).cameras()
-
-
-def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
-    """Yield ``(camera_id, Camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
-    :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
-    return ActionArtifacts({"decode": decode_dir, "photometric": photometric_dir}).camera_maps(min_alpha)
 
 
 def fitted_f0(artifact: Path) -> float:
@@ -283,7 +270,7 @@ class ActionArtifacts:
         when it is not there."""
         path = self.path(product, camera, **fields)
         if not path.is_file():
-            raise self.backend.missing(product, camera, path)
+            raise self.backend.missing(product, camera, path, **fields)
         return path
 
     def where(self) -> Path:
@@ -311,7 +298,7 @@ class ActionArtifacts:
 
     def calibrated_cameras(self) -> dict[str, Camera]:
         """camera_id -> :class:`Camera` of every calibrated camera of the action, at the decoded maps' size."""
-        return self.backend.camera_records(self)
+        return self.backend.calibrated_cameras(self)
 
     def camera_records(self, product: str = "cameras") -> dict[str, dict[str, Any]]:
         """camera_id -> record (``K``, ``cam_from_world``, ``width``, ``height``, ``white_reference``, ...) of the
