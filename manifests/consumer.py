@@ -349,7 +349,7 @@ class ActionView:
     def texture(self, name: str) -> np.ndarray:
         """A baked texture of the UV atlas of ``mesh/textured.obj``: 'albedo' (T, T, 3), 'normal' (T, T, 3),
         'view_count' or 'confidence' (T, T), float32; texel row 0 is v = 1 (OBJ convention)."""
-        from stages.artifacts import RELEASE_KINDS
+        from stages.layout import RELEASE_KINDS
 
         product = f"{name}_texture"
         if product not in RELEASE_KINDS:

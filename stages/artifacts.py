@@ -1,12 +1,12 @@
-"""The artifact facade: one place that knows where each product lives, in the work store and in a release.
+"""The artifact facade: the stages' products read by what they are, from the work store or from a release.
 
-:data:`PRODUCTS` says where each product lies in its stage's artifact folder; :data:`RELEASE_KINDS` which
-kind of the release's assets manifest (``manifests/assets.parquet``) holds it. Two small backends resolve a
+Where each product lies is :mod:`stages.layout`'s (:data:`~stages.layout.PRODUCTS` in its stage's artifact
+folder, :data:`~stages.layout.RELEASE_KINDS` in the release's assets manifest). Two small backends resolve a
 product (and a camera) to a file: :class:`StoreBackend` over a stage task's upstream folders of the work store,
 :class:`ReleaseBackend` over one action of a release. :class:`ActionArtifacts` reads each product by what it is
 (cameras, normal maps, masks, mesh, atlas, textures, light model, colour matrices) through either, so the
-stages and the consumer API (:class:`manifests.consumer.ActionView`) read the same way;
-:class:`ArtifactWriter` gives a stage the paths of the products it writes. :func:`load_relightable_asset`
+stages and the consumer API (:class:`manifests.consumer.ActionView`) read the same way (a stage writes its own
+products at :class:`stages.layout.ArtifactWriter`'s paths). :func:`load_relightable_asset`
 builds the :class:`stages.numerics.novel_view.ActionAsset` the ``relight`` and ``relightset`` stages render from,
 from the work store or from a release.
 """
@@ -23,65 +23,8 @@ import numpy as np
 from pipeline.codecs.exr import read_exr
 from pipeline.codecs.image import read_png
 from pipeline.errors import InputError
+from stages.layout import PRODUCTS, RELEASE_KINDS, check_product
 from stages.numerics.camera import Camera
-
-# The textures of the atlas: the textures stage bakes the first four, the materials stage fits the rest.
-_TEXTURES = {"albedo": "textures", "normal": "textures", "view_count": "textures", "confidence": "textures",
-             "roughness": "materials", "roughness_fit_rms": "materials", "occlusion": "materials",
-             "albedo_deoccluded": "materials", "diffuse_ratio": "materials", "albedo_intrinsic": "materials"}
-
-#: Where each product lives inside its stage's artifact folder: (stage, relative path); ``{camera}`` is a
-#: camera id, other fields (``{environment}``) are named by the reader.
-PRODUCTS: dict[str, tuple[str, str]] = {
-    "session_cameras": ("cameras", "cameras.json"),
-    "colour_matrix": ("colour", "colour/{camera}.json"),
-    "plate": ("plates", "plates/{camera}.exr"),
-    "light_model": ("lights", "light_model.json"),
-    "cameras": ("decode", "cameras.json"),
-    "transforms": ("decode", "transforms.json"),
-    "full_on": ("decode", "full_on/{camera}.exr"),
-    "pos": ("decode", "pos/{camera}.exr"),
-    "neg": ("decode", "neg/{camera}.exr"),
-    "full_on_png": ("decode", "full_on/{camera}.png"),
-    "pos_png": ("decode", "pos/{camera}.png"),
-    "neg_png": ("decode", "neg/{camera}.png"),
-    "clipped": ("decode", "clipped/{camera}.png"),
-    "normal_alpha": ("photometric", "normal_alpha/{camera}.exr"),
-    "albedo": ("photometric", "albedo/{camera}.exr"),
-    "mask": ("photometric", "mask/{camera}.png"),
-    "normal_diffuse": ("diffuse_normals", "normal_diffuse/{camera}.exr"),
-    "albedo_diffuse": ("diffuse_normals", "albedo_diffuse/{camera}.exr"),
-    "mesh": ("geometry", "mesh/mesh.ply"),
-    "textured_mesh": ("textures", "mesh/textured.obj"),
-    "textured_material": ("textures", "mesh/textured.mtl"),
-    "albedo_texture_png": ("textures", "textures/albedo.png"),
-    **{f"{name}_texture": (stage, f"textures/{name}.exr") for name, stage in _TEXTURES.items()},
-    "render_cameras": ("relight", "renders/cameras.json"),
-    "render_environments": ("relight", "renders/environments.json"),
-    **{f"render_{name}": ("relight", f"renders/{{camera}}/{name}.{'png' if name == 'mask' else 'exr'}")
-       for name in ("normal", "albedo", "roughness", "mask")},
-    "relit": ("relight", "renders/{camera}/{environment}.exr"),
-    "relight_examples": ("relightset", "relight/examples.json"),
-    "relight_example": ("relightset", "relight/{example}/example.json"),
-}
-
-#: The release's asset kind of each product a release holds (the kinds the stages' ``release_files`` give;
-#: ``cameras`` is read from ``transforms``, the release's copy of the calibrated cameras).
-RELEASE_KINDS: dict[str, str] = {
-    **{p: p for p in ("transforms", "full_on", "pos", "neg", "full_on_png", "pos_png", "neg_png", "normal_alpha",
-                      "albedo", "mask", "normal_diffuse", "albedo_diffuse", "mesh", "render_cameras",
-                      "render_environments", "render_normal", "render_albedo", "render_roughness", "render_mask")},
-    "textured_mesh": "mesh_textured",
-    "textured_material": "mesh_material",
-    "albedo_texture_png": "texture_albedo_preview",
-    **{f"{name}_texture": f"texture_{name}" for name in _TEXTURES},
-    "relit": "relit_{environment}",
-}
-
-
-def _check_product(product: str) -> None:
-    if product not in PRODUCTS:
-        raise KeyError(f"unknown product {product!r}; products are {sorted(PRODUCTS)}")
 
 
 class StoreBackend:
@@ -92,7 +35,7 @@ class StoreBackend:
 
     def path(self, product: str, camera: str | None = None, **fields: str) -> Path:
         """Where a product is (it may not exist); KeyError for an unknown product or a stage not upstream."""
-        _check_product(product)
+        check_product(product)
         stage, rel = PRODUCTS[product]
         if stage not in self.upstream:
             raise KeyError(f"product {product!r} comes from stage {stage!r}, which is not upstream "
@@ -127,7 +70,7 @@ class ReleaseBackend:
     def path(self, product: str, camera: str | None = None, **fields: str) -> Path:
         """Where a product is; KeyError for an unknown product, one a release does not hold, or a (kind,
         camera) absent from the assets manifest (naming the action, camera and kind)."""
-        _check_product(product)
+        check_product(product)
         if product not in RELEASE_KINDS:
             raise KeyError(f"product {product!r} is not published in a release; released products are "
                            f"{sorted(RELEASE_KINDS) + ['cameras']}")
@@ -372,26 +315,6 @@ class ActionArtifacts:
 
         record = self.json("light_model")
         return None if record.get("ideal") else LightModel.from_json(record["model"])
-
-
-class ArtifactWriter:
-    """Where a stage task writes its products: their :data:`PRODUCTS` paths under its output folder."""
-
-    def __init__(self, stage: str, out_dir: Path):
-        self.stage = stage
-        self.out_dir = Path(out_dir)
-
-    def path(self, product: str, camera: str | None = None, **fields: str) -> Path:
-        """The output path of one of this stage's products; KeyError for an unknown product or another stage's."""
-        _check_product(product)
-        stage, rel = PRODUCTS[product]
-        if stage != self.stage:
-            raise KeyError(f"product {product!r} is written by stage {stage!r}, not {self.stage!r}")
-        return self.out_dir / rel.format(camera=camera, **fields)
-
-    def folder(self, product: str) -> Path:
-        """The folder of one of this stage's per-camera products (``colour/``, ``normal_alpha/``, ...)."""
-        return self.path(product, "_").parent
 
 
 def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, diffuse_normals: bool = True,

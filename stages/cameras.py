@@ -43,7 +43,7 @@ from calibration.markers import MarkerCalibrationConfig
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ArtifactWriter
+from stages.layout import ArtifactWriter
 from stages.numerics.camera import camera_centre
 
 

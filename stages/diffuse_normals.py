@@ -19,7 +19,8 @@ from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.exr_headers import EXR_HEADERS
-from stages.artifacts import ActionArtifacts, ArtifactWriter
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import joint_bilateral

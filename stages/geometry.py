@@ -25,7 +25,8 @@ from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts, ArtifactWriter
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 from stages.numerics.sdf import SDF_PRESETS, SDFConfig
 

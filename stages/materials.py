@@ -49,7 +49,8 @@ from pipeline.codecs.image import preview_linear, preview_scalar, write_png
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts, ArtifactWriter
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 
 ILLUMINATION_DIRS = ("full_on", "pos", "neg")

@@ -16,7 +16,8 @@ from pipeline.codecs.image import label_picture, preview_linear, preview_normals
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts, ArtifactWriter
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,

@@ -10,7 +10,8 @@ import pytest
 from manifests import asset_row, write_table
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
-from stages.artifacts import PRODUCTS, RELEASE_KINDS, ActionArtifacts, ArtifactWriter
+from stages.artifacts import ActionArtifacts
+from stages.layout import PRODUCTS, RELEASE_KINDS, ArtifactWriter
 from stages.decode import transforms_json
 
 H, W = 6, 4
