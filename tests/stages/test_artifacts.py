@@ -147,3 +147,16 @@ def test_the_writer_gives_a_stage_its_own_products_only(tmp_path):
 
 def test_every_released_product_is_a_product():
     assert set(RELEASE_KINDS) <= set(PRODUCTS)
+
+
+def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
+    """The cameras and colour stages write through stages.layout only: their keys' code records do not hold the
+    facade's readers (nor the renderer load_relightable_asset imports), so editing those cannot rerun them."""
+    from pipeline.hashing import code_digests
+    from stages.registry import CODE_PACKAGES
+
+    assert set(code_digests("stages.layout", CODE_PACKAGES)) == {"stages", "stages.layout"}
+    for module in ("stages.cameras", "stages.colour"):
+        modules = set(code_digests(module, CODE_PACKAGES))
+        assert "stages.layout" in modules and "stages.artifacts" not in modules, module
+    assert "stages.numerics.novel_view" in code_digests("stages.artifacts", CODE_PACKAGES)  # what it would add
