@@ -244,6 +244,7 @@ class ActionView:
         rows = assets.filter(pc.equal(assets.column("action_id"), action_id)).to_pylist()
         self._rows = rows
         self._index: dict[tuple[str, str | None], dict] = {(r["kind"], r["camera_id"]): r for r in rows}
+        self._artifacts = None
 
     def __repr__(self) -> str:
         return f"ActionView({self.action_id!r}, {len(self.cameras)} cameras, {len(self._rows)} assets)"
@@ -292,41 +293,37 @@ class ActionView:
         """Path of the (kind, camera) asset."""
         return self.release.path(self.asset(kind, cam))
 
-    def _load(self, kind: str, cam: str | None, channels: tuple[str, ...] | None = None):
-        path = self.path(kind, cam)
-        if not path.is_file():
-            what = f"camera {cam}" if cam is not None else "no camera"
-            raise FileNotFoundError(f"action {self.action_id}, {what}, {kind}: file {path} is listed in the "
-                                    "assets table but missing on disk")
-        if channels is not None:
-            from pipeline.codecs.exr import read_exr
+    @property
+    def artifacts(self):
+        """This action through the artifact facade (:class:`stages.artifacts.ActionArtifacts` over the release,
+        :class:`stages.artifacts.ReleaseBackend`): the typed readers below read through it, and
+        ``stages.artifacts.load_relightable_asset(view.artifacts)`` gives the asset the renderer relights."""
+        if self._artifacts is None:
+            from stages.artifacts import ActionArtifacts, ReleaseBackend
 
-            return read_exr(path, channels=channels)
-        return load_file(path)
+            self._artifacts = ActionArtifacts(ReleaseBackend(self))
+        return self._artifacts
 
     def normals(self, cam: str, diffuse: bool = False) -> np.ndarray:
         """(H, W, 3) float32 unit world normals (0 where undefined; see normal_alpha): eq. 1's gradient ratio,
         or with ``diffuse=True`` the normals with the specular reflection fitted out (``normal_diffuse``,
         closer to the true surface; KeyError when the release was made without them)."""
-        return self._load("normal_diffuse" if diffuse else "normal_alpha", cam, ("R", "G", "B"))
+        return self.artifacts.exr("normal_diffuse" if diffuse else "normal_alpha", cam, ("R", "G", "B"))
 
     def normal_alpha(self, cam: str) -> np.ndarray:
         """(H, W) float32 validity alpha of the normals in [0, 1]."""
-        return self._load("normal_alpha", cam, ("A",))
+        return self.artifacts.exr("normal_alpha", cam, ("A",))
 
     def albedo(self, cam: str, diffuse: bool = False) -> np.ndarray:
         """(H, W, 3) float32 linear sRGB albedo from the white light (``full_on / white_reference``: it holds the
         white light's specular reflection and the stage's ambient occlusion), or with ``diffuse=True`` the same
         with the fitted specular reflection taken out (``albedo_diffuse``, closer to the diffuse albedo; KeyError
         when the release was made without it)."""
-        return self._load("albedo_diffuse" if diffuse else "albedo", cam, ("R", "G", "B"))
+        return self.artifacts.exr("albedo_diffuse" if diffuse else "albedo", cam, ("R", "G", "B"))
 
     def mask(self, cam: str) -> np.ndarray:
         """(H, W) bool subject mask."""
-        m = self._load("mask", cam)
-        if m.ndim == 3:
-            m = m[..., 0]
-        return m > (np.iinfo(m.dtype).max // 2 if np.issubdtype(m.dtype, np.integer) else 0.5)
+        return self.artifacts.mask(cam)
 
     def image(self, illumination: str, cam: str) -> np.ndarray:
         """(H, W, 3) float32 decoded linear sRGB image under 'full_on', 'pos' or 'neg'.
@@ -336,29 +333,29 @@ class ActionView:
         """
         if illumination not in ILLUMINATIONS:
             raise ValueError(f"illumination {illumination!r}: expected one of {list(ILLUMINATIONS)}")
-        return self._load(illumination, cam, ("R", "G", "B"))
+        return self.artifacts.exr(illumination, cam, ("R", "G", "B"))
 
     def transforms(self) -> dict:
         """The action's transforms.json: nerfstudio convention (``transform_matrix`` OpenGL camera-to-world,
         ``fl_x``..``cy`` with pixel centres at +0.5) and, per frame, the OpenCV ``K``, ``dist``,
         ``cam_from_world_opencv`` (3x4) and ``world_from_cam_opencv`` (4x4); CONVENTIONS.md."""
-        return self._load("transforms", None)
+        return self.artifacts.json("transforms")
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """The action's surface (``mesh/mesh.ply``): vertices (V, 3) float32 metres, world frame, and
         faces (F, 3) int32."""
-        from pipeline.codecs.mesh import read_ply
-
-        path = self.path("mesh")
-        if not path.is_file():
-            raise FileNotFoundError(f"action {self.action_id}, mesh: file {path} is listed in the assets "
-                                    "table but missing on disk")
-        return read_ply(path)
+        return self.artifacts.mesh()
 
     def texture(self, name: str) -> np.ndarray:
         """A baked texture of the UV atlas of ``mesh/textured.obj``: 'albedo' (T, T, 3), 'normal' (T, T, 3),
         'view_count' or 'confidence' (T, T), float32; texel row 0 is v = 1 (OBJ convention)."""
-        data = self._load(f"texture_{name}", None)
+        from stages.layout import RELEASE_KINDS
+
+        product = f"{name}_texture"
+        if product not in RELEASE_KINDS:
+            self.asset(f"texture_{name}")  # a kind the facade does not know: KeyError naming it when absent
+            raise KeyError(f"action {self.action_id}: texture {name!r} is not a product of the artifact facade")
+        data = self.artifacts.exr(product)
         single = ("view_count", "confidence", "roughness", "roughness_fit_rms", "occlusion")
         return data[..., 0] if name in single and data.ndim == 3 else data
 
@@ -367,21 +364,21 @@ class ActionView:
         captured pair each lies between); empty when the action has no renders."""
         if "render_cameras" not in self.kinds:
             return []
-        return self._load("render_cameras", None)["cameras"]
+        return self.artifacts.json("render_cameras")["cameras"]
 
     def relit(self, view: str, environment: str) -> np.ndarray:
         """A relit novel view, (H, W, 4) float32: linear radiance in the environment map's units,
         premultiplied by alpha, the share of each pixel the subject covers (alpha >= 0.5 is the mask,
         as ``render_gbuffer``'s). ``environment`` is the label in ``renders/environments.json`` (e.g.
         ``studio_small_03_1k``)."""
-        return self._load(f"relit_{environment}", view)
+        return self.artifacts.exr("relit", view, environment=environment)
 
     def render_gbuffer(self, view: str) -> dict[str, np.ndarray]:
         """The G-buffer of a novel view: ``normal`` (H, W, 3), ``albedo`` (H, W, 3), ``roughness`` (H, W),
         ``mask`` (H, W) bool."""
-        rough = self._load("render_roughness", view)
-        mask = self._load("render_mask", view)
-        return {"normal": self._load("render_normal", view), "albedo": self._load("render_albedo", view),
+        rough = self.artifacts.exr("render_roughness", view)
+        mask = self.artifacts.png("render_mask", view)
+        return {"normal": self.artifacts.exr("render_normal", view), "albedo": self.artifacts.exr("render_albedo", view),
                 "roughness": rough[..., 0] if rough.ndim == 3 else rough,
                 "mask": (mask[..., 0] if mask.ndim == 3 else mask) > 127}
 

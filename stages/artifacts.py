@@ -1,11 +1,14 @@
-"""Typed readers of the stages' artifacts: one place that knows where each product lives.
+"""The artifact facade: the stages' products read by what they are, from the work store or from a release.
 
-A stage's upstream artifacts are folders of the work store (``ctx.upstream[name]``); :class:`ActionArtifacts`
-wraps them and reads each product by what it is (cameras, normal maps, mesh, atlas, textures) instead of by
-path, so the stages that consume a product do not repeat its layout; :func:`colour_matrix` and
-:func:`load_light_model` read the session stages' products, :func:`load_atlas_mesh` and :func:`fitted_f0` the
-textures and materials stages'. :func:`load_relightable_asset` builds
-the :class:`stages.numerics.novel_view.ActionAsset` that the ``relight`` and ``relightset`` stages render from.
+Where each product lies is :mod:`stages.layout`'s (:data:`~stages.layout.PRODUCTS` in its stage's artifact
+folder, :data:`~stages.layout.RELEASE_KINDS` in the release's assets manifest). Two small backends resolve a
+product (and a camera) to a file: :class:`StoreBackend` over a stage task's upstream folders of the work store,
+:class:`ReleaseBackend` over one action of a release. :class:`ActionArtifacts` reads each product by what it is
+(cameras, normal maps, masks, mesh, atlas, textures, light model, colour matrices) through either, so the
+stages and the consumer API (:class:`manifests.consumer.ActionView`) read the same way (a stage writes its own
+products at :class:`stages.layout.ArtifactWriter`'s paths). :func:`load_relightable_asset`
+builds the :class:`stages.numerics.novel_view.ActionAsset` the ``relight`` and ``relightset`` stages render from,
+from the work store or from a release.
 """
 from __future__ import annotations
 
@@ -20,66 +23,91 @@ import numpy as np
 from pipeline.codecs.exr import read_exr
 from pipeline.codecs.image import read_png
 from pipeline.errors import InputError
-from stages.cameras import load_cameras
+from stages.layout import PRODUCTS, RELEASE_KINDS, check_product
 from stages.numerics.camera import Camera
 
-#: Where each product lives inside its stage's artifact folder: (stage, relative path).
-PRODUCTS: dict[str, tuple[str, str]] = {
-    "cameras": ("decode", "cameras.json"),
-    "full_on": ("decode", "full_on/{camera}.exr"),
-    "pos": ("decode", "pos/{camera}.exr"),
-    "neg": ("decode", "neg/{camera}.exr"),
-    "normal_alpha": ("photometric", "normal_alpha/{camera}.exr"),
-    "albedo": ("photometric", "albedo/{camera}.exr"),
-    "mask": ("photometric", "mask/{camera}.png"),
-    "normal_diffuse": ("diffuse_normals", "normal_diffuse/{camera}.exr"),
-    "albedo_diffuse": ("diffuse_normals", "albedo_diffuse/{camera}.exr"),
-    "mesh": ("geometry", "mesh/mesh.ply"),
-    "textured_mesh": ("textures", "mesh/textured.obj"),
-    "albedo_texture": ("textures", "textures/albedo.exr"),
-    "roughness_texture": ("materials", "textures/roughness.exr"),
-    "occlusion_texture": ("materials", "textures/occlusion.exr"),
-    "diffuse_ratio_texture": ("materials", "textures/diffuse_ratio.exr"),
-}
+
+class StoreBackend:
+    """Products of one stage task's upstream artifacts in the work store (folders by stage name)."""
+
+    def __init__(self, upstream: Mapping[str, Path]):
+        self.upstream = {name: Path(path) for name, path in upstream.items()}
+
+    def path(self, product: str, camera: str | None = None, **fields: str) -> Path:
+        """Where a product is (it may not exist); KeyError for an unknown product or a stage not upstream."""
+        check_product(product)
+        stage, rel = PRODUCTS[product]
+        if stage not in self.upstream:
+            raise KeyError(f"product {product!r} comes from stage {stage!r}, which is not upstream "
+                           f"(upstream: {sorted(self.upstream)})")
+        return self.upstream[stage] / rel.format(camera=camera, **fields)
+
+    def missing(self, product: str, camera: str | None, path: Path, **fields: str) -> FileNotFoundError:
+        """The error for a product whose file is not there (naming the stage, camera, product and file)."""
+        what = f"camera {camera}" if camera is not None else "no camera"
+        return FileNotFoundError(f"{PRODUCTS[product][0]} artifact, {what}, {product}: file {path} not found")
+
+    def where(self) -> Path:
+        """The folder an error about the action's maps names: the photometric normal maps'."""
+        if "photometric" in self.upstream:
+            return self.upstream["photometric"] / "normal_alpha"
+        return next(iter(self.upstream.values()), Path("."))
+
+    def calibrated_cameras(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
+        """camera_id -> :class:`Camera` of every calibrated camera (``cameras.json``; the record in ``record``)."""
+        return read_cameras(artifacts.existing("cameras"))
 
 
-def colour_matrix(colour_dir: Path, camera_id: str) -> np.ndarray | None:
-    """The fitted matrix (3, 3) float32 of one camera from a ``colour`` artifact, or None (identity)."""
-    path = Path(colour_dir) / "colour" / f"{camera_id}.json"
-    return np.asarray(json.loads(path.read_text())["matrix"], np.float32) if path.exists() else None
+class ReleaseBackend:
+    """Products of one action of a release, found through its assets manifest.
 
+    ``view`` is the action's :class:`manifests.consumer.ActionView` (its ``asset`` and ``path`` give the row
+    and file of a kind and camera, with the consumer's errors)."""
 
-def load_light_model(lights_dir: Path) -> Any:
-    """The fitted :class:`calibration.light.LightModel` of a ``lights`` artifact, or None when the session uses
-    the ideal one."""
-    from calibration.light import LightModel
+    def __init__(self, view: Any):
+        self.view = view
 
-    record = json.loads((Path(lights_dir) / "light_model.json").read_text())
-    return None if record.get("ideal") else LightModel.from_json(record["model"])
+    def path(self, product: str, camera: str | None = None, **fields: str) -> Path:
+        """Where a product is; KeyError for an unknown product, one a release does not hold, or a (kind,
+        camera) absent from the assets manifest (naming the action, camera and kind)."""
+        check_product(product)
+        if product not in RELEASE_KINDS:
+            raise KeyError(f"product {product!r} is not published in a release; released products are "
+                           f"{sorted(RELEASE_KINDS) + ['cameras']}")
+        return self.view.path(RELEASE_KINDS[product].format(**fields), camera)
+
+    def missing(self, product: str, camera: str | None, path: Path, **fields: str) -> FileNotFoundError:
+        """The error for a product listed in the assets manifest whose file is not there (naming the action,
+        camera, kind and file, as :class:`manifests.consumer.ActionView` does)."""
+        what = f"camera {camera}" if camera is not None else "no camera"
+        kind = RELEASE_KINDS[product].format(**fields)
+        return FileNotFoundError(f"action {self.view.action_id}, {what}, {kind}: file {path} is listed in the "
+                                 "assets table but missing on disk")
+
+    def where(self) -> Path:
+        """The folder an error about the action's maps names: the action's folder of the release."""
+        return self.view.release.root / "actions" / self.view.action_id
+
+    def calibrated_cameras(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
+        """camera_id -> :class:`Camera` of the frames of the action's ``transforms.json`` (OpenCV ``K``,
+        ``cam_from_world_opencv``, ``w``, ``h``; the frame in ``record``)."""
+        frames = artifacts.json("transforms")["frames"]
+        return {f["camera_id"]: Camera(K=f["K"], cam_from_world=f["cam_from_world_opencv"], width=f["w"],
+                                       height=f["h"], camera_id=str(f["camera_id"]), record=dict(f))
+                for f in frames}
 
 
 def read_cameras(cameras_json: Path) -> dict[str, Camera]:
     """camera_id -> :class:`Camera` of the calibrated cameras of a ``cameras.json`` (their records, with
     ``white_reference`` and the rest, in ``Camera.record``)."""
-    return {cam_id: Camera.from_json(record) for cam_id, record in load_cameras(cameras_json).items()}
+    records = json.loads(Path(cameras_json).read_text())["cameras"]
+    return {r["camera_id"]: Camera.from_json(r) for r in records}
 
 
-def mapped_cameras(decode_dir: Path, photometric_dir: Path) -> dict[str, Camera]:
-    """camera_id -> camera of the calibrated cameras that have a photometric normal map, sorted by id (a
-    missing camera, with no calibration or failed frames, has none)."""
-    cameras = read_cameras(Path(decode_dir) / "cameras.json")
-    return {c: cameras[c] for c in sorted(cameras) if (Path(photometric_dir) / "normal_alpha" / f"{c}.exr").exists()}
-
-
-def camera_maps(decode_dir: Path, photometric_dir: Path, min_alpha: float):
-    """Yield ``(camera_id, Camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` for the
-    :func:`mapped_cameras`, sorted by id; ``valid`` = alpha above ``min_alpha`` inside the mask."""
-    photometric_dir = Path(photometric_dir)
-    for cam_id, cam in mapped_cameras(decode_dir, photometric_dir).items():
-        normal_alpha = read_exr(photometric_dir / "normal_alpha" / f"{cam_id}.exr")
-        mask = read_png(photometric_dir / "mask" / f"{cam_id}.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
+def load_light_model(lights_dir: Path) -> Any:
+    """The fitted :class:`calibration.light.LightModel` of a ``lights`` artifact, or None when the session uses
+    the ideal one."""
+    return ActionArtifacts({"lights": lights_dir}).light_model()
 
 
 def fitted_f0(artifact: Path) -> float:
@@ -113,11 +141,24 @@ def load_atlas_mesh(obj_path: Path):
     return vertices, faces, atlas
 
 
-class ActionArtifacts:
-    """The upstream artifacts of one action's stage task (the work store's folders by stage name)."""
+def mask_from_png(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool subject mask of a mask PNG's pixels ((H, W) or (H, W, C), first channel): above half the
+    dtype's range (127 of 8 bits)."""
+    mask = mask[..., 0] if mask.ndim == 3 else mask
+    return mask > (np.iinfo(mask.dtype).max // 2 if np.issubdtype(mask.dtype, np.integer) else 0.5)
 
-    def __init__(self, upstream: Mapping[str, Path]):
-        self.upstream = {name: Path(path) for name, path in upstream.items()}
+
+class ActionArtifacts:
+    """The products of one action, read by what they are, from the work store or from a release.
+
+    ``source``: a stage task's upstream folders by stage name (the work store, :class:`StoreBackend`) or a
+    backend (:class:`StoreBackend`, :class:`ReleaseBackend`). Readers raise KeyError for an unknown product, or
+    one the source cannot hold, and FileNotFoundError naming the product, camera and file when its file is
+    not there.
+    """
+
+    def __init__(self, source: Mapping[str, Path] | StoreBackend | ReleaseBackend):
+        self.backend = source if isinstance(source, (StoreBackend, ReleaseBackend)) else StoreBackend(source)
 
     @classmethod
     def from_store(cls, store_root: Path, action_id: str, session_id: str,
@@ -135,51 +176,145 @@ class ActionArtifacts:
             upstream[stage] = folder
         return cls(upstream)
 
-    def path(self, product: str, camera: str | None = None) -> Path:
-        """Where a product is (it may not exist); KeyError for an unknown product or a stage not upstream."""
-        if product not in PRODUCTS:
-            raise KeyError(f"unknown product {product!r}; products are {sorted(PRODUCTS)}")
-        stage, rel = PRODUCTS[product]
-        if stage not in self.upstream:
-            raise KeyError(f"product {product!r} comes from stage {stage!r}, which is not upstream "
-                           f"(upstream: {sorted(self.upstream)})")
-        return self.upstream[stage] / rel.format(camera=camera)
+    @classmethod
+    def from_release(cls, release: Any, action_id: str) -> "ActionArtifacts":
+        """One action of a release (its folder or an opened :class:`manifests.consumer.Release`).
 
-    def has(self, product: str, camera: str | None = None) -> bool:
+        Raises:
+            KeyError: no action with that id in the release.
+            manifests.ReleaseError: the folder is not a release.
+        """
+        from manifests.consumer import Release
+
+        release = release if isinstance(release, Release) else Release(release)
+        return cls(ReleaseBackend(release.action(action_id)))
+
+    @property
+    def upstream(self) -> dict[str, Path]:
+        """The upstream folders by stage name of a work-store source (AttributeError for a release)."""
+        if not isinstance(self.backend, StoreBackend):
+            raise AttributeError("a release source has no upstream folders")
+        return self.backend.upstream
+
+    def path(self, product: str, camera: str | None = None, **fields: str) -> Path:
+        """Where a product is (it may not exist); KeyError for an unknown product or one the source cannot
+        hold."""
+        return self.backend.path(product, camera, **fields)
+
+    def has(self, product: str, camera: str | None = None, **fields: str) -> bool:
+        """Whether the source holds the product's file."""
         try:
-            return self.path(product, camera).exists()
+            return self.path(product, camera, **fields).is_file()
         except KeyError:
             return False
 
+    def existing(self, product: str, camera: str | None = None, **fields: str) -> Path:
+        """The product's file; KeyError as :meth:`path`, FileNotFoundError naming product, camera and file
+        when it is not there."""
+        path = self.path(product, camera, **fields)
+        if not path.is_file():
+            raise self.backend.missing(product, camera, path, **fields)
+        return path
+
+    def where(self) -> Path:
+        """The folder an error about the action's maps names: the photometric normal maps' in the work store,
+        the action's in a release."""
+        return self.backend.where()
+
+    # -- files by format ----------------------------------------------------------------------------
+
+    def exr(self, product: str, camera: str | None = None, channels: tuple[str, ...] | None = None,
+            **fields: str) -> np.ndarray:
+        """A product's EXR as float32: (H, W) for one channel, else (H, W, C), in ``channels``' order (default
+        R, G, B, A when present; :func:`pipeline.codecs.exr.read_exr`)."""
+        return read_exr(self.existing(product, camera, **fields), channels=channels)
+
+    def png(self, product: str, camera: str | None = None, **fields: str) -> np.ndarray:
+        """A product's PNG as its stored dtype, (H, W) or (H, W, C)."""
+        return read_png(self.existing(product, camera, **fields))
+
+    def json(self, product: str, camera: str | None = None) -> Any:
+        """A product's JSON document."""
+        return json.loads(self.existing(product, camera).read_text(encoding="utf-8"))
+
+    # -- typed readers ------------------------------------------------------------------------------
+
+    def calibrated_cameras(self) -> dict[str, Camera]:
+        """camera_id -> :class:`Camera` of every calibrated camera of the action, at the decoded maps' size."""
+        return self.backend.calibrated_cameras(self)
+
+    def camera_records(self, product: str = "cameras") -> dict[str, dict[str, Any]]:
+        """camera_id -> record (``K``, ``cam_from_world``, ``width``, ``height``, ``white_reference``, ...) of the
+        calibrated cameras of a ``cameras.json`` product: ``cameras`` (the decoded maps') or
+        ``session_cameras`` (the session calibration's, at the sensor's size)."""
+        return {record["camera_id"]: record for record in self.json(product)["cameras"]}
+
+    def unregistered_cameras(self) -> dict[str, str]:
+        """camera_id -> why, for the cameras of the session its calibration could not register."""
+        return dict(self.json("session_cameras").get("unregistered", {}))
+
     def cameras(self) -> dict[str, Camera]:
         """camera_id -> :class:`Camera` of the calibrated cameras that have a photometric normal map, sorted by
-        id."""
-        return mapped_cameras(self.upstream["decode"], self.upstream["photometric"])
+        id (a missing camera, with no calibration or failed frames, has none)."""
+        cameras = self.calibrated_cameras()
+        return {c: cameras[c] for c in sorted(cameras) if self.has("normal_alpha", c)}
+
+    def mask(self, camera: str) -> np.ndarray:
+        """(H, W) bool subject mask of a camera."""
+        return mask_from_png(self.png("mask", camera))
 
     def camera_maps(self, min_alpha: float) -> Iterator[tuple[str, Camera, np.ndarray, np.ndarray, np.ndarray]]:
-        """``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W), valid (H, W))`` per mapped camera."""
-        return camera_maps(self.upstream["decode"], self.upstream["photometric"], min_alpha)
+        """Yield ``(camera_id, camera, normal_alpha (H, W, 4), mask (H, W) bool, valid (H, W) bool)`` per
+        camera of :meth:`cameras`; ``valid`` = alpha above ``min_alpha`` inside the mask."""
+        for cam_id, cam in self.cameras().items():
+            normal_alpha = self.exr("normal_alpha", cam_id)
+            mask = self.mask(cam_id)
+            yield cam_id, cam, normal_alpha, mask, (normal_alpha[..., 3] > min_alpha) & mask
 
     def map(self, product: str, camera: str, channels: int = 3) -> np.ndarray:
         """A per-camera float map (H, W, channels) read from its EXR."""
-        return read_exr(self.path(product, camera))[..., :channels]
+        return self.exr(product, camera)[..., :channels]
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
-        """The action's mesh: vertices (V, 3) float64 metres, world frame; faces (F, 3)."""
+        """The action's mesh: vertices (V, 3) metres, world frame; faces (F, 3)
+        (:func:`pipeline.codecs.mesh.read_ply`)."""
         from pipeline.codecs.mesh import read_ply
 
-        return read_ply(self.path("mesh"))
+        return read_ply(self.existing("mesh"))
 
     def atlas_mesh(self) -> tuple[np.ndarray, np.ndarray, Any]:
         """The textured mesh welded (vertices, faces, :class:`stages.numerics.mesh.Atlas`)."""
-        return load_atlas_mesh(self.path("textured_mesh"))
+        return load_atlas_mesh(self.existing("textured_mesh"))
 
     def texture(self, product: str, channels: int = 3) -> np.ndarray:
         """A texture of the atlas: (T, T, 3) for ``channels`` 3, (T, T) for 1."""
-        texture = read_exr(self.path(product))
+        texture = self.exr(product)
         if channels == 1:
             return texture[..., 0] if texture.ndim == 3 else texture
         return texture[..., :channels]
+
+    def colour_matrix(self, camera: str) -> np.ndarray | None:
+        """The session's fitted colour matrix (3, 3) float32 of a camera, or None (identity) when it has none."""
+        path = self.path("colour_matrix", camera)
+        return np.asarray(json.loads(path.read_text())["matrix"], np.float32) if path.exists() else None
+
+    def plate(self, camera: str) -> np.ndarray | None:
+        """The session's clean plate (H, W, 3) of a camera, or None when it has none."""
+        return read_exr(self.path("plate", camera)) if self.has("plate", camera) else None
+
+    def materials_f0(self) -> float:
+        """The Fresnel F0 the materials stage fitted the roughness texture with (:func:`fitted_f0` of its
+        artifact's record; the work store keeps it, a release does not: AttributeError there)."""
+        if "materials" not in self.upstream:
+            raise KeyError(f"stage 'materials' is not upstream (upstream: {sorted(self.upstream)})")
+        return fitted_f0(self.upstream["materials"])
+
+    def light_model(self) -> Any:
+        """The session's fitted :class:`calibration.light.LightModel`, or None when it uses the ideal one."""
+        from calibration.light import LightModel
+
+        record = self.json("light_model")
+        return None if record.get("ideal") else LightModel.from_json(record["model"])
 
 
 def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, diffuse_normals: bool = True,
@@ -215,8 +350,7 @@ def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, d
                                   K=cam.K, cam_from_world=cam.cam_from_world, depth_m=depth))
         cameras[cam_id] = dataclasses.replace(cam, width=w, height=h)
     if len(sources) < 2:
-        raise InputError(artifacts.path("normal_alpha", "00000").parent,
-                         f"{len(sources)} camera(s) have maps; novel views need at least 2")
+        raise InputError(artifacts.where(), f"{len(sources)} camera(s) have maps; novel views need at least 2")
     atlas_vertices, atlas_faces, atlas = artifacts.atlas_mesh()
     asset = ActionAsset(scene=scene, faces=faces, smooth_normals=vertex_normals(vertices, faces), sources=sources,
                         atlas_scene=mesh_scene(atlas_vertices, atlas_faces), atlas=atlas,

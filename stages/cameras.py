@@ -43,6 +43,7 @@ from calibration.markers import MarkerCalibrationConfig
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from stages.layout import ArtifactWriter
 from stages.numerics.camera import camera_centre
 
 
@@ -130,7 +131,7 @@ class CamerasStage(Stage):
         else:
             cameras, stats = self._calibrate(ctx, rig_cams)
         stats["source"] = source
-        (ctx.out_dir / "cameras.json").write_text(json.dumps(
+        ArtifactWriter(self.name, ctx.out_dir).path("session_cameras").write_text(json.dumps(
             {"source": source, "camera_convention": "opencv", "cameras": cameras,
              "unregistered": stats["missing_views"]}, indent=1))
         return stats

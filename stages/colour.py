@@ -23,6 +23,7 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
+from stages.layout import ArtifactWriter
 
 
 @dataclass(frozen=True)
@@ -84,14 +85,14 @@ class ColourStage(Stage):
         matrix = fit_colour_matrix(means, target, white_preserving=self.config.white_preserving)
         before = float(np.mean(delta_e_2000(means / white, target / white)))
         after = float(np.mean(delta_e_2000(apply_colour_matrix(means, matrix) / white, target / white)))
-        out = ctx.out_dir / "colour" / f"{view}.json"
+        out = ArtifactWriter(self.name, ctx.out_dir).path("colour_matrix", view)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps({"matrix": np.asarray(matrix).tolist(), "chart_de2000_before": before,
                                    "chart_de2000_after": after}, indent=1))
         return {"calibrated": True, "chart_de2000_before": before, "chart_de2000_after": after}
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
-        (ctx.out_dir / "colour").mkdir(exist_ok=True)
+        ArtifactWriter(self.name, ctx.out_dir).folder("colour_matrix").mkdir(exist_ok=True)
         done = [s for s in view_stats.values() if s.get("calibrated")]
         left_out = {v: s["left_out"] for v, s in sorted(view_stats.items()) if s.get("left_out")}
         summary = {"views": view_stats, "cameras_calibrated": len(done), "calibration_left_out": left_out}

@@ -18,22 +18,20 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.codecs.exr import write_exr
-from pipeline.codecs.image import srgb_encode, write_png
+from pipeline.codecs.image import write_png
 from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
-from stages.artifacts import colour_matrix
-from stages.cameras import load_cameras, unregistered_cameras
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
+from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
 from stages.exr_headers import EXR_HEADERS
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Camera axes: OpenCV (x right, y down, z forward) to OpenGL (x right, y up, z back); its own inverse."""
-COLMAP_MODEL_DIR = "colmap/sparse/0"
-"""Where the exports stage's COLMAP model lies in the action folder (the sparse/0 layout COLMAP, nerfstudio
-and gaussian-splatting readers look for); transforms.json names its points3D.ply."""
 
 
 @dataclass(frozen=True)
@@ -57,13 +55,6 @@ def scale_camera(cam: dict[str, Any], half_size: bool) -> dict[str, Any]:
     return dict(cam) | {"K": K.tolist(), "width": cam["width"] // 2, "height": cam["height"] // 2}
 
 
-def srgb_png(linear_rgb: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8: the sRGB transfer curve of the linear values clipped to [0, 1], no exposure change
-    (1.0, the sensor's clip level, is 255), so ``srgb_decode(png / 255)`` gives back the EXR below 1."""
-    rgb = np.nan_to_num(np.asarray(linear_rgb, np.float32)[..., :3], nan=0.0, posinf=1.0, neginf=0.0)
-    return (srgb_encode(rgb) * 255.0 + 0.5).astype(np.uint8)
-
-
 def opengl_camera_to_world(cam_from_world: np.ndarray) -> np.ndarray:
     """(4, 4) camera-to-world with OpenGL camera axes (nerfstudio's and instant-ngp's ``transform_matrix``)
     from an OpenCV (3, 4) or (4, 4) cam_from_world: the OpenCV world_from_cam with its y and z columns negated."""
@@ -76,12 +67,6 @@ def opencv_cam_from_world(transform_matrix: np.ndarray) -> np.ndarray:
     """(3, 4) OpenCV cam_from_world from an OpenGL camera-to-world ``transform_matrix`` (the inverse of
     :func:`opengl_camera_to_world`)."""
     return np.linalg.inv(np.asarray(transform_matrix, np.float64) @ OPENGL_FROM_OPENCV)[:3, :4]
-
-
-def distortion_fields(dist: Any) -> dict[str, float]:
-    """OpenCV distortion (k1, k2, p1, p2[, k3]) as nerfstudio's per-frame fields (0 where absent)."""
-    d = [float(x) for x in (list(dist or []) + [0.0] * 5)[:5]]
-    return {"k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3], "k3": d[4]}
 
 
 def transforms_json(cameras: list[dict[str, Any]], image_dir: str = "full_on") -> dict[str, Any]:
@@ -158,16 +143,17 @@ class DecodeStage(Stage):
         return {f"{illum}/{cam}": path for (illum, cam), path in frames.items()}
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        cameras_json = ctx.upstream["cameras"] / "cameras.json"
-        cameras = load_cameras(cameras_json)
+        upstream = ActionArtifacts(ctx.upstream)
+        out = ArtifactWriter(self.name, ctx.out_dir)
+        cameras = upstream.camera_records("session_cameras")
         if view not in cameras:  # the session's calibration could not register it: a missing camera
-            return {"missing": unregistered_cameras(cameras_json).get(view, "camera has no calibration")}
+            return {"missing": upstream.unregistered_cameras().get(view, "camera has no calibration")}
         cam = cameras[view]
         expected = (int(cam["height"]), int(cam["width"]))
         clipped = None
         stats: dict[str, Any] = {}
         shape = None
-        matrix = colour_matrix(ctx.upstream["colour"], view)
+        matrix = upstream.colour_matrix(view)
         stats["raw_blake2b"] = {}
         for illum in ILLUMINATIONS:
             path = ctx.raw_inputs[f"{illum}/{view}"]
@@ -181,22 +167,22 @@ class DecodeStage(Stage):
             if matrix is not None:
                 apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
                 np.maximum(frame.rgb, 0.0, out=frame.rgb)
-            write_exr(ctx.out_dir / illum / f"{view}.exr", frame.rgb, header=EXR_HEADERS[illum])
-            write_png(ctx.out_dir / illum / f"{view}.png", srgb_png(frame.rgb))
+            write_exr(out.path(illum, view), frame.rgb, header=EXR_HEADERS[illum])
+            write_png(out.path(f"{illum}_png", view), srgb_png(frame.rgb))
             clipped = frame.clipped if clipped is None else (clipped | frame.clipped)
             stats[f"{illum}_mean"] = float(frame.rgb.mean())
             stats[f"{illum}_clipped_fraction"] = float(frame.clipped.mean())
-        write_png(ctx.out_dir / "clipped" / f"{view}.png", clipped)
+        write_png(out.path("clipped", view), clipped)
         stats["height"], stats["width"] = int(shape[0]), int(shape[1])
         return stats
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         check_no_duplicate_frames(ctx.raw_inputs, view_stats)
+        out = ArtifactWriter(self.name, ctx.out_dir)
         cameras = [scale_camera(c, self.config.half_size)
-                   for c in load_cameras(ctx.upstream["cameras"] / "cameras.json").values()]
-        (ctx.out_dir / "cameras.json").write_text(json.dumps({"camera_convention": "opencv",
-                                                              "cameras": cameras}, indent=1))
-        (ctx.out_dir / "transforms.json").write_text(json.dumps(transforms_json(cameras), indent=1))
+                   for c in ActionArtifacts(ctx.upstream).camera_records("session_cameras").values()]
+        out.path("cameras").write_text(json.dumps({"camera_convention": "opencv", "cameras": cameras}, indent=1))
+        out.path("transforms").write_text(json.dumps(transforms_json(cameras), indent=1))
         return {"views": view_stats}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:

@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr, write_exr
-from pipeline.codecs.image import preview_normals, read_png, write_png
+from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
 from stages.exr_headers import EXR_HEADERS
-from stages.artifacts import load_light_model
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import joint_bilateral
@@ -78,13 +78,14 @@ class DiffuseNormalsConfig(Documented):
 
 
 @functools.lru_cache(maxsize=2)
-def _roughness_atlas(textures_dir: str, materials_dir: str) -> tuple[Any, Any, np.ndarray]:
-    """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process)."""
+def _roughness_atlas(textured_obj: str, roughness_exr: str) -> tuple[Any, Any, np.ndarray]:
+    """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process, by the
+    files' paths)."""
     from stages.artifacts import load_atlas_mesh
     from stages.numerics.raycast import mesh_scene
 
-    vertices, faces, atlas = load_atlas_mesh(Path(textures_dir) / "mesh" / "textured.obj")
-    texture = read_exr(Path(materials_dir) / "textures" / "roughness.exr")
+    vertices, faces, atlas = load_atlas_mesh(Path(textured_obj))
+    texture = read_exr(Path(roughness_exr))
     return mesh_scene(vertices, faces), atlas, (texture[..., 0] if texture.ndim == 3 else texture)
 
 
@@ -143,19 +144,15 @@ class ViewInputs:
     albedo: np.ndarray
 
 
-def read_view_inputs(upstream: dict[str, Path], view: str) -> ViewInputs | None:
+def read_view_inputs(artifacts: ActionArtifacts, view: str) -> ViewInputs | None:
     """One camera's :class:`ViewInputs` from the decode and photometric artifacts; None when the camera has no
     calibration or no photometric maps."""
-    decoded, photometric = Path(upstream["decode"]), Path(upstream["photometric"])
-    cameras = load_cameras(decoded / "cameras.json")
-    normal_alpha_path = photometric / "normal_alpha" / f"{view}.exr"
-    if view not in cameras or not normal_alpha_path.exists():
+    cameras = artifacts.camera_records()
+    if view not in cameras or not artifacts.has("normal_alpha", view):
         return None
-    mask = read_png(photometric / "mask" / f"{view}.png")
-    return ViewInputs(cam=cameras[view], pos=read_exr(decoded / "pos" / f"{view}.exr"),
-                      neg=read_exr(decoded / "neg" / f"{view}.exr"), normal_alpha=read_exr(normal_alpha_path),
-                      mask=(mask[..., 0] if mask.ndim == 3 else mask) > 127,
-                      albedo=read_exr(photometric / "albedo" / f"{view}.exr")[..., :3])
+    return ViewInputs(cam=cameras[view], pos=artifacts.exr("pos", view), neg=artifacts.exr("neg", view),
+                      normal_alpha=artifacts.exr("normal_alpha", view), mask=artifacts.mask(view),
+                      albedo=artifacts.map("albedo", view))
 
 
 @dataclass(frozen=True)
@@ -212,25 +209,26 @@ class DiffuseNormalsStage(Stage):
         cfg: DiffuseNormalsConfig = self.config
         if not cfg.enabled:
             return {"disabled": True}
-        inputs = read_view_inputs(ctx.upstream, view)
+        upstream = ActionArtifacts(ctx.upstream)
+        inputs = read_view_inputs(upstream, view)
         if inputs is None:
             return {"missing": "no photometric normal_alpha for this camera"}
         start = time.perf_counter()
         scene = atlas = texture = None
         if cfg.use_materials_roughness or cfg.occlusion:
-            scene, atlas, texture = _roughness_atlas(str(ctx.upstream["textures"]), str(ctx.upstream["materials"]))
+            scene, atlas, texture = _roughness_atlas(str(upstream.existing("textured_mesh")),
+                                                     str(upstream.existing("roughness_texture")))
         f0 = cfg.fit.f0
         if cfg.albedo and cfg.use_materials_roughness:
-            from stages.artifacts import fitted_f0
-
-            f0 = fitted_f0(ctx.upstream["materials"])
-        result = diffuse_view(inputs, load_light_model(ctx.upstream["lights"]), cfg, scene, atlas, texture, f0)
+            f0 = upstream.materials_f0()
+        result = diffuse_view(inputs, upstream.light_model(), cfg, scene, atlas, texture, f0)
         alpha = inputs.normal_alpha[..., 3]
-        write_exr(ctx.out_dir / "normal_diffuse" / f"{view}.exr", normals_with_alpha(result.normals, alpha),
+        out = ArtifactWriter(self.name, ctx.out_dir)
+        write_exr(out.path("normal_diffuse", view), normals_with_alpha(result.normals, alpha),
                   header=EXR_HEADERS["normal_diffuse"])
         self._preview(ctx, view, result.normals, alpha)
         if result.albedo_diffuse is not None:
-            write_exr(ctx.out_dir / "albedo_diffuse" / f"{view}.exr", result.albedo_diffuse,
+            write_exr(out.path("albedo_diffuse", view), result.albedo_diffuse,
                       header=EXR_HEADERS["albedo_diffuse"])
         return {"fitted": True, "seconds": time.perf_counter() - start, **result.stats}
 

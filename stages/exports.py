@@ -21,11 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.codecs.exr import read_exr
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
-from stages.decode import COLMAP_MODEL_DIR, distortion_fields, srgb_png
+from stages.artifacts import ActionArtifacts
+from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
 
 
 @dataclass(frozen=True)
@@ -154,23 +153,23 @@ class ExportsStage(Stage):
 
         cfg: ExportsConfig = self.config
         out = ctx.out_dir
-        decoded, textured = ctx.upstream["decode"], ctx.upstream["textures"]
-        cameras = [c for c in load_cameras(decoded / "cameras.json").values()
-                   if (decoded / "full_on" / f"{c['camera_id']}.png").exists()]
+        upstream = ActionArtifacts(ctx.upstream)
+        cameras = [c for c in upstream.camera_records().values()
+                   if upstream.has("full_on_png", c["camera_id"])]
 
         mesh = out / "mesh"
         mesh.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(textured / "textures" / "albedo.png", mesh / "textured.png")
-        mtl = (textured / "mesh" / "textured.mtl").read_text()
+        shutil.copyfile(upstream.existing("albedo_texture_png"), mesh / "textured.png")
+        mtl = upstream.existing("textured_material").read_text()
         (mesh / "textured.mtl").write_text("\n".join("map_Kd textured.png" if line.startswith("map_Kd ") else line
                                                      for line in mtl.splitlines()) + "\n")
-        (mesh / "textured.obj").write_text(obj_with_texture((textured / "mesh" / "textured.obj").read_text(),
-                                                            "textured.mtl"))
+        textured_obj = upstream.existing("textured_mesh")
+        (mesh / "textured.obj").write_text(obj_with_texture(textured_obj.read_text(), "textured.mtl"))
         _write_glb(mesh / "textured.obj", mesh / "textured.glb")
 
-        obj = read_obj(textured / "mesh" / "textured.obj")
+        obj = read_obj(textured_obj)
         points, normals, uv = sample_surface(obj["vertices"], obj["faces"], obj["uvs"], cfg.colmap_points, cfg.seed)
-        colours = point_colours(read_exr(textured / "textures" / "albedo.exr"), uv)
+        colours = point_colours(upstream.exr("albedo_texture"), uv)
         model = out / COLMAP_MODEL_DIR
         model.mkdir(parents=True, exist_ok=True)
         (model / "cameras.txt").write_text(colmap_cameras_txt(cameras))

@@ -24,7 +24,8 @@ from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import camera_maps
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 from stages.numerics.sdf import SDF_PRESETS, SDFConfig
 
@@ -76,12 +77,12 @@ class GeometryConfig(Documented):
     """Write a loss-curve plot and rendered normals of the mesh beside the photometric ones."""
 
 
-def load_sdf_views(decode_dir: Path, photometric_dir: Path, min_alpha: float) -> tuple[list[str], list[Any]]:
+def load_sdf_views(artifacts: ActionArtifacts, min_alpha: float) -> tuple[list[str], list[Any]]:
     """The calibrated cameras that have maps, as :class:`SDFView` records (sorted by camera id)."""
     from stages.numerics.sdf import SDFView
 
     ids, views = [], []
-    for cam_id, cam, normal_alpha, mask, valid in camera_maps(decode_dir, photometric_dir, min_alpha):
+    for cam_id, cam, normal_alpha, mask, valid in artifacts.camera_maps(min_alpha):
         views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]), normal_valid=valid,
                              mask=mask, K=cam.K, cam_from_world=cam.cam_from_world))
         ids.append(cam_id)
@@ -147,9 +148,10 @@ class GeometryStage(Stage):
 
         torch.set_num_threads(numeric_threads())
         cfg: GeometryConfig = self.config
-        ids, views = load_sdf_views(ctx.upstream["decode"], ctx.upstream["photometric"], cfg.min_alpha)
+        upstream = ActionArtifacts(ctx.upstream)
+        ids, views = load_sdf_views(upstream, cfg.min_alpha)
         if len(views) < cfg.min_views:
-            raise InputError(ctx.upstream["photometric"] / "normal_alpha",
+            raise InputError(upstream.where(),
                              f"{len(views)} camera(s) have normal maps; the SDF needs at least {cfg.min_views}")
         fitted = sdf_mesh(views, cfg, label=ctx.scope_id, progress=ctx.progress, log=ctx.log.info)
         result, vertices, faces, mesh_stats = fitted.result, fitted.vertices, fitted.faces, fitted.mesh_stats
@@ -160,7 +162,7 @@ class GeometryStage(Stage):
             {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
              "history": result.history, "deocclusion": fitted.deocclusion, "first_pass": fitted.first_pass},
             indent=1, default=float))
-        write_ply(out / "mesh" / "mesh.ply", vertices, faces, normals=vertex_normals(vertices, faces))
+        write_ply(ArtifactWriter(self.name, out).path("mesh"), vertices, faces, normals=vertex_normals(vertices, faces))
         if cfg.previews:
             _loss_plot(out / "previews" / "sdf_losses.png", result.history)
             write_png(out / "previews" / "mesh_normals.png", _normals_comparison(vertices, faces, views))

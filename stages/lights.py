@@ -25,8 +25,8 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import colour_matrix
-from stages.cameras import load_cameras
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics.light_model import sphere_samples, validated_light_model
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
@@ -67,7 +67,7 @@ class LightsStage(Stage):
         return found
 
     def run(self, ctx: StageContext) -> dict[str, Any]:
-        out = ctx.out_dir / "light_model.json"
+        out = ArtifactWriter(self.name, ctx.out_dir).path("light_model")
         if not ctx.raw_inputs:
             out.write_text(json.dumps({"ideal": True, "model": ideal_light_model(self.config.degree).to_json()}))
             return {"ideal": True}
@@ -91,7 +91,8 @@ class LightsStage(Stage):
         (:func:`stages.numerics.light_model.sphere_samples`); and camera -> why it was left out (a frame missing
         or unreadable: one broken frame costs that camera's samples, not the session's calibration)."""
         sphere = ctx.rig["calibration_objects"]["sphere"]
-        cameras = load_cameras(ctx.upstream["cameras"] / "cameras.json")
+        upstream = ActionArtifacts(ctx.upstream)
+        cameras = upstream.camera_records("session_cameras")
         folder = ctx.capture_root / "sessions" / ctx.scope_id / "calibration" / "sphere"
         ratios, truths, left_out = [], [], {}
         for cam_id, cam in sorted(cameras.items()):
@@ -106,7 +107,7 @@ class LightsStage(Stage):
             except InputError as exc:
                 left_out[cam_id] = str(exc)
                 continue
-            matrix = colour_matrix(ctx.upstream["colour"], cam_id)
+            matrix = upstream.colour_matrix(cam_id)
             if matrix is not None:
                 apply_colour_matrix(pos, matrix, out=pos)
                 apply_colour_matrix(neg, matrix, out=neg)

@@ -50,6 +50,7 @@ from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 
 ILLUMINATION_DIRS = ("full_on", "pos", "neg")
@@ -130,13 +131,14 @@ class MaterialsStage(Stage):
                                   K=cam.K, cam_from_world=cam.cam_from_world))
             white.append(np.asarray(cam.record["white_reference"], np.float32))
         if not views:
-            raise InputError(artifacts.path("normal_alpha", "00000").parent, "no camera has photometric maps")
+            raise InputError(artifacts.where(), "no camera has photometric maps")
         load_s = time.perf_counter() - t0
         result = material_textures(vertices, faces, atlas, albedo_texture, views, np.stack(white), cfg,
                                    progress=ctx.progress)
+        out = ArtifactWriter(self.name, ctx.out_dir)
         for name in ("roughness", "roughness_fit_rms", "occlusion", "albedo_deoccluded", "diffuse_ratio",
                      "albedo_intrinsic"):
-            write_exr(ctx.out_dir / "textures" / f"{name}.exr", getattr(result, name),
+            write_exr(out.path(f"{name}_texture"), getattr(result, name),
                       header=EXR_HEADERS[f"texture_{name}"])
         if cfg.previews:
             previews = ctx.out_dir / "previews"

@@ -11,13 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import label_picture, preview_linear, preview_normals, read_png, write_png
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.cameras import load_cameras
-from stages.artifacts import load_light_model
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
@@ -158,21 +158,18 @@ class PhotometricStage(Stage):
     per_view = True
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
-        decoded = ctx.upstream["decode"]
-        cameras = load_cameras(decoded / "cameras.json")
+        upstream = ActionArtifacts(ctx.upstream)
+        cameras = upstream.camera_records()
         if view not in cameras:
             return {"missing": "camera has no calibration"}
         cam = cameras[view]
-        full_on = read_exr(decoded / "full_on" / f"{view}.exr")
-        pos = read_exr(decoded / "pos" / f"{view}.exr")
-        neg = read_exr(decoded / "neg" / f"{view}.exr")
-        clipped = read_png(decoded / "clipped" / f"{view}.png") > 0
-        plate_path = ctx.upstream["plates"] / "plates" / f"{view}.exr"
-        background = read_exr(plate_path) if self.config.use_clean_plate and plate_path.exists() else None
+        full_on, pos, neg = (upstream.exr(illumination, view) for illumination in ("full_on", "pos", "neg"))
+        clipped = upstream.png("clipped", view) > 0
+        background = upstream.plate(view) if self.config.use_clean_plate else None
         maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam["white_reference"], np.float32),
                                 background=background, params=self.config.params)
         facing_away = check_gradients_not_swapped(ctx, view, cam, maps)
-        model = load_light_model(ctx.upstream["lights"])
+        model = upstream.light_model()
         defined = np.any(maps.normals != 0, axis=-1)
         if model is not None:  # the session's LEDs were calibrated: invert their ratio model
             maps.normals[...] = corrected_normals(pos, neg, model, defined, self.config.light_iterations)
@@ -185,14 +182,14 @@ class PhotometricStage(Stage):
                                                den.spatial_sigma_px, den.range_sigma, den.radius)
             if den.normal_alpha:
                 normals = filtered[0]
-        out = ctx.out_dir
-        write_exr(out / "normal_alpha" / f"{view}.exr", normals_with_alpha(normals, maps.alpha),
+        out = ArtifactWriter(self.name, ctx.out_dir)
+        write_exr(out.path("normal_alpha", view), normals_with_alpha(normals, maps.alpha),
                   header=EXR_HEADERS["normal_alpha"])
-        write_exr(out / "albedo" / f"{view}.exr", albedo, header=EXR_HEADERS["albedo"])
-        write_png(out / "mask" / f"{view}.png", maps.mask)
+        write_exr(out.path("albedo", view), albedo, header=EXR_HEADERS["albedo"])
+        write_png(out.path("mask", view), maps.mask)
         if self.config.previews:
-            write_png(out / "previews" / f"normal_{view}.png", preview_normals(normals, maps.alpha))
-            write_png(out / "previews" / f"albedo_{view}.png", preview_linear(albedo, exposure=1.0))
+            write_png(ctx.out_dir / "previews" / f"normal_{view}.png", preview_normals(normals, maps.alpha))
+            write_png(ctx.out_dir / "previews" / f"albedo_{view}.png", preview_linear(albedo, exposure=1.0))
         return {"mask_fraction": float(mask.mean()), "facing_away_fraction": facing_away,
                 "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
                 "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,

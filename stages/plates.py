@@ -14,7 +14,8 @@ from calibration.colour import apply_colour_matrix
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.raw import decode_raw
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import colour_matrix
+from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 
 
 class PlatesStage(Stage):
@@ -40,9 +41,9 @@ class PlatesStage(Stage):
         cam = next(c for c in ctx.rig["cameras"] if c["camera_id"] == view)
         frame = decode_raw(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
                            expected_size=(int(cam["height"]), int(cam["width"])))
-        matrix = colour_matrix(ctx.upstream["colour"], view)
+        matrix = ActionArtifacts(ctx.upstream).colour_matrix(view)
         if matrix is not None:
             apply_colour_matrix(frame.rgb, matrix, out=frame.rgb)
             np.maximum(frame.rgb, 0.0, out=frame.rgb)
-        write_exr(ctx.out_dir / "plates" / f"{view}.exr", frame.rgb)
+        write_exr(ArtifactWriter(self.name, ctx.out_dir).path("plate", view), frame.rgb)
         return {"plate": True, "mean": float(frame.rgb.mean())}

@@ -46,6 +46,8 @@ from pipeline.codecs.image import label_picture, preview_linear, preview_normals
 from stages.exr_headers import EXR_HEADERS
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
+from stages.artifacts import ActionArtifacts, load_relightable_asset
+from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 from stages.numerics.camera import Camera
 from stages.numerics.learned_blend import LearnedBlendConfig
@@ -167,41 +169,21 @@ class RelightStage(Stage):
     def run(self, ctx: StageContext) -> dict[str, Any]:
         import torch
 
-        from stages.artifacts import ActionArtifacts, load_relightable_asset
-        from stages.numerics.novel_view import fit_blend
-        from stages.numerics.sg import fibonacci_sphere
-
         torch.set_num_threads(numeric_threads())
         cfg: RelightConfig = self.config
         started = time.perf_counter()
-        renders = ctx.out_dir / "renders"
-        renders.mkdir(parents=True, exist_ok=True)
+        out = ArtifactWriter(self.name, ctx.out_dir)
+        out.path("render_cameras").parent.mkdir(parents=True, exist_ok=True)
         environments = fit_environments(cfg.environments, ctx.raw_inputs, cfg.sg_lobes, cfg.fit_height, ctx.log,
                                         ctx.cache_dir)
         asset, cameras = load_relightable_asset(ActionArtifacts(ctx.upstream), cfg.min_alpha, cfg.diffuse_normals,
                                                 cfg.diffuse_albedo)
-        directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
         views = novel_cameras(cameras, cfg.novel_views)
-        blend = fit_blend(asset, cfg.learned_blend, cfg.sources, cfg.depth_tolerance_m)
-        if blend is not None:
-            ctx.log.info("relight: learned blend on %d views, %d pixels: loss %.4f vs heuristic %.4f (%.0f s)",
-                         blend.record["views"], blend.record["pixels"], blend.record["learned_loss"],
-                         blend.record["heuristic_loss"], blend.record["gather_s"] + blend.record["train_s"])
-        records, sheet_rows = [], []
-        for index, view in enumerate(views):
-            t0 = time.perf_counter()
-            rendered = relight_view(asset, view.K, view.cam_from_world, view.height, view.width,
-                                    [env["lobes"] for env in environments], view_shading(cfg), blend=blend,
-                                    directions=directions)
-            sheet_rows.append(_write_view(renders / view.camera_id, view.camera_id, rendered, environments))
-            records.append({**view.to_json(), "pixels": rendered["pixels"], "mask_pixels": int(rendered["mask"].sum()),
-                            "coverage": rendered["coverage"], "normal_fusion_px": rendered["normal_fusion_px"],
-                            "seconds": time.perf_counter() - t0})
-            ctx.progress(index + 1, len(views), f"view {view.camera_id} relit under {len(environments)} "
-                                                f"environment(s)")
-        (renders / "cameras.json").write_text(json.dumps({"camera_convention": "opencv", "units": "metres",
+        blend = learned_blend(asset, cfg, ctx.log)
+        records, sheet_rows = relight_views(asset, views, environments, cfg, blend, out, ctx.progress)
+        out.path("render_cameras").write_text(json.dumps({"camera_convention": "opencv", "units": "metres",
                                                           "cameras": records}, indent=1))
-        (renders / "environments.json").write_text(json.dumps(_environments_record(environments, cfg, blend),
+        out.path("render_environments").write_text(json.dumps(_environments_record(environments, cfg, blend),
                                                               indent=1, default=float))
         if cfg.previews:
             _write_previews(ctx.out_dir / "previews", sheet_rows, asset)
@@ -226,18 +208,52 @@ class RelightStage(Stage):
         return files
 
 
-def _write_view(folder: Path, camera_id: str, rendered: dict[str, Any],
+def learned_blend(asset: Any, cfg: RelightConfig, log: Any) -> Any:
+    """The blend of the sources learned on the captured views (:func:`stages.numerics.novel_view.fit_blend`,
+    logged), or None when ``cfg.learned_blend`` keeps the heuristic weights."""
+    from stages.numerics.novel_view import fit_blend
+
+    blend = fit_blend(asset, cfg.learned_blend, cfg.sources, cfg.depth_tolerance_m)
+    if blend is not None:
+        log.info("relight: learned blend on %d views, %d pixels: loss %.4f vs heuristic %.4f (%.0f s)",
+                 blend.record["views"], blend.record["pixels"], blend.record["learned_loss"],
+                 blend.record["heuristic_loss"], blend.record["gather_s"] + blend.record["train_s"])
+    return blend
+
+
+def relight_views(asset: Any, views: list[Camera], environments: list[dict[str, Any]], cfg: RelightConfig,
+                  blend: Any, out: ArtifactWriter, progress: Any) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
+    """Relights each novel view under every environment and writes its files (:func:`_write_view`); returns the
+    views' records of ``renders/cameras.json`` and the rows of the preview sheet."""
+    from stages.numerics.sg import fibonacci_sphere
+
+    directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
+    records, sheet_rows = [], []
+    for index, view in enumerate(views):
+        t0 = time.perf_counter()
+        rendered = relight_view(asset, view.K, view.cam_from_world, view.height, view.width,
+                                [env["lobes"] for env in environments], view_shading(cfg), blend=blend,
+                                directions=directions)
+        sheet_rows.append(_write_view(out, view.camera_id, rendered, environments))
+        records.append({**view.to_json(), "pixels": rendered["pixels"], "mask_pixels": int(rendered["mask"].sum()),
+                        "coverage": rendered["coverage"], "normal_fusion_px": rendered["normal_fusion_px"],
+                        "seconds": time.perf_counter() - t0})
+        progress(index + 1, len(views), f"view {view.camera_id} relit under {len(environments)} environment(s)")
+    return records, sheet_rows
+
+
+def _write_view(out: ArtifactWriter, camera_id: str, rendered: dict[str, Any],
                 environments: list[dict[str, Any]]) -> np.ndarray:
-    """Writes one novel view's G-buffer maps, mask and relit images (RGBA, premultiplied) into ``folder``;
-    returns its row of the preview sheet (normals, then each environment tone-mapped)."""
+    """Writes one novel view's G-buffer maps, mask and relit images (RGBA, premultiplied); returns its row of
+    the preview sheet (normals, then each environment tone-mapped)."""
     maps, out_mask, alpha = rendered["maps"], rendered["mask"], rendered["alpha"]
     for name, image in maps.items():
-        write_exr(folder / f"{name}.exr", image, header=EXR_HEADERS[f"render_{name}"])
-    write_png(folder / "mask.png", (out_mask * 255).astype(np.uint8))
+        write_exr(out.path(f"render_{name}", camera_id), image, header=EXR_HEADERS[f"render_{name}"])
+    write_png(out.path("render_mask", camera_id), (out_mask * 255).astype(np.uint8))
     row = [label_picture(preview_normals(maps["normal"], out_mask.astype(np.float32)), f"{camera_id} normal")]
     for env, image in zip(environments, rendered["images"]):
-        write_exr(folder / f"{env['label']}.exr", np.concatenate([image, alpha[..., None]], axis=2),
-                  header=EXR_HEADERS["relit"])
+        write_exr(out.path("relit", camera_id, environment=env["label"]),
+                  np.concatenate([image, alpha[..., None]], axis=2), header=EXR_HEADERS["relit"])
         row.append(label_picture(preview_linear(image, exposure=auto_exposure(image, out_mask)),
                                  f"{camera_id} {env['label']}"))
     return np.concatenate(row, axis=1)

@@ -41,6 +41,8 @@ from pipeline.errors import InputError
 from pipeline.hashing import code_digests
 from pipeline.stage import Stage, StageContext
 from pipeline.store import link_or_copy
+from stages.artifacts import ActionArtifacts, load_relightable_asset
+from stages.layout import ArtifactWriter
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.novel_view import ViewShading
@@ -297,9 +299,7 @@ class RelightSetStage(Stage):
     def run(self, ctx: StageContext) -> dict[str, Any]:
         import torch
 
-        from stages.artifacts import ActionArtifacts, load_relightable_asset
-        from stages.numerics.relightset import draw_example, split_of, subject_frame
-        from stages.numerics.sg import fibonacci_sphere
+        from stages.numerics.relightset import split_of
 
         torch.set_num_threads(numeric_threads())
         cfg: RelightSetConfig = self.config
@@ -311,35 +311,47 @@ class RelightSetStage(Stage):
         subject = ctx.subject or ctx.action_id
         split = split_of(cfg.seed, subject, cfg.split_ratios)
         asset, cameras = load_relightable_asset(ActionArtifacts(ctx.upstream))
-        centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
-        directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
-        render_record = self._render_record(ctx)
-        previous = self._previous_examples(ctx)
-        out = ctx.out_dir / "relight"
-        out.mkdir(parents=True, exist_ok=True)
-        rows, reused, seconds = [], 0, []
-        for index in range(cfg.examples_per_action):
-            example_id = example_name(ctx.action_id, index)
-            draw = draw_example(cfg.seed, example_id, digests, centre, radius, distance, cfg.size, cfg.elevation_deg,
-                                cfg.margin)
-            row = _example_row(ctx, cfg, example_id, index, subject, split, draw, pool, render_record)
-            folder = out / example_id
-            old = previous.get(row["example_key"])
-            if old is not None:  # rendered before with the same inputs and code: link its files
-                row |= _reuse_example(old, folder)
-                reused += 1
-            else:
-                t0 = time.perf_counter()
-                row |= _render_example(folder, asset, draw, pool, cfg, directions)
-                seconds.append(time.perf_counter() - t0)
-            (folder / "example.json").write_text(json.dumps(row, indent=1, sort_keys=True))
-            rows.append(row)
-            ctx.progress(index + 1, cfg.examples_per_action, f"example {example_id}")
-        (ctx.out_dir / "relight" / "examples.json").write_text(json.dumps(rows, indent=1, sort_keys=True))
+        out = ArtifactWriter(self.name, ctx.out_dir)
+        rows, reused, seconds = self._examples(ctx, out, asset, cameras, pool, subject, split)
+        out.path("relight_examples").write_text(json.dumps(rows, indent=1, sort_keys=True))
         return {"examples": len(rows), "rendered": len(seconds), "reused": reused, "split": split,
                 "pool": [m.name for m in maps], "skipped_environments": skipped,
                 "seconds_per_example": float(np.mean(seconds)) if seconds else 0.0,
                 "seconds": time.perf_counter() - started}
+
+    def _examples(self, ctx: StageContext, out: ArtifactWriter, asset: Any, cameras: dict[str, Any],
+                  pool: _ActionPool, subject: str, split: str) -> tuple[list[dict[str, Any]], int, list[float]]:
+        """Draws each example of the action, renders it (or links its files from an earlier result with the
+        same key) and writes its ``example.json``; returns the index rows, how many were linked and the
+        seconds of each one rendered."""
+        from stages.numerics.relightset import draw_example, subject_frame
+        from stages.numerics.sg import fibonacci_sphere
+
+        cfg: RelightSetConfig = self.config
+        centre, radius, distance = subject_frame(asset.vertices, camera_centres(cameras))
+        directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
+        render_record = self._render_record(ctx)
+        previous = self._previous_examples(ctx)
+        out.path("relight_examples").parent.mkdir(parents=True, exist_ok=True)
+        rows, reused, seconds = [], 0, []
+        for index in range(cfg.examples_per_action):
+            example_id = example_name(ctx.action_id, index)
+            draw = draw_example(cfg.seed, example_id, pool.digests, centre, radius, distance, cfg.size,
+                                cfg.elevation_deg, cfg.margin)
+            row = _example_row(ctx, cfg, example_id, index, subject, split, draw, pool, render_record)
+            record = out.path("relight_example", example=example_id)
+            old = previous.get(row["example_key"])
+            if old is not None:  # rendered before with the same inputs and code: link its files
+                row |= _reuse_example(old, record.parent)
+                reused += 1
+            else:
+                t0 = time.perf_counter()
+                row |= _render_example(record.parent, asset, draw, pool, cfg, directions)
+                seconds.append(time.perf_counter() - t0)
+            record.write_text(json.dumps(row, indent=1, sort_keys=True))
+            rows.append(row)
+            ctx.progress(index + 1, cfg.examples_per_action, f"example {example_id}")
+        return rows, reused, seconds
 
     def _render_record(self, ctx: StageContext) -> dict[str, Any]:
         """What every example's key holds besides its own draw: the renderer's format, version, code and settings
@@ -356,12 +368,13 @@ class RelightSetStage(Stage):
         recent result wins."""
         found: dict[str, tuple[dict[str, Any], Path]] = {}
         for previous in reversed(ctx.previous):
+            earlier = ActionArtifacts({"relightset": previous})
             try:
-                rows = json.loads((previous / "relight" / "examples.json").read_text())
+                rows = earlier.json("relight_examples")
             except (OSError, json.JSONDecodeError):
                 continue
             for row in rows:
-                folder = previous / "relight" / row["example_id"]
+                folder = earlier.path("relight_example", example=row["example_id"]).parent
                 if all((folder / name).is_file() for name in EXAMPLE_FILES):
                     found[row["example_key"]] = (row, folder)
         return found

@@ -16,6 +16,7 @@ from pipeline.codecs.image import preview_linear, preview_normals, preview_scala
 from pipeline.config import Documented
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
+from stages.layout import ArtifactWriter
 from stages.exr_headers import EXR_HEADERS
 
 
@@ -84,15 +85,17 @@ def _write_textures(out: Path, result: Any, previews: bool) -> None:
     from stages.numerics.mesh import vertex_normals
 
     baked, atlas = result.baked, result.atlas
-    tex = out / "textures"
-    write_exr(tex / "albedo.exr", baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
-    write_exr(tex / "normal.exr", baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
-    write_exr(tex / "view_count.exr", baked.view_count.astype(np.float32), header=EXR_HEADERS["texture_view_count"])
-    write_exr(tex / "confidence.exr", baked.confidence.astype(np.float32), header=EXR_HEADERS["texture_confidence"])
+    writer = ArtifactWriter(TexturesStage.name, out)
+    write_exr(writer.path("albedo_texture"), baked.textures["albedo"], header=EXR_HEADERS["texture_albedo"])
+    write_exr(writer.path("normal_texture"), baked.textures["normal"], header=EXR_HEADERS["texture_normal"])
+    write_exr(writer.path("view_count_texture"), baked.view_count.astype(np.float32),
+              header=EXR_HEADERS["texture_view_count"])
+    write_exr(writer.path("confidence_texture"), baked.confidence.astype(np.float32),
+              header=EXR_HEADERS["texture_confidence"])
     # The OBJ's material shows the albedo in any viewer; the linear EXR is the data.
-    write_png(tex / "albedo.png", preview_linear(baked.textures["albedo"], exposure=1.0))
+    write_png(writer.path("albedo_texture_png"), preview_linear(baked.textures["albedo"], exposure=1.0))
     atlas_vertices = np.asarray(result.vertices)[atlas.vmapping]
-    write_obj(out / "mesh" / "textured.obj", atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
+    write_obj(writer.path("textured_mesh"), atlas_vertices, atlas.faces, uvs=atlas.uvs, uv_faces=atlas.faces,
               normals=vertex_normals(atlas_vertices, atlas.faces),
               material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
     if previews:

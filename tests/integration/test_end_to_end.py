@@ -84,6 +84,38 @@ def test_release_layout_and_manifests(first_run):
     assert verify_release(release).ok
 
 
+
+def test_the_release_gives_the_relightable_asset_of_the_work_store(first_run):
+    """What a researcher re-renders the release with: the facade's release backend gives the asset (sources'
+    normals, albedo, valid pixels, depth and cameras; textures; meshes) the relight stage built from the work
+    store."""
+    from manifests import open_release
+    from stages.artifacts import ActionArtifacts, load_relightable_asset
+    from stages.relight import RelightStage
+
+    out, _ = first_run
+    rel = open_release(out / "release")
+    for action_id, session_id in zip(rel.actions.action_id, rel.actions.session_id):
+        stored = ActionArtifacts.from_store(out / "work" / "artifacts", action_id, session_id, RelightStage.requires)
+        store_asset, store_cameras = load_relightable_asset(stored)
+        release_asset, release_cameras = load_relightable_asset(ActionArtifacts.from_release(rel, action_id))
+        assert list(store_cameras) == list(release_cameras) == [f"{i:05d}" for i in range(6)]
+        for cam_id, cam in store_cameras.items():
+            other = release_cameras[cam_id]
+            np.testing.assert_array_equal(cam.K, other.K)
+            np.testing.assert_array_equal(cam.cam_from_world, other.cam_from_world)
+            assert (cam.width, cam.height) == (other.width, other.height) == (SMALL.width, SMALL.height)
+        assert len(store_asset.sources) == len(release_asset.sources) == 6
+        for source, other in zip(store_asset.sources, release_asset.sources):
+            for name in ("normal", "albedo", "valid", "depth_m", "K", "cam_from_world"):
+                np.testing.assert_array_equal(getattr(source, name), getattr(other, name), err_msg=name)
+        assert store_asset.sources_diffuse_albedo and release_asset.sources_diffuse_albedo
+        for name in ("albedo_tex", "roughness_tex", "occlusion_tex", "diffuse_ratio_tex", "faces", "smooth_normals",
+                     "vertices"):
+            np.testing.assert_array_equal(getattr(store_asset, name), getattr(release_asset, name), err_msg=name)
+        for name in ("vmapping", "faces", "uvs"):
+            np.testing.assert_array_equal(getattr(store_asset.atlas, name), getattr(release_asset.atlas, name))
+
 # ---- the release in other tools, read by those tools' own loaders -----------------------------------------
 
 def test_transforms_json_in_the_nerfstudio_convention_opens_with_pil(first_run):

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.decode import opencv_cam_from_world, scale_camera, srgb_png, transforms_json
+from stages.conventions import srgb_png
+from stages.decode import opencv_cam_from_world, scale_camera, transforms_json
 from stages.photometric import contact_sheet
 
 CAM = {"camera_id": "00007", "width": 320, "height": 480, "K": [[800.0, 0, 159.5], [0, 800.0, 239.5], [0, 0, 1]],

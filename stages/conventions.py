@@ -1,0 +1,30 @@
+"""File conventions of the release that more than one stage writes by: where the COLMAP model lies, the
+nerfstudio distortion fields of a camera, and the 8-bit sRGB encoding of the linear images (CONVENTIONS.md).
+
+The decode stage writes the PNGs and ``transforms.json`` (which names the COLMAP model's points), the exports
+stage the COLMAP model and the points' colours; both take these from here rather than from each other.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.codecs.image import srgb_encode
+
+COLMAP_MODEL_DIR = "colmap/sparse/0"
+"""Where the exports stage's COLMAP model lies in the action folder (the sparse/0 layout COLMAP, nerfstudio
+and gaussian-splatting readers look for); transforms.json names its points3D.ply."""
+
+
+def srgb_png(linear_rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8: the sRGB transfer curve of the linear values clipped to [0, 1], no exposure change
+    (1.0, the sensor's clip level, is 255), so ``srgb_decode(png / 255)`` gives back the EXR below 1."""
+    rgb = np.nan_to_num(np.asarray(linear_rgb, np.float32)[..., :3], nan=0.0, posinf=1.0, neginf=0.0)
+    return (srgb_encode(rgb) * 255.0 + 0.5).astype(np.uint8)
+
+
+def distortion_fields(dist: Any) -> dict[str, float]:
+    """OpenCV distortion (k1, k2, p1, p2[, k3]) as nerfstudio's per-frame fields (0 where absent)."""
+    d = [float(x) for x in (list(dist or []) + [0.0] * 5)[:5]]
+    return {"k1": d[0], "k2": d[1], "p1": d[2], "p2": d[3], "k3": d[4]}

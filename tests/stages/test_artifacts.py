@@ -1,0 +1,162 @@
+"""The artifact facade: the work-store and release backends give the same typed products, and clear errors."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from manifests import asset_row, write_table
+from pipeline.codecs.exr import write_exr
+from pipeline.codecs.image import write_png
+from stages.artifacts import ActionArtifacts
+from stages.layout import PRODUCTS, RELEASE_KINDS, ArtifactWriter
+from stages.decode import transforms_json
+
+H, W = 6, 4
+CALIBRATED = ("00000", "00001", "00002")
+MAPPED = ("00000", "00001")  # 00002 is calibrated but has no photometric maps
+
+
+def _camera(i: int) -> dict:
+    angle = 0.3 * i
+    rotation = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    pose = np.concatenate([rotation, [[0.01 * i], [-0.02], [2.5]]], axis=1)
+    return {"camera_id": f"{i:05d}", "K": [[5.0 + i, 0.0, 1.5], [0.0, 5.5, 2.5], [0.0, 0.0, 1.0]],
+            "cam_from_world": pose.tolist(), "width": W, "height": H, "white_reference": [1.0, 1.0, 1.0]}
+
+
+def _maps(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(i)
+    normal_alpha = rng.uniform(-1, 1, (H, W, 4)).astype(np.float16).astype(np.float32)  # exact in half float
+    normal_alpha[..., 3] = np.abs(normal_alpha[..., 3])
+    mask = np.zeros((H, W), bool)
+    mask[1:5, 1:3] = True
+    albedo = rng.uniform(0, 1, (H, W, 3)).astype(np.float16).astype(np.float32)
+    return normal_alpha, mask, albedo
+
+
+@pytest.fixture
+def sources(tmp_path: Path) -> tuple[ActionArtifacts, Path]:
+    """The same action in a work store's upstream folders and in a release (``release/``, action A0000)."""
+    records = [_camera(i) for i in range(len(CALIBRATED))]
+    decode, photometric = tmp_path / "store" / "decode", tmp_path / "store" / "photometric"
+    decode.mkdir(parents=True)
+    (decode / "cameras.json").write_text(json.dumps({"camera_convention": "opencv", "cameras": records}))
+    release = tmp_path / "release"
+    action = release / "actions" / "A0000"
+    action.mkdir(parents=True)
+    (action / "transforms.json").write_text(json.dumps(transforms_json(records)))
+    rows = [asset_row(release, action / "transforms.json", "transforms", "A0000")]
+    for i, cam in enumerate(MAPPED):
+        normal_alpha, mask, albedo = _maps(i)
+        for root in (photometric, action):
+            write_exr(root / "normal_alpha" / f"{cam}.exr", normal_alpha)
+            write_png(root / "mask" / f"{cam}.png", mask)
+            write_exr(root / "albedo" / f"{cam}.exr", albedo)
+        rows += [asset_row(release, action / "normal_alpha" / f"{cam}.exr", "normal_alpha", "A0000", cam),
+                 asset_row(release, action / "mask" / f"{cam}.png", "mask", "A0000", cam),
+                 asset_row(release, action / "albedo" / f"{cam}.exr", "albedo", "A0000", cam)]
+    write_table(release, "assets", rows)
+    write_table(release, "actions", [dict(action_id="A0000", session_id="S000", subject="makehuman/test",
+                                          status="ok", error=None, n_cameras=len(CALIBRATED), width=W, height=H,
+                                          stages_run=2, stages_cached=0, seconds=1.0)])
+    return ActionArtifacts({"decode": decode, "photometric": photometric}), release
+
+
+def test_release_backend_reads_what_the_store_backend_reads(sources):
+    store, release = sources
+    released = ActionArtifacts.from_release(release, "A0000")
+    assert list(store.cameras()) == list(released.cameras()) == list(MAPPED)
+    assert sorted(store.calibrated_cameras()) == sorted(released.calibrated_cameras()) == list(CALIBRATED)
+    for (cam_id, cam, normal_alpha, mask, valid), (cam_id_r, cam_r, normal_alpha_r, mask_r, valid_r) in zip(
+            store.camera_maps(0.5), released.camera_maps(0.5), strict=True):
+        assert cam_id == cam_id_r
+        np.testing.assert_array_equal(cam.K, cam_r.K)
+        np.testing.assert_array_equal(cam.cam_from_world, cam_r.cam_from_world)
+        assert (cam.width, cam.height) == (cam_r.width, cam_r.height) == (W, H)
+        expected_na, expected_mask, expected_albedo = _maps(int(cam_id))
+        np.testing.assert_array_equal(normal_alpha, expected_na)
+        np.testing.assert_array_equal(normal_alpha_r, expected_na)
+        np.testing.assert_array_equal(mask, expected_mask)
+        np.testing.assert_array_equal(mask_r, expected_mask)
+        np.testing.assert_array_equal(valid, (expected_na[..., 3] > 0.5) & expected_mask)
+        np.testing.assert_array_equal(valid_r, valid)
+        np.testing.assert_array_equal(store.map("albedo", cam_id), expected_albedo)
+        np.testing.assert_array_equal(released.map("albedo", cam_id), expected_albedo)
+    assert cam.record["white_reference"] == [1.0, 1.0, 1.0]  # the store keeps the cameras.json record
+    assert cam_r.record["file_path"] == f"full_on/{cam_id}.png"  # the release its transforms.json frame
+
+
+def test_an_unknown_product_is_a_key_error_in_both_backends(sources):
+    store, release = sources
+    for artifacts in (store, ActionArtifacts.from_release(release, "A0000")):
+        with pytest.raises(KeyError, match="unknown product 'normals'"):
+            artifacts.map("normals", "00000")
+        assert not artifacts.has("normals", "00000")
+
+
+def test_a_product_the_source_cannot_hold(sources):
+    store, release = sources
+    with pytest.raises(KeyError, match="product 'mesh' comes from stage 'geometry', which is not upstream"):
+        store.mesh()
+    assert "plate" in PRODUCTS and "plate" not in RELEASE_KINDS
+    with pytest.raises(KeyError, match="product 'plate' is not published in a release"):
+        ActionArtifacts.from_release(release, "A0000").path("plate", "00000")
+
+
+def test_a_missing_product_names_action_kind_and_file(sources):
+    store, release = sources
+    released = ActionArtifacts.from_release(release, "A0000")
+    with pytest.raises(KeyError, match="action A0000, the action \\(no camera\\): no 'mesh' asset in the release"):
+        released.mesh()
+    with pytest.raises(FileNotFoundError, match="photometric artifact, camera 00002, albedo: file .*albedo/00002.exr "
+                                                "not found"):
+        store.map("albedo", "00002")
+    (release / "actions" / "A0000" / "albedo" / "00001.exr").unlink()
+    with pytest.raises(FileNotFoundError, match="action A0000, camera 00001, albedo: file .*00001.exr is listed in "
+                                                "the assets table but missing on disk"):
+        released.map("albedo", "00001")
+    with pytest.raises(KeyError, match="action 'A0001' is not in the release"):
+        ActionArtifacts.from_release(release, "A0001")
+
+
+def test_a_camera_absent_from_the_maps(sources):
+    store, release = sources
+    released = ActionArtifacts.from_release(release, "A0000")
+    for artifacts in (store, released):
+        assert "00002" in artifacts.calibrated_cameras() and "00002" not in artifacts.cameras()
+        assert not artifacts.has("normal_alpha", "00002")
+    with pytest.raises(KeyError, match="action A0000, camera 00002: no 'normal_alpha' asset in the release"):
+        released.exr("normal_alpha", "00002")
+    with pytest.raises(FileNotFoundError, match="camera 00002, normal_alpha: file .* not found"):
+        store.exr("normal_alpha", "00002")
+
+
+def test_the_writer_gives_a_stage_its_own_products_only(tmp_path):
+    writer = ArtifactWriter("photometric", tmp_path)
+    assert writer.path("normal_alpha", "00003") == tmp_path / "normal_alpha" / "00003.exr"
+    assert ArtifactWriter("relight", tmp_path).path("relit", "N000", environment="sky") == \
+        tmp_path / "renders" / "N000" / "sky.exr"
+    with pytest.raises(KeyError, match="product 'cameras' is written by stage 'decode', not 'photometric'"):
+        writer.path("cameras")
+    with pytest.raises(KeyError, match="unknown product"):
+        writer.path("normals", "00000")
+
+
+def test_every_released_product_is_a_product():
+    assert set(RELEASE_KINDS) <= set(PRODUCTS)
+
+
+def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
+    """The cameras and colour stages write through stages.layout only: their keys' code records do not hold the
+    facade's readers (nor the renderer load_relightable_asset imports), so editing those cannot rerun them."""
+    from pipeline.hashing import code_digests
+    from stages.registry import CODE_PACKAGES
+
+    assert set(code_digests("stages.layout", CODE_PACKAGES)) == {"stages", "stages.layout"}
+    for module in ("stages.cameras", "stages.colour"):
+        modules = set(code_digests(module, CODE_PACKAGES))
+        assert "stages.layout" in modules and "stages.artifacts" not in modules, module
+    assert "stages.numerics.novel_view" in code_digests("stages.artifacts", CODE_PACKAGES)  # what it would add
