@@ -81,7 +81,8 @@ def main() -> int:
     work = Path(args.work) if args.work else release.with_name(release.name + ".work")
 
     from pipeline.capture import open_capture
-    from stages.artifacts import ActionArtifacts, load_relightable_asset
+    from stages.artifacts import ActionArtifacts
+    from stages.relightable import load_relightable_asset
     from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.numerics.novel_view import relight_view
     from stages.numerics.relightset import draw_example, normals_to_camera, subject_frame

@@ -297,7 +297,7 @@ class ActionView:
     def artifacts(self):
         """This action through the artifact facade (:class:`stages.artifacts.ActionArtifacts` over the release,
         :class:`stages.artifacts.ReleaseBackend`): the typed readers below read through it, and
-        ``stages.artifacts.load_relightable_asset(view.artifacts)`` gives the asset the renderer relights."""
+        ``stages.relightable.load_relightable_asset(view.artifacts)`` gives the asset the renderer relights."""
         if self._artifacts is None:
             from stages.artifacts import ActionArtifacts, ReleaseBackend
 

@@ -46,7 +46,8 @@ from pipeline.codecs.image import label_picture, preview_linear, preview_normals
 from stages.exr_headers import EXR_HEADERS
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts, load_relightable_asset
+from stages.artifacts import ActionArtifacts
+from stages.relightable import load_relightable_asset
 from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 from stages.numerics.camera import Camera

@@ -41,7 +41,8 @@ from pipeline.errors import InputError
 from pipeline.hashing import code_digests
 from pipeline.stage import Stage, StageContext
 from pipeline.store import link_or_copy
-from stages.artifacts import ActionArtifacts, load_relightable_asset
+from stages.artifacts import ActionArtifacts
+from stages.relightable import load_relightable_asset
 from stages.layout import ArtifactWriter
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads

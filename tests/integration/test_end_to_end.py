@@ -90,7 +90,8 @@ def test_the_release_gives_the_relightable_asset_of_the_work_store(first_run):
     normals, albedo, valid pixels, depth and cameras; textures; meshes) the relight stage built from the work
     store."""
     from manifests import open_release
-    from stages.artifacts import ActionArtifacts, load_relightable_asset
+    from stages.artifacts import ActionArtifacts
+    from stages.relightable import load_relightable_asset
     from stages.relight import RelightStage
 
     out, _ = first_run

@@ -159,4 +159,20 @@ def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
     for module in ("stages.cameras", "stages.colour"):
         modules = set(code_digests(module, CODE_PACKAGES))
         assert "stages.layout" in modules and "stages.artifacts" not in modules, module
-    assert "stages.numerics.novel_view" in code_digests("stages.artifacts", CODE_PACKAGES)  # what it would add
+    assert "stages.artifacts" in code_digests("stages.decode", CODE_PACKAGES)  # a stage that reads through it
+
+
+RENDERER = {"stages.numerics.novel_view", "stages.numerics.gbuffer", "stages.numerics.learned_blend"}
+"""The novel-view renderer's own modules (the SG and shadowing ones serve the specular fit and de-occlusion too)."""
+
+
+@pytest.mark.parametrize("module", ["stages.artifacts", "stages.decode", "stages.photometric", "stages.geometry",
+                                    "stages.lights", "stages.textures"])
+def test_reading_through_the_facade_keeps_the_renderer_out_of_a_stage_key(module):
+    """The relightable asset (and the renderer it imports) is in stages.relightable, which only the stages that
+    render import: editing the renderer reruns relight and relightset, not decode, the SDF or the textures."""
+    from pipeline.hashing import code_digests
+    from stages.registry import CODE_PACKAGES
+
+    assert not RENDERER & set(code_digests(module, CODE_PACKAGES))
+    assert RENDERER <= set(code_digests("stages.relight", CODE_PACKAGES))
