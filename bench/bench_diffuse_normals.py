@@ -54,7 +54,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     """The variants of one action (module docstring)."""
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.cameras import load_cameras
+    from stages.artifacts import read_cameras
     from stages.artifacts import load_light_model
     from stages.artifacts import load_atlas_mesh
     from stages.numerics.metrics import angular_error_deg
@@ -72,7 +72,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     vertices, faces, atlas = load_atlas_mesh(_artifact(work, "textures", action) / "mesh" / "textured.obj")
     scene = mesh_scene(vertices, faces)
     texture = _scalar(read_exr(_artifact(work, "materials", action) / "textures" / "roughness.exr"))
-    cameras = load_cameras(decoded / "cameras.json")
+    cameras = read_cameras(decoded / "cameras.json")
     variants = ("one prior", "materials, occlusion not divided out", "materials", "simulator (oracle)")
     errors = {v: [] for v in variants}
     shiny = []
@@ -117,7 +117,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
             seconds[variant] += fit_s
             if cfg.occlusion and variant != "materials, occlusion not divided out":
                 t1 = time.perf_counter()
-                normals, _ = deocclude_view(scene, cam["K"], cam["cam_from_world"], normals, cfg.occlusion_directions,
+                normals, _ = deocclude_view(scene, cam.K, cam.cam_from_world, normals, cfg.occlusion_directions,
                                             cfg.occlusion_min_visible)
                 if variant == "materials":
                     deocclusion_s += time.perf_counter() - t1
@@ -132,14 +132,14 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
                 released_albedo = read_exr(albedo_dir / f"{cam_id}.exr")[..., :3]
                 albedo_reproduced = max(albedo_reproduced, float(np.abs(released_albedo - diffuse)[scored].max()))
                 true_albedo = read_exr(truth / action / "albedo" / f"{cam_id}.exr")[..., :3]
-                n_dot_v = (true_normals * view_directions(cam["K"], cam["cam_from_world"], h, w)).sum(-1)
+                n_dot_v = (true_normals * view_directions(cam.K, cam.cam_from_world, h, w)).sum(-1)
                 albedo_rows.append((n_dot_v[scored], (albedo - true_albedo)[scored],
                                     (released_albedo - true_albedo)[scored]))
         if cfg.occlusion:  # the released fit's occlusion traced over fewer directions than the stage's
             fitted = fits["materials"][0]
             for n_dirs in DIRECTION_SWEEP + (cfg.occlusion_directions,):
                 t1 = time.perf_counter()
-                swept, _ = deocclude_view(scene, cam["K"], cam["cam_from_world"], fitted, n_dirs,
+                swept, _ = deocclude_view(scene, cam.K, cam.cam_from_world, fitted, n_dirs,
                                           cfg.occlusion_min_visible)
                 row = sweep.setdefault(n_dirs, {"errors": [], "seconds": 0.0})
                 row["seconds"] += time.perf_counter() - t1

@@ -101,7 +101,7 @@ def mesh_normal_baseline(data, result: dict, truth_dir: Path | None) -> dict:
     parts, parts_truth = [], []
     for cam, maps in result["maps"].items():
         c = data.cameras[cam]
-        normals = smooth_mesh_normals(data.vertices, data.faces, data.render(cam), c["K"], c["cam_from_world"])
+        normals = smooth_mesh_normals(data.vertices, data.faces, data.render(cam), c.K, c.cam_from_world)
         ref = maps["photometric"]
         zero = np.zeros_like(ref["albedo"])
         parts.append(compare_maps(normals, zero, ref["normal"], ref["albedo"], maps["compare"]))

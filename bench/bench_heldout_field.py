@@ -287,8 +287,8 @@ def main() -> int:
                 continue
             maps, c = data.photometric(cam), data.cameras[cam]
             views.append(AppearanceView(albedo=maps["albedo"], normals_world=maps["normal"],
-                                        valid=(maps["alpha"] > 0.5) & maps["mask"], K=c["K"],
-                                        cam_from_world=c["cam_from_world"], depth_m=data.render(cam)["depth_m"]))
+                                        valid=(maps["alpha"] > 0.5) & maps["mask"], K=c.K,
+                                        cam_from_world=c.cam_from_world, depth_m=data.render(cam)["depth_m"]))
         base = dataclasses.replace(preset, inv_s=inv_s, device="cpu", threads=1)
         samples = sample_training_pixels(views, sdf, base)
         sampling_s = samples.stats["sampling_time_s"]
@@ -300,8 +300,8 @@ def main() -> int:
             rendered = {}
             for cam in heldout:
                 c = data.cameras[cam]
-                rendered[cam] = render_appearance(result.field, sdf, c["K"], c["cam_from_world"], c["height"],
-                                                  c["width"], depth_m=data.render(cam)["depth_m"], config=config)
+                rendered[cam] = render_appearance(result.field, sdf, c.K, c.cam_from_world, c.height,
+                                                  c.width, depth_m=data.render(cam)["depth_m"], config=config)
             render_s = time.perf_counter() - t0
             scores = field_metrics(data, res["maps"], rendered)
             seconds = sampling_s + result.stats["train_time_s"] + render_s

@@ -106,20 +106,20 @@ def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig)
     the baked albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
     ``cfg.min_alpha`` inside the mask, as the stage's), with the cameras' white references."""
     from manifests import open_release
-    from evaluation.heldout import release_cameras
+    from stages.artifacts import transforms_cameras
     from stages.artifacts import load_atlas_mesh
     from stages.numerics.bake import BakeView
 
     view = open_release(release).action(action)
-    cameras = release_cameras(view.transforms())
+    cameras = transforms_cameras(view.transforms())
     white = white_references(release, capture, action, view.info.get("session_id") or "S000")
     vertices, faces, atlas = load_atlas_mesh(view.path("mesh_textured"))
     views, whites = [], []
     for cam_id in sorted(cameras):
         images = np.concatenate([view.image(ill, cam_id) for ill in ILLUMINATION_DIRS], axis=2)
         valid = (view.normal_alpha(cam_id) > cfg.min_alpha) & view.mask(cam_id)
-        views.append(BakeView(images={"obs": images}, valid=valid, K=cameras[cam_id]["K"],
-                              cam_from_world=cameras[cam_id]["cam_from_world"]))
+        views.append(BakeView(images={"obs": images}, valid=valid, K=cameras[cam_id].K,
+                              cam_from_world=cameras[cam_id].cam_from_world))
         whites.append(white[cam_id])
     textures = {"albedo": view.texture("albedo")[..., :3], "roughness": view.texture("roughness")}
     for name in ("albedo_deoccluded", "albedo_intrinsic"):

@@ -57,7 +57,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from stages.numerics.gbuffer import SourceView, camera_centre, reproject_gbuffer
+from stages.artifacts import transforms_cameras
+from stages.numerics.camera import Camera
+from stages.numerics.gbuffer import SourceView, reproject_gbuffer
 from stages.numerics.metrics import angular_error_deg, downsample_to, ssim
 
 DEFAULT_HELDOUT = ("00005", "00021")
@@ -69,21 +71,11 @@ PAPER_TABLE1 = {"heldout_albedo_psnr_db": 30.87, "heldout_albedo_ssim": 0.972, "
                 "heldout_normal_under25_pct": 96.3}
 
 
-def release_cameras(transforms: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """camera_id -> {"K" (3, 3), "cam_from_world" (3, 4), "width", "height"} from a transforms.json."""
-    cams = {}
-    for frame in transforms["frames"]:
-        cams[frame["camera_id"]] = {"K": np.asarray(frame["K"], np.float64),
-                                    "cam_from_world": np.asarray(frame["cam_from_world_opencv"], np.float64)[:3],
-                                    "width": int(frame["w"]), "height": int(frame["h"])}
-    return cams
-
-
-def spread_heldout(cameras: dict[str, dict[str, Any]], n: int = 2) -> tuple[str, ...]:
+def spread_heldout(cameras: dict[str, Camera], n: int = 2) -> tuple[str, ...]:
     """``n`` cameras spread around the subject: greedy farthest-point choice on the directions of the
     camera centres from the stage centre, starting from the first camera id."""
     ids = sorted(cameras)
-    dirs = np.stack([camera_centre(cameras[c]["cam_from_world"]) for c in ids])
+    dirs = np.stack([cameras[c].centre for c in ids])
     dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
     chosen = [0]
     while len(chosen) < min(n, len(ids)):
@@ -103,7 +95,7 @@ class ActionGBuffers:
         self.diffuse_normals = diffuse_normals  # the specular-fitted normal maps as sources and references
         self.diffuse_albedo = False  # the white-light albedo less the fitted specular light (albedo_diffuse)
         self.action_id = action_id
-        self.cameras = release_cameras(self.view.transforms())
+        self.cameras = transforms_cameras(self.view.transforms())
         self.vertices, self.faces = self.view.mesh()
         self._scene = None  # one ray-casting scene of the mesh for every camera, built on first use
         self._render: dict[str, dict[str, np.ndarray]] = {}
@@ -139,7 +131,7 @@ class ActionGBuffers:
             if self._scene is None:
                 self._scene = mesh_scene(self.vertices, self.faces)
             c = self.cameras[cam]
-            self._render[cam] = render_mesh(None, None, c["K"], c["cam_from_world"], c["height"], c["width"],
+            self._render[cam] = render_mesh(None, None, c.K, c.cam_from_world, c.height, c.width,
                                             scene=self._scene)
         return self._render[cam]
 
@@ -158,7 +150,7 @@ class ActionGBuffers:
                 self._scene = mesh_scene(self.vertices, self.faces)
             rows, cols = np.nonzero(occlusion_edges(depth, jump_m))
             c = self.cameras[cam]
-            sub = subpixel_depths(c["K"], c["cam_from_world"], c["height"], c["width"], rows, cols, int(samples),
+            sub = subpixel_depths(c.K, c.cam_from_world, c.height, c.width, rows, cols, int(samples),
                                   self._scene)
             self._subpixel[key] = sub | {"rows": rows, "cols": cols}
         return self._subpixel[key]
@@ -208,7 +200,7 @@ class ActionGBuffers:
                                      float(np.median(fitted)) if fitted.size else 0.5)
         scene, atlas, texture, fallback = self._shared["atlas"]
         c = self.cameras[cam]
-        return materials_roughness(scene, atlas, texture, c, c["height"], c["width"], fallback)[0]
+        return materials_roughness(scene, atlas, texture, c, c.height, c.width, fallback)[0]
 
     def photometric(self, cam: str) -> dict[str, np.ndarray]:
         """Photometric maps of ``cam``: normal (H, W, 3), albedo (H, W, 3), alpha (H, W), mask (H, W) bool."""
@@ -229,14 +221,14 @@ class ActionGBuffers:
 class _LazySource(SourceView):
     """A SourceView whose depth map is rendered from the mesh on first access."""
 
-    def __init__(self, owner: ActionGBuffers, cam: str, maps: dict[str, np.ndarray], c: dict[str, Any]):
+    def __init__(self, owner: ActionGBuffers, cam: str, maps: dict[str, np.ndarray], c: Camera):
         object.__setattr__(self, "_owner", owner)
         object.__setattr__(self, "_cam", cam)
         object.__setattr__(self, "normal", maps["normal"])
         object.__setattr__(self, "albedo", maps["albedo"])
         object.__setattr__(self, "valid", (maps["alpha"] > 0.5) & maps["mask"])
-        object.__setattr__(self, "K", c["K"])
-        object.__setattr__(self, "cam_from_world", c["cam_from_world"])
+        object.__setattr__(self, "K", c.K)
+        object.__setattr__(self, "cam_from_world", c.cam_from_world)
 
     def __getattr__(self, name: str):
         if name == "depth_m":
@@ -309,7 +301,7 @@ def synthesise_heldout(data: ActionGBuffers, cam: str, heldout: Sequence[str], k
     depth = data.render(cam)["depth_m"]
     start = time.perf_counter()
     subpixel = data.edge_subpixel(cam, edge_samples, edge_jump_m)
-    out = reproject_gbuffer(depth, c["K"], c["cam_from_world"], sources, k=k, subpixel=subpixel,
+    out = reproject_gbuffer(depth, c.K, c.cam_from_world, sources, k=k, subpixel=subpixel,
                             **reproject_kwargs)
     out["seconds"] = np.float64(time.perf_counter() - start)
     out["depth_m"] = depth
@@ -331,7 +323,7 @@ def predict_white_albedo(data: ActionGBuffers, cam: str, heldout: Sequence[str],
     diffuse = synthesise_heldout(data.variant(True, True), cam, heldout, k=k, **synth_kwargs)
     start = time.perf_counter()
     c = data.cameras[cam]
-    views = view_directions(c["K"], c["cam_from_world"], c["height"], c["width"])
+    views = view_directions(c.K, c.cam_from_world, c.height, c.width)
     specular = white_light_specular(diffuse["normal"], views, data.roughness(cam), data.materials_f0())
     valid = diffuse["valid"]
     keep = valid[..., None]

@@ -90,10 +90,15 @@ class ReleaseBackend:
     def calibrated_cameras(self, artifacts: "ActionArtifacts") -> dict[str, Camera]:
         """camera_id -> :class:`Camera` of the frames of the action's ``transforms.json`` (OpenCV ``K``,
         ``cam_from_world_opencv``, ``w``, ``h``; the frame in ``record``)."""
-        frames = artifacts.json("transforms")["frames"]
-        return {f["camera_id"]: Camera(K=f["K"], cam_from_world=f["cam_from_world_opencv"], width=f["w"],
-                                       height=f["h"], camera_id=str(f["camera_id"]), record=dict(f))
-                for f in frames}
+        return transforms_cameras(artifacts.json("transforms"))
+
+
+def transforms_cameras(transforms: Mapping[str, Any]) -> dict[str, Camera]:
+    """camera_id -> :class:`Camera` of the frames of a release's ``transforms.json`` (OpenCV ``K``,
+    ``cam_from_world_opencv``, ``w``, ``h``; the frame in ``record``)."""
+    return {f["camera_id"]: Camera(K=f["K"], cam_from_world=f["cam_from_world_opencv"], width=f["w"], height=f["h"],
+                                   camera_id=str(f["camera_id"]), record=dict(f))
+            for f in transforms["frames"]}
 
 
 def read_cameras(cameras_json: Path) -> dict[str, Camera]:

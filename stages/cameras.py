@@ -277,13 +277,3 @@ def _record(rig_cam: dict[str, Any], K: Any, dist: Any, cam_from_world: Any) -> 
     return {"camera_id": rig_cam["camera_id"], "width": rig_cam["width"], "height": rig_cam["height"], "K": K,
             "dist": list(dist), "cam_from_world": cam_from_world, "white_reference": rig_cam["white_reference"],
             "exposure_s": rig_cam.get("exposure_s")}
-
-
-def load_cameras(path: Path) -> dict[str, dict[str, Any]]:
-    """camera_id -> camera record from a ``cameras.json`` (calibrated cameras only)."""
-    return {c["camera_id"]: c for c in json.loads(Path(path).read_text())["cameras"]}
-
-
-def unregistered_cameras(path: Path) -> dict[str, str]:
-    """camera_id -> reason for the cameras of the session that have no calibration."""
-    return dict(json.loads(Path(path).read_text()).get("unregistered", {}))

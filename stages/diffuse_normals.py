@@ -21,6 +21,7 @@ from pipeline.stage import Stage, StageContext
 from stages.exr_headers import EXR_HEADERS
 from stages.artifacts import ActionArtifacts
 from stages.layout import ArtifactWriter
+from stages.numerics.camera import Camera
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import joint_bilateral
@@ -89,20 +90,20 @@ def _roughness_atlas(textured_obj: str, roughness_exr: str) -> tuple[Any, Any, n
     return mesh_scene(vertices, faces), atlas, (texture[..., 0] if texture.ndim == 3 else texture)
 
 
-def materials_roughness(scene: Any, atlas: Any, texture: np.ndarray, cam: dict[str, Any], height: int, width: int,
+def materials_roughness(scene: Any, atlas: Any, texture: np.ndarray, cam: Camera, height: int, width: int,
                         fallback: float) -> tuple[np.ndarray, np.ndarray]:
     """(H, W) float32 roughness of each pixel from the materials' texture seen through the textured mesh
     (``fallback`` where the mesh does not cover the pixel or the texture holds no value), and the (H, W)
     bool pixels that got it from the texture."""
     from stages.numerics.bake import texture_in_camera
 
-    seen, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam["K"], cam["cam_from_world"],
+    seen, on_mesh = texture_in_camera(scene, atlas.faces, atlas.uvs, texture, cam.K, cam.cam_from_world,
                                       height, width)
     on_mesh = on_mesh & np.isfinite(seen) & (seen > 0)
     return np.where(on_mesh, seen, fallback).astype(np.float32), on_mesh
 
 
-def refit_diffuse_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray, normal_alpha: np.ndarray,
+def refit_diffuse_normals(cam: Camera, pos: np.ndarray, neg: np.ndarray, normal_alpha: np.ndarray,
                           mask: np.ndarray, albedo: np.ndarray, model: Any, cfg: DiffuseNormalsConfig,
                           roughness: float | np.ndarray) -> np.ndarray:
     """The diffuse_normals stage's maps of one camera for a given roughness: the specular fit from eq. 1's
@@ -119,24 +120,24 @@ def refit_diffuse_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
     return np.where(np.isfinite(normals), normals, 0.0).astype(np.float32)
 
 
-def diffuse_albedo(albedo: np.ndarray, normals: np.ndarray, cam: dict[str, Any], roughness: float | np.ndarray,
+def diffuse_albedo(albedo: np.ndarray, normals: np.ndarray, cam: Camera, roughness: float | np.ndarray,
                    f0: float) -> np.ndarray:
     """(H, W, 3) float32 white-light ``albedo`` (H, W, 3) less the white light's GGX reflection predicted from
     ``normals`` (H, W, 3), the camera's view directions, ``roughness`` (scalar or (H, W)) and ``f0``, clipped to
     [0, 1] (so where a normal is undefined (0), the white-light albedo clipped)."""
     h, w = albedo.shape[:2]
-    views = view_directions(cam["K"], cam["cam_from_world"], h, w)
+    views = view_directions(cam.K, cam.cam_from_world, h, w)
     specular = white_light_specular(normals, views, roughness, f0)
     return np.clip(np.nan_to_num(albedo - specular, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0).astype(np.float32)
 
 
 @dataclass(frozen=True)
 class ViewInputs:
-    """What the stage reads of one camera: its calibrated record, the decoded gradient images ``pos`` and
+    """What the stage reads of one camera: its calibrated camera (its record in ``cam.record``), the decoded gradient images ``pos`` and
     ``neg`` (H, W, 3), eq. 1's ``normal_alpha`` (H, W, 4), the mask (H, W) bool and the white-light albedo
     (H, W, 3)."""
 
-    cam: dict[str, Any]
+    cam: Camera
     pos: np.ndarray
     neg: np.ndarray
     normal_alpha: np.ndarray
@@ -147,7 +148,7 @@ class ViewInputs:
 def read_view_inputs(artifacts: ActionArtifacts, view: str) -> ViewInputs | None:
     """One camera's :class:`ViewInputs` from the decode and photometric artifacts; None when the camera has no
     calibration or no photometric maps."""
-    cameras = artifacts.camera_records()
+    cameras = artifacts.calibrated_cameras()
     if view not in cameras or not artifacts.has("normal_alpha", view):
         return None
     return ViewInputs(cam=cameras[view], pos=artifacts.exr("pos", view), neg=artifacts.exr("neg", view),
@@ -180,7 +181,7 @@ def diffuse_view(inputs: ViewInputs, light_model: Any, cfg: DiffuseNormalsConfig
                                     inputs.albedo, light_model, cfg, roughness)
     stats: dict[str, float] = {}
     if cfg.occlusion:
-        normals, stats = deocclude_view(scene, inputs.cam["K"], inputs.cam["cam_from_world"], normals,
+        normals, stats = deocclude_view(scene, inputs.cam.K, inputs.cam.cam_from_world, normals,
                                         cfg.occlusion_directions, cfg.occlusion_min_visible)
     fitted = np.any(inputs.normal_alpha[..., :3] != 0, axis=-1) & (alpha > 0.5) & inputs.mask
     albedo_out = None

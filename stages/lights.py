@@ -25,7 +25,7 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
+from stages.artifacts import ActionArtifacts, read_cameras
 from stages.layout import ArtifactWriter
 from stages.numerics.light_model import sphere_samples, validated_light_model
 
@@ -92,7 +92,7 @@ class LightsStage(Stage):
         or unreadable: one broken frame costs that camera's samples, not the session's calibration)."""
         sphere = ctx.rig["calibration_objects"]["sphere"]
         upstream = ActionArtifacts(ctx.upstream)
-        cameras = upstream.camera_records("session_cameras")
+        cameras = read_cameras(upstream.existing("session_cameras"))
         folder = ctx.capture_root / "sessions" / ctx.scope_id / "calibration" / "sphere"
         ratios, truths, left_out = [], [], {}
         for cam_id, cam in sorted(cameras.items()):
@@ -102,7 +102,7 @@ class LightsStage(Stage):
                 continue
             try:
                 pos, neg = (decode_raw(ctx.raw_inputs[f"{i}/{cam_id}"],
-                                       expected_size=(int(cam["height"]), int(cam["width"]))).rgb
+                                       expected_size=(cam.height, cam.width)).rgb
                             for i in ("pos", "neg"))
             except InputError as exc:
                 left_out[cam_id] = str(exc)
@@ -111,7 +111,7 @@ class LightsStage(Stage):
             if matrix is not None:
                 apply_colour_matrix(pos, matrix, out=pos)
                 apply_colour_matrix(neg, matrix, out=neg)
-            d, n = sphere_samples(pos, neg, cam["K"], cam["cam_from_world"], sphere["centre"], sphere["radius_m"],
+            d, n = sphere_samples(pos, neg, cam.K, cam.cam_from_world, sphere["centre"], sphere["radius_m"],
                                   self.config.erode_px)
             ratios.append(d)
             truths.append(n)

@@ -18,6 +18,7 @@ from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
 from stages.layout import ArtifactWriter
+from stages.numerics.camera import Camera
 from stages.numerics.denoise import joint_bilateral
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
@@ -100,7 +101,7 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 8, labels: list[str
     return sheet
 
 
-def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray, normals_init: np.ndarray,
+def specular_free_normals(cam: Camera, pos: np.ndarray, neg: np.ndarray, normals_init: np.ndarray,
                           defined: np.ndarray, model: Any, spec: SpecularConfig, roughness: float | np.ndarray,
                           light_iterations: int) -> np.ndarray:
     """(H, W, 3) normals fitted as Lambertian plus GGX reflection of the given ``roughness`` (a scalar or
@@ -108,8 +109,8 @@ def specular_free_normals(cam: dict[str, Any], pos: np.ndarray, neg: np.ndarray,
     fitted specular part, so they are on the same footing as the ratio normals."""
     if not defined.any():
         return np.zeros_like(normals_init)
-    white = np.asarray(cam["white_reference"], np.float32)
-    views = view_directions(cam["K"], cam["cam_from_world"], pos.shape[0], pos.shape[1])
+    white = np.asarray(cam.record["white_reference"], np.float32)
+    views = view_directions(cam.K, cam.cam_from_world, pos.shape[0], pos.shape[1])
     fit = fit_diffuse_normals(pos, neg, white, views, normals_init, defined, roughness=roughness, f0=spec.f0,
                               steps=spec.steps, lr=spec.lr, solver=spec.solver)
     if model is None:
@@ -124,12 +125,12 @@ SWAPPED_MIN_PIXELS = 50
 """Fewer valid pixels than this are too little evidence to call a pair swapped."""
 
 
-def check_gradients_not_swapped(ctx: StageContext, view: str, cam: dict[str, Any], maps: Any) -> float:
+def check_gradients_not_swapped(ctx: StageContext, view: str, cam: Camera, maps: Any) -> float:
     """The fraction of valid pixels whose eq. 1 normal faces away from the camera; raises InputError naming the
     camera's raw g+ and g- files when that says the two were swapped (over :data:`SWAPPED_FACING_AWAY`)."""
     h, w = maps.alpha.shape
     valid = (maps.alpha > 0.5) & maps.mask
-    away, count = facing_away_fraction(maps.normals, view_directions(cam["K"], cam["cam_from_world"], h, w), valid)
+    away, count = facing_away_fraction(maps.normals, view_directions(cam.K, cam.cam_from_world, h, w), valid)
     if count >= SWAPPED_MIN_PIXELS and away > SWAPPED_FACING_AWAY:
         action = ctx.capture_root / "actions" / str(ctx.action_id)
         pos, neg = (next(iter(sorted((action / i).glob(f"{view}.*"))), action / i / f"{view}.*") for i in ("pos", "neg"))
@@ -159,14 +160,14 @@ class PhotometricStage(Stage):
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
         upstream = ActionArtifacts(ctx.upstream)
-        cameras = upstream.camera_records()
+        cameras = upstream.calibrated_cameras()
         if view not in cameras:
             return {"missing": "camera has no calibration"}
         cam = cameras[view]
         full_on, pos, neg = (upstream.exr(illumination, view) for illumination in ("full_on", "pos", "neg"))
         clipped = upstream.png("clipped", view) > 0
         background = upstream.plate(view) if self.config.use_clean_plate else None
-        maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam["white_reference"], np.float32),
+        maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam.record["white_reference"], np.float32),
                                 background=background, params=self.config.params)
         facing_away = check_gradients_not_swapped(ctx, view, cam, maps)
         model = upstream.light_model()

@@ -224,7 +224,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
     from manifests import open_release
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.cameras import load_cameras
+    from stages.artifacts import read_cameras
     from stages.artifacts import load_light_model
     from stages.diffuse_normals import refit_diffuse_normals
 
@@ -269,7 +269,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
         # and the materials' roughness changed the maps against one prior for every pixel
         mask = read_png(photometric / "mask" / "00001.png")
         one_prior = refit_diffuse_normals(
-            load_cameras(decoded / "cameras.json")["00001"], read_exr(decoded / "pos" / "00001.exr"),
+            read_cameras(decoded / "cameras.json")["00001"], read_exr(decoded / "pos" / "00001.exr"),
             read_exr(decoded / "neg" / "00001.exr"), read_exr(photometric / "normal_alpha" / "00001.exr"),
             (mask[..., 0] if mask.ndim == 3 else mask) > 127, read_exr(photometric / "albedo" / "00001.exr")[..., :3],
             model, cfg, cfg.fit.roughness)
@@ -401,7 +401,7 @@ def test_heldout_white_albedo_is_predicted_view_dependent(first_run):
     np.testing.assert_allclose(pred["albedo"][valid], diffuse["albedo"][valid] + spec[valid], atol=1e-6)
     # the specular light of a white sphere of light grows toward grazing views (Fresnel): it is the view's own
     c = data.cameras["00001"]
-    n_dot_v = np.einsum("hwc,hwc->hw", diffuse["normal"], view_directions(c["K"], c["cam_from_world"], c["height"], c["width"]))
+    n_dot_v = np.einsum("hwc,hwc->hw", diffuse["normal"], view_directions(c.K, c.cam_from_world, c.height, c.width))
     grazing, head_on = valid & (n_dot_v < 0.4), valid & (n_dot_v > 0.8)
     assert grazing.sum() > 10 and head_on.sum() > 10
     assert spec[grazing].mean() > 1.5 * spec[head_on].mean() > 0.0
