@@ -76,7 +76,7 @@ def photometric_tradeoffs(out: Path) -> list[Tradeoff]:
                                    f"({light['levels'][-1]['led_error']}); the baseline is the plain normalize.",)))
     spec = _load(out, "bench_specular_normals")
     if spec:
-        from stages.photometric import SpecularConfig
+        from stages.numerics.specular_normals import SpecularConfig
 
         fit = SpecularConfig()
         seed = next(k for k in spec if k.startswith("seed"))

@@ -35,7 +35,6 @@ bandwidth are not counted. Writes bench_projection.json, bench_projection.md and
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import math

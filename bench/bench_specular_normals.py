@@ -68,7 +68,7 @@ def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.photometric import corrected_normals, photometric_maps
     from stages.numerics.specular_normals import fit_diffuse_normals, view_directions
-    from stages.photometric import SpecularConfig
+    from stages.numerics.specular_normals import SpecularConfig
 
     decoded = next((root / "work" / "artifacts" / "decode").glob("*/*/cameras.json")).parent
     lights = next((root / "work" / "artifacts" / "lights").glob("*/*/_SUCCESS.json")).parent
@@ -149,7 +149,7 @@ def main() -> int:
     if args.quick:
         args.seeds, args.width, args.cameras = [0], 64, 2
     set_numeric_threads(args.threads)
-    from stages.photometric import SpecularConfig
+    from stages.numerics.specular_normals import SpecularConfig
 
     default_r = SpecularConfig().roughness
     out = Path(args.out)

@@ -179,7 +179,7 @@ def main() -> int:
         env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
     elif not args.full:
         report += ["`make bench` (`run_all.py`): the slowest benches run smaller than their own defaults "
-                   f"(`MAKE_BENCH_ARGS`); `make bench-full` (`--full`) runs them all at full size.", ""]
+                   "(`MAKE_BENCH_ARGS`); `make bench-full` (`--full`) runs them all at full size.", ""]
     report += ["## Machine", "", *machine_lines(), ""]
     started = time.perf_counter()
     for script in scripts:

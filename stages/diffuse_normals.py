@@ -24,9 +24,9 @@ from stages.layout import ArtifactWriter
 from stages.numerics.camera import Camera
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
-from stages.numerics.denoise import joint_bilateral
-from stages.numerics.specular_normals import view_directions, white_light_specular
-from stages.photometric import DenoiseConfig, SpecularConfig, specular_free_normals, write_normal_sheet
+from stages.numerics.denoise import DenoiseConfig, joint_bilateral
+from stages.numerics.specular_normals import SpecularConfig, specular_free_normals, view_directions, white_light_specular
+from stages.previews import write_normal_sheet
 
 
 @dataclass(frozen=True)

@@ -12,64 +12,19 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import write_exr
-from pipeline.codecs.image import label_picture, preview_linear, preview_normals, read_png, write_png
-from pipeline.config import Documented, checked
+from pipeline.codecs.image import preview_linear, preview_normals, write_png
+from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
 from stages.layout import ArtifactWriter
 from stages.numerics.camera import Camera
-from stages.numerics.denoise import joint_bilateral
+from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
                                          normals_with_alpha, photometric_maps)
-from stages.numerics.specular_normals import SOLVERS, fit_diffuse_normals, view_directions
-
-
-@dataclass(frozen=True)
-class SpecularConfig(Documented):
-    """The per-pixel fit of the normals with the specular reflection fitted out
-    (stages/numerics/specular_normals.py): each pixel's normal fitted as Lambertian plus GGX reflection instead
-    of eq. 1's ratio alone: a lower mean error against the simulator's normals over valid pixels, also on a
-    subject the roughness prior was not chosen on (bench/bench_specular_normals.py measures it there)."""
-
-    roughness: float = checked(0.6, gt=0.0, le=1.0)
-    """Perceptual GGX roughness assumed for every pixel the materials' roughness does not reach (a prior: one
-    pixel cannot also pin it down)."""
-    f0: float = checked(0.04, ge=0.0, le=1.0)
-    """Schlick Fresnel reflectance at normal incidence assumed (dielectrics: 0.02-0.05)."""
-    solver: str = checked("levenberg_marquardt", one_of=SOLVERS)
-    """``levenberg_marquardt`` or ``adam``. On the default capture 6 Levenberg-Marquardt steps reach the
-    error against the simulator's normals that 40 Adam steps do, in about a third of the time."""
-    steps: int = checked(6, ge=0)
-    """Iterations of the per-pixel fit per start (Adam needs about 40)."""
-    lr: float = checked(0.03, gt=0.0)
-    """Adam's step size (``solver: adam`` only)."""
-
-
-@dataclass(frozen=True)
-class DenoiseConfig(Documented):
-    """Edge-preserving denoising of the albedo and normal maps (stages/numerics/denoise.py)."""
-
-    enabled: bool = True
-    """Filter the albedo maps (and the diffuse_normals stage's ``normal_diffuse``, with its own copy of this
-    config) with a joint bilateral filter guided by the albedo, over valid pixels only. Chosen against the
-    simulator's truth, not the held-out protocol: on the default capture the albedo and ``normal_diffuse``
-    come closer to the truth (a 1.5 px spatial width smooths the normals too much). The price: maps
-    reprojected from these (held-out views, relighting) lose a little detail the blend of views had kept
-    (slightly worse held-out maps and relit views against the truth), while the held-out protocol against the
-    photometric maps gains most, because its references lose their pixel noise."""
-    normal_alpha: bool = False
-    """Also filter ``normal_alpha``, the maps the SDF is fitted to. Off: filtered, they are closer to the truth
-    on the default capture, but the mesh came out worse (Chamfer and F-score at 1 mm), and the relit views
-    with it."""
-    spatial_sigma_px: float = checked(1.0, gt=0.0)
-    """Gaussian width of the spatial weight, pixels."""
-    range_sigma: float = checked(0.03, gt=0.0)
-    """Gaussian width of the weight on albedo differences (albedo units): a few times the per-pixel noise,
-    well under the contrast of a material edge."""
-    radius: int = checked(2, ge=0)
-    """Half-size of the square window, pixels."""
+from stages.numerics.specular_normals import view_directions
+from stages.previews import write_normal_sheet
 
 
 @dataclass(frozen=True)
@@ -84,38 +39,6 @@ class PhotometricConfig(Documented):
     """Gauss-Newton iterations when inverting the session's fitted LED ratio model."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Edge-preserving denoising of the albedo maps (and of ``normal_alpha`` when asked)."""
-
-
-def contact_sheet(pictures: list[np.ndarray], columns: int = 8, labels: list[str] | None = None) -> np.ndarray:
-    """Tile equally sized uint8 (H, W, 3) pictures into one (rows*H, columns*W, 3) picture, row-major; with
-    ``labels`` (one per picture, e.g. the camera id) each tile carries its label in its top-left corner."""
-    if labels is not None and len(labels) != len(pictures):
-        raise ValueError(f"contact_sheet: {len(labels)} labels for {len(pictures)} pictures")
-    h, w = pictures[0].shape[:2]
-    rows = -(-len(pictures) // columns)
-    sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
-    for i, pic in enumerate(pictures):
-        r, c = divmod(i, columns)
-        tile = pic[..., :3] if pic.ndim == 3 else np.repeat(pic[..., None], 3, axis=2)
-        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = label_picture(tile, labels[i]) if labels else tile
-    return sheet
-
-
-def specular_free_normals(cam: Camera, pos: np.ndarray, neg: np.ndarray, normals_init: np.ndarray,
-                          defined: np.ndarray, model: Any, spec: SpecularConfig, roughness: float | np.ndarray,
-                          light_iterations: int) -> np.ndarray:
-    """(H, W, 3) normals fitted as Lambertian plus GGX reflection of the given ``roughness`` (a scalar or
-    (H, W)) where ``defined``; with the session's LED model, eq. 1 through that model of the frames less the
-    fitted specular part, so they are on the same footing as the ratio normals."""
-    if not defined.any():
-        return np.zeros_like(normals_init)
-    white = np.asarray(cam.record["white_reference"], np.float32)
-    views = view_directions(cam.K, cam.cam_from_world, pos.shape[0], pos.shape[1])
-    fit = fit_diffuse_normals(pos, neg, white, views, normals_init, defined, roughness=roughness, f0=spec.f0,
-                              steps=spec.steps, lr=spec.lr, solver=spec.solver)
-    if model is None:
-        return fit.normals
-    return corrected_normals(pos - fit.specular_pos, neg - fit.specular_neg, model, defined, light_iterations)
 
 
 SWAPPED_FACING_AWAY = 0.5
@@ -139,15 +62,6 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: Camera, maps:
     return away
 
 
-
-def write_normal_sheet(previews: Path, prefix: str, sheet: str, view_stats: dict[str, dict[str, Any]]) -> None:
-    """``previews/<sheet>``: the per-camera previews ``<prefix>_<camera>.png`` of the views that ran,
-    side by side, each tile labelled with its camera id (nothing when none was written)."""
-    paths = {v: previews / f"{prefix}_{v}.png" for v in sorted(view_stats) if "missing" not in view_stats[v]}
-    shown = [v for v, p in paths.items() if p.exists()]
-    if shown:
-        write_png(previews / sheet,
-                  contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))
 
 class PhotometricStage(Stage):
     name = "photometric"

@@ -6,7 +6,7 @@ import pytest
 
 from stages.conventions import srgb_png
 from stages.decode import opencv_cam_from_world, scale_camera, transforms_json
-from stages.photometric import contact_sheet
+from stages.previews import contact_sheet
 
 CAM = {"camera_id": "00007", "width": 320, "height": 480, "K": [[800.0, 0, 159.5], [0, 800.0, 239.5], [0, 0, 1]],
        "cam_from_world": [[0, 0, -1, 0.1], [0, -1, 0, 0.2], [-1, 0, 0, 3.0]]}
