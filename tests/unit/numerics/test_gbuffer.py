@@ -323,7 +323,9 @@ def test_subpixel_input_checks(sphere_scene):
 def test_spread_heldout_and_summary():
     from evaluation.heldout import spread_heldout, summarise
 
-    cams = {f"{i:05d}": {"cam_from_world": ring_camera(i * 30.0)} for i in range(12)}
+    from stages.numerics.camera import Camera
+
+    cams = {f"{i:05d}": Camera(K, ring_camera(i * 30.0), 64, 64) for i in range(12)}
     assert spread_heldout(cams, 2) == ("00000", "00006")  # the opposite side of the ring
     part = {"angle_deg": np.array([1.0, 4.0, 10.0, 30.0]), "albedo_sq": np.full(6, 0.01), "ssim": 0.9, "pixels": 4}
     s = summarise([part], "_x")
