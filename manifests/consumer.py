@@ -348,12 +348,16 @@ class ActionView:
 
     def texture(self, name: str) -> np.ndarray:
         """A baked texture of the UV atlas of ``mesh/textured.obj``: 'albedo' (T, T, 3), 'normal' (T, T, 3),
-        'view_count' or 'confidence' (T, T), float32; texel row 0 is v = 1 (OBJ convention)."""
+        'view_count' or 'confidence' (T, T), float32 (the materials' 'roughness', 'occlusion', 'diffuse_ratio',
+        ... likewise), or 'albedo_preview', the albedo's sRGB PNG (T, T, 3) uint8; texel row 0 is v = 1 (OBJ
+        convention). KeyError naming the kinds present for a texture the action lacks."""
         from stages.layout import RELEASE_KINDS
 
+        if name == "albedo_preview":
+            return self.artifacts.png("albedo_texture_png")
         product = f"{name}_texture"
         if product not in RELEASE_KINDS:
-            self.asset(f"texture_{name}")  # a kind the facade does not know: KeyError naming it when absent
+            self.asset(f"texture_{name}")  # KeyError naming the kinds present
             raise KeyError(f"action {self.action_id}: texture {name!r} is not a product of the artifact facade")
         data = self.artifacts.exr(product)
         single = ("view_count", "confidence", "roughness", "roughness_fit_rms", "occlusion")

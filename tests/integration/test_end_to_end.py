@@ -338,6 +338,10 @@ def test_materials_and_renders_through_the_consumer_api(first_run):
     assert roughness.ndim == 2 and 0.05 <= roughness.min() and roughness.max() <= 1.0
     occlusion = view.texture("occlusion")
     assert occlusion.ndim == 2 and 0.0 <= occlusion.min() and occlusion.max() <= 1.0 and occlusion.min() < 0.9
+    albedo, preview = view.texture("albedo"), view.texture("albedo_preview")  # the float texture and its PNG
+    assert albedo.dtype == np.float32 and preview.dtype == np.uint8 and preview.shape == albedo.shape
+    with pytest.raises(KeyError, match="texture_nope"):
+        view.texture("nope")
     (camera,) = view.render_cameras()
     assert camera["camera_id"] == "N000" and len(camera["between"]) == 2
     gbuffer = view.render_gbuffer("N000")
