@@ -170,19 +170,9 @@ class ActionGBuffers:
         return {"albedo_diffuse", "normal_diffuse", "texture_roughness", "mesh_textured"} <= set(self.view.kinds)
 
     def materials_f0(self) -> float:
-        """The Fresnel F0 the release's roughness was fitted with (``materials.f0`` of its config.yaml; the
-        materials stage's default when the release has none)."""
+        """The Fresnel F0 the release's roughness was fitted with (the facade's, from the release's config)."""
         if "f0" not in self._shared:
-            import yaml
-
-            from stages.materials import MaterialsConfig
-
-            f0 = MaterialsConfig().f0
-            path = Path(self.view.release.root) / "config.yaml"
-            if path.is_file():
-                config = yaml.safe_load(path.read_text()) or {}
-                f0 = float((config.get("materials") or {}).get("f0", f0))
-            self._shared["f0"] = f0
+            self._shared["f0"] = self.view.artifacts.materials_f0()
         return self._shared["f0"]
 
     def roughness(self, cam: str) -> np.ndarray:

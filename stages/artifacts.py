@@ -56,6 +56,13 @@ class StoreBackend:
         """camera_id -> :class:`Camera` of every calibrated camera (``cameras.json``; the record in ``record``)."""
         return read_cameras(artifacts.existing("cameras"))
 
+    def materials_f0(self) -> float:
+        """The F0 in the materials artifact's record (:func:`fitted_f0`); KeyError when materials is not
+        upstream."""
+        if "materials" not in self.upstream:
+            raise KeyError(f"stage 'materials' is not upstream (upstream: {sorted(self.upstream)})")
+        return fitted_f0(self.upstream["materials"])
+
 
 class ReleaseBackend:
     """Products of one action of a release, found through its assets manifest.
@@ -91,6 +98,22 @@ class ReleaseBackend:
         """camera_id -> :class:`Camera` of the frames of the action's ``transforms.json`` (OpenCV ``K``,
         ``cam_from_world_opencv``, ``w``, ``h``; the frame in ``record``)."""
         return transforms_cameras(artifacts.json("transforms"))
+
+    def materials_f0(self) -> float:
+        """``materials.f0`` of the release's ``config.yaml`` (the resolved config of the run that wrote it).
+
+        Raises:
+            InputError: no config.yaml, no ``materials.f0`` in it, or not a number in [0, 1]."""
+        import yaml
+
+        path = Path(self.view.release.root) / "config.yaml"
+        try:
+            f0 = (yaml.safe_load(path.read_text()) or {})["materials"]["f0"]
+        except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+            raise InputError(path, f"no materials.f0 in the release's config ({type(exc).__name__}: {exc})") from exc
+        if isinstance(f0, bool) or not isinstance(f0, (int, float)) or not 0.0 <= f0 <= 1.0:
+            raise InputError(path, f"materials.f0 {f0!r} is not a number in [0, 1]")
+        return float(f0)
 
 
 def transforms_cameras(transforms: Mapping[str, Any]) -> dict[str, Camera]:
@@ -307,11 +330,9 @@ class ActionArtifacts:
         return read_exr(self.path("plate", camera)) if self.has("plate", camera) else None
 
     def materials_f0(self) -> float:
-        """The Fresnel F0 the materials stage fitted the roughness texture with (:func:`fitted_f0` of its
-        artifact's record; the work store keeps it, a release does not: AttributeError there)."""
-        if "materials" not in self.upstream:
-            raise KeyError(f"stage 'materials' is not upstream (upstream: {sorted(self.upstream)})")
-        return fitted_f0(self.upstream["materials"])
+        """The Fresnel F0 the materials stage fitted the roughness texture with: roughness and F0 trade off under
+        broad light, so whoever models the specular light with that texture uses this F0."""
+        return self.backend.materials_f0()
 
     def light_model(self) -> Any:
         """The session's fitted :class:`calibration.light.LightModel`, or None when it uses the ideal one."""

@@ -176,3 +176,23 @@ def test_reading_through_the_facade_keeps_the_renderer_out_of_a_stage_key(module
 
     assert not RENDERER & set(code_digests(module, CODE_PACKAGES))
     assert RENDERER <= set(code_digests("stages.relight", CODE_PACKAGES))
+
+
+def test_materials_f0_from_the_store_record_and_from_the_release_config(sources, tmp_path):
+    from pipeline.errors import InputError
+
+    store, release = sources
+    materials = tmp_path / "store" / "materials"
+    materials.mkdir()
+    (materials / "_SUCCESS.json").write_text(json.dumps({"record": {"config": {"f0": 0.03}}}))
+    assert ActionArtifacts({**store.upstream, "materials": materials}).materials_f0() == 0.03
+    with pytest.raises(KeyError, match="materials"):
+        store.materials_f0()  # not upstream
+    released = ActionArtifacts.from_release(release, "A0000")
+    with pytest.raises(InputError, match="config.yaml: no materials.f0"):
+        released.materials_f0()  # a release without its config
+    (release / "config.yaml").write_text("materials:\n  f0: 0.05\n")
+    assert released.materials_f0() == 0.05
+    (release / "config.yaml").write_text("materials:\n  f0: 1.5\n")
+    with pytest.raises(InputError, match="not a number in \\[0, 1\\]"):
+        released.materials_f0()
