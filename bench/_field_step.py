@@ -4,6 +4,12 @@ from __future__ import annotations
 from typing import Any, Callable
 
 
+def training_points(cfg: Any) -> int:
+    """Points one training step of ``cfg`` (an SDFConfig) evaluates the field at: every ray's samples and the
+    eikonal points."""
+    return cfg.rays_per_batch * cfg.samples_per_ray + cfg.eikonal_points
+
+
 def field_step(cfg: Any, points: int, device: str = "cpu") -> tuple[Any, Any, Callable[[], None]]:
     """A field of ``cfg``'s encoding and network (table drawn from N(0, 0.01), seed 0) on ``device``, ``points``
     random points (seed 1) and the step: the field's SDF and analytic gradient at the points, an eikonal-style

@@ -65,7 +65,7 @@ def main() -> int:
     from stages.numerics.sdf import SDF_PRESETS
 
     cfg = SDF_PRESETS["production"]
-    points = 2048 if args.quick else cfg.rays_per_batch * cfg.samples_per_ray + cfg.eikonal_points
+    points = 2048 if args.quick else _field_step.training_points(cfg)
     repeats, inner = (1, 1) if args.quick else (args.repeats, 3)
     torch.set_num_threads(1)
     rows = [{"device": "cpu", "name": "CPU, 1 thread", "field_step_ms": field_step_ms("cpu", points, repeats,

@@ -59,7 +59,7 @@ def main() -> int:
 
     cfg = SDF_PRESETS["cpu"]
     repeats, inner = (1, 1) if args.quick else (args.repeats, 10)
-    points = 600 if args.quick else cfg.rays_per_batch * cfg.samples_per_ray + cfg.eikonal_points
+    points = 600 if args.quick else _field_step.training_points(cfg)
     field, x01, field_step = _field_step.field_step(cfg, points)
     encoding = field.encoding
     available = hashgrid_kernel.kernel_available()

@@ -266,16 +266,15 @@ def load_truth(truth_dir: Path, action_id: str, cam: str, shape: tuple[int, int]
     """The simulator's normal, albedo and mask of camera ``cam`` resampled to ``shape`` (H, W), or None when the
     ground truth has no normal map for it."""
     from pipeline.codecs.exr import read_exr
-    from pipeline.codecs.image import read_png
+    from pipeline.codecs.image import mask_from_png, read_png
 
     base = Path(truth_dir) / action_id
     if not (base / "normal" / f"{cam}.exr").exists():
         return None
-    mask = read_png(base / "mask" / f"{cam}.png")
-    mask = mask[..., 0] if mask.ndim == 3 else mask
+    mask = mask_from_png(read_png(base / "mask" / f"{cam}.png"))
     return {"normal": downsample_to(read_exr(base / "normal" / f"{cam}.exr")[..., :3], shape, kind="normal"),
             "albedo": downsample_to(read_exr(base / "albedo" / f"{cam}.exr")[..., :3], shape, kind="image"),
-            "mask": downsample_to(mask > 127, shape, kind="mask")}
+            "mask": downsample_to(mask, shape, kind="mask")}
 
 
 def synthesise_heldout(data: ActionGBuffers, cam: str, heldout: Sequence[str], k: int = 6,

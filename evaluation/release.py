@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr
-from pipeline.codecs.image import read_png
+from pipeline.codecs.image import mask_from_png, read_png
 from stages.numerics.metrics import angular_error_deg, downsample_to, mask_iou, ssim
 
 UNOCCLUDED_VISIBILITY = 0.9
@@ -98,7 +98,7 @@ def _psnr_from_mse(mse: float, peak: float = 1.0) -> float:
 def _load_truth(truth_dir: Path, action_id: str, cam: str) -> dict[str, np.ndarray]:
     base = truth_dir / action_id
     return {"normal": read_exr(base / "normal" / f"{cam}.exr"), "albedo": read_exr(base / "albedo" / f"{cam}.exr"),
-            "mask": read_png(base / "mask" / f"{cam}.png") > 127,
+            "mask": mask_from_png(read_png(base / "mask" / f"{cam}.png")),
             "visibility": read_exr(base / "visibility" / f"{cam}.exr")}
 
 
@@ -556,7 +556,6 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
     one (specular share and occlusion out). ``textured``: action id -> the textured mesh's ray-casting scene
     and atlas where already loaded (:func:`_heldout_overall`)."""
     from pipeline.codecs.exr import read_exr
-    from pipeline.codecs.image import read_png
 
     values: dict[str, list[float]] = {}
     for action_id in ok_ids:
@@ -576,8 +575,7 @@ def _materials_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action:
                 continue
             true_rough = read_exr(rough_path)
             true_rough = true_rough[..., 0] if true_rough.ndim == 3 else true_rough
-            true_mask = read_png(truth_dir / action_id / "mask" / f"{cam_id}.png")
-            true_mask = (true_mask[..., 0] if true_mask.ndim == 3 else true_mask) > 127
+            true_mask = mask_from_png(read_png(truth_dir / action_id / "mask" / f"{cam_id}.png"))
             true_albedo = read_exr(truth_dir / action_id / "albedo" / f"{cam_id}.exr")[..., :3]
             seen, hit = texture_in_camera(view.path("mesh_textured"), textures, np.asarray(cam["K"]),
                                           np.asarray(cam["cam_from_world"])[:3], true_rough.shape[0],

@@ -220,11 +220,13 @@ class Release:
             if rows.empty:
                 raise KeyError(f"no relighting example {example!r} in {self.root}")
             example = rows.iloc[0]
+        from pipeline.codecs.image import mask_from_png
+
         image = self.load(example["image_exr"])
         return {"image": image[..., :3], "alpha": image[..., 3] if image.shape[-1] > 3 else None,
                 "albedo": self.load(example["albedo_exr"])[..., :3],
                 "normal": self.load(example["normal_exr"])[..., :3],
-                "mask": self.load(example["mask_png"]) > 127}
+                "mask": mask_from_png(self.load(example["mask_png"]))}
 
     def _assets_mention(self, action_id: str) -> bool:
         return bool(pc.any(pc.equal(self.table("assets").column("action_id"), action_id)).as_py())
@@ -380,11 +382,12 @@ class ActionView:
     def render_gbuffer(self, view: str) -> dict[str, np.ndarray]:
         """The G-buffer of a novel view: ``normal`` (H, W, 3), ``albedo`` (H, W, 3), ``roughness`` (H, W),
         ``mask`` (H, W) bool."""
+        from pipeline.codecs.image import mask_from_png
+
         rough = self.artifacts.exr("render_roughness", view)
-        mask = self.artifacts.png("render_mask", view)
         return {"normal": self.artifacts.exr("render_normal", view), "albedo": self.artifacts.exr("render_albedo", view),
                 "roughness": rough[..., 0] if rough.ndim == 3 else rough,
-                "mask": (mask[..., 0] if mask.ndim == 3 else mask) > 127}
+                "mask": mask_from_png(self.artifacts.png("render_mask", view))}
 
 
 def open_release(path: str | Path) -> Release:

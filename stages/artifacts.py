@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.exr import read_exr
-from pipeline.codecs.image import read_png
+from pipeline.codecs.image import mask_from_png, read_png
 from pipeline.errors import InputError
 from stages.layout import PRODUCTS, RELEASE_KINDS, check_product
 from stages.numerics.camera import Camera
@@ -166,13 +166,6 @@ def load_atlas_mesh(obj_path: Path):
     atlas = Atlas(vmapping=inverse, faces=np.asarray(obj["faces"], np.int32), uvs=np.asarray(obj["uvs"], np.float32),
                   width=1, height=1, stats={})
     return vertices, faces, atlas
-
-
-def mask_from_png(mask: np.ndarray) -> np.ndarray:
-    """(H, W) bool subject mask of a mask PNG's pixels ((H, W) or (H, W, C), first channel): above half the
-    dtype's range (127 of 8 bits)."""
-    mask = mask[..., 0] if mask.ndim == 3 else mask
-    return mask > (np.iinfo(mask.dtype).max // 2 if np.issubdtype(mask.dtype, np.integer) else 0.5)
 
 
 class ActionArtifacts:

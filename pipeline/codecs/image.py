@@ -29,6 +29,13 @@ def read_png(path: str | Path) -> np.ndarray:
         return np.asarray(img)
 
 
+def mask_from_png(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool subject mask of a mask PNG's pixels ((H, W) or (H, W, C), first channel): above half the
+    dtype's range (127 of 8 bits)."""
+    mask = mask[..., 0] if mask.ndim == 3 else mask
+    return mask > (np.iinfo(mask.dtype).max // 2 if np.issubdtype(mask.dtype, np.integer) else 0.5)
+
+
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """Linear [0, 1] to the sRGB transfer curve, float in [0, 1]."""
     x = np.clip(linear, 0.0, 1.0)

@@ -61,7 +61,7 @@ def load_example(release: Release, row: pd.Series | dict) -> dict[str, np.ndarra
         InputError: a missing or unreadable file, or maps of different sizes (naming the file).
     """
     from pipeline.codecs.exr import read_exr
-    from pipeline.codecs.image import read_png
+    from pipeline.codecs.image import mask_from_png, read_png
 
     def read(column: str, reader):
         path = release.root / row[column]
@@ -78,7 +78,7 @@ def load_example(release: Release, row: pd.Series | dict) -> dict[str, np.ndarra
     normal = read("normal_exr", read_exr)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
-    mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+    mask = mask_from_png(mask)
     h, w = mask.shape
     for column, arr in (("image_png", image), ("albedo_exr", albedo), ("normal_exr", normal)):
         if arr.shape[:2] != (h, w) or arr.ndim != 3 or arr.shape[2] < 3:
