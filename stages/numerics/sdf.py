@@ -623,7 +623,9 @@ class SDFResult:
         hull: the visual hull over ``bounds``.
         history: lists keyed by ``iteration``, ``seconds``, ``loss``, ``normal``, ``mask``, ``eikonal``,
             ``normal_deg`` (mean angle of the kept valid rays), ``inv_s``, ``lr``.
-        stats: ``time_s``, ``device``, ``iterations``, ``importance_rays_per_iteration`` (drawn by the views'
+        stats: ``time_s``, ``device``, ``iterations``, ``steps_per_s`` (of the training loop), on a CUDA device
+            ``gpu_name`` and ``gpu_peak_memory_bytes`` (torch's peak allocation over the training),
+            ``importance_rays_per_iteration`` (drawn by the views'
             sample weights); ``samples_skipped_fraction``: the share of a naive
             uniform sampler's samples (every pixel's ray through the stage box, at the window's sample spacing)
             that the hull (rays worth drawing: ``candidate_ray_fraction``) and the cached SDF grid (window
@@ -1103,6 +1105,8 @@ def train_sdf(views: Sequence[SDFView], config: SDFConfig = SDF_PRESETS["cpu"], 
 def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device, init=None,
            start: SDFStart | None = None) -> SDFResult:
     t_start = time.perf_counter()
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
@@ -1185,6 +1189,10 @@ def _train(views, cams, config: SDFConfig, bounds, progress, checkpoint, device,
             _report(it, entry, time.perf_counter() - t_start, history, progress, checkpoint, field_, average)
 
     average.finish(config.iterations - 1)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        stats["gpu_name"] = torch.cuda.get_device_name(device)
+        stats["gpu_peak_memory_bytes"] = int(torch.cuda.max_memory_allocated(device))
     field_ = field_.cpu().eval()
     stats.update(_training_stats(config, bank, n_important, counts, timing, t_start, t_train))
     return SDFResult(field=field_, bounds=sdf_bounds, hull=hull, history=history, stats=stats, start=start)
@@ -1533,6 +1541,7 @@ def _training_stats(config: SDFConfig, bank: _RayBank, n_important: int, counts:
         time_s=time.perf_counter() - t_start,
         train_time_s=time.perf_counter() - t_train,
         iterations=config.iterations,
+        steps_per_s=config.iterations / max(time.perf_counter() - t_train, 1e-9),
         rays_per_iteration=config.rays_per_batch,
         importance_rays_per_iteration=n_important,
         candidate_ray_fraction=n_bank / bank.pixels_total,
