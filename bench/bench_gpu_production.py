@@ -20,8 +20,10 @@ CPU thread is ``bench/bench_gpu.py``; ``bench/bench_projection.py --gpu-speedup`
     python bench/bench_gpu_production.py --out DIR --work DIR [--width 1024 | --probe-width 256]
         [--presets production,default] [--budget-s 480] [--quick]
 
-``--quick`` (the tests' mode): a 48 px capture of 4 cameras through the test preset; its numbers are not
-measurements.
+Without a CUDA device it writes a report that says so and runs nothing (``--allow-cpu`` runs it on the CPU: hours
+for the production preset's 20,000 SDF steps). ``--quick`` (the tests' mode): the benches' shared tiny capture
+(bench/_quick.py) through the photometric stage with the test preset, on whatever device is there; its numbers are
+not measurements.
 """
 from __future__ import annotations
 
@@ -79,21 +81,15 @@ def _run_logged(cmd: list[str], log: Path, timeout_s: float, env: dict | None = 
             "timed_out": timed_out}
 
 
-def simulate(capture: Path, width: int, cameras: int, quick: bool) -> dict:
+def simulate(capture: Path, width: int, cameras: int) -> dict:
     """Simulate one action of ``cameras`` cameras at ``width`` px into ``capture``; wall seconds in all and per
     camera."""
     from synthetic import SimConfig
     from synthetic import simulate as run_simulator
 
     shutil.rmtree(capture, ignore_errors=True)
-    changes = {}
-    if quick:
-        sys.path.insert(0, str(ROOT / "bench"))
-        from _quick import quick_sim_changes
-
-        changes = quick_sim_changes()
     started = time.perf_counter()
-    run_simulator(capture, SimConfig(actions=1, width=width, n_cameras=cameras, **changes))
+    run_simulator(capture, SimConfig(actions=1, width=width, n_cameras=cameras))
     wall = time.perf_counter() - started
     return {"width": width, "cameras": cameras, "wall_s": round(wall, 2), "s_per_camera": round(wall / cameras, 3)}
 
@@ -152,14 +148,17 @@ def geometry_stats(work: Path) -> dict:
     return found
 
 
-def run_preset(capture: Path, root: Path, preset: str, timeout_s: float, evaluate: bool, out: Path) -> dict:
-    """One preset's run, its per-stage seconds, its SDF figures and (time permitting) its accuracy."""
+def run_preset(capture: Path, root: Path, preset: str, timeout_s: float, evaluate: bool, out: Path,
+               through: str | None = None) -> dict:
+    """One preset's run (``through``: that stage and what it needs), its per-stage seconds, its SDF figures and
+    (time permitting) its accuracy."""
     release, work = root / f"release-{preset}", root / f"work-{preset}"
     shutil.rmtree(release, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
     started = time.perf_counter()
     run = _run_logged(_cli("run", "--capture", str(capture), "--release", str(release), "--work", str(work),
-                           "--preset", preset, "--no-evaluate"), out / f"run-{preset}.log", timeout_s)
+                           "--preset", preset, "--no-evaluate", *(["--through", through] if through else [])),
+                      out / f"run-{preset}.log", timeout_s)
     result = {"preset": preset, "run": run, "stages": stage_seconds(release),
               "logged": logged_tasks(out / f"run-{preset}.log"), "geometry": geometry_stats(work)}
     left = timeout_s - (time.perf_counter() - started)
@@ -184,9 +183,11 @@ def markdown(report: dict) -> str:
     machine = report["machine"]
     lines = ["# bench_gpu_production: one action at production size on one GPU", "",
              f"Machine: {machine['gpu'] or 'no CUDA device'}, {machine['cpus']} CPUs, torch {machine['torch']}.",
-             f"Capture: 1 action, {report['simulate']['cameras']} cameras, {report['simulate']['width']} px wide; "
-             f"simulated in {report['simulate']['wall_s']:.1f} s ({report['simulate']['s_per_camera']:.2f} s per "
-             "camera).", ""]
+             f"Capture: 1 action, {report['simulate']['cameras']} cameras, {report['simulate']['width']} px wide; " +
+             (f"an existing capture ({report['simulate']['existing']}), its simulation not timed here."
+              if "existing" in report["simulate"] else
+              f"simulated in {report['simulate']['wall_s']:.1f} s ({report['simulate']['s_per_camera']:.2f} s per "
+              "camera)."), ""]
     if report.get("probe"):
         lines.insert(-1, f"Probe: {report['probe']['width']} px in {report['probe']['wall_s']:.1f} s.")
     for res in report["presets"]:
@@ -227,6 +228,7 @@ def main() -> int:
     parser.add_argument("--budget-s", type=float, default=480.0, help="wall seconds for all the presets' runs")
     parser.add_argument("--no-evaluate", action="store_true")
     parser.add_argument("--simulate-only", action="store_true", help="simulate (and write the report) only")
+    parser.add_argument("--allow-cpu", action="store_true", help="run even where torch sees no CUDA device")
     parser.add_argument("--quick", action="store_true", help="a tiny capture through the test preset (tests)")
     args = parser.parse_args()
     out = Path(args.out)
@@ -239,8 +241,20 @@ def main() -> int:
     report: dict = {"machine": {"gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
                                 "cpus": os.cpu_count(), "torch": torch.__version__}, "quick": bool(args.quick)}
     presets = ["test"] if args.quick else [p.strip() for p in args.presets.split(",") if p.strip()]
-    cameras = 4 if args.quick else args.cameras
+    cameras = args.cameras
     previous = out / "bench_gpu_production.json"
+    if report["machine"]["gpu"] is None and not (args.quick or args.allow_cpu):
+        report["skipped"] = "torch sees no CUDA device: nothing run (--allow-cpu to run on the CPU)"
+        previous.write_text(json.dumps(report, indent=1))
+        (out / "bench_gpu_production.md").write_text(
+            "# bench_gpu_production: one action at production size on one GPU\n\n" + report["skipped"] + ".\n")
+        print(report["skipped"])
+        return 0
+    if args.quick and not args.capture:
+        sys.path.insert(0, str(ROOT / "bench"))
+        from _quick import QUICK_CAMERAS, quick_run
+
+        args.capture, cameras = str(quick_run(out) / "capture"), QUICK_CAMERAS
     if args.capture:
         capture = Path(args.capture)
         meta = json.loads((capture / "capture.json").read_text())
@@ -252,12 +266,12 @@ def main() -> int:
                 report.update({k: earlier[k] for k in ("simulate", "probe") if k in earlier})
     else:
         capture = root / "capture"
-        width = 48 if args.quick else args.width
-        if args.probe_width and not args.quick:
+        width = args.width
+        if args.probe_width:
             report["probe"] = simulate(root / "probe", args.probe_width, cameras, False)
             shutil.rmtree(root / "probe", ignore_errors=True)
             width = pick_width(report["probe"], [int(w) for w in args.widths.split(",")], args.simulate_budget_s)
-        report["simulate"] = simulate(capture, width, cameras, args.quick)
+        report["simulate"] = simulate(capture, width, cameras)
     report["capture"] = str(capture.resolve())
     print(f"capture {capture}: {report['simulate']}", flush=True)
     if args.simulate_only:
@@ -272,7 +286,8 @@ def main() -> int:
                                                                 "timed_out": True}, "stages": {}, "logged": {},
                                       "geometry": {}, "skipped": "no time left"})
             continue
-        report["presets"].append(run_preset(capture, root, preset, left, not args.no_evaluate, out))
+        report["presets"].append(run_preset(capture, root, preset, left, not (args.no_evaluate or args.quick), out,
+                                            through="photometric" if args.quick else None))
         (out / "bench_gpu_production.json").write_text(json.dumps(report, indent=1, default=str))
     (out / "bench_gpu_production.json").write_text(json.dumps(report, indent=1, default=str))
     (out / "bench_gpu_production.md").write_text(markdown(report))

@@ -26,6 +26,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "diffuse_normals": ["--stride", "8"],
     "executor": ["--steps", "75"],
     "geometry": ["--checkpoints", "4", "--no-ablation"],
+    "gpu_production": None,
     "heldout_field": ["--lengths", "100,400"],
     "memory": None,
     "pipeline": None,
@@ -40,8 +41,9 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
 """What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
 with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
 Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (it took 23 min 54 s there; README). Left to
-the full run: the production-size memory measurements (memory) and the default capture end to end at 2 actions
-through dask (pipeline: bench_end_to_end measures the same things on small captures)."""
+the full run: the production-size memory measurements (memory), the default capture end to end at 2 actions
+through dask (pipeline: bench_end_to_end measures the same things on small captures) and the production path on a
+GPU (gpu_production: it runs nothing where torch sees no CUDA device)."""
 SPEED_BASELINES: dict[str, str | None] = {
     "calibration": "decoding the 32 marker frames it reads (`x_decode`; `--markers`, the cameras stage's default source)",
     "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
@@ -52,6 +54,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "executor": "the same SDF steps in the bench's own process (`worker / in_process`)",
     "gbuffer": "bilinear source lookup for the cubic one (`cubic_time_ratio`)",
     "gpu": "the same production field step on one CPU thread (`speedup_over_cpu_thread`)",
+    "gpu_production": "the default preset's run of the same capture on the same machine, beside the production "
+                      "preset's (bench_gpu gives the speed-up over one CPU thread)",
     "geometry": "autograd's double backward for the analytic SDF gradients; the naive uniform samples for the "
                 "empty-space skipping (`samples_skipped_fraction`)",
     "hashgrid": "a copy of the feature table, and the torch path for the fused kernel",
