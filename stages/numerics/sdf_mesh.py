@@ -3,20 +3,65 @@
 :func:`sdf_mesh` trains :func:`stages.numerics.sdf.train_sdf` on the views, marches the field's narrow band,
 keeps the largest component and decimates it; with ``deocclude`` it trains a second time on the normals with the
 first mesh's occlusion of the LED sphere divided out (:func:`deoccluded_sdf_views`). Pure: arrays and
-dataclasses in, arrays out. ``cfg`` is a :class:`stages.geometry.GeometryConfig`.
+dataclasses in, arrays out. ``cfg`` is an :class:`SDFMeshConfig` (the geometry stage's config is one, with the
+stage's own fields added).
 """
 from __future__ import annotations
 
 import dataclasses
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from stages.geometry import GeometryConfig
+from pipeline.config import Documented, checked
+from stages.numerics.sdf import SDF_PRESETS, SDFConfig
+
+
+@dataclass(frozen=True)
+class SDFMeshConfig(Documented):
+    """The neural SDF, its passes and its mesh: what :func:`sdf_mesh` reads (the fields of the geometry stage's
+    config that are not the stage's own, under the same names)."""
+
+    sdf: SDFConfig = field(default_factory=lambda: SDF_PRESETS["cpu"])
+    """The neural SDF: encoding, network, sampling, losses and schedule (presets in stages.numerics.sdf)."""
+    mesh_resolution: int = 512
+    """Marching-cubes cells along the longest side of the SDF's bounding box (narrow band only)."""
+    face_budget: int = 200_000
+    """Quadric decimation target of the published mesh (mesh/mesh.ply)."""
+    deocclude: bool = True
+    """Train the SDF a second time, on eq. 1's normals with the first mesh's occlusion of the LED sphere divided
+    out (:func:`stages.numerics.shadowing.deocclude_view`). Eq. 1 measures the cosine-weighted mean of the
+    *visible* light directions, which leans away from an arm or the other leg; fitted to those normals the
+    surface bulges out where it is occluded (inner thighs, armpits, neck: 4-5 mm on A0000). The first pass runs
+    ``first_pass_iterations`` steps (the published mesh and ``sdf/sdf.pt`` are the second pass's;
+    ``training.json`` keeps both)."""
+    deocclude_iterations: int = checked(0, ge=0)
+    """0: the second pass trains a new field with the full schedule. N > 0: it continues the first field for N
+    steps at the schedule's final sharpness with every hash level on (cheaper, and a worse mesh than a new
+    field on the default capture)."""
+    first_pass_iterations: int = checked(600, ge=0)
+    """Steps of the first SDF pass when ``deocclude`` trains two (0: ``sdf.iterations``; the schedule's warm-up,
+    sharpness ramp and coarse-to-fine are scaled to it). The first mesh only has to give the body's occlusion
+    of the LED sphere and where it misses the normals; the published mesh is the second pass's
+    (bench/bench_sdf_schedule.py: time against Chamfer over both passes' steps)."""
+    first_pass_mesh_resolution: int = checked(256, ge=0)
+    """Marching-cubes cells of the first pass's mesh (0: ``mesh_resolution``)."""
+    deocclude_directions: int = checked(128, ge=16)
+    """Directions (Fibonacci sphere) of the visibility traced for the second pass."""
+    deocclude_min_visible: float = checked(0.1, ge=0.0, lt=1.0)
+    """Pixels whose cosine-weighted visible fraction is below this keep eq. 1's normal."""
+    second_pass_importance: float = checked(0.2, ge=0.0, lt=1.0)
+    """Share of the second pass's rays drawn where the first mesh's normal is more than
+    ``second_pass_error_floor_deg`` off the de-occluded normal, in proportion to the excess (the fingers, the
+    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. On the
+    default capture the share lowers the second pass's Chamfer together with the cpu SDF preset's table size
+    and grazing/outlier settings; a share of 0.5 leaves too few rays for the rest. The mask loss counts only
+    the uniform rays."""
+    second_pass_error_floor_deg: float = checked(10.0, ge=0.0)
+    """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
 
 
 def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarray, directions: int = 256,
@@ -58,7 +103,7 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     return out, stats
 
 
-def pass_configs(cfg: GeometryConfig) -> tuple[Any, Any]:
+def pass_configs(cfg: SDFMeshConfig) -> tuple[Any, Any]:
     """The SDF configs of the stage's passes: ``(first, second)``, ``second`` None without ``deocclude``.
 
     The first pass runs ``first_pass_iterations`` steps of ``cfg.sdf`` (its warm-up capped to them; the sharpness
@@ -78,7 +123,7 @@ def pass_configs(cfg: GeometryConfig) -> tuple[Any, Any]:
     return first, dataclasses.replace(second, importance_fraction=cfg.second_pass_importance)
 
 
-def second_pass_views(cfg: GeometryConfig, views: list[Any], vertices: np.ndarray,
+def second_pass_views(cfg: SDFMeshConfig, views: list[Any], vertices: np.ndarray,
                       faces: np.ndarray) -> tuple[list[Any], dict[str, float]]:
     """The second SDF pass's views as ``cfg`` asks for them: :func:`deoccluded_sdf_views` of the first mesh,
     with sample weights when ``cfg.second_pass_importance`` draws a share of the rays by them."""
@@ -108,7 +153,7 @@ class SDFMesh:
     """Wall time of the passes, meshing included."""
 
 
-def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
+def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
              progress: Callable[[int, int, str], None] | None = None,
              log: Callable[[str], None] | None = None) -> SDFMesh:
     """The mesh of the neural SDF trained on ``views`` (:class:`stages.numerics.sdf.SDFView`) as ``cfg`` asks:
