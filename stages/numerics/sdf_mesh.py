@@ -151,15 +151,20 @@ class SDFMesh:
     """1 or 2."""
     train_seconds: float
     """Wall time of the passes, meshing included."""
+    second_pass_start_s: float = 0.0
+    """Wall time before the second pass's training began (the first pass, its mesh and the de-occlusion); 0 with
+    one pass."""
 
 
 def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
              progress: Callable[[int, int, str], None] | None = None,
-             log: Callable[[str], None] | None = None) -> SDFMesh:
+             log: Callable[[str], None] | None = None,
+             checkpoint: Callable[[int, int, Any], None] | None = None) -> SDFMesh:
     """The mesh of the neural SDF trained on ``views`` (:class:`stages.numerics.sdf.SDFView`) as ``cfg`` asks:
     :func:`pass_configs`' passes, the second on :func:`second_pass_views` of the first mesh. ``progress(step,
     steps, message)`` is told about once per tenth of both passes' steps; ``log`` gets one line about the second
-    pass. ``label`` names the fit in errors.
+    pass; ``checkpoint(pass, iteration, field)`` (pass 1 or 2) is :func:`stages.numerics.sdf.train_sdf`'s
+    checkpoint hook of each pass (every ``log_every`` steps). ``label`` names the fit in errors.
 
     Raises:
         RuntimeError: a pass gave no usable surface.
@@ -182,8 +187,9 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
             progress(step, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
 
     def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution,
-            start: Any = None):
-        result = train_sdf(sdf_views, config, progress=on_log, init=init, start=start)
+            start: Any = None, index: int = 1):
+        hook = None if checkpoint is None else (lambda iteration, field_: checkpoint(index, iteration, field_))
+        result = train_sdf(sdf_views, config, progress=on_log, checkpoint=hook, init=init, start=start)
         reported["done"] += config.iterations
         vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds), resolution)
         extracted = len(faces)
@@ -197,6 +203,7 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
         cfg.first_pass_mesh_resolution or cfg.mesh_resolution) if second is not None else cfg.mesh_resolution)
     first_pass = None
     deocclusion: dict[str, float] = {}
+    second_start = 0.0
     if second is not None:
         tick = time.perf_counter()
         sdf_views, deocclusion = second_pass_views(cfg, views, vertices, faces)
@@ -209,8 +216,10 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
                 f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s{weighted})")
         first_pass = {"stats": result.stats, "history": result.history, "mesh_faces": int(len(faces))}
         # the same masks and cameras: the first pass's hull and pre-fitted field are the second's start
+        second_start = time.perf_counter() - start
         result, vertices, faces, mesh_stats = fit(sdf_views, second,
                                                   result.field if cfg.deocclude_iterations > 0 else None,
-                                                  start=result.start)
+                                                  start=result.start, index=2)
     return SDFMesh(result=result, vertices=vertices, faces=faces, mesh_stats=mesh_stats, deocclusion=deocclusion,
-                   first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start)
+                   first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start,
+                   second_pass_start_s=second_start)
