@@ -67,6 +67,21 @@ class MaterialsConfig(MaterialTexturesConfig):
     """Write PNG previews of roughness, fit error, occlusion and the de-occluded albedo."""
 
 
+def load_bake_views(artifacts: ActionArtifacts, min_alpha: float) -> tuple[list[Any], list[Any]]:
+    """The stage's observations: per camera with maps (sorted by id), a :class:`stages.numerics.bake.BakeView`
+    with ``images["obs"]`` (H, W, 9) = full_on | pos | neg and valid = alpha above ``min_alpha`` inside the
+    mask, and its :class:`stages.numerics.camera.Camera`."""
+    from stages.numerics.bake import BakeView
+
+    views, cameras = [], []
+    for cam_id, cam, _, _, valid in artifacts.camera_maps(min_alpha):
+        images = [artifacts.map(illumination, cam_id) for illumination in ILLUMINATION_DIRS]
+        views.append(BakeView(images={"obs": np.concatenate(images, axis=2)}, valid=valid,
+                              K=cam.K, cam_from_world=cam.cam_from_world))
+        cameras.append(cam)
+    return views, cameras
+
+
 class MaterialsStage(Stage):
     """Roughness texture (inverse rendering under full_on/pos/neg), occlusion, and albedos without occlusion
     and without specular light."""
@@ -80,7 +95,6 @@ class MaterialsStage(Stage):
     def run(self, ctx: StageContext) -> dict[str, Any]:
         import torch
 
-        from stages.numerics.bake import BakeView
         from stages.numerics.material_textures import material_textures
 
         torch.set_num_threads(numeric_threads())
@@ -89,12 +103,8 @@ class MaterialsStage(Stage):
         t0 = time.perf_counter()
         vertices, faces, atlas = artifacts.atlas_mesh()
         albedo_texture = artifacts.texture("albedo_texture")
-        views, white = [], []
-        for cam_id, cam, _, _, valid in artifacts.camera_maps(cfg.min_alpha):
-            images = [artifacts.map(illumination, cam_id) for illumination in ILLUMINATION_DIRS]
-            views.append(BakeView(images={"obs": np.concatenate(images, axis=2)}, valid=valid,
-                                  K=cam.K, cam_from_world=cam.cam_from_world))
-            white.append(np.asarray(cam.record["white_reference"], np.float32))
+        views, cameras = load_bake_views(artifacts, cfg.min_alpha)
+        white = [np.asarray(cam.record["white_reference"], np.float32) for cam in cameras]
         if not views:
             raise InputError(artifacts.where(), "no camera has photometric maps")
         load_s = time.perf_counter() - t0
