@@ -75,3 +75,22 @@ def test_the_numerics_scan_sees_type_checking_function_and_relative_imports_of_s
                       "    from .. import relight\n    from ..artifacts import ActionArtifacts\n")
     assert [name for _, name in _stage_imports(module, "stages.numerics")] == [
         "stages.geometry", "stages.materials", "stages", "stages.relight", "stages.artifacts"]
+
+
+def _private_names(path: Path, modules: tuple[str, ...]) -> list[tuple[int, str]]:
+    """(line, module.name) of every underscored name the file imports from one of ``modules``."""
+    return [(node.lineno, f"{node.module}.{alias.name}")
+            for node in ast.walk(ast.parse(path.read_text(), filename=str(path)))
+            if isinstance(node, ast.ImportFrom) and node.module in modules
+            for alias in node.names if alias.name.startswith("_")]
+
+
+def test_the_neural_fields_share_their_helpers_without_private_imports():
+    # what the SDF and the appearance field share lives in stages.numerics.neural_fields, imported by name
+    fields = ("stages.numerics.sdf", "stages.numerics.neural_fields")
+    root = Path(stages.numerics.__file__).parent.parent
+    modules = sorted(root.rglob("*.py"))
+    assert root / "numerics" / "appearance_field.py" in modules
+    offending = [f"{path.relative_to(root.parent)}:{line} imports {name}" for path in modules
+                 for line, name in _private_names(path, fields)]
+    assert offending == []
