@@ -37,11 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def _artifact(work: Path, stage: str, scope: str) -> Path:
-    key = json.loads((work / "artifacts" / stage / scope / "latest.json").read_text())["key"]
-    return work / "artifacts" / stage / scope / key[:16]
-
-
 def _scalar(image: np.ndarray) -> np.ndarray:
     return image[..., 0] if image.ndim == 3 else image
 
@@ -54,46 +49,45 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     """The variants of one action (module docstring)."""
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.artifacts import read_cameras
-    from stages.artifacts import load_light_model
-    from stages.artifacts import load_atlas_mesh
+    from stages.artifacts import ActionArtifacts
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.raycast import mesh_scene
-    from stages.artifacts import fitted_f0
     from stages.numerics.specular_normals import view_directions
     from stages.diffuse_normals import DiffuseNormalsConfig, diffuse_albedo, materials_roughness, refit_diffuse_normals
 
     from stages.numerics.shadowing import deocclude_view
 
     cfg = DiffuseNormalsConfig()
-    decoded, photometric = _artifact(work, "decode", action), _artifact(work, "photometric", action)
-    released_dir = _artifact(work, "diffuse_normals", action) / "normal_diffuse"
-    model = load_light_model(_artifact(work, "lights", session))
-    vertices, faces, atlas = load_atlas_mesh(_artifact(work, "textures", action) / "mesh" / "textured.obj")
+    # the diffuse_normals stage's upstream artifacts and its own, as the stage's task sees them
+    artifacts = ActionArtifacts.from_store(work / "artifacts", action, session,
+                                           ("decode", "photometric", "lights", "textures", "materials",
+                                            "diffuse_normals"))
+    if artifacts is None:
+        raise FileNotFoundError(f"{work}: a stage's artifacts of {action} are missing")
+    model = artifacts.light_model()
+    vertices, faces, atlas = artifacts.atlas_mesh()
     scene = mesh_scene(vertices, faces)
-    texture = _scalar(read_exr(_artifact(work, "materials", action) / "textures" / "roughness.exr"))
-    cameras = read_cameras(decoded / "cameras.json")
+    texture = artifacts.texture("roughness_texture", 1)
+    cameras = artifacts.calibrated_cameras()
     variants = ("one prior", "materials, occlusion not divided out", "materials", "simulator (oracle)")
     errors = {v: [] for v in variants}
     shiny = []
     seconds = {v: 0.0 for v in variants}
     lookup_s, reproduced, count, deocclusion_s = 0.0, 0.0, 0, 0.0
-    albedo_dir = _artifact(work, "diffuse_normals", action) / "albedo_diffuse"
-    f0 = fitted_f0(_artifact(work, "materials", action))
+    f0 = artifacts.materials_f0()
     albedo_rows: list[tuple[np.ndarray, ...]] = []
     albedo_s, albedo_reproduced = 0.0, 0.0
     sweep: dict[int, dict] = {}  # occlusion directions -> errors and seconds of the de-occlusion
     for cam_id in sorted(cameras)[::stride]:
-        normal_alpha_path = photometric / "normal_alpha" / f"{cam_id}.exr"
-        if not normal_alpha_path.exists():
+        if not artifacts.has("normal_alpha", cam_id):
             continue
         cam = cameras[cam_id]
-        normal_alpha = read_exr(normal_alpha_path)
+        normal_alpha = artifacts.exr("normal_alpha", cam_id)
         alpha = normal_alpha[..., 3]
         h, w = alpha.shape
-        pos, neg = read_exr(decoded / "pos" / f"{cam_id}.exr"), read_exr(decoded / "neg" / f"{cam_id}.exr")
-        mask = _scalar(read_png(photometric / "mask" / f"{cam_id}.png")) > 127
-        albedo = read_exr(photometric / "albedo" / f"{cam_id}.exr")[..., :3]
+        pos, neg = artifacts.exr("pos", cam_id), artifacts.exr("neg", cam_id)
+        mask = artifacts.mask(cam_id)
+        albedo = artifacts.map("albedo", cam_id)
         valid = (alpha > 0.5) & mask
         t0 = time.perf_counter()
         from_materials, _ = materials_roughness(scene, atlas, texture, cam, h, w, cfg.fit.roughness)
@@ -122,14 +116,14 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
                 if variant == "materials":
                     deocclusion_s += time.perf_counter() - t1
             errors[variant].append(angular_error_deg(normals, true_normals)[scored])
-            if variant == "materials" and (released_dir / f"{cam_id}.exr").exists():
-                released = read_exr(released_dir / f"{cam_id}.exr")[..., :3]
+            if variant == "materials" and artifacts.has("normal_diffuse", cam_id):
+                released = artifacts.map("normal_diffuse", cam_id)
                 reproduced = max(reproduced, float(np.abs(released - normals)[scored].max()))
-            if variant == "materials" and (albedo_dir / f"{cam_id}.exr").exists():
+            if variant == "materials" and artifacts.has("albedo_diffuse", cam_id):
                 t0 = time.perf_counter()
                 diffuse = diffuse_albedo(albedo, normals, cam, roughness[variant], f0)
                 albedo_s += time.perf_counter() - t0
-                released_albedo = read_exr(albedo_dir / f"{cam_id}.exr")[..., :3]
+                released_albedo = artifacts.map("albedo_diffuse", cam_id)
                 albedo_reproduced = max(albedo_reproduced, float(np.abs(released_albedo - diffuse)[scored].max()))
                 true_albedo = read_exr(truth / action / "albedo" / f"{cam_id}.exr")[..., :3]
                 n_dot_v = (true_normals * view_directions(cam.K, cam.cam_from_world, h, w)).sum(-1)
@@ -230,20 +224,22 @@ def main() -> int:
         return 0
     from pipeline.runner import read_run_record
 
+    from stages.artifacts import ActionArtifacts
+
     work = Path(read_run_record(release)["work"])  # run.json holds it relative to the release
-    if not (work / "artifacts" / "diffuse_normals").is_dir():
+    capture_json = json.loads((capture / "capture.json").read_text())
+    session_of = {a["action_id"]: a["session_id"] for a in capture_json["actions"]
+                  if ActionArtifacts.from_store(work / "artifacts", a["action_id"], a["session_id"],
+                                                ("diffuse_normals",)) is not None}
+    if not session_of:
         print(f"bench_diffuse_normals: no diffuse_normals artifacts under {work} (rerun `make dataset`); skipped")
         return 0
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     import torch
 
     torch.set_num_threads(args.threads)
-    capture_json = json.loads((capture / "capture.json").read_text())
-    session_of = {a["action_id"]: a["session_id"] for a in capture_json["actions"]}
     report = {"stride": args.stride, "threads": args.threads, "quick": args.quick, "actions": {}}
     for action in sorted(session_of):
-        if not (work / "artifacts" / "diffuse_normals" / action).is_dir():
-            continue
         report["actions"][action] = measure_action(work, truth, action, session_of[action], args.stride)
         print(action, json.dumps(report["actions"][action]), flush=True)
     out.mkdir(parents=True, exist_ok=True)

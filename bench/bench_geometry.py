@@ -1,18 +1,21 @@
 """Geometry: the normal-supervised neural SDF (stages.numerics.sdf) against the truth, time against error.
 
 On one action of a simulated capture and its release (the photometric normal maps, masks and cameras the
-pipeline published), on one CPU thread as ``make dataset`` runs it:
+pipeline published, read through the artifact facade as the geometry stage reads them:
+:func:`stages.geometry.load_sdf_views`), on one CPU thread as ``make dataset`` runs it:
 
-1. **time vs Chamfer over iterations**: one training run of the preset, the field snapshotted at
-   checkpoints (``log_every``); each snapshot is meshed and measured afterwards (training time only on the
-   x axis);
-2. the **second pass on de-occluded normals** as the geometry stage trains it (``geometry.deocclude``): the
-   first field meshed as the stage meshes it, eq. 1's normals with that mesh's occlusion of the LED sphere
-   divided out (:func:`stages.numerics.sdf_mesh.deoccluded_sdf_views`), a second training on them that draws the
-   stage's share of its rays where the first mesh missed the normals (``geometry.second_pass_importance``; its
-   clock starts where the first pass and the de-occlusion ended); the same for the **mask-only ablation**
-   (``normal_supervision=False``) and the **visual hull alone** (classic centre test at 256^3, no dilation,
-   one miss allowed);
+1. **time vs Chamfer over iterations**: one training run of the preset (the stage's one-pass schedule), the field
+   snapshotted at checkpoints (``log_every``); each snapshot is meshed and measured afterwards (training time
+   only on the x axis);
+2. the geometry stage's **two passes** (``geometry.deocclude``), run by the stage's own function
+   (:func:`stages.numerics.sdf_mesh.sdf_mesh` with :class:`stages.geometry.GeometryConfig` over the same SDF
+   preset, its passes from :func:`~stages.numerics.sdf_mesh.pass_configs`): a first pass of
+   ``first_pass_iterations`` steps meshed as the stage meshes it, eq. 1's normals with that mesh's occlusion of
+   the LED sphere divided out, and the second training on them that draws the stage's share of its rays where
+   the first mesh missed the normals (``geometry.second_pass_importance``), snapshotted like 1. (its clock starts
+   where the first pass, its mesh and the de-occlusion ended); the stage's published mesh (largest component,
+   decimated) is scored too. The same curve for the **mask-only ablation** (``normal_supervision=False``) and
+   the **visual hull alone** (classic centre test at 256^3, no dilation, one miss allowed);
 3. **marching resolution**: mesh extraction time and Chamfer of the final field per grid resolution;
 4. **empty-space skipping**: share of the naive uniform samples (same spacing, every pixel's ray through the
    stage box) the hull and the cached SDF grid let the training skip;
@@ -27,9 +30,9 @@ sees (mouth, soles on the floor): look at both directions.
 ``python bench/bench_geometry.py --out bench/out [--capture DIR --release DIR --action A0000]`` writes
 bench_geometry.json, bench_geometry.png and bench_geometry.md; defaults are runs/default/capture and
 runs/default/release (``make dataset``); without them it prints why and exits 0. ``--quick`` (the tests' mode):
-the tiny run of ``bench/_quick.py`` unless ``--capture``/``--release`` are given, 30 steps per training (after 20
-of the fit to a hull of 48 cells), 2 checkpoints, meshes at 64 and 96 cells (the first field's mesh the second pass
-is de-occluded with at 96, the visual hull alone at 64), 10k surface samples, gradients timed once on 512 points;
+the tiny run of ``bench/_quick.py`` unless ``--capture``/``--release`` are given, 30 steps per training and per
+pass (after 20 of the fit to a hull of 48 cells), 2 checkpoints, meshes at 64 and 96 cells (the stage's first and
+published meshes at 96, the visual hull alone at 64), 10k surface samples, gradients timed once on 512 points;
 the numbers are not measurements.
 """
 from __future__ import annotations
@@ -54,25 +57,14 @@ from _release import parse_release_args  # noqa: E402
 # ------------------------------------------------------------------------------------------------ inputs
 
 
-def load_release_views(release: Path, action: str):
-    """SDFView records of one released action (normal_alpha, mask, transforms.json cameras)."""
-    from pipeline.codecs.exr import read_exr
-    from pipeline.codecs.image import read_png
-    from stages.numerics.sdf import SDFView
+def load_release_views(release: Path, action: str, geometry):
+    """The SDF views of one released action as the geometry stage with config ``geometry`` loads them
+    (:func:`stages.geometry.load_sdf_views` through the artifact facade: the photometric normal maps, masks and
+    cameras of ``transforms.json``)."""
+    from stages.artifacts import ActionArtifacts
+    from stages.geometry import load_sdf_views
 
-    folder = release / "actions" / action
-    transforms = json.loads((folder / "transforms.json").read_text())
-    views = []
-    for frame in transforms["frames"]:
-        cid = frame["camera_id"]
-        normal_alpha = read_exr(folder / "normal_alpha" / f"{cid}.exr")
-        mask = read_png(folder / "mask" / f"{cid}.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        cam_from_world = np.asarray(frame["cam_from_world_opencv"], np.float64)[:3]
-        views.append(SDFView(normals_world=np.ascontiguousarray(normal_alpha[..., :3]),
-                             normal_valid=(normal_alpha[..., 3] > 0.5) & mask, mask=mask,
-                             K=np.asarray(frame["K"], np.float64), cam_from_world=cam_from_world))
-    return views
+    return load_sdf_views(ActionArtifacts.from_release(release, action), geometry.min_alpha)[1]
 
 
 def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -174,6 +166,28 @@ def train_with_checkpoints(views, config, checkpoints: int):
     seconds = dict(zip(result.history["iteration"], result.history["seconds"]))
     fields = [(it, seconds.get(it, float("nan")), SDFField.from_state(state).eval()) for it, state in snapshots]
     return result, fields
+
+
+def stage_passes_with_checkpoints(views, geometry, checkpoints: int):
+    """The geometry stage's two passes (:func:`stages.numerics.sdf_mesh.sdf_mesh` with ``geometry``), the second
+    pass's field snapshotted at ``checkpoints`` evenly spaced steps; the snapshots' seconds are the training
+    clock from the stage's start (first pass, its mesh and the de-occlusion before the second pass's own)."""
+    from stages.numerics.sdf import SDFField
+    from stages.numerics.sdf_mesh import sdf_mesh
+
+    sdf = dataclasses.replace(geometry.sdf, log_every=max(1, geometry.sdf.iterations // checkpoints))
+    snapshots = []
+
+    def keep(index: int, iteration: int, field) -> None:
+        if index == 2:
+            snapshots.append((iteration, field.to_state()))
+
+    fitted = sdf_mesh(views, dataclasses.replace(geometry, sdf=sdf), checkpoint=keep)
+    history = fitted.result.history
+    seconds = dict(zip(history["iteration"], history["seconds"]))
+    fields = [(it, fitted.second_pass_start_s + seconds.get(it, float("nan")), SDFField.from_state(state).eval())
+              for it, state in snapshots]
+    return fitted, fields
 
 
 def curve(fields, bounds, gt_v, gt_f, resolution: int, n_samples: int) -> list[dict]:
@@ -323,8 +337,14 @@ def main() -> int:
     out = Path(args.out)
     capture, release = Path(args.capture), Path(args.release)
     gt_mesh = capture / "ground_truth" / args.action / "mesh.ply"
-    action_dir = release / "actions" / args.action
-    missing = [str(p) for p in (action_dir / "transforms.json", gt_mesh) if not p.exists()]
+    from manifests import ReleaseError
+    from stages.artifacts import ActionArtifacts
+
+    try:
+        ActionArtifacts.from_release(release, args.action).existing("transforms")
+        missing = [] if gt_mesh.exists() else [str(gt_mesh)]
+    except (ReleaseError, KeyError, FileNotFoundError) as exc:
+        missing = [f"{args.action} of a release at {release} ({exc})"] + ([] if gt_mesh.exists() else [str(gt_mesh)])
     if missing:
         print(f"bench_geometry: skipped, missing {', '.join(missing)} (run `make dataset`, or pass --capture "
               f"and --release of a simulated capture and its release)")
@@ -332,24 +352,33 @@ def main() -> int:
 
     import torch
 
+    from stages.geometry import GeometryConfig
     from stages.numerics.hull import visual_hull
     from stages.numerics.sdf import SDF_PRESETS
+    from stages.numerics.sdf_mesh import pass_configs
 
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
-    config = dataclasses.replace(SDF_PRESETS[args.preset], device="cpu")
+    sdf = dataclasses.replace(SDF_PRESETS[args.preset], device="cpu")
     if args.iterations:
-        config = dataclasses.replace(config, iterations=args.iterations)
+        sdf = dataclasses.replace(sdf, iterations=args.iterations)
     if args.quick:
-        config = dataclasses.replace(config, hull_resolution=48, hull_init_steps=20)
+        sdf = dataclasses.replace(sdf, hull_resolution=48, hull_init_steps=20)
     for item in args.set:
         name, _, value = item.partition("=")
-        if name not in {f.name for f in dataclasses.fields(config)} or not value:
+        if name not in {f.name for f in dataclasses.fields(sdf)} or not value:
             parser.error(f"--set {item}: expected FIELD=VALUE with an SDFConfig field")
-        current = getattr(config, name)
+        current = getattr(sdf, name)
         parsed = value.lower() in ("1", "true", "yes") if isinstance(current, bool) else type(current)(value)
-        config = dataclasses.replace(config, **{name: parsed})
-    views = load_release_views(release, args.action)
+        sdf = dataclasses.replace(sdf, **{name: parsed})
+    # the geometry stage's config with that SDF; its one-pass schedule is the curve over iterations
+    geometry = GeometryConfig(sdf=sdf)
+    if stage_mesh_resolution:
+        geometry = dataclasses.replace(geometry, first_pass_iterations=sdf.iterations,
+                                       first_pass_mesh_resolution=stage_mesh_resolution,
+                                       mesh_resolution=stage_mesh_resolution)
+    config, _ = pass_configs(dataclasses.replace(geometry, deocclude=False))
+    views = load_release_views(release, args.action, geometry)
     gt_v, gt_f = read_mesh(gt_mesh)
     print(f"bench_geometry: {len(views)} views of {args.action}, preset {args.preset}", flush=True)
 
@@ -369,31 +398,21 @@ def main() -> int:
                                                         "hull_occupied_fraction", "samples_evaluated", "naive_samples")}
 
     if not args.no_deocclude:
-        from stages.geometry import GeometryConfig
-        from stages.numerics.sdf_mesh import second_pass_views
-        from stages.numerics.mesh import decimate, extract_mesh, largest_component
-
-        stage = GeometryConfig()
-        if stage_mesh_resolution:
-            stage = dataclasses.replace(stage, mesh_resolution=stage_mesh_resolution)
-        start = time.perf_counter()
-        v, f, _ = extract_mesh(result.field.sdf_numpy, bounds, stage.mesh_resolution)
-        v, f = largest_component(v, f)
-        v, f = decimate(v, f, stage.face_budget)
-        second_views, deocclusion = second_pass_views(stage, views, v, f)
-        between = time.perf_counter() - start
-        second = dataclasses.replace(config, importance_fraction=stage.second_pass_importance)
-        result_2, fields_2 = train_with_checkpoints(second_views, second, args.checkpoints)
-        offset = float(result.stats["time_s"]) + between
-        fields_2 = [(it, seconds + offset, field) for it, seconds, field in fields_2]
-        print(f"  second pass on de-occluded normals: {between:.1f} + {result_2.stats['time_s']:.1f} s "
+        fitted, fields_2 = stage_passes_with_checkpoints(views, geometry, args.checkpoints)
+        first_s = float(fitted.first_pass["stats"]["time_s"])
+        between = fitted.second_pass_start_s - first_s
+        deocclusion = fitted.deocclusion
+        print(f"  the stage's two passes: {first_s:.1f} + {between:.1f} + {fitted.result.stats['time_s']:.1f} s "
               f"(mean turn {deocclusion['occlusion_correction_mean_deg']:.2f} deg)", flush=True)
-        report["curves"]["deoccluded_second_pass"] = curve(fields_2, np.asarray(result_2.bounds), gt_v, gt_f,
+        report["curves"]["deoccluded_second_pass"] = curve(fields_2, np.asarray(fitted.result.bounds), gt_v, gt_f,
                                                            args.eval_resolution, args.samples)
         final = dict(report["curves"]["deoccluded_second_pass"][-1])
-        final["time_s"] = offset + float(result_2.stats["time_s"])
+        final["time_s"] = fitted.second_pass_start_s + float(fitted.result.stats["time_s"])
         report["final"]["two passes, the second on de-occluded normals (stage default)"] = final
-        report["deocclusion"] = deocclusion | {"mesh_and_visibility_s": between}
+        report["final"][f"the stage's published mesh ({geometry.mesh_resolution} cells, decimated)"] = {
+            "time_s": fitted.train_seconds, **metrics_of(fitted.vertices, fitted.faces, gt_v, gt_f, args.samples)}
+        report["deocclusion"] = deocclusion | {"first_pass_s": first_s, "mesh_and_visibility_s": between,
+                                               "first_pass_iterations": pass_configs(geometry)[0].iterations}
 
     report["marching"] = []
     for resolution in marching:

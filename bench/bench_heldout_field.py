@@ -49,24 +49,23 @@ HEADERS = ("PSNR dB", "SSIM", "RMSE", "mean deg", "<5 deg %", "<25 deg %")
 
 
 def find_sdf(work: Path, release: Path, action: str) -> Path | None:
-    """The geometry stage's folder whose mesh is the release's (hard link or same bytes), else latest.json's."""
-    root = work / "artifacts" / "geometry" / action
-    if not root.is_dir():
-        return None
-    release_mesh = release / "actions" / action / "mesh" / "mesh.ply"
-    candidates = sorted(p for p in root.iterdir() if (p / "sdf" / "sdf.pt").is_file())
-    if release_mesh.is_file():
-        for folder in candidates:
-            mesh = folder / "mesh" / "mesh.ply"
+    """The geometry stage's artifact (holding ``sdf/sdf.pt``) in the work store ``work`` whose mesh is the
+    release's (hard link or same bytes; the most recently committed first), else the last committed one."""
+    from pipeline.store import ArtifactStore
+    from stages.artifacts import ActionArtifacts
+
+    store = ArtifactStore(work / "artifacts")
+    folders = [f for f in store.committed_dirs("geometry", action) if (f / "sdf" / "sdf.pt").is_file()]
+    released = ActionArtifacts.from_release(release, action)
+    if released.has("mesh"):
+        release_mesh = released.existing("mesh")
+        for folder in folders:
+            mesh = ActionArtifacts({"geometry": folder}).path("mesh")
             if mesh.is_file() and (os.path.samefile(mesh, release_mesh)
                                    or mesh.read_bytes() == release_mesh.read_bytes()):
                 return folder
-    latest = root / "latest.json"
-    if latest.is_file():
-        folder = root / json.loads(latest.read_text())["key"][:16]
-        if (folder / "sdf" / "sdf.pt").is_file():
-            return folder
-    return None
+    latest = store.latest_dir("geometry", action)
+    return latest if latest is not None and (latest / "sdf" / "sdf.pt").is_file() else None
 
 
 def _round(d: dict) -> dict:

@@ -48,7 +48,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stages.materials import ILLUMINATION_DIRS, MaterialsConfig  # noqa: E402
+from stages.materials import MaterialsConfig  # noqa: E402
 
 # One change at a time from the stage's defaults; the sweeps' values besides the defaults (which every sweep
 # includes). The bench declares no setting of its own: everything else is the stage's config.
@@ -87,47 +87,40 @@ def sweep(values: tuple, default) -> list:
 
 
 def white_references(release: Path, capture: Path, action: str, session: str) -> dict[str, np.ndarray]:
-    """camera_id -> white_reference (3,): the decode stage's cameras.json in the release's work folder (what
-    the materials stage used), else the capture's rig.json."""
-    latest = release.parent / f"{release.name}.work" / "artifacts" / "decode" / action / "latest.json"
-    path = None
-    if latest.exists():
-        key = json.loads(latest.read_text()).get("key", "")
-        candidate = latest.parent / key[:16] / "cameras.json"
-        path = candidate if candidate.exists() else None
-    if path is None:
-        path = capture / "sessions" / session / "rig.json"
-    return {c["camera_id"]: np.asarray(c["white_reference"], np.float32)
-            for c in json.loads(path.read_text())["cameras"]}
+    """camera_id -> white_reference (3,): the decode stage's calibrated cameras in the release's work store
+    (what the materials stage used, through the artifact facade), else the capture's rig.json."""
+    from stages.artifacts import ActionArtifacts
+
+    work = release.parent / f"{release.name}.work" / "artifacts"
+    decoded = ActionArtifacts.from_store(work, action, session, ("decode",)) if work.is_dir() else None
+    if decoded is not None and decoded.has("cameras"):
+        records = decoded.camera_records().values()
+    else:
+        records = json.loads((capture / "sessions" / session / "rig.json").read_text())["cameras"]
+    return {c["camera_id"]: np.asarray(c["white_reference"], np.float32) for c in records}
 
 
 def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig) -> dict:
-    """The release's inputs of the materials stage for one action: the welded textured mesh and its atlas,
-    the baked albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
-    ``cfg.min_alpha`` inside the mask, as the stage's), with the cameras' white references."""
-    from manifests import open_release
-    from stages.artifacts import transforms_cameras
-    from stages.artifacts import load_atlas_mesh
-    from stages.numerics.bake import BakeView
+    """The release's inputs of the materials stage for one action, read through the artifact facade as the stage
+    reads them (:func:`stages.materials.load_bake_views`): the welded textured mesh and its atlas, the baked
+    albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
+    ``cfg.min_alpha`` inside the mask), with the cameras' white references (:func:`white_references`)."""
+    from stages.artifacts import ActionArtifacts
+    from stages.materials import load_bake_views
 
-    view = open_release(release).action(action)
-    cameras = transforms_cameras(view.transforms())
-    white = white_references(release, capture, action, view.info.get("session_id") or "S000")
-    vertices, faces, atlas = load_atlas_mesh(view.path("mesh_textured"))
-    views, whites = [], []
-    for cam_id in sorted(cameras):
-        images = np.concatenate([view.image(ill, cam_id) for ill in ILLUMINATION_DIRS], axis=2)
-        valid = (view.normal_alpha(cam_id) > cfg.min_alpha) & view.mask(cam_id)
-        views.append(BakeView(images={"obs": images}, valid=valid, K=cameras[cam_id].K,
-                              cam_from_world=cameras[cam_id].cam_from_world))
-        whites.append(white[cam_id])
-    textures = {"albedo": view.texture("albedo")[..., :3], "roughness": view.texture("roughness")}
+    artifacts = ActionArtifacts.from_release(release, action)
+    view = artifacts.backend.view
+    session = view.info.get("session_id") or "S000"
+    white = white_references(release, capture, action, session)
+    vertices, faces, atlas = artifacts.atlas_mesh()
+    views, cameras = load_bake_views(artifacts, cfg.min_alpha)
+    textures = {"albedo": artifacts.texture("albedo_texture"), "roughness": artifacts.texture("roughness_texture", 1)}
     for name in ("albedo_deoccluded", "albedo_intrinsic"):
-        if f"texture_{name}" in view.kinds:
-            textures[name] = view.texture(name)[..., :3]
+        if artifacts.has(f"{name}_texture"):
+            textures[name] = artifacts.texture(f"{name}_texture")
     return {"view": view, "vertices": vertices, "faces": faces, "atlas": atlas, "views": views,
-            "white": np.stack(whites), "released": textures, "obj": view.path("mesh_textured"),
-            "session": view.info.get("session_id") or "S000"}
+            "white": np.stack([white[cam.camera_id] for cam in cameras]), "released": textures,
+            "obj": artifacts.existing("textured_mesh"), "session": session}
 
 
 class TruthProbe:

@@ -40,10 +40,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pipeline.capture import ILLUMINATIONS  # noqa: E402
+
 SENSOR = (6016, 4016)
 """Production sensor (width, height)."""
 CAMERA = "00000"
-ILLUMINATIONS = ("full_on", "pos", "neg")
 RADII = np.array([0.30, 0.90, 0.25])
 """Semi-axes of the synthetic subject (metres): a body-sized ellipsoid."""
 LIMIT_GIB = 24.0

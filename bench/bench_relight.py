@@ -2,7 +2,8 @@
 
 For each action of a release (default A0000 and A0001), each novel camera of its ``renders/cameras.json``
 and each of the stage's environments (``RelightConfig.environments``, from ../shared/data/hdri), the relight
-stage's per-view steps run on the release's files through the functions the stage calls
+stage's per-view steps run on the release's files, read through the artifact facade into the asset the stage
+renders (:func:`stages.relightable.load_relightable_asset`), through the functions the stage calls
 (``stages.numerics.novel_view`` ``novel_view_gbuffer``, ``silhouette_alpha``, ``premultiply_edges``, ``shading_albedo``;
 ``fit_sg_environment``, ``direction_visibility``, ``shade_sg`` / ``shade_sg_visible``) with the stage's
 config (:func:`default_config`: sources, depth tolerance, fusion width, coverage samples, F0, SG fit height,
@@ -21,7 +22,7 @@ rendering of the true subject (common exposure from the truth's 99th percentile,
    ``normals`` reprojected, mesh, fused at 8 and 30 mm besides the stage's ``normal_fusion_m``, the
    white-light albedo as the sources (times the diffuse-ratio texture, as before ``albedo_diffuse``, and
    without it). The shading normals' mean angle to the simulator's is reported per kind. Time per view: the G-buffer
-   (mesh depth, reprojection, atlas lookups; the first view also renders the sources' depth), the
+   (mesh depth, reprojection, atlas lookups; the sources' depth is rendered when the asset is loaded), the
    visibility and the shading under the 3 environments; ``x_baseline`` is that time over the simplest
    variant's (no shadows, photometric albedo) in the same process. The ``released`` row scores the
    release's own relit images (equal to the default row when the release used the defaults).
@@ -54,6 +55,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stages.numerics.novel_view import HALF_MAX, scatter_pixels  # noqa: E402
+from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN  # noqa: E402
 from stages.relight import RelightConfig  # noqa: E402
 
 
@@ -152,40 +155,28 @@ def fit_environments(names: list[str], capture: Path, progress, lobes_sweep: tup
 
 
 class ActionScene:
-    """What the relight stage reads for one action, from the release (mesh, captured views as reprojection
-    sources with lazily rendered depth, the atlas and its textures), as the stage's ActionAsset."""
+    """What the relight stage renders one action from, read from the release through the artifact facade
+    (:meth:`stages.artifacts.ActionArtifacts.from_release`) by the stage's own loader
+    (:func:`stages.relightable.load_relightable_asset` with the stage's ``min_alpha``, ``diffuse_normals`` and
+    ``diffuse_albedo``): the mesh, the captured views as reprojection sources with their mesh depth, the atlas
+    and its textures."""
 
     def __init__(self, release: Path, action: str):
-        from evaluation.heldout import ActionGBuffers
-        from stages.artifacts import load_atlas_mesh
-        from stages.numerics.mesh import vertex_normals
-        from stages.numerics.raycast import mesh_scene
-        from manifests import open_release
-        from stages.numerics.novel_view import ActionAsset
+        from stages.artifacts import ActionArtifacts
+        from stages.relightable import load_relightable_asset
 
-        # the stage's sources: the specular-fitted normal maps and albedo_diffuse when the release has them
-        kinds = open_release(release).action(action).kinds
-        diffuse = CONFIG.diffuse_normals and "normal_diffuse" in kinds
-        self.diffuse_albedo = CONFIG.diffuse_albedo and "albedo_diffuse" in kinds
-        self.data = ActionGBuffers(release, action, diffuse_normals=diffuse)
-        stage_data = self.data.with_albedo(self.diffuse_albedo)
-        self.view = self.data.view
-        self.scene = mesh_scene(self.data.vertices, self.data.faces)
-        self.data._scene = self.scene  # the sources' depth renders share it
-        vertices, faces, atlas = load_atlas_mesh(self.view.path("mesh_textured"))
-        self.asset = ActionAsset(scene=self.scene, faces=self.data.faces,
-                                 smooth_normals=vertex_normals(self.data.vertices, self.data.faces),
-                                 sources=[stage_data.source(c) for c in sorted(self.data.cameras)],
-                                 atlas_scene=mesh_scene(vertices, faces), atlas=atlas,
-                                 albedo_tex=self.view.texture("albedo")[..., :3],
-                                 roughness_tex=self.view.texture("roughness"),
-                                 occlusion_tex=self.view.texture("occlusion"),
-                                 diffuse_ratio_tex=self.view.texture("diffuse_ratio")[..., :3],
-                                 sources_diffuse_albedo=self.diffuse_albedo)
-        # the white-light albedo as the sources (x the diffuse-ratio texture), as before albedo_diffuse
-        white_sources = [self.data.source(c) for c in sorted(self.data.cameras)]
-        self.asset_white = (dataclasses.replace(self.asset, sources=white_sources, sources_diffuse_albedo=False)
-                            if self.diffuse_albedo else self.asset)
+        self.artifacts = ActionArtifacts.from_release(release, action)
+        self.view = self.artifacts.backend.view
+        self.asset, _ = load_relightable_asset(self.artifacts, CONFIG.min_alpha, CONFIG.diffuse_normals,
+                                               CONFIG.diffuse_albedo)
+        self.scene = self.asset.scene
+        self.diffuse_albedo = self.asset.sources_diffuse_albedo
+        # the white-light albedo as the sources (x the diffuse-ratio texture): the stage with diffuse_albedo off
+        self.asset_white = self.asset
+        if self.diffuse_albedo:
+            white, _ = load_relightable_asset(self.artifacts, CONFIG.min_alpha, CONFIG.diffuse_normals,
+                                              diffuse_albedo=False)
+            self.asset_white = dataclasses.replace(self.asset, sources=white.sources, sources_diffuse_albedo=False)
 
     def gbuffer(self, cam: dict) -> dict:
         """The stage's G-buffer of a novel camera (stages.numerics.novel_view.novel_view_gbuffer), with every normal
@@ -220,15 +211,16 @@ class ActionScene:
                 "diffuse_ratio": {"stage": gb["diffuse_ratio"].reshape(-1, 3)[pix],
                                   "white": white["diffuse_ratio"].reshape(-1, 3)[pix]},
                 "occlusion": gb["occlusion"].reshape(-1)[pix],
-                "roughness": np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0),
+                "roughness": np.clip(gb["roughness"].reshape(-1)[pix], ROUGHNESS_MIN, ROUGHNESS_MAX),
                 "albedo_full": gb["albedo"], "diffuse_ratio_full": gb["diffuse_ratio"],
                 "roughness_full": gb["roughness"], "occlusion_full": gb["occlusion"]}
 
 
 def _image(pix: np.ndarray, values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    out = np.zeros((shape[0] * shape[1], 3), np.float32)
-    out[pix] = np.clip(np.nan_to_num(np.asarray(values, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0, 6e4)
-    return out.reshape(shape[0], shape[1], 3)
+    """(H, W, 3) float32 image of the shaded pixels ``pix`` (P,): ``values`` (P, 3) made finite and clipped to
+    [0, HALF_MAX] as :func:`stages.numerics.novel_view.relight_view` does, 0 elsewhere."""
+    rgb = np.clip(np.nan_to_num(np.asarray(values, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, HALF_MAX)
+    return scatter_pixels(pix, rgb, shape[0], shape[1])
 
 
 def shade(normals, view_dirs, albedo, roughness, lobes, visibility=None, directions=None) -> np.ndarray:
@@ -318,13 +310,13 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
                                              gb["occlusion_full"].reshape(-1)[bp]),
                     "albedo_occluded": shading_albedo(gb["albedo_full"].reshape(-1, 3)[bp],
                                                       gb["diffuse_ratio_full"].reshape(-1, 3)[bp], None),
-                    "roughness": np.clip(gb["roughness_full"].reshape(-1)[bp], 0.05, 1.0)}
+                    "roughness": np.clip(gb["roughness_full"].reshape(-1)[bp], ROUGHNESS_MIN, ROUGHNESS_MAX)}
             true_geometry = (points, view_dirs, true_normals, true_vis, ours)
             normal_error = {kind: float(np.mean(angular_error_deg(n.reshape(-1, 3)[bp], true_normals)))
                             for kind, n in gb["normals_full"].items()}
         points, view_dirs, true_normals, true_vis, ours = true_geometry
         t_buf = {"normal": true_normals, "albedo": true["albedo"].reshape(-1, 3)[bp],
-                 "roughness": np.clip(true["roughness"].reshape(-1)[bp], 0.05, 1.0)}
+                 "roughness": np.clip(true["roughness"].reshape(-1)[bp], ROUGHNESS_MIN, ROUGHNESS_MAX)}
         target = true["radiance"] * both[..., None]
         lobes = fit[DEFAULT["lobes"]]
 
@@ -362,7 +354,7 @@ def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, thr
 
 def summarise(report: dict, plan: Sweeps | None = None) -> dict:
     """Means over actions, views and environments (and per environment) of every variant and decomposition
-    row; seconds per view averaged over views (the first view of an action also renders the sources)."""
+    row; seconds per view averaged over views."""
     plan = plan or sweeps()
     views = [v for a in report["actions"].values() for v in a["views"]]
     envs = list(report["environments"])

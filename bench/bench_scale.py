@@ -50,9 +50,10 @@ sys.path.insert(0, str(ROOT))
 os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "bench")] + [
     p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
 
+from pipeline.capture import ILLUMINATIONS  # noqa: E402
+
 CAMERAS = 32
 ACTIONS_PER_SESSION = 50
-ILLUMINATIONS = ("full_on", "pos", "neg")
 GOAL_MS = 1.0
 """The issue's goal: under 1 ms of engine overhead per task."""
 

@@ -63,23 +63,26 @@ def variants(default_roughness: float) -> dict[str, dict]:
 
 def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]]:
     from pipeline.codecs.exr import read_exr
-    from pipeline.codecs.image import read_png
-    from stages.artifacts import load_light_model
+    from stages.artifacts import ActionArtifacts
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.photometric import corrected_normals, photometric_maps
     from stages.numerics.specular_normals import fit_diffuse_normals, view_directions
     from stages.numerics.specular_normals import SpecularConfig
 
-    decoded = next((root / "work" / "artifacts" / "decode").glob("*/*/cameras.json")).parent
-    lights = next((root / "work" / "artifacts" / "lights").glob("*/*/_SUCCESS.json")).parent
-    model = load_light_model(lights)
-    truth = root / "capture" / "ground_truth" / "A0000"
-    cams = json.loads((decoded / "cameras.json").read_text())["cameras"]
+    action = "A0000"
+    session = {a["action_id"]: a["session_id"]
+               for a in json.loads((root / "capture" / "capture.json").read_text())["actions"]}[action]
+    artifacts = ActionArtifacts.from_store(root / "work" / "artifacts", action, session, ("decode", "lights"))
+    if artifacts is None:
+        raise FileNotFoundError(f"{root / 'work'}: no decode or lights artifact of {action}")
+    model = artifacts.light_model()
+    truth = root / "capture" / "ground_truth" / action
+    cams = artifacts.json("cameras")["cameras"]
     found: dict[str, dict[str, list]] = {}
     for cam in cams:
         cid = cam["camera_id"]
-        full, pos, neg = (read_exr(decoded / k / f"{cid}.exr") for k in ("full_on", "pos", "neg"))
-        clipped = read_png(decoded / "clipped" / f"{cid}.png") > 0
+        full, pos, neg = (artifacts.exr(k, cid) for k in ("full_on", "pos", "neg"))
+        clipped = artifacts.png("clipped", cid) > 0
         white = np.asarray(cam["white_reference"], np.float32)
         maps = photometric_maps(full, pos, neg, clipped, white)
         defined = np.any(maps.normals != 0, axis=-1) & maps.mask

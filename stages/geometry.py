@@ -14,65 +14,30 @@ stage's time over the two passes' step counts.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from pipeline.codecs.image import preview_normals, write_png
-from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
 from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
-from stages.numerics.sdf import SDF_PRESETS, SDFConfig
+from stages.numerics.sdf_mesh import SDFMeshConfig
 
 
 @dataclass(frozen=True)
-class GeometryConfig(Documented):
-    sdf: SDFConfig = field(default_factory=lambda: SDF_PRESETS["cpu"])
-    """The neural SDF: encoding, network, sampling, losses and schedule (presets in stages.numerics.sdf)."""
+class GeometryConfig(SDFMeshConfig):
+    """The SDF, its passes and its mesh (:class:`stages.numerics.sdf_mesh.SDFMeshConfig`: ``sdf``,
+    ``mesh_resolution``, ``face_budget``, ``deocclude`` and the passes' fields) and the stage's own fields."""
+
     min_alpha: float = 0.5
     """Photometric normals with a validity alpha below this are not used as supervision."""
     min_views: int = 8
     """Fail the action when fewer cameras have maps: the hull and the SDF are not constrained enough."""
-    mesh_resolution: int = 512
-    """Marching-cubes cells along the longest side of the SDF's bounding box (narrow band only)."""
-    face_budget: int = 200_000
-    """Quadric decimation target of the published mesh (mesh/mesh.ply)."""
-    deocclude: bool = True
-    """Train the SDF a second time, on eq. 1's normals with the first mesh's occlusion of the LED sphere divided
-    out (:func:`stages.numerics.shadowing.deocclude_view`). Eq. 1 measures the cosine-weighted mean of the
-    *visible* light directions, which leans away from an arm or the other leg; fitted to those normals the
-    surface bulges out where it is occluded (inner thighs, armpits, neck: 4-5 mm on A0000). The first pass runs
-    ``first_pass_iterations`` steps (the published mesh and ``sdf/sdf.pt`` are the second pass's;
-    ``training.json`` keeps both)."""
-    deocclude_iterations: int = checked(0, ge=0)
-    """0: the second pass trains a new field with the full schedule. N > 0: it continues the first field for N
-    steps at the schedule's final sharpness with every hash level on (cheaper, and a worse mesh than a new
-    field on the default capture)."""
-    first_pass_iterations: int = checked(600, ge=0)
-    """Steps of the first SDF pass when ``deocclude`` trains two (0: ``sdf.iterations``; the schedule's warm-up,
-    sharpness ramp and coarse-to-fine are scaled to it). The first mesh only has to give the body's occlusion
-    of the LED sphere and where it misses the normals; the published mesh is the second pass's
-    (bench/bench_sdf_schedule.py: time against Chamfer over both passes' steps)."""
-    first_pass_mesh_resolution: int = checked(256, ge=0)
-    """Marching-cubes cells of the first pass's mesh (0: ``mesh_resolution``)."""
-    deocclude_directions: int = checked(128, ge=16)
-    """Directions (Fibonacci sphere) of the visibility traced for the second pass."""
-    deocclude_min_visible: float = checked(0.1, ge=0.0, lt=1.0)
-    """Pixels whose cosine-weighted visible fraction is below this keep eq. 1's normal."""
-    second_pass_importance: float = checked(0.2, ge=0.0, lt=1.0)
-    """Share of the second pass's rays drawn where the first mesh's normal is more than
-    ``second_pass_error_floor_deg`` off the de-occluded normal, in proportion to the excess (the fingers, the
-    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. On the
-    default capture the share lowers the second pass's Chamfer together with the cpu SDF preset's table size
-    and grazing/outlier settings; a share of 0.5 leaves too few rays for the rest. The mask loss counts only
-    the uniform rays."""
-    second_pass_error_floor_deg: float = checked(10.0, ge=0.0)
-    """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
     previews: bool = True
     """Write a loss-curve plot and rendered normals of the mesh beside the photometric ones."""
 

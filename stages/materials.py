@@ -46,60 +46,40 @@ import numpy as np
 from pipeline.codecs.exr import write_exr
 from stages.exr_headers import EXR_HEADERS
 from pipeline.codecs.image import preview_linear, preview_scalar, write_png
-from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
 from stages.layout import ArtifactWriter
 from stages.numerics import numeric_threads
+from stages.numerics.material_textures import MaterialTexturesConfig
 
 ILLUMINATION_DIRS = ("full_on", "pos", "neg")
 
 
 @dataclass(frozen=True)
-class MaterialsConfig(Documented):
-    texture_size: int = checked(256, ge=1)
-    """Width and height of the roughness texture (the atlas of the textures stage; roughness varies slowly)."""
-    max_views: int = checked(16, ge=1)
-    """Cameras used per texel (the best by angle, distance and support). On the simulator with the mesh of the
-    one-pass SDF 8 and 16 were close (MAE 0.061/0.067 vs 0.068/0.068 on A0000/A0001); with the two-pass mesh
-    (geometry.deocclude) 8 views fit too smooth (0.067/0.082, bias -0.025/-0.040) and 16 views give
-    0.061/0.067 (bias +0.041/+0.015), for 2.5 s more per action (bench_materials)."""
-    specular_model: str = checked("ggx_table", one_of=("ggx_table", "sg"))
-    """"ggx_table" (exact GGX lobe moments under the linear gradients) or "sg" (the spherical-Gaussian lobes
-    relighting uses). Measured on the simulator the table is the more accurate (see bench_materials)."""
-    f0: float = 0.02
-    """Fresnel reflectance at normal incidence (skin, as the paper)."""
-    fit_albedo: bool = True
-    """Solve the diffuse albedo with the roughness (the white-light albedo still holds specular light)."""
-    roughness_min: float = checked(0.05, gt=0.0, lt="roughness_max")
-    """Lower bound of the fitted perceptual roughness."""
-    roughness_max: float = checked(1.0, le=1.0)
-    """Upper bound of the fitted perceptual roughness."""
-    median_neighbours: int = checked(100, ge=1)
-    """Texels (nearest on the surface) whose median gives the published roughness; 1 = no smoothing."""
-    median_min_visibility: float = checked(0.95, ge=0.0, le=1.0)
-    """Only texels whose ambient visibility on the mesh (cosine-weighted visible fraction, ``occlusion_rays``
-    rays) reaches this vote in that median; the others take the median of their nearest voters. The fit
-    assumes every LED above a texel's horizon lights it, so texels the body itself shadows come out too rough:
-    on the default capture shiny leather (0.25) was fitted 0.30 where the simulator's visibility is >= 0.95 and
-    0.51-0.54 below 0.85, skin (0.45) 0.47 and 0.60-0.68. Roughness MAE (bench scratch, A0000 / A0001) 0.078 /
-    0.080 with every fitted texel voting, 0.074 / 0.076 at 0.85, 0.061 / 0.067 at 0.95 (the voters: 60% of
-    the texels). 0 = every fitted texel votes."""
-    occlusion_rays: int = checked(64, ge=1)
-    """Cosine-weighted rays per texel for the ambient occlusion."""
-    occlusion_size: int = checked(512, ge=1)
-    """Texture size at which the occlusion is computed (then sampled at the albedo texture's size)."""
-    min_occlusion: float = checked(0.2, gt=0.0, le=1.0)
-    """Floor of the visible fraction the albedo is divided by (deep creases would blow up noise)."""
+class MaterialsConfig(MaterialTexturesConfig):
+    """The textures' fit (:class:`stages.numerics.material_textures.MaterialTexturesConfig`: sizes, views, the
+    specular model, F0, roughness bounds and median, occlusion, visibility tests) and the stage's own fields."""
+
     min_alpha: float = 0.5
     """Map pixels with a lower photometric validity alpha are not used."""
-    depth_tolerance_m: float = 0.01
-    """A texel is visible in a camera when its depth agrees with the mesh's depth there within this."""
-    min_cos: float = 0.2
-    """Cameras at more grazing angles to a texel than this cosine are not used."""
     previews: bool = True
     """Write PNG previews of roughness, fit error, occlusion and the de-occluded albedo."""
+
+
+def load_bake_views(artifacts: ActionArtifacts, min_alpha: float) -> tuple[list[Any], list[Any]]:
+    """The stage's observations: per camera with maps (sorted by id), a :class:`stages.numerics.bake.BakeView`
+    with ``images["obs"]`` (H, W, 9) = full_on | pos | neg and valid = alpha above ``min_alpha`` inside the
+    mask, and its :class:`stages.numerics.camera.Camera`."""
+    from stages.numerics.bake import BakeView
+
+    views, cameras = [], []
+    for cam_id, cam, _, _, valid in artifacts.camera_maps(min_alpha):
+        images = [artifacts.map(illumination, cam_id) for illumination in ILLUMINATION_DIRS]
+        views.append(BakeView(images={"obs": np.concatenate(images, axis=2)}, valid=valid,
+                              K=cam.K, cam_from_world=cam.cam_from_world))
+        cameras.append(cam)
+    return views, cameras
 
 
 class MaterialsStage(Stage):
@@ -115,7 +95,6 @@ class MaterialsStage(Stage):
     def run(self, ctx: StageContext) -> dict[str, Any]:
         import torch
 
-        from stages.numerics.bake import BakeView
         from stages.numerics.material_textures import material_textures
 
         torch.set_num_threads(numeric_threads())
@@ -124,12 +103,8 @@ class MaterialsStage(Stage):
         t0 = time.perf_counter()
         vertices, faces, atlas = artifacts.atlas_mesh()
         albedo_texture = artifacts.texture("albedo_texture")
-        views, white = [], []
-        for cam_id, cam, _, _, valid in artifacts.camera_maps(cfg.min_alpha):
-            images = [artifacts.map(illumination, cam_id) for illumination in ILLUMINATION_DIRS]
-            views.append(BakeView(images={"obs": np.concatenate(images, axis=2)}, valid=valid,
-                                  K=cam.K, cam_from_world=cam.cam_from_world))
-            white.append(np.asarray(cam.record["white_reference"], np.float32))
+        views, cameras = load_bake_views(artifacts, cfg.min_alpha)
+        white = [np.asarray(cam.record["white_reference"], np.float32) for cam in cameras]
         if not views:
             raise InputError(artifacts.where(), "no camera has photometric maps")
         load_s = time.perf_counter() - t0

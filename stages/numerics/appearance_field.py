@@ -2,8 +2,9 @@
 
 The paper compares its depth-guided G-buffer reprojection with an Instant-NGP field trained on the albedo and
 normal maps of the captured views and volume rendered from the held-out ones. This module is that baseline,
-built from the pieces of :mod:`stages.numerics.sdf` (hash encoding, NeuS compositing, ray helpers, Adam and
-learning-rate schedule):
+built from the pieces it shares with the SDF (:mod:`stages.numerics.neural_fields`: hash encoding, NeuS
+compositing, ray helpers, Adam and learning-rate schedule) and the SDF's cached grid
+(:class:`stages.numerics.sdf.ProposalGrid`):
 
 * **Geometry is given, appearance is learnt** (design (a)): the samples of each ray and their volume-rendering
   weights come from the action's trained SDF (NeuS weights at its final sharpness ``inv_s``), and the field
@@ -48,17 +49,16 @@ from pipeline.config import Documented, checked, to_dict
 from stages.numerics import torch_threads
 from stages.numerics.hull import check_camera
 from stages.numerics.camera import camera_centre, pixel_rays
-from stages.numerics.sdf import (
+from stages.numerics.neural_fields import (
     HashEncoding,
     HashGridConfig,
-    SDFField,
-    _adam,
-    _lr_factor,
-    _neus_composite,
-    ProposalGrid,
-    _ray_box,
+    instant_ngp_adam,
+    lr_factor,
+    neus_composite,
+    ray_box,
     resolve_device,
 )
+from stages.numerics.sdf import ProposalGrid, SDFField
 
 __all__ = [
     "AppearanceFieldConfig",
@@ -328,7 +328,7 @@ def _ray_samples(surface: _Surface, K: np.ndarray, T: np.ndarray, rows: np.ndarr
         ok = (z > 0) & np.isfinite(z) & (cos_axis > 1e-6)
         t_c[ok] = z[ok] / cos_axis[ok]
     else:
-        near, far = _ray_box(origin[None], dirs_np, surface.bounds)
+        near, far = ray_box(origin[None], dirs_np, surface.bounds)
         meets = np.nonzero(far > near + 1e-9)[0]
         if len(meets):
             grid = surface.proposal(config.proposal_voxel_m, device)
@@ -360,8 +360,8 @@ def _ray_samples(surface: _Surface, K: np.ndarray, T: np.ndarray, rows: np.ndarr
         t = torch.from_numpy(t_c[sel].astype(np.float32)).to(device).unsqueeze(1) + offsets.unsqueeze(0)  # (r, Kn)
         pts = o_t + t.unsqueeze(-1) * d.unsqueeze(1)
         sdf, grad = surface.sdf_and_gradient(pts.reshape(-1, 3))
-        wts, _ = _neus_composite(sdf.view(-1, Kn), grad.view(-1, Kn, 3), d,
-                                 torch.full((len(sel),), spacing, device=device), config.inv_s, 1.0)
+        wts, _ = neus_composite(sdf.view(-1, Kn), grad.view(-1, Kn, 3), d,
+                                torch.full((len(sel),), spacing, device=device), config.inv_s, 1.0)
         total = wts.sum(1)
         top_w, top_i = torch.topk(wts, M, dim=1)
         kept = top_w.sum(1, keepdim=True)
@@ -620,14 +620,14 @@ def _train(samples: AppearanceSamples, config: AppearanceFieldConfig, progress, 
     field_ = AppearanceField(samples.bounds, config.encoding, config.hidden_width, config.hidden_layers,
                              config.albedo_max, seed=config.seed).to(device)
     mlp = [p for name, p in field_.named_parameters() if not name.startswith("encoding.")]
-    optimiser = _adam([{"params": [field_.encoding.table]}, {"params": mlp}], config.learning_rate)
+    optimiser = instant_ngp_adam([{"params": [field_.encoding.table]}, {"params": mlp}], config.learning_rate)
     keys = ("loss", "albedo_l1", "normal_deg", "lr")
     history: dict[str, list] = {k: [] for k in ("iteration", "seconds") + keys}
     sums = {"loss": 0.0, "albedo_l1": 0.0, "normal_deg": 0.0}
     count = 0
     outside = 0.0  # seconds spent in the callbacks, not training
     for it in range(config.iterations):
-        lr = config.learning_rate * _lr_factor(it, config)
+        lr = config.learning_rate * lr_factor(it, config)
         optimiser.param_groups[0]["lr"] = lr
         optimiser.param_groups[1]["lr"] = lr * config.mlp_lr_factor
         pick = torch.randint(0, n_pix, (config.rays_per_batch,), generator=generator).to(device)

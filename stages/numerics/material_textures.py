@@ -3,19 +3,65 @@
 :func:`material_textures` runs the three steps over the action's UV atlas (:func:`texel_samples`,
 :func:`fit_texel_roughness`, :func:`published_roughness`), the ambient occlusion on the mesh and the albedos
 divided by it; the stage module (stages/materials.py) says why each step is there and what it measured. Pure:
-arrays and dataclasses in, arrays out. ``cfg`` is a :class:`stages.materials.MaterialsConfig`.
+arrays and dataclasses in, arrays out. ``cfg`` is a :class:`MaterialTexturesConfig` (the materials stage's config
+is one, with the stage's own fields added).
 """
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from stages.materials import MaterialsConfig
+from pipeline.config import Documented, checked
+
+
+@dataclass(frozen=True)
+class MaterialTexturesConfig(Documented):
+    """The roughness fit, its median, the ambient occlusion and the visibility tests: what
+    :func:`material_textures` reads (the fields of the materials stage's config that are not the stage's own,
+    under the same names)."""
+
+    texture_size: int = checked(256, ge=1)
+    """Width and height of the roughness texture (the atlas of the textures stage; roughness varies slowly)."""
+    max_views: int = checked(16, ge=1)
+    """Cameras used per texel (the best by angle, distance and support). On the simulator with the mesh of the
+    one-pass SDF 8 and 16 were close (MAE 0.061/0.067 vs 0.068/0.068 on A0000/A0001); with the two-pass mesh
+    (geometry.deocclude) 8 views fit too smooth (0.067/0.082, bias -0.025/-0.040) and 16 views give
+    0.061/0.067 (bias +0.041/+0.015), for 2.5 s more per action (bench_materials)."""
+    specular_model: str = checked("ggx_table", one_of=("ggx_table", "sg"))
+    """"ggx_table" (exact GGX lobe moments under the linear gradients) or "sg" (the spherical-Gaussian lobes
+    relighting uses). Measured on the simulator the table is the more accurate (see bench_materials)."""
+    f0: float = 0.02
+    """Fresnel reflectance at normal incidence (skin, as the paper)."""
+    fit_albedo: bool = True
+    """Solve the diffuse albedo with the roughness (the white-light albedo still holds specular light)."""
+    roughness_min: float = checked(0.05, gt=0.0, lt="roughness_max")
+    """Lower bound of the fitted perceptual roughness."""
+    roughness_max: float = checked(1.0, le=1.0)
+    """Upper bound of the fitted perceptual roughness."""
+    median_neighbours: int = checked(100, ge=1)
+    """Texels (nearest on the surface) whose median gives the published roughness; 1 = no smoothing."""
+    median_min_visibility: float = checked(0.95, ge=0.0, le=1.0)
+    """Only texels whose ambient visibility on the mesh (cosine-weighted visible fraction, ``occlusion_rays``
+    rays) reaches this vote in that median; the others take the median of their nearest voters. The fit
+    assumes every LED above a texel's horizon lights it, so texels the body itself shadows come out too rough:
+    on the default capture shiny leather (0.25) was fitted 0.30 where the simulator's visibility is >= 0.95 and
+    0.51-0.54 below 0.85, skin (0.45) 0.47 and 0.60-0.68. Roughness MAE (bench scratch, A0000 / A0001) 0.078 /
+    0.080 with every fitted texel voting, 0.074 / 0.076 at 0.85, 0.061 / 0.067 at 0.95 (the voters: 60% of
+    the texels). 0 = every fitted texel votes."""
+    occlusion_rays: int = checked(64, ge=1)
+    """Cosine-weighted rays per texel for the ambient occlusion."""
+    occlusion_size: int = checked(512, ge=1)
+    """Texture size at which the occlusion is computed (then sampled at the albedo texture's size)."""
+    min_occlusion: float = checked(0.2, gt=0.0, le=1.0)
+    """Floor of the visible fraction the albedo is divided by (deep creases would blow up noise)."""
+    depth_tolerance_m: float = 0.01
+    """A texel is visible in a camera when its depth agrees with the mesh's depth there within this."""
+    min_cos: float = 0.2
+    """Cameras at more grazing angles to a texel than this cosine are not used."""
 
 
 def texel_uvs(covered: np.ndarray) -> np.ndarray:
@@ -53,7 +99,7 @@ def roughness_median(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarr
 
 
 def texel_samples(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_texture: np.ndarray,
-                  views: list[Any], cfg: MaterialsConfig) -> dict[str, Any]:
+                  views: list[Any], cfg: MaterialTexturesConfig) -> dict[str, Any]:
     """Step 1 of the roughness: the texels of a ``cfg.texture_size`` atlas and their observations.
 
     vertices (V, 3), faces (F, 3) and atlas: :func:`stages.artifacts.load_atlas_mesh`; albedo_texture (T', T', 3):
@@ -75,7 +121,7 @@ def texel_samples(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_te
 
 def fit_texel_roughness(observed: np.ndarray, view_dirs: np.ndarray, valid: np.ndarray, normals: np.ndarray,
                         albedo: np.ndarray, white_scale: np.ndarray,
-                        cfg: MaterialsConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        cfg: MaterialTexturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step 2: the per-texel fit with the config's model, F0, bounds and albedo solve (arrays as
     :func:`stages.numerics.materials.fit_roughness`, whose ``(roughness, rms, diffuse albedo)`` it returns;
     texels without views have rms ``NO_VIEWS_RESIDUAL``)."""
@@ -87,7 +133,7 @@ def fit_texel_roughness(observed: np.ndarray, view_dirs: np.ndarray, valid: np.n
 
 
 def published_roughness(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
-                        cfg: MaterialsConfig) -> tuple[np.ndarray, np.ndarray]:
+                        cfg: MaterialTexturesConfig) -> tuple[np.ndarray, np.ndarray]:
     """Step 3: :func:`roughness_median` with the config's voters and neighbours, within the config's bounds
     (0.5 where no texel voted). Returns the (N,) float32 roughness and the (N,) bool voters."""
     smooth, voters = roughness_median(points, roughness, fitted, visibility, cfg.median_min_visibility,
@@ -151,7 +197,7 @@ class MaterialTextures:
 
 
 def material_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_texture: np.ndarray,
-                      views: list[Any], white_per_view: np.ndarray, cfg: MaterialsConfig,
+                      views: list[Any], white_per_view: np.ndarray, cfg: MaterialTexturesConfig,
                       progress: Callable[[int, int, str], None] | None = None) -> MaterialTextures:
     """Roughness by inverse rendering under full_on / pos / neg, ambient occlusion and the albedos without it.
 

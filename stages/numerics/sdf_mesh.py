@@ -3,20 +3,65 @@
 :func:`sdf_mesh` trains :func:`stages.numerics.sdf.train_sdf` on the views, marches the field's narrow band,
 keeps the largest component and decimates it; with ``deocclude`` it trains a second time on the normals with the
 first mesh's occlusion of the LED sphere divided out (:func:`deoccluded_sdf_views`). Pure: arrays and
-dataclasses in, arrays out. ``cfg`` is a :class:`stages.geometry.GeometryConfig`.
+dataclasses in, arrays out. ``cfg`` is an :class:`SDFMeshConfig` (the geometry stage's config is one, with the
+stage's own fields added).
 """
 from __future__ import annotations
 
 import dataclasses
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from stages.geometry import GeometryConfig
+from pipeline.config import Documented, checked
+from stages.numerics.sdf import SDF_PRESETS, SDFConfig
+
+
+@dataclass(frozen=True)
+class SDFMeshConfig(Documented):
+    """The neural SDF, its passes and its mesh: what :func:`sdf_mesh` reads (the fields of the geometry stage's
+    config that are not the stage's own, under the same names)."""
+
+    sdf: SDFConfig = field(default_factory=lambda: SDF_PRESETS["cpu"])
+    """The neural SDF: encoding, network, sampling, losses and schedule (presets in stages.numerics.sdf)."""
+    mesh_resolution: int = 512
+    """Marching-cubes cells along the longest side of the SDF's bounding box (narrow band only)."""
+    face_budget: int = 200_000
+    """Quadric decimation target of the published mesh (mesh/mesh.ply)."""
+    deocclude: bool = True
+    """Train the SDF a second time, on eq. 1's normals with the first mesh's occlusion of the LED sphere divided
+    out (:func:`stages.numerics.shadowing.deocclude_view`). Eq. 1 measures the cosine-weighted mean of the
+    *visible* light directions, which leans away from an arm or the other leg; fitted to those normals the
+    surface bulges out where it is occluded (inner thighs, armpits, neck: 4-5 mm on A0000). The first pass runs
+    ``first_pass_iterations`` steps (the published mesh and ``sdf/sdf.pt`` are the second pass's;
+    ``training.json`` keeps both)."""
+    deocclude_iterations: int = checked(0, ge=0)
+    """0: the second pass trains a new field with the full schedule. N > 0: it continues the first field for N
+    steps at the schedule's final sharpness with every hash level on (cheaper, and a worse mesh than a new
+    field on the default capture)."""
+    first_pass_iterations: int = checked(600, ge=0)
+    """Steps of the first SDF pass when ``deocclude`` trains two (0: ``sdf.iterations``; the schedule's warm-up,
+    sharpness ramp and coarse-to-fine are scaled to it). The first mesh only has to give the body's occlusion
+    of the LED sphere and where it misses the normals; the published mesh is the second pass's
+    (bench/bench_sdf_schedule.py: time against Chamfer over both passes' steps)."""
+    first_pass_mesh_resolution: int = checked(256, ge=0)
+    """Marching-cubes cells of the first pass's mesh (0: ``mesh_resolution``)."""
+    deocclude_directions: int = checked(128, ge=16)
+    """Directions (Fibonacci sphere) of the visibility traced for the second pass."""
+    deocclude_min_visible: float = checked(0.1, ge=0.0, lt=1.0)
+    """Pixels whose cosine-weighted visible fraction is below this keep eq. 1's normal."""
+    second_pass_importance: float = checked(0.2, ge=0.0, lt=1.0)
+    """Share of the second pass's rays drawn where the first mesh's normal is more than
+    ``second_pass_error_floor_deg`` off the de-occluded normal, in proportion to the excess (the fingers, the
+    face, folds and occluding contours the first fit missed); the rest are drawn uniformly. 0 = uniform. On the
+    default capture the share lowers the second pass's Chamfer together with the cpu SDF preset's table size
+    and grazing/outlier settings; a share of 0.5 leaves too few rays for the rest. The mask loss counts only
+    the uniform rays."""
+    second_pass_error_floor_deg: float = checked(10.0, ge=0.0)
+    """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
 
 
 def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarray, directions: int = 256,
@@ -58,7 +103,7 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     return out, stats
 
 
-def pass_configs(cfg: GeometryConfig) -> tuple[Any, Any]:
+def pass_configs(cfg: SDFMeshConfig) -> tuple[Any, Any]:
     """The SDF configs of the stage's passes: ``(first, second)``, ``second`` None without ``deocclude``.
 
     The first pass runs ``first_pass_iterations`` steps of ``cfg.sdf`` (its warm-up capped to them; the sharpness
@@ -78,7 +123,7 @@ def pass_configs(cfg: GeometryConfig) -> tuple[Any, Any]:
     return first, dataclasses.replace(second, importance_fraction=cfg.second_pass_importance)
 
 
-def second_pass_views(cfg: GeometryConfig, views: list[Any], vertices: np.ndarray,
+def second_pass_views(cfg: SDFMeshConfig, views: list[Any], vertices: np.ndarray,
                       faces: np.ndarray) -> tuple[list[Any], dict[str, float]]:
     """The second SDF pass's views as ``cfg`` asks for them: :func:`deoccluded_sdf_views` of the first mesh,
     with sample weights when ``cfg.second_pass_importance`` draws a share of the rays by them."""
@@ -106,15 +151,20 @@ class SDFMesh:
     """1 or 2."""
     train_seconds: float
     """Wall time of the passes, meshing included."""
+    second_pass_start_s: float = 0.0
+    """Wall time before the second pass's training began (the first pass, its mesh and the de-occlusion); 0 with
+    one pass."""
 
 
-def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
+def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
              progress: Callable[[int, int, str], None] | None = None,
-             log: Callable[[str], None] | None = None) -> SDFMesh:
+             log: Callable[[str], None] | None = None,
+             checkpoint: Callable[[int, int, Any], None] | None = None) -> SDFMesh:
     """The mesh of the neural SDF trained on ``views`` (:class:`stages.numerics.sdf.SDFView`) as ``cfg`` asks:
     :func:`pass_configs`' passes, the second on :func:`second_pass_views` of the first mesh. ``progress(step,
     steps, message)`` is told about once per tenth of both passes' steps; ``log`` gets one line about the second
-    pass. ``label`` names the fit in errors.
+    pass; ``checkpoint(pass, iteration, field)`` (pass 1 or 2) is :func:`stages.numerics.sdf.train_sdf`'s
+    checkpoint hook of each pass (every ``log_every`` steps). ``label`` names the fit in errors.
 
     Raises:
         RuntimeError: a pass gave no usable surface.
@@ -137,8 +187,9 @@ def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
             progress(step, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
 
     def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution,
-            start: Any = None):
-        result = train_sdf(sdf_views, config, progress=on_log, init=init, start=start)
+            start: Any = None, index: int = 1):
+        hook = None if checkpoint is None else (lambda iteration, field_: checkpoint(index, iteration, field_))
+        result = train_sdf(sdf_views, config, progress=on_log, checkpoint=hook, init=init, start=start)
         reported["done"] += config.iterations
         vertices, faces, mesh_stats = extract_mesh(result.field.sdf_numpy, np.asarray(result.bounds), resolution)
         extracted = len(faces)
@@ -152,6 +203,7 @@ def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
         cfg.first_pass_mesh_resolution or cfg.mesh_resolution) if second is not None else cfg.mesh_resolution)
     first_pass = None
     deocclusion: dict[str, float] = {}
+    second_start = 0.0
     if second is not None:
         tick = time.perf_counter()
         sdf_views, deocclusion = second_pass_views(cfg, views, vertices, faces)
@@ -164,8 +216,10 @@ def sdf_mesh(views: list[Any], cfg: GeometryConfig, label: str = "the action",
                 f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s{weighted})")
         first_pass = {"stats": result.stats, "history": result.history, "mesh_faces": int(len(faces))}
         # the same masks and cameras: the first pass's hull and pre-fitted field are the second's start
+        second_start = time.perf_counter() - start
         result, vertices, faces, mesh_stats = fit(sdf_views, second,
                                                   result.field if cfg.deocclude_iterations > 0 else None,
-                                                  start=result.start)
+                                                  start=result.start, index=2)
     return SDFMesh(result=result, vertices=vertices, faces=faces, mesh_stats=mesh_stats, deocclusion=deocclusion,
-                   first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start)
+                   first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start,
+                   second_pass_start_s=second_start)

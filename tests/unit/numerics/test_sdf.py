@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from stages.numerics.hull import HullGrid
+from stages.numerics.neural_fields import neus_composite
 from stages.numerics.sdf import (
     SDF_PRESETS,
     HashEncoding,
@@ -18,7 +19,6 @@ from stages.numerics.sdf import (
     SDFField,
     SDFView,
     _draw_rays,
-    _neus_composite,
     fit_to_signed_distance,
     render_view,
     train_sdf,
@@ -200,13 +200,13 @@ def test_neus_composite_of_a_plane():
     sdf = 0.5 - t
     grad = torch.tensor([0.0, 0.0, -1.0]).expand(1, 41, 3)
     dirs = torch.tensor([[0.0, 0.0, 1.0]])
-    weights, alpha = _neus_composite(sdf, grad, dirs, torch.tensor([0.01]), inv_s=200.0, cos_anneal=1.0)
+    weights, alpha = neus_composite(sdf, grad, dirs, torch.tensor([0.01]), inv_s=200.0, cos_anneal=1.0)
     assert weights.shape == (1, 41) and float(weights.sum()) == pytest.approx(1.0, abs=1e-3)
     assert abs(float(t[0, int(weights.argmax())]) - 0.5) <= 0.01
     normal = (weights.unsqueeze(-1) * grad).sum(1)
     torch.testing.assert_close(normal, torch.tensor([[0.0, 0.0, -1.0]]), atol=1e-3, rtol=0)
     # A ray that passes 5 cm in front of the plane (SDF >= 0.05) stays transparent.
-    miss, _ = _neus_composite(sdf + 0.25, grad, dirs, torch.tensor([0.01]), inv_s=200.0, cos_anneal=1.0)
+    miss, _ = neus_composite(sdf + 0.25, grad, dirs, torch.tensor([0.01]), inv_s=200.0, cos_anneal=1.0)
     assert float(miss.sum()) < 1e-3
 
 

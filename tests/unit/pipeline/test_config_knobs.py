@@ -67,7 +67,6 @@ USER_KNOBS: dict[str, str] = {
     **{f"{owner}.min_alpha": "which pixels count as the subject: coverage against accuracy at the silhouette"
        for owner in ("GeometryConfig", "TexturesConfig", "MaterialsConfig", "RelightConfig")},
     "TexturesConfig.atlas_padding": "texel padding of the atlas charts, for users whose renderer mipmaps",
-    "RelightConfig.diffuse_albedo": "chooses an input: the occlusion-free albedo or the plain one",
     "RelightSetConfig.png_level": "exposure of the set's 8-bit PNGs, a user's output choice",
     "ExecutionConfig.memory_limit": "the machine's memory per worker, a user's resource choice",
 }
