@@ -40,7 +40,7 @@ import numpy as np
 
 from calibration.geometric import GeometricConfig
 from calibration.markers import MarkerCalibrationConfig
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.layout import ArtifactWriter
@@ -60,11 +60,12 @@ class CamerasConfig(Documented):
     geometric: GeometricConfig = field(default_factory=lambda: GeometricConfig(
         camera_model="PINHOLE", refine_focal_length=True, refine_principal_point=False, refine_extra_params=False))
     """Structure-from-motion settings for source "colmap" (feature resolution, camera model, priors)."""
-    demosaic: str = "AHD"
-    """Demosaic of the frames decoded for calibration."""
-    min_registered_fraction: float = 0.5
+    demosaic: Literal["LINEAR", "VNG", "PPG", "AHD", "DCB", "DHT", "AAHD"] = "AHD"
+    """LibRaw demosaic algorithm of the frames decoded for calibration (the names of ``decode.demosaic``)."""
+    min_registered_fraction: float = checked(0.5, ge=0.0, le=1.0)
     """Fail the session's calibration (naming the cameras) when fewer of its cameras register: a
-    similarity fitted to a handful of centres is not a calibration of the rig."""
+    similarity fitted to a handful of centres is not a calibration of the rig. A share of the rig's cameras,
+    in [0, 1]; at least 3 cameras must register whatever it is."""
 
 
 class _MarkerCalibrationFailed(InputError):
