@@ -17,6 +17,12 @@ Sources:
   ``min_registered_fraction`` of the cameras), "auto" keeps the rig spec and says so (log, stats,
   calibration.json); "markers" fails the session.
 
+Outputs: ``cameras.json``, ``calibration.json`` (a summary: registered and unregistered cameras, errors,
+alignment) and, when pycolmap calibrated, ``colmap/``: the calibration's own COLMAP text model (its points the
+marker balls or matched features, with their tracks; its images named by camera id for the marker frames, by
+the PNGs of the artifact's ``images/`` for structure from motion). The release holds ``calibration.json``; the
+model stays in the work store, as no file it names is released (:meth:`CamerasStage.release_files`).
+
 The calibration reads only session-level frames (or the session's first action), so adding actions to a
 session never changes its key: the calibration is computed once per session.
 
@@ -253,13 +259,13 @@ class CamerasStage(Stage):
 
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        # The calibration's own model (its points are the calibration markers, its images the calibration
-        # frames): kept apart from the exports stage's colmap/ model of the subject.
-        files = [(p, f"calibration/colmap/{p.name}", f"calibration_colmap_{p.stem}", None)
-                 for p in sorted((artifact / "colmap").glob("*.txt"))]
+        # The calibration's own COLMAP model (``colmap/`` of the artifact) stays in the work store: its images
+        # are the marker frames (or the structure-from-motion frames), which the release does not hold, so no
+        # name in it could point at a released file. The calibrated cameras are released under their images'
+        # names in the exports stage's model (colmap/sparse/0) and transforms.json; the summary is released.
         if (artifact / "calibration.json").exists():
-            files.append((artifact / "calibration.json", "calibration.json", "calibration", None))
-        return files
+            return [(artifact / "calibration.json", "calibration.json", "calibration", None)]
+        return []
 
 
 def _frames(folder: Path, camera_ids: list[str]) -> dict[str, Path]:
