@@ -6,12 +6,12 @@ predicts its map; outputs go to ``OUT/<photo stem>/``: ``albedo.exr`` (linear) a
 
 **Masks.** The networks were trained on masked subjects on black, so each photo ``NAME.*`` is multiplied by its
 mask: its mask file, beside it as ``NAME_mask.<png|jpg|jpeg>`` (the layout of PIFu's and Relighting Humans'
-samples) or in ``--masks DIR`` as ``NAME.<...>`` or ``NAME_mask.<...>``; without one the photo's alpha channel
-(>= 0.5); without that the whole frame is the subject. The log says which mask each photo took, with a note
-for the photos without a mask file. A mask file is white (>= 128 in its first channel, times its alpha when it
-has one) on the subject, at the photo's size after EXIF orientation. A ``NAME_mask.*`` file is never a photo
-itself, also when no ``NAME`` photo lies beside it (a note names it). Two mask files for one photo, a mask of
-another size, or an empty one are refused, naming the file.
+samples) or in ``--masks DIR`` as ``NAME.<...>`` or ``NAME_mask.<...>``; without one the photo's alpha channel (>=
+0.5); without that the whole frame is the subject. The log says which mask each photo took, with a note for the
+photos without a mask file. A mask file is white (>= 128 in its first channel, times its alpha when it has one; a
+label image of 0 and 1 only: 1) on the subject, at the photo's size after EXIF orientation. A ``NAME_mask.*`` file
+is never a photo itself, also when no ``NAME`` photo lies beside it (a note names it). Two mask files for one
+photo, a mask of another size, or an empty one are refused, naming the file.
 
 **Contact sheet.** ``OUT/contact_sheet.png``: a row per photo, a column each for the masked photo, the albedo,
 the normals and each relit image, every tile fitted into :data:`CONTACT_TILE` pixels and labelled (the photo's
@@ -146,7 +146,7 @@ def list_photos(folder: str | Path, masks: str | Path | None = None, log=print) 
 
 def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     """A mask file as an (H, W) bool mask of a photo of ``shape`` (H, W): its first channel (times its alpha
-    when it has one) >= 128, EXIF orientation applied.
+    when it has one) >= 128, or == 1 in a label image (values 0 and 1 only), EXIF orientation applied.
 
     Raises:
         InputError: unreadable, of another size than the photo, or empty.
@@ -167,7 +167,7 @@ def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     value = pixels[..., 0].astype(np.uint16)
     if has_alpha:
         value = value * pixels[..., 3] // 255
-    mask = value >= 128
+    mask = value >= 128 if value.max() > 1 else value == 1  # a label image (0 and 1 only): 1 is the subject
     if not mask.any():
         raise InputError(path, "mask is empty (no pixel >= 128): nothing to predict")
     return mask

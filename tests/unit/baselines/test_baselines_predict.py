@@ -190,6 +190,8 @@ def test_bad_masks_exit_2_naming_the_file_writing_nothing(trained, fake_set, mas
     Image.fromarray(np.zeros((64, 64), np.uint8)).save(folder / "person_mask.png")
     assert _run(trained, folder, out) == 2
     assert "person_mask.png: mask is empty" in capsys.readouterr().err
+    Image.fromarray((mask * 1).astype(np.uint8)).save(folder / "person_mask.png")  # a label image: 1 = subject
+    np.testing.assert_array_equal(predict.read_mask(folder / "person_mask.png", (64, 64)), mask)
     Image.fromarray(_mask_png(fake_set)).save(folder / "person_mask.png")
     masks = tmp_path / "masks"
     masks.mkdir()
