@@ -67,11 +67,13 @@ def default_config() -> RelightConfig:
 
 def default_row(cfg: RelightConfig) -> dict:
     """The shading choices of the stage with config ``cfg``, in the terms of the bench's variants."""
-    return {"lobes": cfg.sg_lobes, "shadows": cfg.shadows, "directions": cfg.visibility_directions,
-            "normals": cfg.normals,
+    shading = cfg.shading
+    return {"lobes": cfg.sg_lobes, "shadows": shading.shadows, "directions": shading.visibility_directions,
+            "normals": shading.normals,
             # the stage divides the ambient occlusion out of the albedo when it shades with shadows
-            "albedo": "deoccluded" if cfg.shadows else "photometric",
-            "diffuse_ratio": True, "sources": "stage", "edges": "coverage" if cfg.coverage_samples > 1 else "centre"}
+            "albedo": "deoccluded" if shading.shadows else "photometric",
+            "diffuse_ratio": True, "sources": "stage",
+            "edges": "coverage" if shading.coverage_samples > 1 else "centre"}
 
 
 def sweep(values: tuple, default) -> tuple:
@@ -82,7 +84,7 @@ def sweep(values: tuple, default) -> tuple:
 CONFIG = default_config()
 DEFAULT = default_row(CONFIG)
 LOBES_SWEEP = sweep((8, 16, 32, 64), CONFIG.sg_lobes)
-DIRECTIONS_SWEEP = sweep((64, 128, 256), CONFIG.visibility_directions)
+DIRECTIONS_SWEEP = sweep((64, 128, 256), CONFIG.shading.visibility_directions)
 FUSION_WIDTHS_M = (0.008, 0.03)  # frequency splits of the fused normals besides the stage's (normal_fusion_m)
 BASELINE = "shadows off, photometric albedo (baseline)"
 VARIANTS = ([("default", {})]
@@ -113,7 +115,7 @@ def sweeps(quick: bool = False) -> Sweeps:
     if not quick:
         return Sweeps(LOBES_SWEEP, DIRECTIONS_SWEEP, VARIANTS)
     lobes = sweep((min(LOBES_SWEEP),), CONFIG.sg_lobes)
-    directions = sweep((min(DIRECTIONS_SWEEP),), CONFIG.visibility_directions)
+    directions = sweep((min(DIRECTIONS_SWEEP),), CONFIG.shading.visibility_directions)
     return Sweeps(lobes, directions, [(label, change) for label, change in VARIANTS
                                       if (DEFAULT | change)["lobes"] in lobes
                                       and (DEFAULT | change)["directions"] in directions])
@@ -188,20 +190,21 @@ class ActionScene:
 
         h, w = int(cam["height"]), int(cam["width"])
         t0 = time.perf_counter()
-        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.sources,
-                                depth_tolerance_m=CONFIG.depth_tolerance_m, normal_fusion_m=CONFIG.normal_fusion_m)
+        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
+                                depth_tolerance_m=CONFIG.shading.depth_tolerance_m,
+                                normal_fusion_m=CONFIG.shading.normal_fusion_m)
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
-            cam["K"], cam["cam_from_world"], h, w, CONFIG.coverage_samples, self.asset.scene,
+            cam["K"], cam["cam_from_world"], h, w, CONFIG.shading.coverage_samples, self.asset.scene,
             centre_hit=gb["hit"]))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
-            self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.sources,
-            depth_tolerance_m=CONFIG.depth_tolerance_m, normal_fusion_m=CONFIG.normal_fusion_m)
+            self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
+            depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m)
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
         for width in FUSION_WIDTHS_M:
             full[f"fused_{width:g}"] = fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
-                                                    gb["normal_fusion_px"] * width / CONFIG.normal_fusion_m)
+                                                    gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m)
         return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"],
                 "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,
@@ -228,8 +231,9 @@ def shade(normals, view_dirs, albedo, roughness, lobes, visibility=None, directi
     from stages.numerics.shadowing import shade_sg_visible
 
     if visibility is None:
-        return shade_sg(normals, view_dirs, albedo, roughness, lobes, f0=CONFIG.f0)["rgb"]
-    return shade_sg_visible(normals, view_dirs, albedo, roughness, lobes, visibility, directions, f0=CONFIG.f0)["rgb"]
+        return shade_sg(normals, view_dirs, albedo, roughness, lobes, f0=CONFIG.shading.f0)["rgb"]
+    return shade_sg_visible(normals, view_dirs, albedo, roughness, lobes, visibility, directions,
+                            f0=CONFIG.shading.f0)["rgb"]
 
 
 def bench_view(scene: ActionScene, truth, true_scene, cam: dict, fits: dict, threads: int, progress,
@@ -502,7 +506,7 @@ def main() -> int:
         print("bench_relight: none of the environments was found (../shared/data/hdri); skipped")
         return 0
     out.mkdir(parents=True, exist_ok=True)
-    report = {"threads": args.threads, "quick": args.quick, "defaults": DEFAULT, "f0": CONFIG.f0,
+    report = {"threads": args.threads, "quick": args.quick, "defaults": DEFAULT, "f0": CONFIG.shading.f0,
               "fit_height": CONFIG.fit_height,
               "stage_config": dataclasses.asdict(CONFIG), "environments": list(fits),
               "sg_fits": fit_rows, "actions": {}}

@@ -17,6 +17,12 @@ Sources:
   ``min_registered_fraction`` of the cameras), "auto" keeps the rig spec and says so (log, stats,
   calibration.json); "markers" fails the session.
 
+Outputs: ``cameras.json``, ``calibration.json`` (a summary: registered and unregistered cameras, errors,
+alignment) and, when pycolmap calibrated, ``colmap/``: the calibration's own COLMAP text model (its points the
+marker balls or matched features, with their tracks; its images named by camera id for the marker frames, by
+the PNGs of the artifact's ``images/`` for structure from motion). The release holds ``calibration.json``; the
+model stays in the work store, as no file it names is released (:meth:`CamerasStage.release_files`).
+
 The calibration reads only session-level frames (or the session's first action), so adding actions to a
 session never changes its key: the calibration is computed once per session.
 
@@ -40,7 +46,7 @@ import numpy as np
 
 from calibration.geometric import GeometricConfig
 from calibration.markers import MarkerCalibrationConfig
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.layout import ArtifactWriter
@@ -60,11 +66,12 @@ class CamerasConfig(Documented):
     geometric: GeometricConfig = field(default_factory=lambda: GeometricConfig(
         camera_model="PINHOLE", refine_focal_length=True, refine_principal_point=False, refine_extra_params=False))
     """Structure-from-motion settings for source "colmap" (feature resolution, camera model, priors)."""
-    demosaic: str = "AHD"
-    """Demosaic of the frames decoded for calibration."""
-    min_registered_fraction: float = 0.5
+    demosaic: Literal["LINEAR", "VNG", "PPG", "AHD", "DCB", "DHT", "AAHD"] = "AHD"
+    """LibRaw demosaic algorithm of the frames decoded for calibration (the names of ``decode.demosaic``)."""
+    min_registered_fraction: float = checked(0.5, ge=0.0, le=1.0)
     """Fail the session's calibration (naming the cameras) when fewer of its cameras register: a
-    similarity fitted to a handful of centres is not a calibration of the rig."""
+    similarity fitted to a handful of centres is not a calibration of the rig. A share of the rig's cameras,
+    in [0, 1]; at least 3 cameras must register whatever it is."""
 
 
 class _MarkerCalibrationFailed(InputError):
@@ -252,13 +259,13 @@ class CamerasStage(Stage):
 
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        # The calibration's own model (its points are the calibration markers, its images the calibration
-        # frames): kept apart from the exports stage's colmap/ model of the subject.
-        files = [(p, f"calibration/colmap/{p.name}", f"calibration_colmap_{p.stem}", None)
-                 for p in sorted((artifact / "colmap").glob("*.txt"))]
+        # The calibration's own COLMAP model (``colmap/`` of the artifact) stays in the work store: its images
+        # are the marker frames (or the structure-from-motion frames), which the release does not hold, so no
+        # name in it could point at a released file. The calibrated cameras are released under their images'
+        # names in the exports stage's model (colmap/sparse/0) and transforms.json; the summary is released.
         if (artifact / "calibration.json").exists():
-            files.append((artifact / "calibration.json", "calibration.json", "calibration", None))
-        return files
+            return [(artifact / "calibration.json", "calibration.json", "calibration", None)]
+        return []
 
 
 def _frames(folder: Path, camera_ids: list[str]) -> dict[str, Path]:

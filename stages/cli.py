@@ -351,8 +351,9 @@ def cmd_predict(args: argparse.Namespace) -> int:
 
     result = predict_folder([Path(c) for c in args.checkpoint], Path(args.images), Path(args.out),
                             Path(args.environment) if args.environment else None, args.environment_rotation,
-                            device=args.device)
-    print(f"{len(result.photos)} photo(s), {len(result.files)} file(s) written to {args.out}")
+                            device=args.device, masks=Path(args.masks) if args.masks else None)
+    print(f"{len(result.photos)} photo(s), {len(result.files)} file(s) written to {args.out} "
+          f"(contact sheet {Path(args.out) / 'contact_sheet.png'})")
     return 0
 
 
@@ -472,8 +473,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("predict", help="albedo and normal maps of photos (and relit images under an HDR map)")
     p.add_argument("--checkpoint", action="append", required=True,
                    help="a checkpoint of `ultrastage train` (give one per network; both for relighting)")
-    p.add_argument("--images", required=True, help="folder of PNG/JPEG photos (alpha, when present, is the mask)")
-    p.add_argument("--out", required=True, help="folder to write OUT/<photo>/{albedo,normal,relit_<env>}.{exr,png}")
+    p.add_argument("--images", required=True,
+                   help="folder of PNG/JPEG photos; NAME_mask.png/.jpg beside NAME.* is its mask (never a photo), "
+                        "else its alpha, else the whole frame")
+    p.add_argument("--masks", help="folder of mask files named as the photos (NAME.png/.jpg or NAME_mask.*); "
+                                   "white = subject, the photo's size")
+    p.add_argument("--out", required=True, help="folder to write OUT/<photo>/{albedo,normal,relit_<env>}.{exr,png} "
+                                                "and OUT/contact_sheet.png")
     p.add_argument("--environment", help="HDR environment map (.hdr/.exr) or a folder of them: relight under each")
     p.add_argument("--environment-rotation", type=float, default=0.0,
                    help="degrees about +y (world = R_y(deg) map); the camera looks along the map's -z")

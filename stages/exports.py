@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
 from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
@@ -29,10 +29,10 @@ from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
 
 @dataclass(frozen=True)
 class ExportsConfig(Documented):
-    colmap_points: int = 100_000
+    colmap_points: int = checked(100_000, ge=1)
     """Points of the COLMAP model (and points3D.ply), sampled uniformly over the textured mesh's area."""
-    seed: int = 0
-    """Seed of the point sampling (the same mesh gives the same points)."""
+    seed: int = checked(0, ge=0)
+    """Seed of the point sampling (the same mesh gives the same points); numpy seeds are >= 0."""
 
 
 # ------------------------------------------------------------------------------------------- pure functions

@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import preview_linear, preview_normals, write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
@@ -35,8 +35,9 @@ class PhotometricConfig(Documented):
     """Segment the foreground against the session's clean plate when one exists (else a threshold)."""
     previews: bool = True
     """Write PNG previews (normals, albedo, mask) and a contact sheet per action."""
-    light_iterations: int = 4
-    """Gauss-Newton iterations when inverting the session's fitted LED ratio model."""
+    light_iterations: int = checked(4, ge=0)
+    """Gauss-Newton iterations when inverting the session's fitted LED ratio model (0: the normalised ratios
+    as they are)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Edge-preserving denoising of the albedo maps (and of ``normal_alpha`` when asked)."""
 

@@ -3,24 +3,24 @@
 For each novel camera (placed between neighbouring captured cameras,
 :func:`stages.numerics.gbuffer.novel_camera_pairs`):
 
-1. depth from the action's mesh (Embree), the G-buffer (normal, albedo) reprojected from the ``sources``
+1. depth from the action's mesh (Embree), the G-buffer (normal, albedo) reprojected from the ``shading.sources``
    nearest captured views with depth tests (:func:`stages.numerics.gbuffer.reproject_gbuffer`, the paper's
    depth-guided reprojection; ``learned_blend`` optionally blends with weights learned leave one out on
    the captured views, :mod:`stages.numerics.learned_blend`), roughness and occlusion looked up in the
    materials textures through the textured mesh's UVs (pixels the mesh covers but no source sees take the
-   baked textures and the mesh's smooth normals; ``normals: mesh`` uses those everywhere). The shading
+   baked textures and the mesh's smooth normals; ``shading.normals: mesh`` uses those everywhere). The shading
    normals are by default ``fused``: the reprojected normals' detail on the mesh normals' low frequencies
-   (:func:`stages.numerics.gbuffer.fuse_normals`, split at ``normal_fusion_m`` on the surface);
+   (:func:`stages.numerics.gbuffer.fuse_normals`, split at ``shading.normal_fusion_m`` on the surface);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
 3. shading: Lambertian diffuse + GGX specular under the lobes (F0 0.02), with the mesh's self-occlusion
-   (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shadows``. The sources' albedo is
+   (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shading.shadows``. The sources' albedo is
    ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view; with
    ``diffuse_albedo`` off or without those maps, the white-light albedo times the materials stage's diffuse
    ratio); it still holds the stage's ambient occlusion, so with shadows it is divided by the occlusion
    (else occlusion would count twice).
 4. edges: a camera pixel integrates the light over its square, so at a silhouette it is part subject, part
-   background. ``coverage_samples`` rays per pixel side measure the share the mesh covers
+   background. ``shading.coverage_samples`` rays per pixel side measure the share the mesh covers
    (:func:`stages.numerics.raycast.pixel_coverage`); it is the relit images' alpha and their radiance is
    premultiplied by it. Covered pixels whose centre misses the mesh take the mean of their shaded neighbours
    (:func:`stages.numerics.novel_view.grow_edges`). The masks are alpha >= 0.5.
@@ -71,25 +71,13 @@ class RelightConfig(Documented):
     its request in environments.json."""
     novel_views: int = checked(3, ge=1)
     """Novel cameras per action, each halfway between two neighbouring captured cameras."""
-    sources: int = checked(6, ge=1)
-    """Nearest captured views the G-buffer is reprojected from (the paper's 6)."""
     sg_lobes: int = checked(32, ge=1)
     """Spherical Gaussians per environment (bench_sg: 0.9% median irradiance error at 32)."""
     fit_height: int = checked(64, ge=1)
     """Rows of the downsampled map the SG fit works on."""
-    normals: str = checked("fused", one_of=("fused", "reprojected", "mesh"))
-    """Shading normals (also released as ``renders/<view>/normal.exr``): "fused" (the reprojected normals'
-    detail on the mesh normals' low frequencies, :func:`stages.numerics.gbuffer.fuse_normals`), "reprojected"
-    (the G-buffer's, blended from the photometric maps, as the paper) or "mesh" (the mesh's smooth normals).
-    On the default capture's novel views (bench/bench_relight.py, both actions, 3 views, 3 environments) the
-    photometric normals carry smooth biases the mesh's do not (eq. 1's lean, specular residue) and the mesh
-    lacks their detail: against the simulator's normals reprojected 6.28 deg, mesh 5.58, fused 5.53 (8 mm:
-    5.45, 30 mm: 5.67); relit 23.37 dB reprojected, 23.24 mesh, 23.47 fused (8 mm: 23.43, 30 mm: 23.48). The
-    mesh's normals alone relight worse than they measure: the reprojected albedo's errors partly cancel the
-    reprojected normals' at the scale of the detail, which the fusion keeps."""
-    normal_fusion_m: float = checked(0.015, gt=0.0)
-    """Frequency split of the "fused" normals: the Gaussian's sigma on the surface, metres (turned into pixels
-    at each novel view's median depth; 3 px on the default capture)."""
+    shading: ViewShading = field(default_factory=ViewShading)
+    """Reprojection and shading of each novel view: sources, depth test, shading normals, shadows, F0 and the
+    antialiased edges (:class:`stages.numerics.novel_view.ViewShading`, as ``relightset.shading``)."""
     diffuse_normals: bool = True
     """Reproject the normal maps with the specular reflection fitted out (``normal_diffuse`` of the
     diffuse_normals stage, when there are any) rather than eq. 1's: the relit novel views came closer to the
@@ -99,23 +87,7 @@ class RelightConfig(Documented):
     when the diffuse_normals stage wrote it) and shade it as is, rather than the white-light albedo times the
     materials' diffuse ratio (one share per texel for every view): closer relit novel views on the default
     capture (bench/bench_relight.py scores the white-light albedo sources beside the default)."""
-    shadows: bool = True
-    """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
-    visibility_directions: int = checked(256, ge=1)
-    """Directions per pixel for the self-occlusion (Fibonacci sphere)."""
-    f0: float = 0.02
-    """Fresnel reflectance at normal incidence."""
-    depth_tolerance_m: float = 0.01
-    """A source pixel is visible when its mesh depth agrees with the point's within this."""
-    coverage_samples: int = checked(4, ge=1)
-    """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
-    whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
-    still sampled at pixel centres; a covered pixel whose centre misses the mesh takes the mean of its shaded
-    neighbours'. 1 = hard edges (alpha = the centres' mask; bench/bench_relight.py scores it beside the
-    default: the simulator's camera averages 2 x 2 rays, and hard edges score lower). The grid is
-    cast only at the silhouette (:func:`stages.numerics.raycast.pixel_coverage`, ``edges_only``): 0.1-0.7 s
-    per 320 x 480 view instead of 0.9-2.0 s for every pixel's, 0-3 pixels' coverage different, the same masks."""
-    min_alpha: float = 0.5
+    min_alpha: float = checked(0.5, ge=0.0, lt=1.0)
     """Source map pixels with a lower photometric validity alpha are not reprojected."""
     previews: bool = True
     """Write a preview sheet (views x environments, tone-mapped)."""
@@ -140,14 +112,6 @@ def novel_cameras(cameras: dict[str, Camera], count: int) -> list[Camera]:
         out.append(Camera(K, pose, ca.width, ca.height, camera_id=f"N{i:03d}",
                           record={"camera_id": f"N{i:03d}", "between": [ids[a], ids[b]]}))
     return out
-
-
-def view_shading(cfg: RelightConfig) -> ViewShading:
-    """The per-view reprojection and shading settings of a relight config."""
-    return ViewShading(sources=cfg.sources, depth_tolerance_m=cfg.depth_tolerance_m,
-                       normal_fusion_m=cfg.normal_fusion_m, normals=cfg.normals, shadows=cfg.shadows,
-                       visibility_directions=cfg.visibility_directions, f0=cfg.f0,
-                       coverage_samples=cfg.coverage_samples)
 
 
 class RelightStage(Stage):
@@ -214,7 +178,7 @@ def learned_blend(asset: Any, cfg: RelightConfig, log: Any) -> Any:
     logged), or None when ``cfg.learned_blend`` keeps the heuristic weights."""
     from stages.numerics.novel_view import fit_blend
 
-    blend = fit_blend(asset, cfg.learned_blend, cfg.sources, cfg.depth_tolerance_m)
+    blend = fit_blend(asset, cfg.learned_blend, cfg.shading.sources, cfg.shading.depth_tolerance_m)
     if blend is not None:
         log.info("relight: learned blend on %d views, %d pixels: loss %.4f vs heuristic %.4f (%.0f s)",
                  blend.record["views"], blend.record["pixels"], blend.record["learned_loss"],
@@ -228,12 +192,12 @@ def relight_views(asset: Any, views: list[Camera], environments: list[dict[str, 
     views' records of ``renders/cameras.json`` and the rows of the preview sheet."""
     from stages.numerics.sg import fibonacci_sphere
 
-    directions = fibonacci_sphere(cfg.visibility_directions) if cfg.shadows else None
+    directions = fibonacci_sphere(cfg.shading.visibility_directions) if cfg.shading.shadows else None
     records, sheet_rows = [], []
     for index, view in enumerate(views):
         t0 = time.perf_counter()
         rendered = relight_view(asset, view.K, view.cam_from_world, view.height, view.width,
-                                [env["lobes"] for env in environments], view_shading(cfg), blend=blend,
+                                [env["lobes"] for env in environments], cfg.shading, blend=blend,
                                 directions=directions)
         sheet_rows.append(_write_view(out, view.camera_id, rendered, environments))
         records.append({**view.to_json(), "pixels": rendered["pixels"], "mask_pixels": int(rendered["mask"].sum()),
@@ -263,12 +227,13 @@ def _write_view(out: ArtifactWriter, camera_id: str, rendered: dict[str, Any],
 def _environments_record(environments: list[dict[str, Any]], cfg: RelightConfig, blend: Any) -> dict[str, Any]:
     """The content of ``renders/environments.json``: each environment with its lobes, the shading settings and
     the blend's record."""
+    shading, samples = cfg.shading, cfg.shading.coverage_samples
     return {"environments": [{k: v for k, v in e.items() if k != "lobes"} | {"lobes": e["lobes"].numpy().to_dict()}
                              for e in environments],
-            "shading": {"sg_lobes": cfg.sg_lobes, "shadows": cfg.shadows, "f0": cfg.f0, "normals": cfg.normals,
-                        "radiance_units": "the environment map's",
-                        "alpha": (f"pixel coverage of {cfg.coverage_samples} x {cfg.coverage_samples} rays, radiance "
-                                  "premultiplied" if cfg.coverage_samples > 1 else "mask (pixel centres)")},
+            "shading": {"sg_lobes": cfg.sg_lobes, "shadows": shading.shadows, "f0": shading.f0,
+                        "normals": shading.normals, "radiance_units": "the environment map's",
+                        "alpha": (f"pixel coverage of {samples} x {samples} rays, radiance premultiplied"
+                                  if samples > 1 else "mask (pixel centres)")},
             "blend": blend.record if blend is not None else "heuristic"}
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, write_png
-from pipeline.config import Documented
+from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from stages.artifacts import ActionArtifacts
 from stages.layout import ArtifactWriter
@@ -22,19 +22,21 @@ from stages.exr_headers import EXR_HEADERS
 
 @dataclass(frozen=True)
 class TexturesConfig(Documented):
-    atlas_faces: int = 40_000
-    """Faces of the textured mesh (xatlas time grows faster than linearly with faces)."""
-    texture_size: int = 1024
-    """Width and height of the texture atlas in texels."""
-    atlas_padding: int = 2
+    atlas_faces: int = checked(40_000, ge=4)
+    """Faces of the textured mesh (xatlas time grows faster than linearly with faces); at least 4, the
+    decimation's floor (:func:`stages.numerics.mesh.decimate`)."""
+    texture_size: int = checked(1024, ge=8)
+    """Width and height of the texture atlas in texels; at least 8, the atlas packer's floor
+    (:func:`stages.numerics.mesh.uv_atlas`)."""
+    atlas_padding: int = checked(2, ge=0)
     """Texels between charts in the atlas."""
-    max_views: int = 3
+    max_views: int = checked(3, ge=1)
     """A texel blends at most this many of the cameras that see it (the most frontal)."""
-    depth_tolerance_m: float = 0.01
+    depth_tolerance_m: float = checked(0.01, gt=0.0)
     """A texel is visible in a camera when its depth is within this of the mesh's depth there."""
-    min_cos: float = 0.2
-    """Cameras seeing a texel at more grazing angles than this cosine are not used."""
-    min_alpha: float = 0.5
+    min_cos: float = checked(0.2, ge=-1.0, lt=1.0)
+    """Cameras seeing a texel at more grazing angles than this cosine are not used (a cosine: in [-1, 1))."""
+    min_alpha: float = checked(0.5, ge=0.0, lt=1.0)
     """Map pixels with a lower validity alpha are not baked."""
     previews: bool = True
     """Write PNG previews of the textures."""

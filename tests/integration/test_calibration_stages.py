@@ -85,7 +85,15 @@ def test_marker_calibration_is_the_default_and_beats_the_rig_spec(tmp_path):
     stats = _stats(result, "cameras")
     assert stats["source"] == "markers" and stats["missing_views"] == {} and stats["reprojection_error_px"] < 0.2
     action = tmp_path / "release" / "actions" / "A0000"
-    assert (action / "calibration" / "colmap" / "points3D.txt").read_text().count("\n") > 100      # the balls, with their tracks
+    # the calibration's own model (the balls, with their tracks) stays in the work store: its images are the
+    # marker frames, which the release does not hold
+    import pycolmap
+
+    (model,) = (tmp_path / "work" / "artifacts" / "cameras" / "S000").glob("*/colmap")
+    balls = pycolmap.Reconstruction(str(model))
+    assert balls.num_images() == 8 and balls.num_points3D() > 20 and balls.compute_mean_track_length() > 2
+    assert (action / "calibration.json").is_file()
+    assert not list((tmp_path / "release").rglob("images.txt"))  # through decode: no COLMAP model is released
     truth = true_cameras(root / "ground_truth", "S000")
     calibrated = camera_errors(json.loads((action / "transforms.json").read_text()), truth)
     rig = json.loads((root / "sessions" / "S000" / "rig.json").read_text())

@@ -2,13 +2,17 @@
 novel cameras, and the stage's config checks."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from pipeline.codecs.exr import write_exr
-from pipeline.errors import InputError
+from pipeline.config import merge
+from pipeline.errors import ConfigError, InputError
 from stages.environments import environment_label, find_environment, load_environment, raw_environment_inputs
 from stages.numerics.camera import Camera
+from stages.numerics.novel_view import ViewShading
 from stages.relight import RelightConfig, novel_cameras
 from synthetic.rig import look_at
 
@@ -100,16 +104,29 @@ def test_novel_cameras_lie_between_neighbours():
 def test_config_checks():
     with pytest.raises(ValueError, match="environments"):
         RelightConfig(environments=())
-    with pytest.raises(ValueError, match="normals"):
-        RelightConfig(normals="bent")
-    assert RelightConfig(normals="reprojected").normals == "reprojected"
+    with pytest.raises(ValueError, match=r"RelightConfig\.shading\.normals = 'bent'"):
+        merge(RelightConfig(), {"shading": {"normals": "bent"}}, where="RelightConfig")
+    assert RelightConfig(shading=ViewShading(normals="reprojected")).shading.normals == "reprojected"
     for width in (0.0, -0.01, float("nan")):
         with pytest.raises(ValueError, match="normal_fusion_m"):
-            RelightConfig(normal_fusion_m=width)
+            ViewShading(normal_fusion_m=width)
     with pytest.raises(ValueError, match="sg_lobes"):
         RelightConfig(sg_lobes=0)
     with pytest.raises(ValueError, match="coverage_samples"):
-        RelightConfig(coverage_samples=0)
+        ViewShading(coverage_samples=0)
+
+
+def test_shading_knobs_have_one_spelling_in_both_stages():
+    """relight and relightset take their reprojection and shading from one nested ViewShading each."""
+    from stages.relightset import RelightSetConfig
+
+    assert RelightConfig().shading == ViewShading() == RelightSetConfig().shading
+    shading_fields = {f.name for f in dataclasses.fields(ViewShading)}
+    assert not shading_fields & {f.name for f in dataclasses.fields(RelightConfig)}
+    assert not shading_fields & {f.name for f in dataclasses.fields(RelightSetConfig)}
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['normals'\]"):
+        merge(RelightConfig(), {"normals": "mesh"})
+    assert merge(RelightConfig(), {"shading": {"normals": "mesh"}}).shading.normals == "mesh"
 
 
 def test_silhouette_alpha_and_premultiplied_edges_by_hand():

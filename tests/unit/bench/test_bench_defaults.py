@@ -62,14 +62,15 @@ def test_relight_default_row_is_the_stage_default(bench_relight):
 
     stage = RelightConfig()
     assert bench_relight.default_config() == stage and bench_relight.CONFIG == stage
-    assert bench_relight.DEFAULT == {"lobes": stage.sg_lobes, "shadows": stage.shadows,
-                                     "directions": stage.visibility_directions, "normals": stage.normals,
-                                     "albedo": "deoccluded" if stage.shadows else "photometric",
+    shading = stage.shading
+    assert bench_relight.DEFAULT == {"lobes": stage.sg_lobes, "shadows": shading.shadows,
+                                     "directions": shading.visibility_directions, "normals": shading.normals,
+                                     "albedo": "deoccluded" if shading.shadows else "photometric",
                                      "diffuse_ratio": True, "sources": "stage",
-                                     "edges": "coverage" if stage.coverage_samples > 1 else "centre"}
+                                     "edges": "coverage" if shading.coverage_samples > 1 else "centre"}
     assert bench_relight.VARIANTS[0] == ("default", {})
     assert stage.sg_lobes in bench_relight.LOBES_SWEEP
-    assert stage.visibility_directions in bench_relight.DIRECTIONS_SWEEP
+    assert shading.visibility_directions in bench_relight.DIRECTIONS_SWEEP
     rows = [bench_relight.DEFAULT | change for _, change in bench_relight.VARIANTS]
     assert rows.count(bench_relight.DEFAULT) == 1, "a variant repeats the default row"
 
