@@ -28,7 +28,7 @@ USER_KNOBS: dict[str, str] = {
     # lenses, its target and how far its mounting is from the rig spec; the simulator needs none turned.
     **{f"MarkerCalibrationConfig.{name}": "tolerance of the marker target's detection to a real rig's optics"
        for name in ("background_window_px", "shift_search_px", "zoom_search", "first_search_px", "search_px",
-                    "clearance_px", "first_clearance_px", "border_px", "passes", "min_markers",
+                    "clearance_px", "first_clearance_px", "border_px", "min_markers",
                     "ransac_max_error_px", "max_residual_px")},
     "MarkerCalibrationConfig.max_change_m": "how far a recalibrated camera may move before the run refuses it",
     "MarkerCalibrationConfig.max_change_deg": "how far a recalibrated camera may turn before the run refuses it",
@@ -41,7 +41,6 @@ USER_KNOBS: dict[str, str] = {
                     "ba_function_tolerance", "final_ba_iterations", "final_ba_rounds", "final_ba_loss",
                     "final_filter_max_error_px", "final_retriangulate", "alignment_max_error")},
     "GeometricConfig.verbose": "COLMAP's log output, for a user debugging a failed reconstruction",
-    "CamerasConfig.min_registered_fraction": "how many cameras a capture may lose before the run refuses it",
     # The validity alpha and the mask: thresholds a user sets to a real capture's noise, background and plate
     # (the README's override example turns ratio_min, their sibling).
     **{f"PhotometricParams.{name}": "validity or mask threshold set to a real capture's noise and background"
@@ -49,8 +48,6 @@ USER_KNOBS: dict[str, str] = {
                     "plate_noise_sigmas", "plate_min_diff", "no_plate_threshold", "majority_radius",
                     "close_radius", "max_hole", "min_component", "edge_alpha")},
     "PhotometricConfig.use_clean_plate": "turns a step off: segment by threshold where a session's plate is bad",
-    "PhotometricConfig.light_iterations": "quality/time trade-off (Gauss-Newton iterations of the LED model)",
-    "DiffuseNormalsConfig.light_iterations": "quality/time trade-off (Gauss-Newton iterations of the LED model)",
     "DiffuseNormalsConfig.use_materials_roughness": "turns an input off: the roughness prior instead of the "
                                                     "materials' roughness (an ablation a user compares)",
     # The SDF's loss weights and hull tolerances: what a user tunes to a subject or a rig (weight_mask, its
