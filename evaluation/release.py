@@ -478,6 +478,8 @@ def _mesh_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict
         metrics = mesh_metrics(pred_v, pred_f, gt_v, gt_f,
                                cameras=_mesh_cameras(truth_dir, view.info["session_id"]))
         for key in MESH_METRICS:
+            if key not in metrics:  # the comparable figures of a truth no camera sees
+                continue
             value = float(metrics[key])
             if not np.isfinite(value):
                 continue

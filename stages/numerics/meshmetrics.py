@@ -292,10 +292,11 @@ def mesh_metrics(pred_v: np.ndarray, pred_f: np.ndarray, gt_v: np.ndarray, gt_f:
         (truth within ``boundary_margin_m`` of its open boundary) and ``pred_far_from_truth_area_fraction``
         (prediction counted although its closest truth is not comparable, for lying farther than
         ``comparable_tolerance_m`` from it).
+        Where one side has no comparable sample (no camera sees the truth), the comparable distances and
+        scores are left out and only the area shares are given.
 
     Raises:
-        ValueError: bad meshes or arguments; with cameras, a truth that no camera sees or a prediction that
-            is all left out (no comparable samples on one side).
+        ValueError: bad meshes or arguments.
     """
     pv, pf = _check_mesh(pred_v, pred_f)
     gv, gf = _check_mesh(gt_v, gt_f)
@@ -328,17 +329,14 @@ def mesh_metrics(pred_v: np.ndarray, pred_f: np.ndarray, gt_v: np.ndarray, gt_f:
     if cameras is not None:
         keep_gt, keep_pred, shares = _comparable_samples(gv, gf, gt_pts, pred_pts, cameras, boundary_margin_m,
                                                          comparable_tolerance_m, visibility_tolerance_m)
-        if not keep_gt.any() or not keep_pred.any():
-            raise ValueError(f"no comparable samples: {100 * keep_gt.mean():.1f}% of the truth's and "
-                             f"{100 * keep_pred.mean():.1f}% of the prediction's are comparable (does any camera "
-                             f"see the truth?)")
-        out.update({
-            "comparable_chamfer_mm": float(500.0 * (d_pg[keep_pred].mean() + d_gp[keep_gt].mean())),
-            "comparable_chamfer_pred_to_gt_mm": float(1000.0 * d_pg[keep_pred].mean()),
-            "comparable_chamfer_gt_to_pred_mm": float(1000.0 * d_gp[keep_gt].mean()),
-        })
-        out.update({f"comparable_{k}": v for k, v in
-                    _threshold_scores(d_pg[keep_pred], d_gp[keep_gt], thresholds_m).items()})
+        if keep_gt.any() and keep_pred.any():
+            out.update({
+                "comparable_chamfer_mm": float(500.0 * (d_pg[keep_pred].mean() + d_gp[keep_gt].mean())),
+                "comparable_chamfer_pred_to_gt_mm": float(1000.0 * d_pg[keep_pred].mean()),
+                "comparable_chamfer_gt_to_pred_mm": float(1000.0 * d_gp[keep_gt].mean()),
+            })
+            out.update({f"comparable_{k}": v for k, v in
+                        _threshold_scores(d_pg[keep_pred], d_gp[keep_gt], thresholds_m).items()})
         out.update(shares)
     out.update(mesh_faces=int(len(pf)), gt_faces=int(len(gf)), n_samples=int(n_samples), method=method)
     return out

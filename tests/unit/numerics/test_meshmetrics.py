@@ -225,10 +225,12 @@ def test_comparable_figures_keep_errors_larger_than_the_tolerance():
     assert m["comparable_pred_area_fraction"] == 1.0
 
 
-def test_comparable_figures_refuse_a_truth_no_camera_sees():
+def test_comparable_figures_of_a_truth_no_camera_sees_are_only_its_shares():
     v, f = sphere(0.1, resolution=20)
     away = look_at_camera((0.0, 0.0, 1.0), target=(0.0, 0.0, 2.0))
-    with pytest.raises(ValueError, match="no comparable samples"):
-        mesh_metrics(v, f, v, f, n_samples=2000, cameras=[away])
+    m = mesh_metrics(v, f, v, f, n_samples=2000, cameras=[away])
+    assert m["gt_unseen_area_fraction"] == 1.0 and m["comparable_gt_area_fraction"] == 0.0
+    assert "comparable_chamfer_mm" not in m and "comparable_fscore_1mm" not in m
+    assert all(np.isfinite(x) for x in m.values() if isinstance(x, float))
     with pytest.raises(ValueError, match="comparable_tolerance_m"):
         mesh_metrics(v, f, v, f, n_samples=10, cameras=[away], comparable_tolerance_m=0.0)
