@@ -3,7 +3,10 @@
 Normal angular error over valid pixels (alpha > 0.5 inside the true mask), over the whole true
 foreground, and split by occlusion (ground-truth visibility of the lit hemisphere >= 0.9 is
 "unoccluded"); albedo PSNR/SSIM over the true foreground; mask IoU. Pooled over every pixel of every
-camera with a fixed-width histogram, so memory does not grow with the release.
+camera with a fixed-width histogram, so memory does not grow with the release. The mesh is scored against the
+simulator's mesh twice (:data:`MESH_METRICS`): plainly over both whole surfaces, and on what the capture can
+show (``comparable_*``: truth that a camera sees, away from an open mesh's boundary; see
+:mod:`stages.numerics.meshmetrics`), with the shares of area each figure leaves out.
 """
 from __future__ import annotations
 
