@@ -233,8 +233,10 @@ def load_base_subject(mesh_path: str | None, subdivisions: int) -> BaseSubject:
 
 def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (V, 3) float64 and triangles (T, 3) int64 of a mesh file trimesh reads (PLY, glTF / GLB,
-    STL, OFF, ...); a scene's meshes are merged in their placed positions. InputError names the file and
-    the reason when it cannot be read or holds no triangles."""
+    STL, OFF, ...); a scene's meshes are merged in their placed positions, vertices at the same position are
+    welded (STL's separate triangle corners, seams) and triangles left degenerate by that dropped; open meshes
+    (a bust cut at the neck, a face) stay open. InputError names the file and the reason when it cannot be
+    read or holds no triangles."""
     import trimesh
 
     try:
@@ -249,6 +251,14 @@ def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(path, "vertex positions hold NaN or Inf")
     if triangles.min() < 0 or triangles.max() >= len(vertices):
         raise InputError(path, "faces index vertices that do not exist")
+    # STL stores every triangle's corners apart, other formats split vertices at UV / normal seams: weld
+    # vertices at the same position, so that the surface is connected and only real openings are boundary
+    vertices, welded = np.unique(vertices, axis=0, return_inverse=True)
+    triangles = welded.reshape(-1)[triangles]
+    triangles = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                          & (triangles[:, 2] != triangles[:, 0])]
+    if len(triangles) == 0:
+        raise InputError(path, "holds no triangles with three distinct corners")
     used, remapped = np.unique(triangles, return_inverse=True)
     return vertices[used], remapped.reshape(-1, 3)
 
