@@ -318,7 +318,22 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
                 K, pose, h, w, shading.coverage_samples, scene, centre_hit=gb["hit"])))
         return alphas[key]
 
+    images: dict[frozenset, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+
     def render(swaps: frozenset) -> dict[str, dict[str, float]]:
+        """Every environment's scores with ``swaps``; the images are kept by their swaps but the tone's."""
+        base = swaps - {"tone"}
+        if base not in images:
+            images[base] = shade(base)
+        out = {}
+        for label, (image, mask) in images[base].items():
+            true = truths[label]
+            if "tone" in swaps:
+                image = (image * tone_gain(image, mask, true["radiance"], true["mask"])).astype(np.float32)
+            out[label] = score(image, mask, true)
+        return out
+
+    def shade(swaps: frozenset) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         gb = gbuffer(swaps)
         pix = gb["pix"]
         normals = gb[f"normal_{shading.normals}"].reshape(-1, 3)[pix]
@@ -361,10 +376,7 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
                                      albedo=albedo, f0=f0, shadowing=shadowing)
                 image, mask = view["images"][0], view["mask"]
             times["shade"] = times.get("shade", 0.0) + time.perf_counter() - t0
-            true = truths[label]
-            if "tone" in swaps:
-                image = (image * tone_gain(image, mask, true["radiance"], true["mask"])).astype(np.float32)
-            out[label] = score(image, mask, true)
+            out[label] = (image, mask)
         return out
 
     results = {"stage": render(frozenset())}
