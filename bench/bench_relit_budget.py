@@ -58,9 +58,16 @@ EXTRA_ROWS = {"lighting: SG lobes integrated exactly": frozenset({"lighting_sg"}
 """Rows beyond one component at a time: label -> swaps (``lighting_sg``: the lobes' own map integrated exactly)."""
 
 
+SHADING_OVERRIDES: dict[str, Any] = {}
+"""``--shading`` (``field=value,...``): changes to the stage's :class:`stages.numerics.novel_view.ViewShading` that
+every row renders with (a variant measured on the budget's rows; empty: the release's own shading)."""
+
+
 def stage_shading(release: Path | None = None) -> Any:
     """The relight stage's :class:`stages.numerics.novel_view.ViewShading` and its config: the release's
-    (``config.yaml``'s ``relight``) when it has one, else the defaults."""
+    (``config.yaml``'s ``relight``) when it has one, else the defaults; with :data:`SHADING_OVERRIDES` applied."""
+    from pipeline.config import merge
+
     import yaml
 
     from pipeline.config import from_dict
@@ -69,7 +76,8 @@ def stage_shading(release: Path | None = None) -> Any:
     path = Path(release) / "config.yaml" if release is not None else None
     record = (yaml.safe_load(path.read_text()) or {}).get("relight") if path is not None and path.exists() else None
     cfg = from_dict(RelightConfig, record, where=f"{path}: relight") if record else RelightConfig()
-    return (cfg.shading if hasattr(cfg, "shading") else view_shading(cfg)), cfg
+    shading = cfg.shading if hasattr(cfg, "shading") else view_shading(cfg)
+    return merge(shading, SHADING_OVERRIDES, "--shading"), cfg
 
 
 def simulator_f0(roughness: np.ndarray) -> np.ndarray:
@@ -341,7 +349,7 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
         if "albedo" in swaps or "reprojection" in swaps:  # the true diffuse albedo: shaded as is
             albedo = np.clip(gb["albedo"].reshape(-1, 3)[pix], 0.0, 1.0)
         rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
-        f0, shadowing = shading.f0, "physg"
+        f0, shadowing = shading.f0, shading.shadowing
         if "material" in swaps:
             true_rough = np.asarray(true0["roughness"], np.float32).reshape(-1)[pix]
             inside = np.asarray(true0["mask"], bool).reshape(-1)[pix]
@@ -433,7 +441,9 @@ def summarise(report: dict) -> dict:
 
 def markdown(report: dict) -> str:
     s = report["summary"]
+    changed = report.get("shading_overrides") or {}
     lines = ["# Relit novel views: error budget by oracle swaps", "",
+             *([f"Shading changed from the release's: {changed}", ""] if changed else []),
              f"Actions {', '.join(report['actions'])}, {report['views']} views x {report['environments']} "
              f"environments ({s['stage']['n']} images per row); the stage's render, then each component replaced "
              "by the simulator's truth (one at a time: dB over the stage's; cumulative `+`: dB over the row before)."
@@ -472,7 +482,15 @@ def figure(report: dict, path: Path) -> None:
 def main() -> int:
     from _release import check_inputs, parse_release_args, release_parser
 
-    args = parse_release_args(release_parser(__doc__, actions="", threads=2))
+    parser = release_parser(__doc__, actions="", threads=2)
+    parser.add_argument("--shading", default="", help="ViewShading changes every row renders with, "
+                        "field=value[,field=value] (e.g. shadowing=smith,f0=0.03): a variant on the budget's rows")
+    parser.add_argument("--tag", default="", help="suffix of the output files' names (bench_relit_budget<tag>.*)")
+    args = parse_release_args(parser)
+    import yaml
+
+    SHADING_OVERRIDES.update({k.strip(): yaml.safe_load(v) for k, v in
+                              (item.split("=", 1) for item in args.shading.split(",") if item.strip())})
     release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
     if not check_inputs("bench_relit_budget", release, capture, need_truth=True)[0]:
         return 0
@@ -494,6 +512,7 @@ def main() -> int:
     started = time.perf_counter()
     rows = budget_rows()
     report: dict[str, Any] = {"quick": args.quick, "threads": args.threads, "release": str(release),
+                              "shading_overrides": dict(SHADING_OVERRIDES),
                               "shading": dataclasses.asdict(shading), "components": list(COMPONENTS),
                               "rows": {k: sorted(v) for k, v in rows.items()}, "actions": {}}
     for action in actions:
@@ -513,11 +532,12 @@ def main() -> int:
     report["seconds_per_view"] = {k: float(np.mean(v)) for k, v in seconds.items()}
     report["total_s"] = time.perf_counter() - started
     out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_relit_budget.json").write_text(json.dumps(report, indent=1, default=_json_default))
-    (out / "bench_relit_budget.md").write_text(markdown(report))
-    figure(report, out / "bench_relit_budget.png")
+    name = f"bench_relit_budget{args.tag}"
+    (out / f"{name}.json").write_text(json.dumps(report, indent=1, default=_json_default))
+    (out / f"{name}.md").write_text(markdown(report))
+    figure(report, out / f"{name}.png")
     print(markdown(report))
-    print(f"total {report['total_s']:.0f} s; wrote {out / 'bench_relit_budget.json'}, .md and .png")
+    print(f"total {report['total_s']:.0f} s; wrote {out / name}.json, .md and .png")
     return 0
 
 

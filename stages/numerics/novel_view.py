@@ -181,6 +181,9 @@ class ViewShading(Documented):
     """Fresnel reflectance at normal incidence."""
     coverage_samples: int = checked(4, ge=1)
     """Rays per pixel side measuring the mesh's coverage of each pixel (the images' alpha); 1 = hard edges."""
+    shadowing: str = checked("physg", one_of=("physg", "smith"))
+    """The GGX shadowing-masking term of the specular (:func:`stages.numerics.sg.ggx_sg_lobe`): "physg"
+    (separable Schlick-GGX) or "smith" (height-correlated Smith, the simulator's)."""
 
 
 def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
@@ -216,7 +219,7 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
                   environments: Sequence[Any], shading: ViewShading = ViewShading(),
                   directions: np.ndarray | None = None, visibility: np.ndarray | None = None,
                   albedo: np.ndarray | None = None, f0: float | np.ndarray | None = None,
-                  shadowing: str = "physg") -> dict[str, Any]:
+                  shadowing: str | None = None) -> dict[str, Any]:
     """Steps 2-4 of :func:`relight_view` on a G-buffer: the shading, the silhouette's alpha and the maps.
 
     Args:
@@ -229,7 +232,8 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
             G-buffer's points and shading normals, :func:`stages.numerics.shadowing.direction_visibility`).
         albedo: (P, 3) albedo to shade with (default: :func:`shading_albedo` of the G-buffer's).
         f0: Fresnel reflectance at normal incidence, scalar or (P,) (default ``shading.f0``).
-        shadowing: the GGX shadowing term of the SG shading ("physg" or "smith", :func:`stages.numerics.sg.ggx_sg_lobe`).
+        shadowing: the GGX shadowing term of the SG shading ("physg" or "smith", :func:`stages.numerics.sg.ggx_sg_lobe`;
+            default ``shading.shadowing``).
 
     Returns:
         What :func:`relight_view` returns.
@@ -244,6 +248,7 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
     normals = shading_normals.reshape(-1, 3)[pix]
     rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
     f0 = shading.f0 if f0 is None else f0
+    shadowing = shading.shadowing if shadowing is None else shadowing
     if not np.isscalar(f0) and np.shape(f0) != (len(pix),):
         raise ValueError(f"f0 must be a scalar or ({len(pix)},), got shape {np.shape(f0)}")
     if shading.shadows:
