@@ -398,9 +398,9 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
         except (KeyError, FileNotFoundError):
             pass
     results["released"] = released
-    progress(f"  {cam['camera_id']}: stage " + ", ".join(f"{v['psnr_db']:.2f}" for v in results["stage"].values())
-             + " dB, all swapped " + ", ".join(f"{v['psnr_db']:.2f}" for v in results[list(rows)[-1]].values())
-             + " dB; " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
+    progress(f"  {cam['camera_id']}: " + "; ".join(
+        f"{label} " + ", ".join(f"{v['psnr_db']:.2f}" for v in envs.values()) for label, envs in results.items())
+        + " dB; " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
     return {"camera_id": cam["camera_id"], "pixels": int(len(gbuffer(frozenset())["pix"])),
             "rows": results, "seconds": times}
 
@@ -485,6 +485,9 @@ def main() -> int:
     parser = release_parser(__doc__, actions="", threads=2)
     parser.add_argument("--shading", default="", help="ViewShading changes every row renders with, "
                         "field=value[,field=value] (e.g. shadowing=smith,f0=0.03): a variant on the budget's rows")
+    parser.add_argument("--rows", default="", help="only these rows besides the stage's (labels, comma-separated; "
+                        "default every row)")
+    parser.add_argument("--views", type=int, default=0, help="the first N novel views of each action (0: all)")
     parser.add_argument("--tag", default="", help="suffix of the output files' names (bench_relit_budget<tag>.*)")
     args = parse_release_args(parser)
     import yaml
@@ -511,13 +514,19 @@ def main() -> int:
         return 0
     started = time.perf_counter()
     rows = budget_rows()
+    if args.rows:
+        wanted = [r.strip() for r in args.rows.split(",") if r.strip()]
+        unknown = sorted(set(wanted) - set(rows))
+        if unknown:
+            parser.error(f"--rows: unknown {unknown}; rows are {list(rows)}")
+        rows = {k: v for k, v in rows.items() if k in wanted}
     report: dict[str, Any] = {"quick": args.quick, "threads": args.threads, "release": str(release),
                               "shading_overrides": dict(SHADING_OVERRIDES),
                               "shading": dataclasses.asdict(shading), "components": list(COMPONENTS),
                               "rows": {k: sorted(v) for k, v in rows.items()}, "actions": {}}
     for action in actions:
         ab = ActionBudget(release, capture, action, args.threads, args.quick, out / "truth_visibility")
-        cams = ab.cams[:1] if args.quick else ab.cams
+        cams = ab.cams[:1] if args.quick else ab.cams[:args.views] if args.views else ab.cams
         envs = ab.environments[:1] if args.quick else ab.environments
         print(f"{action}: asset and truth loaded in {ab.load_s:.1f} s", flush=True)
         views = [budget_view(ab, cam, envs, rows, lambda m: print(m, flush=True)) for cam in cams]

@@ -6,7 +6,9 @@ nothing here reads or writes files).
 - :func:`novel_view_gbuffer`: depth from the mesh, normal and albedo reprojected from the nearest sources
   (the paper's depth-guided reprojection), materials through the atlas.
 - :class:`ViewShading` and :func:`relight_view`: one view's released maps (normal, albedo, roughness on the
-  antialiased mask) and its images under any number of SG environments, premultiplied by the pixel coverage.
+  antialiased mask) and its images under any number of SG environments, premultiplied by the pixel coverage;
+  :func:`shade_gbuffer` is its second half (the shading of a G-buffer, whose visibility, albedo and F0 a caller
+  may replace: bench/bench_relit_budget.py swaps them for the simulator's truth).
 """
 from __future__ import annotations
 
