@@ -13,8 +13,8 @@ For each novel camera (placed between neighbouring captured cameras,
    (:func:`stages.numerics.gbuffer.fuse_normals`, split at ``shading.normal_fusion_m`` on the surface);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
-3. shading: Lambertian diffuse + GGX specular under the lobes (F0 0.02), with the mesh's self-occlusion
-   (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shading.shadows``. The sources' albedo is
+3. shading: Lambertian diffuse + GGX specular under the lobes (F0 ``shading.f0``, skin's 0.028), with the mesh's
+   self-occlusion (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shading.shadows``. The sources' albedo is
    ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view; with
    ``diffuse_albedo`` off or without those maps, the white-light albedo times the materials stage's diffuse
    ratio); it still holds the stage's ambient occlusion, so with shadows it is divided by the occlusion

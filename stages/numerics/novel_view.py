@@ -6,7 +6,9 @@ nothing here reads or writes files).
 - :func:`novel_view_gbuffer`: depth from the mesh, normal and albedo reprojected from the nearest sources
   (the paper's depth-guided reprojection), materials through the atlas.
 - :class:`ViewShading` and :func:`relight_view`: one view's released maps (normal, albedo, roughness on the
-  antialiased mask) and its images under any number of SG environments, premultiplied by the pixel coverage.
+  antialiased mask) and its images under any number of SG environments, premultiplied by the pixel coverage;
+  :func:`shade_gbuffer` is its second half (the shading of a G-buffer, whose visibility, albedo and F0 a caller
+  may replace: bench/bench_relit_budget.py swaps them for the simulator's truth).
 """
 from __future__ import annotations
 
@@ -187,8 +189,9 @@ class ViewShading(Documented):
     """Occlude the environment by the mesh itself (else every direction above the horizon is lit)."""
     visibility_directions: int = checked(256, ge=1)
     """Directions per pixel for the self-occlusion (Fibonacci sphere)."""
-    f0: float = checked(0.02, ge=0.0, le=1.0)
-    """Fresnel reflectance at normal incidence."""
+    f0: float = checked(0.028, ge=0.0, le=1.0)
+    """Fresnel reflectance at normal incidence: skin's (refractive index 1.4; relit novel views 0.08 dB closer to
+    the simulator's than at 0.02, bench/bench_relit_budget.py)."""
     coverage_samples: int = checked(4, ge=1)
     """Rays per pixel side that measure how much of each pixel the mesh covers (alpha of the relit images,
     whose radiance is premultiplied by it; the masks are alpha >= 0.5, as the simulator's). The G-buffer is
@@ -197,6 +200,11 @@ class ViewShading(Documented):
     default: the simulator's camera averages 2 x 2 rays, and hard edges score lower). The grid is
     cast only at the silhouette (:func:`stages.numerics.raycast.pixel_coverage`, ``edges_only``): 0.1-0.7 s
     per 320 x 480 view instead of 0.9-2.0 s for every pixel's, 0-3 pixels' coverage different, the same masks."""
+    shadowing: str = checked("physg", one_of=("physg", "smith"))
+    """The GGX shadowing-masking term of the specular (:func:`stages.numerics.sg.ggx_sg_lobe`): "physg"
+    (separable Schlick-GGX) or "smith" (height-correlated Smith, the simulator's). Under the SG closed forms
+    "smith" relit the default capture's A0000 N000 0.6 dB further from the simulator's (25.15 vs 25.76 dB,
+    bench/bench_relit_budget.py --shading shadowing=smith)."""
 
 
 def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
@@ -219,31 +227,69 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
         alpha, one per environment, finite and below :data:`HALF_MAX`; ``pixels`` (shaded pixel count),
         ``coverage`` and ``normal_fusion_px`` (of the G-buffer).
     """
-    from stages.numerics.raycast import pixel_coverage
-    from stages.numerics.sg import fibonacci_sphere, shade_sg
-    from stages.numerics.shadowing import direction_visibility, shade_sg_visible
-
     h, w = int(height), int(width)
     if h < 1 or w < 1:
         raise ValueError(f"image size must be positive, got {height} x {width}")
     gb = novel_view_gbuffer(asset, K, cam_from_world, h, w, sources=shading.sources,
                             depth_tolerance_m=shading.depth_tolerance_m, blend=blend,
                             normal_fusion_m=shading.normal_fusion_m)
+    return shade_gbuffer(gb, asset.scene, K, cam_from_world, environments, shading, directions=directions)
+
+
+def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world: np.ndarray,
+                  environments: Sequence[Any], shading: ViewShading = ViewShading(),
+                  directions: np.ndarray | None = None, visibility: np.ndarray | None = None,
+                  albedo: np.ndarray | None = None, f0: float | np.ndarray | None = None,
+                  shadowing: str | None = None) -> dict[str, Any]:
+    """Steps 2-4 of :func:`relight_view` on a G-buffer: the shading, the silhouette's alpha and the maps.
+
+    Args:
+        gb: a :func:`novel_view_gbuffer` of the view (``mask``, ``hit``, ``pix``, ``points``, ``view_dirs``,
+            ``normal_<shading.normals>``, ``albedo``, ``diffuse_ratio``, ``occlusion``, ``roughness``).
+        scene: the ray-casting scene the visibility and the pixel coverage are traced against.
+        K, cam_from_world: the view's (3, 3) intrinsics and (3, 4) pose; the size is ``gb["mask"]``'s.
+        environments, shading, directions: as in :func:`relight_view`.
+        visibility: (P, D) bool per mask pixel of ``directions`` (default: traced against ``scene`` at the
+            G-buffer's points and shading normals, :func:`stages.numerics.shadowing.direction_visibility`).
+        albedo: (P, 3) albedo to shade with (default: :func:`shading_albedo` of the G-buffer's).
+        f0: Fresnel reflectance at normal incidence, scalar or (P,) (default ``shading.f0``).
+        shadowing: the GGX shadowing term of the SG shading ("physg" or "smith", :func:`stages.numerics.sg.ggx_sg_lobe`;
+            default ``shading.shadowing``).
+
+    Returns:
+        What :func:`relight_view` returns.
+    """
+    from stages.numerics.raycast import pixel_coverage
+    from stages.numerics.sg import fibonacci_sphere, shade_sg
+    from stages.numerics.shadowing import direction_visibility, shade_sg_visible
+
     mask, pix = gb["mask"], gb["pix"]
+    h, w = mask.shape
     shading_normals = gb[f"normal_{shading.normals}"]
     normals = shading_normals.reshape(-1, 3)[pix]
     rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
-    visibility = None
+    f0 = shading.f0 if f0 is None else f0
+    shadowing = shading.shadowing if shadowing is None else shadowing
+    if not np.isscalar(f0) and np.shape(f0) != (len(pix),):
+        raise ValueError(f"f0 must be a scalar or ({len(pix)},), got shape {np.shape(f0)}")
     if shading.shadows:
         directions = fibonacci_sphere(shading.visibility_directions) if directions is None else directions
-        if len(pix):
-            visibility = direction_visibility(gb["points"], normals, asset.scene, directions)
-    albedo = shading_albedo(gb["albedo"].reshape(-1, 3)[pix], gb["diffuse_ratio"].reshape(-1, 3)[pix],
-                            gb["occlusion"].reshape(-1)[pix] if visibility is not None else None)
+        if visibility is None:
+            visibility = direction_visibility(gb["points"], normals, scene, directions) if len(pix) else \
+                np.zeros((0, len(directions)), bool)
+        elif visibility.shape != (len(pix), len(directions)):
+            raise ValueError(f"visibility must be ({len(pix)}, {len(directions)}), got {visibility.shape}")
+    else:
+        visibility = None
+    if albedo is None:
+        albedo = shading_albedo(gb["albedo"].reshape(-1, 3)[pix], gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                                gb["occlusion"].reshape(-1)[pix] if visibility is not None else None)
+    elif albedo.shape != (len(pix), 3):
+        raise ValueError(f"albedo must be ({len(pix)}, 3), got {albedo.shape}")
     alpha, out_mask = mask.astype(np.float32), mask
     if shading.coverage_samples > 1:
         alpha, out_mask = silhouette_alpha(mask, pixel_coverage(
-            K, cam_from_world, h, w, shading.coverage_samples, asset.scene, centre_hit=gb["hit"]))
+            K, cam_from_world, h, w, shading.coverage_samples, scene, centre_hit=gb["hit"]))
     # the G-buffer maps on the output mask: edge pixels whose centre misses the mesh borrow their neighbours'
     maps = grow_edges({"normal": shading_normals, "albedo": scatter_pixels(pix, albedo, h, w),
                        "roughness": gb["roughness"]}, mask)
@@ -255,14 +301,14 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
     for lobes in environments:
         if visibility is not None:
             shaded = shade_sg_visible(normals, gb["view_dirs"], albedo, rough, lobes, visibility, directions,
-                                      f0=shading.f0)
+                                      f0=f0, shadowing=shadowing)
         else:
-            shaded = shade_sg(normals, gb["view_dirs"], albedo, rough, lobes, f0=shading.f0)
+            shaded = shade_sg(normals, gb["view_dirs"], albedo, rough, lobes, f0=f0, shadowing=shadowing)
         rgb = np.clip(np.nan_to_num(shaded["rgb"], nan=0.0, posinf=0.0, neginf=0.0), 0.0, HALF_MAX)
         # premultiplied by the pixel's coverage, as a camera integrates a silhouette pixel
         images.append(premultiply_edges(scatter_pixels(pix, rgb, h, w), mask, alpha))
     return {"maps": maps, "mask": out_mask, "alpha": alpha, "images": images, "pixels": int(len(pix)),
-            "coverage": gb["coverage"], "normal_fusion_px": gb["normal_fusion_px"]}
+            "coverage": gb.get("coverage", 1.0), "normal_fusion_px": gb.get("normal_fusion_px", 0.0)}
 
 
 def fit_blend(asset: ActionAsset, config: Any, k: int, depth_tolerance_m: float) -> Any:

@@ -767,6 +767,13 @@ def ggx_sg_lobe(normals: torch.Tensor, view_dirs: torch.Tensor, roughness: torch
     return axis, sharp, weight
 
 
+def _chunk_f0(f0, sl: slice):
+    """The Fresnel reflectance of one chunk of points: a scalar as is, a per-point (N,) array or tensor sliced."""
+    if isinstance(f0, (int, float)) or np.ndim(f0) == 0:
+        return float(f0)
+    return _t(f0)[sl]
+
+
 def _shape_check(name, x, shape):
     if tuple(x.shape) != shape:
         raise ValueError(f"{name} must be {shape}, got {tuple(x.shape)}")
@@ -782,7 +789,7 @@ def shade_sg(normals, view_dirs, albedo, roughness, lobes: SGLobes, f0: float = 
         albedo: (N, 3) linear diffuse albedo.
         roughness: (N,) perceptual GGX roughness (alpha = r**2), clamped to [ROUGHNESS_MIN, 1].
         lobes: the environment as :class:`SGLobes` (radiance units).
-        f0: Schlick Fresnel reflectance at normal incidence (0.02: skin).
+        f0: Schlick Fresnel reflectance at normal incidence (0.02: skin), scalar or (N,) per point.
         specular: add the specular term (else it is zeros).
         shadowing: "physg" or "smith" (see :func:`ggx_sg_lobe`).
         ndf_lobes: SGs approximating the GGX NDF (1 = PhySG's single lobe; 3 follows GGX's long tails).
@@ -815,7 +822,7 @@ def shade_sg(normals, view_dirs, albedo, roughness, lobes: SGLobes, f0: float = 
         irradiance = _cosine_integral(la, ls, nc[:, None, :]) @ amp_l  # (m, 3)
         diffuse_parts.append(alb[sl] * irradiance / math.pi)
         if specular:
-            b_axis, b_sharp, b_weight = ggx_sg_lobe(nc, v[sl], r[sl], f0, shadowing, ndf_lobes)
+            b_axis, b_sharp, b_weight = ggx_sg_lobe(nc, v[sl], r[sl], _chunk_f0(f0, sl), shadowing, ndf_lobes)
             spec = nc.new_zeros((m, 3))
             for k in range(b_sharp.shape[1]):
                 p_axis, p_sharp, p_log = _product(la, ls, b_axis[:, None, :].expand(m, n_lobes, 3),

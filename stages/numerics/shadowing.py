@@ -72,7 +72,7 @@ import torch
 
 from stages.numerics import numeric_threads
 from stages.numerics.metrics import angular_error_deg
-from stages.numerics.sg import (SGLobes, _cosine_integral, _is_torch, _one_minus_exp_over, _t, _unit,
+from stages.numerics.sg import (SGLobes, _chunk_f0, _cosine_integral, _is_torch, _one_minus_exp_over, _t, _unit,
                                 check_lobes, ggx_sg_lobe, shade_sg)
 
 __all__ = [
@@ -354,7 +354,7 @@ def shade_sg_visible(normals, view_dirs, albedo, roughness, lobes: SGLobes, visi
         diffuse_parts.append(alb[sl] * ((lobe_e * frac_diffuse) @ amp_l) / math.pi)
         if specular:
             with torch.no_grad():
-                b_axis, b_sharp, b_weight = ggx_sg_lobe(nc.detach(), view_t[sl], rough_t[sl], f0, shadowing,
+                b_axis, b_sharp, b_weight = ggx_sg_lobe(nc.detach(), view_t[sl], rough_t[sl], _chunk_f0(f0, sl), shadowing,
                                                         ndf_lobes)
                 b_sharp, b_weight = b_sharp.double(), b_weight.double()
                 b_cap = b_sharp.clamp(max=cap)

@@ -1,0 +1,559 @@
+"""Relit novel views: an error budget by oracle swaps (what each component of the relight stage costs in dB).
+
+For each action of a release (default: every action with renders), each novel camera of its ``renders/cameras.json``
+and each environment of its ``renders/environments.json`` (the stage's own SG lobes), the relight stage's view is
+rendered again with the stage's own functions (:func:`stages.relightable.load_relightable_asset`,
+:func:`stages.numerics.novel_view.novel_view_gbuffer` and :func:`stages.numerics.novel_view.shade_gbuffer`, the two
+halves of ``relight_view``) and scored like ``ultrastage evaluate`` (``evaluation.release._relit_overall``:
+:func:`stages.numerics.metrics.relit_psnr` against :class:`synthetic.relight.TruthRelighter`'s render of the true
+subject, with the evaluation's light count); then again with one component at a time replaced by the simulator's
+truth (read from the capture's ``ground_truth/`` folder, as evaluation/release.py reads it), and cumulatively in the
+order of :data:`COMPONENTS`:
+
+* ``geometry``: the true mesh (``ground_truth/<action>/mesh.ply``) for the novel view's depth, silhouette, smooth
+  normals and coverage, and the captured views' true depth and normal maps (``ground_truth/<action>/depth``,
+  ``normal``) as the reprojection's sources;
+* ``albedo``: the captured views' true albedo maps as the sources' albedo (shaded as is: no ambient occlusion to
+  divide out, no diffuse ratio);
+* ``material``: the true roughness (the truth render's map), the simulator's F0 per material (skin 0.028, else 0.04,
+  told apart by their roughness, :func:`simulator_f0`) and its specular shadowing term (height-correlated Smith, ``shadowing="smith"``);
+* ``visibility``: the self-occlusion traced against the true mesh instead of ours (from the same surface points,
+  each moved to the nearest point of the mesh traced against);
+* ``lighting``: the SG lobes and their closed-form shading replaced by exact integration of the environment map:
+  the truth's own distant lights (:func:`synthetic.relight.environment_lights`, its light count), each occluded per
+  pixel (traced against the mesh of the visibility row), with the simulator's GGX (:func:`synthetic.shading.ggx_weights`);
+  an extra row integrates the SG lobes' own map exactly (the fit's share apart from the closed forms');
+* ``reprojection``: the true G-buffer in the novel view itself (the truth render's normals, albedo and depth) instead
+  of the true sources reprojected;
+* ``tone``: a per-channel gain (exposure and white balance) fitted by least squares to the truth.
+
+Each row: PSNR (dB) and SSIM (the images at the PSNR's common exposure, clipped to [0, 1], on the union of the
+masks), and the dB it recovers over the stage's render (one at a time) or over the row before (cumulative); means
+over actions, views and environments. The ``released`` row scores the release's own images (equal to ``stage``
+when the release was made with the defaults this bench uses).
+
+``python bench/bench_relit_budget.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
+writes DIR/bench_relit_budget.json, .md (the table) and .png (a bar plot of the dB recovered). Defaults
+runs/default/release and runs/default/capture; without them or the ground truth it prints why and exits 0.
+``--quick`` (the tests' mode): the tiny run of ``bench/_quick.py``, its first view and first environment; the
+numbers are not measurements.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+COMPONENTS = ("geometry", "albedo", "material", "visibility", "lighting", "reprojection", "tone")
+"""The components swapped for the simulator's truth, in the order of the cumulative rows."""
+EXTRA_ROWS = {"lighting: SG lobes integrated exactly": frozenset({"lighting_sg"})}
+"""Rows beyond one component at a time: label -> swaps (``lighting_sg``: the lobes' own map integrated exactly)."""
+
+
+SHADING_OVERRIDES: dict[str, Any] = {}
+"""``--shading`` (``field=value,...``): changes to the stage's :class:`stages.numerics.novel_view.ViewShading` that
+every row renders with (a variant measured on the budget's rows; empty: the release's own shading)."""
+
+
+def stage_shading(release: Path | None = None) -> Any:
+    """The relight stage's :class:`stages.numerics.novel_view.ViewShading` and its config: the release's
+    (``config.yaml``'s ``relight``) when it has one, else the defaults; with :data:`SHADING_OVERRIDES` applied."""
+    from pipeline.config import merge
+
+    import yaml
+
+    from pipeline.config import from_dict
+    from stages.relight import RelightConfig
+
+    path = Path(release) / "config.yaml" if release is not None else None
+    record = (yaml.safe_load(path.read_text()) or {}).get("relight") if path is not None and path.exists() else None
+    cfg = from_dict(RelightConfig, record, where=f"{path}: relight") if record else RelightConfig()
+    return merge(cfg.shading, SHADING_OVERRIDES, "--shading"), cfg
+
+
+def simulator_f0(roughness: np.ndarray) -> np.ndarray:
+    """The simulator's F0 (P,) float32 for roughness values (P,) of its materials (synthetic.subject.MATERIALS:
+    each material's F0 at the material whose roughness is nearest)."""
+    from synthetic.subject import MATERIALS
+
+    table = np.array([(rough, f0) for _, rough, f0 in MATERIALS.values()], np.float64)
+    nearest = np.abs(np.asarray(roughness, np.float64)[:, None] - table[None, :, 0]).argmin(axis=1)
+    return table[nearest, 1].astype(np.float32)
+
+
+def exact_shade(normals: np.ndarray, view_dirs: np.ndarray, albedo: np.ndarray, roughness: np.ndarray,
+                f0: float | np.ndarray, light_dirs: np.ndarray, light_irradiance: np.ndarray,
+                visibility: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """Lambertian + GGX radiance (P, 3) float32 under distant lights, each occluded per point: diffuse
+    ``albedo / pi sum_l V max(0, n.l) E_l``, specular ``sum_l V F D Vis (n.l) E_l`` with the simulator's GGX
+    (:func:`synthetic.shading.ggx_weights`, alpha = roughness**2).
+
+    normals, view_dirs (towards the camera): (P, 3) unit; albedo (P, 3); roughness (P,); f0 scalar or (P,);
+    light_dirs (L, 3) unit; light_irradiance (L, 3); visibility (P, L) bool."""
+    from synthetic.shading import ggx_weights
+
+    n = np.asarray(normals, np.float32)
+    p = len(n)
+    if view_dirs.shape != (p, 3) or albedo.shape != (p, 3) or roughness.shape != (p,):
+        raise ValueError(f"view_dirs, albedo (P, 3) and roughness (P,) must match normals {n.shape}")
+    if visibility.shape != (p, len(light_dirs)) or light_irradiance.shape != (len(light_dirs), 3):
+        raise ValueError(f"visibility {visibility.shape} / irradiance {light_irradiance.shape} do not match "
+                         f"{p} points and {len(light_dirs)} lights")
+    f0 = np.broadcast_to(np.asarray(f0, np.float32), (p,))
+    dirs = np.asarray(light_dirs, np.float32)
+    irr = np.asarray(light_irradiance, np.float32)
+    alpha = np.clip(np.asarray(roughness, np.float32), 0.05, 1.0) ** 2
+    out = np.zeros((p, 3), np.float32)
+    for start in range(0, p, chunk):
+        sl = slice(start, min(start + chunk, p))
+        vis = visibility[sl].astype(np.float32)
+        cos = np.maximum(n[sl] @ dirs.T, 0.0) * vis
+        diffuse = albedo[sl] / np.pi * (cos @ irr)
+        spec = (ggx_weights(n[sl], np.asarray(view_dirs[sl], np.float32), dirs, alpha[sl], f0[sl]) * vis) @ irr
+        out[sl] = diffuse + spec
+    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def tone_gain(pred: np.ndarray, pred_mask: np.ndarray, true: np.ndarray, true_mask: np.ndarray) -> np.ndarray:
+    """The per-channel gain (3,) that brings ``pred`` (H, W, 3) closest to ``true`` in least squares over the union
+    of the masks (H, W) (exposure and white balance); 1 where a channel of ``pred`` is black."""
+    union = np.asarray(pred_mask, bool) | np.asarray(true_mask, bool)
+    x = np.where(pred_mask[..., None], pred, 0.0)[union].astype(np.float64)
+    y = np.where(true_mask[..., None], true, 0.0)[union].astype(np.float64)
+    den = (x * x).sum(axis=0)
+    return np.where(den > 0, (x * y).sum(axis=0) / np.maximum(den, 1e-30), 1.0)
+
+
+def score(pred: np.ndarray, pred_mask: np.ndarray, true: dict) -> dict[str, float]:
+    """PSNR (:func:`stages.numerics.metrics.relit_psnr`, the evaluation's) and SSIM of the images at its common
+    exposure, clipped to [0, 1], over the union of the masks."""
+    from stages.numerics.metrics import relit_psnr, ssim
+
+    result = relit_psnr(pred, pred_mask, true["radiance"], true["mask"])
+    union = pred_mask | true["mask"]
+    a = np.clip(np.where(pred_mask[..., None], pred, 0.0) * result["scale"], 0, 1)
+    b = np.clip(np.where(true["mask"][..., None], true["radiance"], 0.0) * result["scale"], 0, 1)
+    return {"psnr_db": result["psnr_db"], "ssim": ssim(a, b, union)}
+
+
+def project_onto(scene: Any, points: np.ndarray) -> np.ndarray:
+    """The nearest points (P, 3) of a ray-casting scene's surface to ``points`` (P, 3)."""
+    import open3d as o3d
+
+    if len(points) == 0:
+        return np.asarray(points, np.float64)
+    ans = scene.compute_closest_points(o3d.core.Tensor(np.asarray(points, np.float32)))
+    return ans["points"].numpy().astype(np.float64)
+
+
+class ActionBudget:
+    """One action's stage asset, its truth and the G-buffers, visibilities and images of every swap, cached."""
+
+    def __init__(self, release: Path, capture: Path, action: str, threads: int, quick: bool,
+                 truth_visibility: Path | None = None):
+        from evaluation.release import relit_truth_lights
+        from manifests import open_release
+        from pipeline.codecs.exr import read_exr
+        from pipeline.codecs.mesh import read_ply
+        from stages.artifacts import ActionArtifacts
+        from stages.numerics.gbuffer import SourceView
+        from stages.numerics.raycast import mesh_scene
+        from stages.relightable import load_relightable_asset
+        from synthetic.relight import TruthRelighter, environment_lights
+
+        self.shading, cfg = stage_shading(release)
+        self.threads = threads
+        t0 = time.perf_counter()
+        rel = open_release(release)
+        self.view = rel.action(action)
+        self.asset, self.cameras = load_relightable_asset(ActionArtifacts.from_release(rel, action), cfg.min_alpha,
+                                                          cfg.diffuse_normals, cfg.diffuse_albedo)
+        self.cams = self.view.render_cameras()
+        self.environments = self.view.release.load(self.view.asset("render_environments", None))["environments"]
+        truth_dir = Path(capture) / "ground_truth" / action
+        lights = relit_truth_lights(self.cams)
+        self.truth = TruthRelighter(capture, action, lights=lights, visibility_cache=truth_visibility)
+        self.capture_root = Path(capture)
+        true_vertices, true_faces = read_ply(truth_dir / "mesh.ply")
+        self.true_scene = mesh_scene(true_vertices, true_faces)
+        self.light_dirs = self.truth.directions
+        self.environment_lights = environment_lights
+        # the captured views' truth: depth and normals (geometry), albedo; in the order of the asset's sources
+        geo_sources, albedo_sources = [], []
+        for cam_id, src in zip(self.cameras, self.asset.sources):
+            normal = read_exr(truth_dir / "normal" / f"{cam_id}.exr")[..., :3]
+            albedo = read_exr(truth_dir / "albedo" / f"{cam_id}.exr")[..., :3]
+            depth = read_exr(truth_dir / "depth" / f"{cam_id}.exr")
+            depth = depth[..., 0] if depth.ndim == 3 else depth
+            seen = depth > 0
+            geo_sources.append(SourceView(normal=np.ascontiguousarray(normal, np.float32), albedo=src.albedo,
+                                          valid=seen, K=src.K, cam_from_world=src.cam_from_world,
+                                          depth_m=depth.astype(np.float32)))
+            albedo_sources.append(dataclasses.replace(src, albedo=np.ascontiguousarray(albedo, np.float32)))
+        true_asset = dataclasses.replace(self.asset, scene=self.true_scene, faces=true_faces,
+                                         smooth_normals=self.truth.subject.normals_world.astype(np.float64),
+                                         sources=geo_sources)
+        self.assets = {(False, False): self.asset,
+                       (True, False): true_asset,
+                       (False, True): dataclasses.replace(self.asset, sources=albedo_sources,
+                                                          sources_diffuse_albedo=True),
+                       (True, True): dataclasses.replace(true_asset, sources=[
+                           dataclasses.replace(g, albedo=a.albedo) for g, a in zip(geo_sources, albedo_sources)],
+                           sources_diffuse_albedo=True)}
+        self.load_s = time.perf_counter() - t0
+        self.quick = quick
+
+    def lobes(self, env_record: dict) -> Any:
+        from stages.numerics.sg import SGLobes
+
+        return SGLobes.from_dict(env_record["lobes"])
+
+
+def _gbuffer_from_truth(gb: dict, true: dict, K: np.ndarray, pose: np.ndarray, kind: str) -> dict:
+    """A G-buffer (:func:`stages.numerics.novel_view.novel_view_gbuffer`'s keys) whose silhouette, normals and albedo
+    are the truth render's, on the points of ``gb`` (the true mesh's G-buffer); roughness, occlusion and diffuse
+    ratio kept from ``gb`` (the nearest of its pixels off its mask)."""
+    from stages.numerics.camera import Camera
+
+    mask = np.asarray(true["mask"], bool)
+    h, w = mask.shape
+    pix = np.flatnonzero(mask.reshape(-1))
+    camera = Camera(K, pose, w, h)
+    # the true mesh's depth at the pixel centres (``gb``'s, cast against it) where it has one: the truth's is the
+    # mean over the pixel's rays, inside a convex surface
+    depth = np.where(gb["hit"], gb["depth_m"], np.asarray(true["depth_m"], np.float32))
+    points = camera.lift_depth_map(depth).reshape(-1, 3)[pix]
+    view_dirs = camera.centre[None] - points
+    view_dirs /= np.maximum(np.linalg.norm(view_dirs, axis=1, keepdims=True), 1e-12)
+    normals = np.asarray(true["normals_world"], np.float32)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 1e-6)
+    out = dict(gb)
+    out.update({"mask": mask, "hit": mask | gb["hit"], "pix": pix, "points": points, "view_dirs": view_dirs,
+                f"normal_{kind}": normals, "albedo": np.asarray(true["albedo"], np.float32)})
+    for name in ("roughness", "occlusion", "diffuse_ratio"):  # the true mesh's texture lookups, nearest outside
+        out[name] = np.where(mask.reshape(mask.shape + (1,) * (gb[name].ndim - 2)),
+                             fill_nearest(gb[name], gb["mask"]), 0.0).astype(np.float32)
+    return out
+
+
+def fill_nearest(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``image`` (H, W[, C]) with every pixel off ``valid`` (H, W) given its nearest valid pixel's value."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not valid.any() or valid.all():
+        return image
+    _, (rows, cols) = distance_transform_edt(~valid, return_indices=True)
+    return image[rows, cols]
+
+
+def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict[str, frozenset],
+                progress) -> dict:
+    """Every row's PSNR and SSIM for one novel camera under every environment, with the time of each piece."""
+    from stages.numerics.novel_view import (novel_view_gbuffer, premultiply_edges, scatter_pixels, shade_gbuffer,
+                                            silhouette_alpha)
+    from stages.numerics.raycast import pixel_coverage
+    from stages.numerics.sg import fibonacci_sphere, render_sg_environment
+    from stages.numerics.shadowing import direction_visibility
+    from stages.environments import find_environment, load_environment
+
+    shading = ab.shading
+    K, pose = np.asarray(cam["K"], np.float64), np.asarray(cam["cam_from_world"], np.float64)
+    h, w = int(cam["height"]), int(cam["width"])
+    directions = fibonacci_sphere(shading.visibility_directions)
+    times: dict[str, float] = {}
+    gbuffers: dict[tuple, dict] = {}
+    visibilities: dict[tuple, np.ndarray] = {}
+    alphas: dict[tuple, tuple] = {}
+
+    def timed(name: str, fn, *args, **kwargs):
+        t0 = time.perf_counter()
+        value = fn(*args, **kwargs)
+        times[name] = times.get(name, 0.0) + time.perf_counter() - t0
+        return value
+
+    env_maps = {}
+    for record in env_records:
+        env_maps[record["label"]] = load_environment(record["name"], find_environment(record["name"],
+                                                                                      ab.capture_root))[0]
+    truths = {label: timed("truth_render", ab.truth.render, K, pose, h, w, env) for label, env in env_maps.items()}
+    true0 = next(iter(truths.values()))
+
+    def gbuffer(swaps: frozenset) -> dict:
+        key = ("geometry" in swaps or "reprojection" in swaps, "albedo" in swaps or "reprojection" in swaps,
+               "reprojection" in swaps)
+        if key not in gbuffers:
+            if key[2]:
+                gb = _gbuffer_from_truth(gbuffer(frozenset({"geometry", "albedo"})), true0, K, pose, shading.normals)
+            else:
+                gb = timed("gbuffer", novel_view_gbuffer, ab.assets[key[:2]], K, pose, h, w, sources=shading.sources,
+                           depth_tolerance_m=shading.depth_tolerance_m, normal_fusion_m=shading.normal_fusion_m)
+            gbuffers[key] = gb
+        return gbuffers[key]
+
+    def geometry_key(swaps: frozenset) -> str:
+        return "truth" if "reprojection" in swaps else "true_mesh" if "geometry" in swaps else "ours"
+
+    def visibility(swaps: frozenset, dirs: np.ndarray, tag: str) -> np.ndarray:
+        gb = gbuffer(swaps)
+        true_occluder = "visibility" in swaps
+        key = (geometry_key(swaps), true_occluder, tag)
+        if key not in visibilities:
+            scene = ab.true_scene if true_occluder else ab.asset.scene
+            points = gb["points"]
+            if true_occluder != (geometry_key(swaps) != "ours"):  # the points lie on the other mesh
+                points = project_onto(scene, points)
+            normals = gb[f"normal_{shading.normals}"].reshape(-1, 3)[gb["pix"]]
+            visibilities[key] = timed(f"visibility_{tag}", direction_visibility, points, normals, scene, dirs,
+                                      threads=ab.threads)
+        return visibilities[key]
+
+    def silhouette(swaps: frozenset) -> tuple[np.ndarray, np.ndarray]:
+        gb = gbuffer(swaps)
+        key = geometry_key(swaps)
+        if key not in alphas:
+            scene = ab.asset.scene if key == "ours" else ab.true_scene
+            alphas[key] = timed("coverage", lambda: silhouette_alpha(gb["mask"], pixel_coverage(
+                K, pose, h, w, shading.coverage_samples, scene, centre_hit=gb["hit"])))
+        return alphas[key]
+
+    images: dict[frozenset, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+
+    def render(swaps: frozenset) -> dict[str, dict[str, float]]:
+        """Every environment's scores with ``swaps``; the images are kept by their swaps but the tone's."""
+        base = swaps - {"tone"}
+        if base not in images:
+            images[base] = shade(base)
+        out = {}
+        for label, (image, mask) in images[base].items():
+            true = truths[label]
+            if "tone" in swaps:
+                image = (image * tone_gain(image, mask, true["radiance"], true["mask"])).astype(np.float32)
+            out[label] = score(image, mask, true)
+        return out
+
+    def shade(swaps: frozenset) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        gb = gbuffer(swaps)
+        pix = gb["pix"]
+        normals = gb[f"normal_{shading.normals}"].reshape(-1, 3)[pix]
+        albedo = None
+        if "albedo" in swaps or "reprojection" in swaps:  # the true diffuse albedo: shaded as is
+            albedo = np.clip(gb["albedo"].reshape(-1, 3)[pix], 0.0, 1.0)
+        rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
+        f0, shadowing = shading.f0, shading.shadowing
+        if "material" in swaps:
+            true_rough = np.asarray(true0["roughness"], np.float32).reshape(-1)[pix]
+            inside = np.asarray(true0["mask"], bool).reshape(-1)[pix]
+            rough = np.clip(np.where(inside, true_rough, rough), 0.05, 1.0)
+            f0, shadowing = simulator_f0(rough), "smith"
+        gb = dict(gb, roughness=scatter_pixels(pix, rough[:, None], h, w)[..., 0])
+        out = {}
+        exact = "lighting" in swaps or "lighting_sg" in swaps
+        if exact:
+            vis = visibility(swaps, ab.light_dirs, "lights")
+            if albedo is None:
+                from stages.numerics.novel_view import shading_albedo
+
+                albedo = shading_albedo(gb["albedo"].reshape(-1, 3)[pix], gb["diffuse_ratio"].reshape(-1, 3)[pix],
+                                        gb["occlusion"].reshape(-1)[pix])
+            alpha, out_mask = silhouette(swaps)
+        else:
+            vis = visibility(swaps, directions, "stage")
+        for record in env_records:
+            label = record["label"]
+            t0 = time.perf_counter()
+            if exact:
+                env = env_maps[label] if "lighting" in swaps else render_sg_environment(
+                    ab.lobes(record), *env_maps[label].shape[:2])
+                _, irradiance = ab.environment_lights(env, ab.truth.lights, ab.truth.max_height)
+                rgb = exact_shade(normals, gb["view_dirs"], albedo, rough, f0, ab.light_dirs, irradiance, vis)
+                image = premultiply_edges(scatter_pixels(pix, np.clip(rgb, 0, 6e4), h, w), gb["mask"], alpha)
+                mask = out_mask
+            else:
+                view = shade_gbuffer(gb, ab.true_scene if geometry_key(swaps) != "ours" else ab.asset.scene, K, pose,
+                                     [ab.lobes(record)], shading, directions=directions, visibility=vis,
+                                     albedo=albedo, f0=f0, shadowing=shadowing)
+                image, mask = view["images"][0], view["mask"]
+            times["shade"] = times.get("shade", 0.0) + time.perf_counter() - t0
+            out[label] = (image, mask)
+        return out
+
+    results = {"stage": render(frozenset())}
+    for label, swaps in rows.items():
+        results[label] = render(swaps)
+    released = {}
+    for record in env_records:
+        try:
+            image = ab.view.relit(cam["camera_id"], record["label"])
+            released[record["label"]] = score(image[..., :3], image[..., 3] >= 0.5, truths[record["label"]])
+        except (KeyError, FileNotFoundError):
+            pass
+    results["released"] = released
+    progress(f"  {cam['camera_id']}: " + "; ".join(
+        f"{label} " + ", ".join(f"{v['psnr_db']:.2f}" for v in envs.values()) for label, envs in results.items())
+        + " dB; " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
+    return {"camera_id": cam["camera_id"], "pixels": int(len(gbuffer(frozenset())["pix"])),
+            "rows": results, "seconds": times}
+
+
+def budget_rows() -> dict[str, frozenset]:
+    """label -> swaps: each component alone, the extra rows, then the cumulative ones (``+ component``)."""
+    rows = {f"only {c}": frozenset({c}) for c in COMPONENTS}
+    rows.update(EXTRA_ROWS)
+    done: set[str] = set()
+    for c in COMPONENTS:
+        done.add(c)
+        rows[f"+ {c}"] = frozenset(done)
+    return rows
+
+
+def summarise(report: dict) -> dict:
+    """Mean PSNR and SSIM per row over actions, views and environments, and the dB each recovers (one at a time:
+    over the stage's render; cumulative: over the row before)."""
+    per_row: dict[str, dict[str, list[float]]] = {}
+    for action in report["actions"].values():
+        for view in action["views"]:
+            for label, envs in view["rows"].items():
+                for metrics in envs.values():
+                    for k, v in metrics.items():
+                        per_row.setdefault(label, {}).setdefault(k, []).append(float(v))
+    means = {label: {k: float(np.mean(v)) for k, v in m.items()} | {"n": len(m["psnr_db"])}
+             for label, m in per_row.items()}
+    stage = means["stage"]["psnr_db"]
+    previous = stage
+    for label in means:
+        if label.startswith("+ "):
+            means[label]["recovered_db"] = means[label]["psnr_db"] - previous
+            previous = means[label]["psnr_db"]
+        elif label not in ("stage", "released"):
+            means[label]["recovered_db"] = means[label]["psnr_db"] - stage
+    return means
+
+
+def markdown(report: dict) -> str:
+    s = report["summary"]
+    changed = report.get("shading_overrides") or {}
+    lines = ["# Relit novel views: error budget by oracle swaps", "",
+             *([f"Shading changed from the release's: {changed}", ""] if changed else []),
+             f"Actions {', '.join(report['actions'])}, {report['views']} views x {report['environments']} "
+             f"environments ({s['stage']['n']} images per row); the stage's render, then each component replaced "
+             "by the simulator's truth (one at a time: dB over the stage's; cumulative `+`: dB over the row before)."
+             + (" **Quick run: not measurements.**" if report["quick"] else ""), "",
+             "| row | PSNR dB | SSIM | dB recovered |", "|---|---:|---:|---:|"]
+    for label, m in s.items():
+        rec = f"{m['recovered_db']:+.2f}" if "recovered_db" in m else ""
+        lines.append(f"| {label} | {m['psnr_db']:.2f} | {m['ssim']:.4f} | {rec} |")
+    t = report["seconds_per_view"]
+    lines += ["", "Seconds per view (mean): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
+    return "\n".join(lines)
+
+
+def figure(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = report["summary"]
+    labels = [k for k in s if "recovered_db" in s[k]]
+    fig, ax = plt.subplots(figsize=(8, 0.35 * len(labels) + 1.5))
+    values = [s[k]["recovered_db"] for k in labels]
+    colours = ["tab:orange" if k.startswith("+ ") else "tab:blue" for k in labels]
+    ax.barh(range(len(labels)), values, color=colours)
+    ax.set_yticks(range(len(labels)), labels)
+    ax.invert_yaxis()
+    ax.axvline(0, color="k", lw=0.5)
+    ax.set_xlabel(f"dB recovered (stage {s['stage']['psnr_db']:.2f} dB; blue: alone, orange: cumulative)")
+    ax.set_title("Relit novel views: error budget by oracle swaps" + (" (quick)" if report["quick"] else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> int:
+    from _release import check_inputs, parse_release_args, release_parser
+
+    parser = release_parser(__doc__, actions="", threads=2)
+    parser.add_argument("--shading", default="", help="ViewShading changes every row renders with, "
+                        "field=value[,field=value] (e.g. shadowing=smith,f0=0.03): a variant on the budget's rows")
+    parser.add_argument("--rows", default="", help="only these rows besides the stage's (labels, comma-separated; "
+                        "default every row)")
+    parser.add_argument("--views", type=int, default=0, help="the first N novel views of each action (0: all)")
+    parser.add_argument("--tag", default="", help="suffix of the output files' names (bench_relit_budget<tag>.*)")
+    args = parse_release_args(parser)
+    import yaml
+
+    SHADING_OVERRIDES.update({k.strip(): yaml.safe_load(v) for k, v in
+                              (item.split("=", 1) for item in args.shading.split(",") if item.strip())})
+    release, capture, out = Path(args.release), Path(args.capture), Path(args.out)
+    if not check_inputs("bench_relit_budget", release, capture, need_truth=True)[0]:
+        return 0
+    from _threads import set_numeric_threads
+
+    set_numeric_threads(args.threads)
+    from manifests import open_release
+
+    shading, cfg = stage_shading(release)
+    if cfg.learned_blend.enabled:
+        print("bench_relit_budget: the stage's default blend is learned; this bench renders the heuristic weights")
+        return 1
+    rel = open_release(release)
+    actions = [a for a in (args.actions.split(",") if args.actions else rel.action_ids)
+               if rel.action(a).render_cameras()]
+    if not actions:
+        print(f"bench_relit_budget: no action of {release} has renders/; skipped")
+        return 0
+    started = time.perf_counter()
+    rows = budget_rows()
+    if args.rows:
+        wanted = [r.strip() for r in args.rows.split(",") if r.strip()]
+        unknown = sorted(set(wanted) - set(rows))
+        if unknown:
+            parser.error(f"--rows: unknown {unknown}; rows are {list(rows)}")
+        rows = {k: v for k, v in rows.items() if k in wanted}
+    report: dict[str, Any] = {"quick": args.quick, "threads": args.threads, "release": str(release),
+                              "shading_overrides": dict(SHADING_OVERRIDES),
+                              "shading": dataclasses.asdict(shading), "components": list(COMPONENTS),
+                              "rows": {k: sorted(v) for k, v in rows.items()}, "actions": {}}
+    for action in actions:
+        ab = ActionBudget(release, capture, action, args.threads, args.quick, out / "truth_visibility")
+        cams = ab.cams[:1] if args.quick else ab.cams[:args.views] if args.views else ab.cams
+        envs = ab.environments[:1] if args.quick else ab.environments
+        print(f"{action}: asset and truth loaded in {ab.load_s:.1f} s", flush=True)
+        views = [budget_view(ab, cam, envs, rows, lambda m: print(m, flush=True)) for cam in cams]
+        report["actions"][action] = {"load_s": ab.load_s, "views": views}
+        report["views"], report["environments"] = len(cams), len(envs)
+    report["summary"] = summarise(report)
+    seconds: dict[str, list[float]] = {}
+    for action in report["actions"].values():
+        for view in action["views"]:
+            for k, v in view["seconds"].items():
+                seconds.setdefault(k, []).append(v)
+    report["seconds_per_view"] = {k: float(np.mean(v)) for k, v in seconds.items()}
+    report["total_s"] = time.perf_counter() - started
+    out.mkdir(parents=True, exist_ok=True)
+    name = f"bench_relit_budget{args.tag}"
+    (out / f"{name}.json").write_text(json.dumps(report, indent=1, default=_json_default))
+    (out / f"{name}.md").write_text(markdown(report))
+    figure(report, out / f"{name}.png")
+    print(markdown(report))
+    print(f"total {report['total_s']:.0f} s; wrote {out / name}.json, .md and .png")
+    return 0
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value)}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
