@@ -52,6 +52,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stages.numerics.novel_view import HALF_MAX  # noqa: E402
+from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN  # noqa: E402
+
 COMPONENTS = ("geometry", "albedo", "material", "visibility", "lighting", "reprojection", "tone")
 """The components swapped for the simulator's truth, in the order of the cumulative rows."""
 EXTRA_ROWS = {"lighting: SG lobes integrated exactly": frozenset({"lighting_sg"})}
@@ -110,7 +113,7 @@ def exact_shade(normals: np.ndarray, view_dirs: np.ndarray, albedo: np.ndarray, 
     f0 = np.broadcast_to(np.asarray(f0, np.float32), (p,))
     dirs = np.asarray(light_dirs, np.float32)
     irr = np.asarray(light_irradiance, np.float32)
-    alpha = np.clip(np.asarray(roughness, np.float32), 0.05, 1.0) ** 2
+    alpha = np.clip(np.asarray(roughness, np.float32), ROUGHNESS_MIN, ROUGHNESS_MAX) ** 2
     out = np.zeros((p, 3), np.float32)
     for start in range(0, p, chunk):
         sl = slice(start, min(start + chunk, p))
@@ -347,12 +350,12 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
         albedo = None
         if "albedo" in swaps or "reprojection" in swaps:  # the true diffuse albedo: shaded as is
             albedo = np.clip(gb["albedo"].reshape(-1, 3)[pix], 0.0, 1.0)
-        rough = np.clip(gb["roughness"].reshape(-1)[pix], 0.05, 1.0)
+        rough = np.clip(gb["roughness"].reshape(-1)[pix], ROUGHNESS_MIN, ROUGHNESS_MAX)
         f0, shadowing = shading.f0, shading.shadowing
         if "material" in swaps:
             true_rough = np.asarray(true0["roughness"], np.float32).reshape(-1)[pix]
             inside = np.asarray(true0["mask"], bool).reshape(-1)[pix]
-            rough = np.clip(np.where(inside, true_rough, rough), 0.05, 1.0)
+            rough = np.clip(np.where(inside, true_rough, rough), ROUGHNESS_MIN, ROUGHNESS_MAX)
             f0, shadowing = simulator_f0(rough), "smith"
         gb = dict(gb, roughness=scatter_pixels(pix, rough[:, None], h, w)[..., 0])
         out = {}
@@ -375,7 +378,7 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
                     ab.lobes(record), *env_maps[label].shape[:2])
                 _, irradiance = ab.environment_lights(env, ab.truth.lights, ab.truth.max_height)
                 rgb = exact_shade(normals, gb["view_dirs"], albedo, rough, f0, ab.light_dirs, irradiance, vis)
-                image = premultiply_edges(scatter_pixels(pix, np.clip(rgb, 0, 6e4), h, w), gb["mask"], alpha)
+                image = premultiply_edges(scatter_pixels(pix, np.clip(rgb, 0, HALF_MAX), h, w), gb["mask"], alpha)
                 mask = out_mask
             else:
                 view = shade_gbuffer(gb, ab.true_scene if geometry_key(swaps) != "ours" else ab.asset.scene, K, pose,
