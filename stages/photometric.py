@@ -63,6 +63,22 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: Camera, maps:
 
 
 
+def shipped_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool mask of a capture's own mask photo at the decoded frames' size ``shape`` (a half-size decode
+    takes the 2x2 blocks more than half covered); raises InputError naming the file for any other size."""
+    from pipeline.codecs.srgb8 import read_mask8
+
+    mask = read_mask8(path)
+    if mask.shape == tuple(shape):
+        return mask
+    h, w = shape
+    if (mask.shape[0] + 1) // 2 == h and (mask.shape[1] + 1) // 2 == w:
+        padded = np.pad(mask, ((0, mask.shape[0] % 2), (0, mask.shape[1] % 2)), mode="edge").astype(np.float32)
+        return (padded[0::2, 0::2] + padded[1::2, 0::2] + padded[0::2, 1::2] + padded[1::2, 1::2]) > 2.0
+    raise InputError(path, f"mask is {mask.shape[1]} x {mask.shape[0]} pixels but the camera's images are {w} x {h}: "
+                           "images of different sizes")
+
+
 class PhotometricStage(Stage):
     name = "photometric"
     # 7: the normal sheet's tiles are labelled with their camera ids
@@ -71,6 +87,11 @@ class PhotometricStage(Stage):
     requires = ("decode", "plates", "lights")
     outputs = ("normal_alpha", "albedo", "mask", "previews")
     per_view = True
+
+    def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
+        """The masks a capture ships (the public release layout's ``mask/``; a raw capture has none)."""
+        shipped = getattr(capture, "mask_paths", None)
+        return {f"mask/{cam}": path for cam, path in shipped(scope_id).items()} if shipped is not None else {}
 
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
         upstream = ActionArtifacts(ctx.upstream)
@@ -81,8 +102,10 @@ class PhotometricStage(Stage):
         full_on, pos, neg = (upstream.exr(illumination, view) for illumination in ("full_on", "pos", "neg"))
         clipped = upstream.png("clipped", view) > 0
         background = upstream.plate(view) if self.config.use_clean_plate else None
+        shipped = ctx.raw_inputs.get(f"mask/{view}")
+        given = shipped_mask(shipped, full_on.shape[:2]) if shipped is not None else None
         maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam.record["white_reference"], np.float32),
-                                background=background, params=self.config.params)
+                                background=background, params=self.config.params, mask=given)
         facing_away = check_gradients_not_swapped(ctx, view, cam, maps)
         model = upstream.light_model()
         defined = np.any(maps.normals != 0, axis=-1)
