@@ -56,6 +56,9 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: Camera, maps:
     away, count = facing_away_fraction(maps.normals, view_directions(cam.K, cam.cam_from_world, h, w), valid)
     if count >= SWAPPED_MIN_PIXELS and away > SWAPPED_FACING_AWAY:
         action = ctx.capture_root / "actions" / str(ctx.action_id)
+        if not action.is_dir():  # the public release layout: the action folder is the capture or one inside it
+            action = next((p for p in (ctx.capture_root / str(ctx.action_id), ctx.capture_root)
+                           if (p / "pos").is_dir()), action)
         pos, neg = (next(iter(sorted((action / i).glob(f"{view}.*"))), action / i / f"{view}.*") for i in ("pos", "neg"))
         raise InputError(pos, f"g+ and g- frames of camera {view} look swapped (with {neg.name} of 'neg'): eq. 1 "
                               f"normals face away from the camera on {100 * away:.0f}% of its {count} valid pixels")

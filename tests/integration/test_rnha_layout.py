@@ -132,7 +132,17 @@ def _not_an_image(capture: Path) -> Path:
     return path
 
 
+def _swapped(capture: Path) -> Path:
+    pos, neg = capture / "A0001" / "pos" / "00001.jpg", capture / "A0001" / "neg" / "00001.jpg"
+    tmp = pos.with_name("swap.tmp")
+    pos.rename(tmp)
+    neg.rename(pos)
+    tmp.rename(neg)
+    return pos
+
+
 ACTION_FAILS = {
+    "swapped": (_swapped, "g+ and g- frames of camera 00001 look swapped"),
     "missing_illumination": (_missing_illumination, "illumination 'neg' is missing (no folder)"),
     "missing_image": (_missing_image, "camera 00002 has no image for 'pos'"),
     "different_size": (_different_size, "images of different sizes"),
@@ -195,3 +205,20 @@ def test_a_bad_transforms_json_stops_the_run_naming_it(case, layout, tmp_path, c
     assert code == 2
     assert str(path) in err and reason in err, err
     assert not release.exists() and not (tmp_path / "work").exists()  # nothing written, nothing half-written
+
+
+def test_without_mask_folder_the_foreground_is_thresholded(layout, store, tmp_path):
+    from pipeline.codecs.image import mask_from_png, read_png
+    from pipeline.codecs.srgb8 import read_mask8
+
+    capture = tmp_path / "rnha"
+    shutil.copytree(layout, capture)
+    shutil.rmtree(capture / "A0001" / "mask")
+    release = tmp_path / "release"
+    result = _run(capture, release, store)
+    assert result.action_status == {"A0000": "ok", "A0001": "ok"}, result.action_errors
+    for cam in CAMERAS:
+        made = mask_from_png(read_png(release / "actions" / "A0001" / "mask" / f"{cam}.png"))
+        shipped = read_mask8(layout / "A0001" / "mask" / f"{cam}.jpg")
+        overlap = (made & shipped).sum() / max((made | shipped).sum(), 1)
+        assert 0.5 < overlap < 1.0, (cam, overlap)  # a threshold mask of the subject, not the shipped one
