@@ -84,18 +84,24 @@ def transforms_record(cameras: list[dict[str, Any]], image_dir: str = "full_on",
 
 
 def _save_jpeg(path: Path, codes: np.ndarray, quality: int) -> None:
+    """Save 8-bit codes as a JPEG of ``quality``, or losslessly as PNG when ``path`` ends in .png."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(codes).save(path, format="JPEG", quality=quality)
+    if path.suffix == ".png":
+        Image.fromarray(codes).save(path, format="PNG")
+    else:
+        Image.fromarray(codes).save(path, format="JPEG", quality=quality)
 
 
 def write_rnha_layout(raw_capture: str | Path, out: str | Path, quality: int = JPEG_QUALITY,
-                      progress: Callable[[str], None] | None = None) -> Path:
+                      progress: Callable[[str], None] | None = None, lossless: bool = False) -> Path:
     """Write the public layout of every action of a simulated raw capture into ``out`` (see the module docstring).
 
     Args:
         raw_capture: a capture written by :func:`synthetic.simulate` (with ``ground_truth/``).
         out: the folder of action folders to write (replaced whole: written beside it, then renamed).
         quality: JPEG quality, 1..100.
+        lossless: write the same 8-bit codes as PNG instead of JPEG (a control that separates what JPEG's
+            compression costs from what 8 bits cost; the public release is JPEG).
 
     Returns:
         ``out``.
@@ -112,6 +118,7 @@ def write_rnha_layout(raw_capture: str | Path, out: str | Path, quality: int = J
     truth = raw_capture / "ground_truth"
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
+    ext = ".png" if lossless else ".jpg"
     for entry in meta["actions"]:
         action_id, session_id = entry["action_id"], entry["session_id"]
         cameras_path = truth / "cameras" / f"{session_id}.json"
@@ -126,16 +133,17 @@ def write_rnha_layout(raw_capture: str | Path, out: str | Path, quality: int = J
             for illum in ILLUMINATIONS:
                 raw = next(iter(sorted((raw_capture / "actions" / action_id / illum).glob(f"{cid}.*"))))
                 linear[illum] = decode_raw(raw, demosaic="AHD").rgb
-                _save_jpeg(folder / illum / f"{cid}.jpg", eight_bit(linear[illum], white), quality)
+                _save_jpeg(folder / illum / f"{cid}{ext}", eight_bit(linear[illum], white), quality)
             with Image.open(truth / action_id / "mask" / f"{cid}.png") as img:
                 mask = np.asarray(img)
             mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-            _save_jpeg(folder / "mask" / f"{cid}.jpg", (mask * np.uint8(255)).astype(np.uint8), quality)
-            _save_jpeg(folder / "normal_alpha" / f"{cid}.jpg", eq1_normal_picture(linear["pos"], linear["neg"], mask),
+            _save_jpeg(folder / "mask" / f"{cid}{ext}", (mask * np.uint8(255)).astype(np.uint8), quality)
+            _save_jpeg(folder / "normal_alpha" / f"{cid}{ext}", eq1_normal_picture(linear["pos"], linear["neg"], mask),
                        quality)
-        (folder / "transforms.json").write_text(json.dumps(transforms_record(cameras), indent=1))
+        (folder / "transforms.json").write_text(json.dumps(transforms_record(cameras, ext=ext), indent=1))
         if progress is not None:
-            progress(f"{action_id}: {len(cameras)} cameras in the public layout (JPEG quality {quality})")
+            progress(f"{action_id}: {len(cameras)} cameras in the public layout ("
+                     + ("lossless PNG" if lossless else f"JPEG quality {quality}") + ")")
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.exists():
         old = out.with_name(f".{out.name}.old")
