@@ -171,10 +171,17 @@ def _check_rig(rig: dict[str, Any], path: Path) -> None:
 
 
 def open_capture(root: str | Path) -> Capture:
-    """Open a capture folder; raises InputError naming the file for a missing or malformed index."""
+    """Open a capture folder; raises InputError naming the file for a missing or malformed index. A folder
+    without ``capture.json`` in the public release's layout (one action folder of ``full_on/``, ``pos/``,
+    ``neg/`` photos and a ``transforms.json``, or a folder of them) opens as :class:`pipeline.capture_rnha.RnhaCapture`."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(root, "capture folder does not exist")
+    if not (root / "capture.json").exists():
+        from pipeline.capture_rnha import is_rnha_layout, open_rnha_capture
+
+        if is_rnha_layout(root):  # the seed paper's public release layout: 8-bit photos and transforms.json
+            return open_rnha_capture(root)
     meta = _read_json(root / "capture.json", "capture index")
     if meta.get("format") != CAPTURE_FORMAT:
         raise InputError(root / "capture.json", f"unknown capture format {meta.get('format')!r}")

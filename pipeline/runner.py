@@ -470,7 +470,7 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
     lines = ["# Datasheet", "",
              f"- Capture: `{capture.root.name}` ({len(capture.actions)} actions, "
              f"{len(capture.sessions)} session(s), {len(next(iter(capture.sessions.values())).camera_ids)} cameras).",
-             f"- Origin: {'synthetic, rendered by the UltraStage simulator' if sim else 'light-stage capture'}.",
+             f"- Origin: {capture.meta.get('origin') or ('synthetic, rendered by the UltraStage simulator' if sim else 'light-stage capture')}.",
              "- Contents: decoded linear images (full_on, pos, neg), world-space normals with validity alpha, "
              "albedo from the white image (albedo and normal_diffuse denoised edge-preservingly; albedo_diffuse "
              "with the fitted specular light taken out), foreground masks, "
@@ -492,4 +492,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "everywhere; relit views have no "
              "interreflections; see metrics.parquet.",
              "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
+    defaults = capture.meta.get("defaults")  # what the capture's layout lacks and what stands in for it
+    if isinstance(defaults, dict) and defaults:
+        lines[-1:-1] = ["- Estimated or assumed, not measured (the capture's layout lacks it): "
+                        + "; ".join(f"{key}: {text}" for key, text in defaults.items()) + "."]
     _write_atomically(release / "DATASHEET.md", "\n".join(lines))

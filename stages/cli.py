@@ -142,6 +142,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     out = Path(args.out)
+    if getattr(args, "layout", "raw") == "rnha":  # the raw capture with its truth, and the public layout beside it
+        return _simulate_rnha(args, out)
     index = out / "capture.json"
     calibration = CalibrationConfig()  # chart and diffuse-sphere frames for the session stages
     wanted = json.loads(json.dumps({"simulator": config.to_json(), "simulator_calibration": calibration.to_json()}))
@@ -162,6 +164,52 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     swap_into_place(tmp, out)
     print(f"simulated capture written to {out} in {time.perf_counter() - start:.1f}s")
     return 0
+
+
+def _simulate_rnha(args: argparse.Namespace, out: Path) -> int:
+    """``simulate --layout rnha``: the raw capture (and its ground truth) in ``OUT/raw``, the same frames in the
+    public release's layout in ``OUT/rnha`` (:func:`synthetic.rnha.write_rnha_layout`), and ``OUT/layout.json``
+    saying which is which; the 8-bit photos are made again whenever the raw capture is."""
+    from synthetic.rnha import JPEG_QUALITY, write_rnha_layout
+
+    raw = out / "raw"
+    record_path = out / "layout.json"
+    before = (raw / "capture.json").read_bytes() if (raw / "capture.json").exists() else None
+    code = cmd_simulate(argparse.Namespace(**(vars(args) | {"layout": "raw", "out": str(raw)})))
+    if code:
+        return code
+    record = {"layout": "rnha", "rnha": "rnha", "raw": "raw", "ground_truth": "raw/ground_truth",
+              "jpeg_quality": JPEG_QUALITY, "chroma_subsampling": "4:2:0",
+              "exposure": "each camera white-balanced and exposed so its white reference is 255",
+              "run": f"ultrastage run --capture {out / 'rnha'} --release RELEASE",
+              "evaluate": f"ultrastage evaluate --release RELEASE --truth {raw / 'ground_truth'}"}
+    same = (before == (raw / "capture.json").read_bytes() and (out / "rnha").is_dir() and record_path.exists()
+            and json.loads(record_path.read_text()) == record)
+    if same and not args.force:
+        print(f"public layout {out / 'rnha'} is up to date: skipped (--force to redo)")
+        return 0
+    start = time.perf_counter()
+    write_rnha_layout(raw, out / "rnha", JPEG_QUALITY, progress=lambda msg: print(f"  {msg}", flush=True))
+    record_path.write_text(json.dumps(record, indent=1) + "\n")
+    print(f"public layout (8-bit sRGB JPEG, quality {JPEG_QUALITY}) written to {out / 'rnha'} in "
+          f"{time.perf_counter() - start:.1f}s; its ground truth: {raw / 'ground_truth'}")
+    return 0
+
+
+def _capture_layout_record(capture: str) -> dict[str, Any]:
+    """For a capture in the public release's layout: print what stands in for what it lacks and return it for
+    the release's run.json (``{"capture_layout": ...}``); ``{}`` for a raw capture."""
+    from pipeline.capture_rnha import DEFAULTS, is_rnha_layout, open_rnha_capture
+
+    if not is_rnha_layout(capture):
+        return {}
+    opened = open_rnha_capture(capture)
+    print(f"capture {capture}: the public release layout (RNHA: 8-bit sRGB photos, transforms.json), "
+          f"{len(opened.actions)} action(s), {len(opened.sessions)} session(s); in place of what it lacks:")
+    for key, text in DEFAULTS.items():
+        print(f"  {key:<16} {text}")
+    ngp = {a["action_id"]: {"scale": a["ngp_scale"], "offset": a["ngp_offset"]} for a in opened.meta["actions"]}
+    return {"capture_layout": {"layout": "rnha", "defaults": dict(DEFAULTS), "ngp_scale_offset": ngp}}
 
 
 def _work_dir(args: argparse.Namespace, release: Path) -> Path:
@@ -229,6 +277,7 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         counts = {s: sum(t.status == s for t in plan.tasks) for s in ("run", "cached", "failed", "blocked")}
         print("plan: " + ", ".join(f"{v} {k}" for k, v in counts.items()))
         return 0
+    layout = _capture_layout_record(args.capture)
     on_done, on_view, on_progress = _progress_printer()
     truth = Path(args.capture) / "ground_truth"
     prefetch = None if args.no_evaluate else _start_truth_prefetch(Path(args.capture), work, stages)
@@ -236,7 +285,8 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
         result = run_pipeline(Path(args.capture), release, work, stages, config, config.execution,
                               only=args.only, from_stage=args.from_stage, actions=actions,
                               progress=on_done, view_progress=on_view, stage_progress=on_progress,
-                              record={"preset": args.preset, **({"through": args.through} if args.through else {})})
+                              record={"preset": args.preset, **({"through": args.through} if args.through else {}),
+                                      **layout})
     finally:
         _stop(prefetch)
     metrics = None
@@ -373,7 +423,9 @@ def _add_stage_choice(p: argparse.ArgumentParser, stage_names: list[str]) -> Non
 
 
 def _add_run_args(p: argparse.ArgumentParser, stage_names: list[str], release_help: str) -> None:
-    p.add_argument("--capture", required=True, help="capture folder (capture.json inside)")
+    p.add_argument("--capture", required=True, help="capture folder (capture.json inside), or a folder in the public "
+                                                    "release's layout (full_on/ pos/ neg/ mask/ *.jpg and "
+                                                    "transforms.json), or a folder of those")
     p.add_argument("--release", required=True, help=release_help)
     p.add_argument("--work", help="artifact store and run logs (default: <release>.work beside the release)")
     p.add_argument("--preset", default="default", help="config preset: default, production (GPU, full-resolution captures), fast (quick looks), test (tiny captures)")
@@ -416,6 +468,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, help="image width in pixels (height follows the D750's 2:3 portrait)")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--force", action="store_true", help="render again even if the capture is up to date")
+    p.add_argument("--layout", choices=("raw", "rnha"), default="raw",
+                   help="raw: the stage's raw capture (default); rnha: also the public release's layout of the same "
+                        "frames (8-bit sRGB JPEG, quality 95, transforms.json) in OUT/rnha, the raw capture and its "
+                        "ground truth in OUT/raw")
     p.set_defaults(fn=cmd_simulate)
 
     p = sub.add_parser("run", help="run the DAG on a capture and write the release")

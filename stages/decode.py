@@ -1,6 +1,7 @@
 """Action stage ``decode``: raw files to linear sRGB EXR, one task per camera.
 
-Wiring only: the decoding itself is :func:`pipeline.codecs.raw.decode_raw`. Each camera's three
+Wiring only: the decoding itself is :func:`pipeline.codecs.raw.decode_raw` (8-bit sRGB photos of the public
+release's layout: :func:`pipeline.codecs.srgb8.decode_srgb8`, the sRGB curve undone). Each camera's three
 illuminations are decoded in one task and written as half-float EXR (its header says the colour space and
 units) and as an 8-bit sRGB PNG beside it (for viewers and for tools that read 8-bit images: nerfstudio,
 splatting trainers); the sensor's clipped pixels (any of the three frames) go to ``clipped/<cam>.png`` for
@@ -20,6 +21,7 @@ import numpy as np
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
 from pipeline.codecs.raw import decode_raw
+from pipeline.codecs.srgb8 import decode_srgb8, is_eight_bit
 from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
@@ -158,8 +160,9 @@ class DecodeStage(Stage):
         for illum in ILLUMINATIONS:
             path = ctx.raw_inputs[f"{illum}/{view}"]
             stats["raw_blake2b"][illum] = _file_digest(path)
-            frame = decode_raw(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
-                               expected_size=expected)
+            decode = decode_srgb8 if is_eight_bit(path) else decode_raw  # the public layout's 8-bit photos
+            frame = decode(path, demosaic=self.config.demosaic, half_size=self.config.half_size,
+                           expected_size=expected)
             if shape is not None and frame.rgb.shape != shape:
                 raise InputError(path, f"decoded size {frame.rgb.shape[:2]} differs from the other "
                                        f"illuminations' {shape[:2]}")

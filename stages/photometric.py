@@ -57,11 +57,30 @@ def check_gradients_not_swapped(ctx: StageContext, view: str, cam: Camera, maps:
     away, count = facing_away_fraction(maps.normals, view_directions(cam.K, cam.cam_from_world, h, w), valid)
     if count >= SWAPPED_MIN_PIXELS and away > SWAPPED_FACING_AWAY:
         action = ctx.capture_root / "actions" / str(ctx.action_id)
+        if not action.is_dir():  # the public release layout: the action folder is the capture or one inside it
+            action = next((p for p in (ctx.capture_root / str(ctx.action_id), ctx.capture_root)
+                           if (p / "pos").is_dir()), action)
         pos, neg = (next(iter(sorted((action / i).glob(f"{view}.*"))), action / i / f"{view}.*") for i in ("pos", "neg"))
         raise InputError(pos, f"g+ and g- frames of camera {view} look swapped (with {neg.name} of 'neg'): eq. 1 "
                               f"normals face away from the camera on {100 * away:.0f}% of its {count} valid pixels")
     return away
 
+
+
+def shipped_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool mask of a capture's own mask photo at the decoded frames' size ``shape`` (a half-size decode
+    takes the 2x2 blocks more than half covered); raises InputError naming the file for any other size."""
+    from pipeline.codecs.srgb8 import read_mask8
+
+    mask = read_mask8(path)
+    if mask.shape == tuple(shape):
+        return mask
+    h, w = shape
+    if (mask.shape[0] + 1) // 2 == h and (mask.shape[1] + 1) // 2 == w:
+        padded = np.pad(mask, ((0, mask.shape[0] % 2), (0, mask.shape[1] % 2)), mode="edge").astype(np.float32)
+        return (padded[0::2, 0::2] + padded[1::2, 0::2] + padded[0::2, 1::2] + padded[1::2, 1::2]) > 2.0
+    raise InputError(path, f"mask is {mask.shape[1]} x {mask.shape[0]} pixels but the camera's images are {w} x {h}: "
+                           "images of different sizes")
 
 
 class PhotometricStage(Stage):
@@ -73,6 +92,11 @@ class PhotometricStage(Stage):
     outputs = ("normal_alpha", "albedo", "mask", "previews")
     per_view = True
 
+    def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
+        """The masks a capture ships (the public release layout's ``mask/``; a raw capture has none)."""
+        shipped = getattr(capture, "mask_paths", None)
+        return {f"mask/{cam}": path for cam, path in shipped(scope_id).items()} if shipped is not None else {}
+
     def run_view(self, ctx: StageContext, view: str) -> dict[str, Any]:
         upstream = ActionArtifacts(ctx.upstream)
         cameras = upstream.calibrated_cameras()
@@ -82,8 +106,10 @@ class PhotometricStage(Stage):
         full_on, pos, neg = (upstream.exr(illumination, view) for illumination in ("full_on", "pos", "neg"))
         clipped = upstream.png("clipped", view) > 0
         background = upstream.plate(view) if self.config.use_clean_plate else None
+        shipped = ctx.raw_inputs.get(f"mask/{view}")
+        given = shipped_mask(shipped, full_on.shape[:2]) if shipped is not None else None
         maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam.record["white_reference"], np.float32),
-                                background=background, params=self.config.params)
+                                background=background, params=self.config.params, mask=given)
         facing_away = check_gradients_not_swapped(ctx, view, cam, maps)
         model = upstream.light_model()
         defined = np.any(maps.normals != 0, axis=-1)
