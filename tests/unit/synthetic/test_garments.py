@@ -74,7 +74,6 @@ def test_skirt_radii_keep_clear_of_the_body_below_the_waist():
 
 def test_transferred_weights_are_convex_and_follow_the_nearest_vertices():
     body_vertices = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0], [1.0, 1, 0]])
-    body_weights = np.eye(4)[:, :2].repeat(1, axis=0)
     body_weights = np.array([[1.0, 0], [1.0, 0], [0.0, 1], [0.0, 1]])
     w = garments.transfer_weights(np.array([[0.5, 0.0, 0.01], [0.5, 1.0, 0.01]]), body_vertices, body_weights, k=2)
     np.testing.assert_allclose(w.sum(axis=1), 1.0)
