@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 RUN ?= runs/default
 ARGS ?=
 
-.PHONY: setup dataset test bench bench-full bench-quick lint clean-runs compat
+.PHONY: setup dataset test bench bench-full bench-quick panel lint clean-runs compat
 
 setup: $(STAMP)
 
@@ -42,6 +42,13 @@ bench: setup
 # Every bench at its own full size (2,000-action engine runs, production-size memory, both passes' full sweeps).
 bench-full: setup
 	$(PY) bench/run_all.py --full --out bench/out
+
+# The subject panel (bench/bench_subjects.py): ten one-action captures at the default width (MakeHuman bodies at the
+# extremes of its macro targets, posed, with hair, in a skirt; the ICT head and the procedural subject), each through
+# the whole pipeline and its evaluation, one at a time; the table per subject and the worst cases go to bench/out
+# (bench_subjects.md / .json / .png). Part of `make bench-full`, not of `make bench` (too long for its 45 minutes).
+panel: setup
+	nice -n 10 $(PY) bench/bench_subjects.py --out bench/out
 
 # Every bench on the smallest inputs that run its code (the tests run it too): checks, not measurements.
 bench-quick: setup

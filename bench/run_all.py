@@ -37,6 +37,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "sdf_schedule": ["--schedules", "400+1200,1800+1800"],
     "sg": ["--lobes", "8,32,64"],
     "specular_normals": ["--seeds", "0"],
+    "subjects": None,
     "textures": ["--no-undecimated"],
 }
 """What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
@@ -77,6 +78,7 @@ SPEED_BASELINES: dict[str, str | None] = {
     "sg": "the map's order-2 SH projection (`x_sh_projection`)",
     "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",
     "specular_normals": "eq. 1's ratio (the `eq1` row)",
+    "subjects": "no speed figure (the pipeline's accuracy per subject: `make panel`)",
     "textures": "the stage on the undecimated mesh (`x undecimated`; `make bench-full` only)",
 }
 """Per bench (name without ``bench_``): the simple baseline its speed figures are a ratio to, timed in the same

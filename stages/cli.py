@@ -135,7 +135,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from synthetic.calibration import CalibrationConfig
 
     overrides = {k: v for k, v in {"mesh": args.mesh, "actions": args.actions, "width": args.width,
-                                   "seed": args.seed, "pose_variation": args.pose_variation}.items()
+                                   "seed": args.seed, "pose_variation": args.pose_variation, "body": args.body,
+                                   "hair": args.hair, "garment": args.garment}.items()
                  if v is not None}
     try:
         config = dataclasses.replace(SimConfig(), **overrides)
@@ -463,6 +464,17 @@ def build_parser() -> argparse.ArgumentParser:
                    "subject); default: the MakeHuman body in ../shared, else procedural")
     p.add_argument("--pose-variation", type=float, metavar="X",
                    help="0..1: how far each action's pose departs from the rest A-pose (default 0; "
+                        "MakeHuman subject only)")
+    p.add_argument("--body", metavar="SPEC",
+                   help="MakeHuman body shape (MakeHuman subject only): 'random' (drawn per action), "
+                        "'gender=0.2,weight=0.9,...' (fixed; names gender, age, muscle, weight, height, african, "
+                        "asian, caucasian, each 0..1, age >= 0.5 = 25 years), or 'random,height=0.7'; "
+                        "default: the base mesh as it is")
+    p.add_argument("--hair", type=float, metavar="FRACTION",
+                   help="0..1: fraction of the actions (drawn per action) with a hair volume (default 0; "
+                        "MakeHuman subject only)")
+    p.add_argument("--garment", type=float, metavar="FRACTION",
+                   help="0..1: fraction of the actions (drawn per action) wearing a loose skirt (default 0; "
                         "MakeHuman subject only)")
     p.add_argument("--actions", type=int, help="number of actions")
     p.add_argument("--width", type=int, help="image width in pixels (height follows the D750's 2:3 portrait)")

@@ -4,7 +4,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from pipeline.config import Documented, checked
+import numpy as np
+
+from pipeline.config import Documented, broken, checked
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,21 @@ class SimConfig(Documented):
     draw in its range, keyed by (seed, action index). 0 renders the rest pose exactly (the same files as
     without posing). Only subjects with a skeleton are posed: the MakeHuman body (its joint groups); the
     procedural subject and other meshes stay in their rest pose."""
+    body: str | None = None
+    """MakeHuman body shape (synthetic.body: MakeHuman's macro targets), MakeHuman subject only. None: the
+    base mesh as it is. ``"random"``: every action draws gender, age (25..90 years), muscle, weight, height
+    and an ethnic blend (african / asian / caucasian) from (seed, action index). ``"gender=0.2,weight=0.9"``:
+    those values for every action, the others at MakeHuman's defaults (0.5, an even ethnic blend);
+    ``"random,height=0.7"``: drawn, but for the values given. Each is in [0, 1] (age >= 0.5, MakeHuman's
+    slider: 0.5 = 25 years, 1 = 90). The shape goes on before the pose; the ground truth follows it."""
+    hair: float = checked(0.0, ge=0.0, le=1.0)
+    """Fraction of the actions (each drawn from (seed, action index)) whose subject has a hair volume
+    (synthetic.garments: its own region and material, darker and rougher than skin; MakeHuman subject only).
+    0: none (the capture is the same as without the option)."""
+    garment: float = checked(0.0, ge=0.0, le=1.0)
+    """Fraction of the actions (each drawn from (seed, action index)) whose subject wears a loose skirt over
+    the trousers (synthetic.garments: a thin closed shell off the legs' surface, its own region and
+    material; MakeHuman subject only). 0: none."""
     n_leds: int = checked(512, ge=16)
     """Number of LEDs on the sphere (Fibonacci directions)."""
     led_error: float = checked(0.03, ge=0.0)
@@ -80,9 +97,30 @@ class SimConfig(Documented):
         """Image height in pixels (portrait D750 aspect, rounded to even)."""
         return image_height(self.width)
 
+    def _checks(self) -> list[str]:
+        if self.body is None:
+            return []
+        from .body import body_from_spec
+
+        try:
+            body_from_spec(self.body, np.random.default_rng(0))
+        except ValueError as exc:
+            return [broken(self, "body", str(exc))]
+        return []
+
     def to_json(self) -> dict[str, Any]:
-        """The config as a JSON-ready dict (for capture.json)."""
-        return asdict(self)
+        """The config as a JSON-ready dict (for capture.json). The subject options added with body shapes
+        (``OPTIONAL_FIELDS``) are left out while they are at their defaults, so a capture without them has
+        the capture.json it had before them."""
+        record = asdict(self)
+        for name, default in OPTIONAL_FIELDS.items():
+            if record[name] == default:
+                del record[name]
+        return record
+
+
+OPTIONAL_FIELDS = {"body": None, "hair": 0.0, "garment": 0.0}
+"""Fields SimConfig.to_json leaves out at these (default) values."""
 
 
 def image_height(width: int) -> int:

@@ -74,6 +74,13 @@ def triangulate(obj: ObjMesh, keep_group: Callable[[str], bool]) -> tuple[np.nda
         vertices (V, 3) float64, triangles (T, 3) int64, corner_uvs (T, 3, 2) float64 or None when any
         kept face lacks UVs.
     """
+    vertices, triangles, corner_uvs, _ = triangulate_with_ids(obj, keep_group)
+    return vertices, triangles, corner_uvs
+
+
+def triangulate_with_ids(obj: ObjMesh, keep_group: Callable[[str], bool]
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """:func:`triangulate`, and the OBJ vertex index (V,) int64 of every kept vertex."""
     tris: list[list[int]] = []
     tri_uvs: list[list[int]] = []
     has_uvs = True
@@ -91,7 +98,17 @@ def triangulate(obj: ObjMesh, keep_group: Callable[[str], bool]) -> tuple[np.nda
     triangles = np.asarray(tris, dtype=np.int64)
     used, remapped = np.unique(triangles, return_inverse=True)
     corner_uvs = obj.uvs[np.asarray(tri_uvs, dtype=np.int64)] if has_uvs and len(obj.uvs) else None
-    return obj.vertices[used], remapped.reshape(-1, 3), corner_uvs
+    return obj.vertices[used], remapped.reshape(-1, 3), corner_uvs, used.astype(np.int64)
+
+
+def group_vertex_ids(obj: ObjMesh, groups: Iterable[str]) -> dict[str, np.ndarray]:
+    """Sorted distinct vertex indices (K,) int64 of each named group that has faces (absent groups are left out)."""
+    wanted = set(groups)
+    members: dict[str, set[int]] = {}
+    for (vids, _), group in zip(obj.faces, obj.groups):
+        if group in wanted:
+            members.setdefault(group, set()).update(vids)
+    return {group: np.array(sorted(ids), np.int64) for group, ids in members.items()}
 
 
 def loop_subdivide(vertices: np.ndarray, triangles: np.ndarray,

@@ -367,10 +367,10 @@ def shade_hits(hits: SurfaceHits, subject: ActionSubject, lighting: SurfaceLight
     normals = np.where(hits.backface[:, None], -normals, normals).astype(np.float32)
     points_rest = hits.interpolate(subject.vertices_rest)
     uvs = None
-    if subject.base.corner_uvs is not None:
-        uvs = np.einsum("nk,nkc->nc", hits.barycentrics.astype(np.float64),
-                        subject.base.corner_uvs[hits.triangle_ids])
-    albedo, roughness, f0, _ = subject.materials(points_rest, uvs)
+    corner_uvs = subject.corner_uvs
+    if corner_uvs is not None:
+        uvs = np.einsum("nk,nkc->nc", hits.barycentrics.astype(np.float64), corner_uvs[hits.triangle_ids])
+    albedo, roughness, f0, _ = subject.materials(points_rest, uvs, hits.corners[:, 0])
     irradiance = hits.interpolate(lighting.irradiance)
     visibility = np.clip(hits.interpolate(lighting.visible_fraction[:, None])[:, 0], 0.0, 1.0)
     irradiance[hits.backface] = 0.0

@@ -18,12 +18,13 @@ import numpy as np
 import open3d as o3d
 
 from . import calibration as calib_frames
-from . import files, pose, sensor, shading
+from . import body as body_shape
+from . import files, garments, pose, sensor, shading
 from .calibration import CalibrationConfig
 from .config import SimConfig
 from .rig import ILLUMINATIONS, NOMINAL_EXPOSURE_S, Camera, LedSphere, make_cameras, make_leds, perturb_pose
-from .subject import (MATERIALS, ActionSubject, BaseSubject, load_base_subject, make_action_subject,
-                      resolve_mesh)
+from .subject import (EXTRA_MATERIALS, FABRIC_COLOURS, GARMENT, HAIR, MATERIALS, ActionSubject, BaseSubject,
+                      load_base_subject, make_action_subject, resolve_mesh, shape_body)
 from .threads import limit_blas_threads
 
 CAPTURE_FORMAT = "ultrastage-capture/1"
@@ -32,7 +33,7 @@ TRUTH_FORMAT = "ultrastage-truth/1"
 CAPTURE_ENTRIES = ("capture.json", "sessions", "actions", "ground_truth", "previews")
 
 # purposes of the random streams: default_rng([seed, PURPOSE, ...])
-_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE, _RIG_SPEC, _POSE = range(1, 9)
+_RIG, _SESSION_RIG, _LEDS, _SUBJECT, _NOISE, _PLATE_NOISE, _RIG_SPEC, _POSE, _BODY, _HAIR, _GARMENT = range(1, 12)
 
 
 @dataclass(frozen=True)
@@ -96,14 +97,90 @@ def action_pose(config: SimConfig, base: BaseSubject, action_index: int) -> dict
     return pose.draw_pose(np.random.default_rng([config.seed, _POSE, action_index]), config.pose_variation)
 
 
+def action_body(config: SimConfig, base: BaseSubject, action_index: int) -> body_shape.BodyParams | None:
+    """The body shape of an action (SimConfig.body, random parts drawn from (seed, action index)); None when
+    the config sets none or the subject cannot be shaped."""
+    if config.body is None or base.shaping is None:
+        return None
+    return body_shape.body_from_spec(config.body, np.random.default_rng([config.seed, _BODY, action_index]))
+
+
+def action_hair(config: SimConfig, base: BaseSubject, action_index: int) -> garments.HairStyle | None:
+    """The hair of an action: with probability SimConfig.hair, a style drawn from (seed, action index)."""
+    if config.hair <= 0.0 or base.landmarks is None:
+        return None
+    rng = np.random.default_rng([config.seed, _HAIR, action_index])
+    return garments.draw_hair(rng) if rng.uniform() < config.hair else None
+
+
+def action_garment(config: SimConfig, base: BaseSubject, action_index: int) -> garments.GarmentStyle | None:
+    """The skirt of an action: with probability SimConfig.garment, a style drawn from (seed, action index)."""
+    if config.garment <= 0.0 or base.landmarks is None:
+        return None
+    rng = np.random.default_rng([config.seed, _GARMENT, action_index])
+    return garments.draw_garment(rng, FABRIC_COLOURS) if rng.uniform() < config.garment else None
+
+
 def subject_extent(config: SimConfig, base: BaseSubject) -> tuple[float, tuple[float, float]]:
     """Bounding cylinder (radius about +y, (y_min, y_max)) the cameras frame: the rest mesh's, widened to
     the reach of every pose pose_variation allows (synthetic.pose.reach_extent), so raised or spread limbs
-    stay in view and the rig does not depend on the number of actions or their draws."""
-    if config.pose_variation <= 0.0 or base.landmarks is None:
-        return base.radius_xz, base.y_range
-    radius, y_min, y_max = pose.reach_extent(base.vertices, base.skeleton, config.pose_variation)
+    stay in view and the rig does not depend on the number of actions or their draws. With body shapes
+    (SimConfig.body) it is the extent of every body the spec can give (a fixed body's own; for random ones
+    the union over the corners of the parameter box, synthetic.body.extreme_bodies), widened by the pose
+    reach (a fixed body's own; for random ones the base's reach beyond its rest extent, scaled by the tallest
+    body's height); hair (SimConfig.hair) adds its largest thickness above the head."""
+    if config.body is not None and base.shaping is not None:
+        radius, (y_min, y_max) = _shaped_extent(config, base)
+    elif config.pose_variation <= 0.0 or base.landmarks is None:
+        radius, (y_min, y_max) = base.radius_xz, base.y_range
+    else:
+        radius, y_min, y_max = pose.reach_extent(base.vertices, base.skeleton, config.pose_variation)
+    if config.hair > 0.0 and base.landmarks is not None:
+        y_max += garments.HAIR_MAX_THICKNESS_M
     return radius, (y_min, y_max)
+
+
+def _shaped_extent(config: SimConfig, base: BaseSubject) -> tuple[float, tuple[float, float]]:
+    """subject_extent of a config with a body spec (base.shaping is set)."""
+    is_random, fixed = body_shape.parse_body_spec(config.body)
+    posed = config.pose_variation > 0.0 and base.landmarks is not None
+    if not is_random:
+        params = body_shape.body_from_spec(config.body)
+        offsets, landmarks = shape_body(base, params)
+        vertices = base.vertices + offsets
+        if posed:
+            skeleton = pose.Skeleton(pose.bone_joints(landmarks), landmarks, base.skeleton.weights)
+            radius, y_min, y_max = pose.reach_extent(vertices, skeleton, config.pose_variation)
+            return radius, (y_min, y_max)
+        return float(np.sqrt(vertices[:, 0] ** 2 + vertices[:, 2] ** 2).max()), \
+            (float(vertices[:, 1].min()), float(vertices[:, 1].max()))
+    shaping = base.shaping
+    ranges = {a: (fixed[a], fixed[a]) if a in fixed else body_shape.RANDOM_RANGES[a] for a in body_shape.SHAPE_AXES}
+    radius, y_min, y_max, tallest = 0.0, np.inf, -np.inf, 0.0
+    base_coarse = None
+    for params in body_shape.extreme_bodies(ranges):
+        offsets = body_shape.makehuman_offsets(shaping.targets_dir, params, shaping.obj_vertex_count)
+        if base_coarse is None:  # the coarse vertices in the base's frame: Loop subdivision keeps them in their hull
+            base_coarse = _coarse_vertices(base)
+        coarse = base_coarse + offsets[shaping.source_ids] * base.units_m
+        radius = max(radius, float(np.sqrt(coarse[:, 0] ** 2 + coarse[:, 2] ** 2).max()))
+        y_min, y_max = min(y_min, float(coarse[:, 1].min())), max(y_max, float(coarse[:, 1].max()))
+        tallest = max(tallest, float(np.ptp(coarse[:, 1])))
+    if posed:
+        reach_radius, reach_min, reach_max = pose.reach_extent(base.vertices, base.skeleton, config.pose_variation)
+        scale = tallest / float(np.ptp(base.vertices[:, 1]))
+        radius += scale * max(0.0, reach_radius - base.radius_xz)
+        y_min -= scale * max(0.0, base.y_range[0] - reach_min)
+        y_max += scale * max(0.0, reach_max - base.y_range[1])
+    return radius, (y_min, y_max)
+
+
+def _coarse_vertices(base: BaseSubject) -> np.ndarray:
+    """The base's vertices before subdivision (V0, 3), in its (centred, metre) frame."""
+    from .geometry import read_obj
+
+    kept = read_obj(base.source).vertices[base.shaping.source_ids] * base.units_m
+    return kept - 0.5 * (kept.min(axis=0) + kept.max(axis=0))
 
 
 def spec_cameras(cameras: list[Camera], config: SimConfig, rng: np.random.Generator) -> list[Camera]:
@@ -315,7 +392,8 @@ def action_subject(config: SimConfig, base: BaseSubject, action_index: int) -> A
     cycle_offset = int(np.random.default_rng([config.seed, _SUBJECT]).integers(1 << 16))
     return make_action_subject(base, np.random.default_rng([config.seed, _SUBJECT, action_index]),
                                action_index, config.fold_amplitude_m, cycle_offset,
-                               action_pose(config, base, action_index))
+                               action_pose(config, base, action_index), action_body(config, base, action_index),
+                               action_hair(config, base, action_index), action_garment(config, base, action_index))
 
 
 def prepare_action(config: SimConfig, base: BaseSubject, session: Session, action_index: int,
@@ -395,6 +473,35 @@ def render_action(out: Path, config: SimConfig, base: BaseSubject, session: Sess
     return subject.label
 
 
+def optional_subject_record(config: SimConfig, subject: ActionSubject) -> dict:
+    """truth.json's subject entries for the options that change the subject's shape: ``body`` (the MakeHuman
+    parameters and the rest height), ``hair`` and ``garment`` (their styles, None for an action without), each
+    present only when its option is set (so a capture without them has the truth.json it had before them)."""
+    record: dict = {}
+    if config.body is not None:
+        record["body"] = None if subject.body is None else subject.body.to_json() | {
+            "spec": config.body, "targets": "MakeHuman macrodetails (universal, height, ethnic), linear blend",
+            "height_m": None if subject.pose_deg is not None else
+            round(float(np.ptp(subject.vertices_world[:len(subject.base.vertices), 1])), 4)}
+    if config.hair > 0.0:
+        record["hair"] = None if subject.hair is None else subject.hair.to_json() | {"region": "hair"}
+    if config.garment > 0.0:
+        record["garment"] = None if subject.garment is None else subject.garment.to_json() | {
+            "region": "cloth_skirt", "triangles": len(subject.garment_triangles)}
+    return record
+
+
+def action_materials(subject: ActionSubject) -> list[tuple[str, float, float]]:
+    """(name, roughness, F0) of the regions an action's subject has: every subject's (MATERIALS), then hair and
+    skirt when it has them."""
+    rows = list(MATERIALS.values())
+    if subject.hair is not None:
+        rows.append(EXTRA_MATERIALS[HAIR])
+    if subject.garment is not None:
+        rows.append(EXTRA_MATERIALS[GARMENT])
+    return rows
+
+
 def truth_record(config: SimConfig, subject: ActionSubject, session: Session, action_id: str) -> dict:
     """truth.json: subject, materials, LEDs and the rendering scheme of one action."""
     base = subject.base
@@ -408,10 +515,11 @@ def truth_record(config: SimConfig, subject: ActionSubject, session: Session, ac
                     "cloth": subject.cloth.to_json() if base.kind in ("makehuman", "procedural") else None,
                     "pose": (None if subject.pose_deg is None else
                              {"variation": config.pose_variation, "skinning": "linear blend, 10 bones",
-                              "angles_deg": {k: round(v, 3) for k, v in subject.pose_deg.items()}})},
+                              "angles_deg": {k: round(v, 3) for k, v in subject.pose_deg.items()}})}
+        | optional_subject_record(config, subject),
         "materials": {name: {"roughness": rough, "f0": f0, "ggx_alpha": round(rough ** 2, 4),
                              "model": "lambert + GGX (Smith height-correlated, Schlick)" if config.specular
-                             else "lambert"} for name, rough, f0 in MATERIALS.values()},
+                             else "lambert"} for name, rough, f0 in action_materials(subject)},
         "leds": {"count": session.leds.count, "led_error": config.led_error,
                  "solid_angle_sr": session.leds.solid_angle,
                  "gains": np.round(session.leds.gains, 6).tolist(),

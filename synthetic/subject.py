@@ -10,10 +10,13 @@ Four kinds:
 - ``mesh``: a PLY, glTF / GLB, STL, OFF, ... file (read with trimesh), the same material as ``obj``.
 
 Each action varies the subject deterministically from (seed, action index): skin atlas or tone, yaw about
-+y, cloth pattern and colours, fold pattern, and (MakeHuman only, `pose_variation` > 0) a pose: joint
-angles of a linear-blend-skinned skeleton (synthetic.pose). The pose is applied to the rest mesh before
-the yaw. Materials are evaluated per surface point from its rest-frame (unposed, unyawed) position, so
-solid textures and cloth regions move with the body, and UV.
++y, cloth pattern and colours, fold pattern, and on the MakeHuman body only: a body shape (MakeHuman's macro
+targets, synthetic.body, when SimConfig.body is set), hair and a loose skirt (synthetic.garments, per action
+with SimConfig.hair / SimConfig.garment), and (`pose_variation` > 0) a pose: joint angles of a
+linear-blend-skinned skeleton (synthetic.pose). The mesh is shaped first (the skeleton's joints follow the
+shaped mesh, the skinning weights stay the base mesh's), then folded, given its hair, dressed, posed and
+yawed. Materials are evaluated per surface point from its rest-frame (unshaped, unposed, unyawed) position,
+so solid textures and cloth regions move with the body, and UV; the skirt's points carry their region.
 """
 from __future__ import annotations
 
@@ -25,7 +28,10 @@ import numpy as np
 
 from pipeline.errors import InputError
 
-from . import geometry, pose
+from . import body as body_shape
+from . import garments, geometry, pose
+from .body import BodyParams
+from .garments import GarmentStyle, HairStyle
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "data" / "meshes"
@@ -34,6 +40,8 @@ DEFAULT_MESH = SHARED_MESHES / "makehuman_base.obj"
 
 MAKEHUMAN_UNITS_M = 0.1
 """MakeHuman base meshes are in decimetres."""
+TARGETS_FOLDER = "makehuman_targets"
+"""MakeHuman's macro targets: beside the mesh, else in SHARED_MESHES."""
 
 # Region ids and their materials: (name, roughness, F0).
 SKIN, SHIRT, TROUSERS, SHINY = 0, 1, 2, 3
@@ -43,6 +51,14 @@ MATERIALS = {
     TROUSERS: ("cloth_trousers", 0.70, 0.04),
     SHINY: ("leather_shiny", 0.25, 0.04),
 }
+"""The regions every subject can have."""
+HAIR, GARMENT = 4, 5
+EXTRA_MATERIALS = {
+    HAIR: ("hair", 0.65, 0.046),  # keratin, n ~ 1.55; rougher than skin
+    GARMENT: ("cloth_skirt", 0.85, 0.04),
+}
+"""Regions of the optional hair and skirt (listed in truth.json only for the actions that have them)."""
+ALL_MATERIALS = MATERIALS | EXTRA_MATERIALS
 
 FABRIC_COLOURS = np.array([  # linear sRGB diffuse albedos
     [0.03, 0.05, 0.16], [0.72, 0.71, 0.66], [0.42, 0.04, 0.05], [0.07, 0.22, 0.09], [0.22, 0.22, 0.23],
@@ -66,6 +82,8 @@ class BaseSubject:
     corner_uvs: np.ndarray | None
     skins: tuple[str, ...] = ()
     landmarks: dict[str, np.ndarray] | None = field(default=None, compare=False)
+    shaping: "ShapingData | None" = field(default=None, compare=False)
+    """What body shaping needs (MakeHuman subjects whose targets folder exists), else None."""
 
     @functools.cached_property
     def skeleton(self) -> pose.Skeleton | None:
@@ -83,6 +101,23 @@ class BaseSubject:
     def radius_xz(self) -> float:
         """Largest distance of a vertex from the +y axis (yaw invariant), metres."""
         return float(np.sqrt(self.vertices[:, 0] ** 2 + self.vertices[:, 2] ** 2).max())
+
+
+@dataclass(frozen=True)
+class ShapingData:
+    """How MakeHuman targets (indexed by OBJ vertex) reach a base subject's vertices.
+
+    obj_vertex_count: vertices of the OBJ file; source_ids: (V0,) OBJ index of each kept vertex before
+    subdivision; coarse_triangles: (T0, 3) their triangles; subdivisions: Loop steps from those to the base's
+    vertices (Loop subdivision is linear in the positions, so it carries offsets the same way);
+    landmark_ids: landmark -> OBJ indices of its joint group; targets_dir: the targets folder.
+    """
+    obj_vertex_count: int
+    source_ids: np.ndarray
+    coarse_triangles: np.ndarray
+    subdivisions: int
+    landmark_ids: dict[str, np.ndarray]
+    targets_dir: str
 
 
 @dataclass(frozen=True)
@@ -128,21 +163,44 @@ class ActionSubject:
     vertices_world: np.ndarray
     normals_world: np.ndarray
     pose_deg: dict[str, float] | None = None
+    body: BodyParams | None = None
+    """The MakeHuman macro parameters the mesh was shaped with; None: the base mesh as it is."""
+    hair: HairStyle | None = None
+    garment: GarmentStyle | None = None
+    garment_triangles: np.ndarray | None = None
+    """(Tg, 3) triangles of the skirt, indexing vertices after the body's (None without a garment)."""
 
     @property
     def triangles(self) -> np.ndarray:
-        return self.base.triangles
+        """(T, 3): the base's triangles, then the skirt's."""
+        if self.garment_triangles is None:
+            return self.base.triangles
+        return np.concatenate([self.base.triangles, self.garment_triangles])
 
-    def materials(self, points_rest: np.ndarray, uvs: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    @property
+    def corner_uvs(self) -> np.ndarray | None:
+        """(T, 3, 2) UVs of `triangles` (the skirt's are 0: it has no atlas), or None."""
+        if self.base.corner_uvs is None or self.garment_triangles is None:
+            return self.base.corner_uvs
+        return np.concatenate([self.base.corner_uvs, np.zeros((len(self.garment_triangles), 3, 2))])
+
+    def materials(self, points_rest: np.ndarray, uvs: np.ndarray | None,
+                  vertex_ids: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """Materials at surface points.
 
         Args:
             points_rest: (N, 3) rest-frame positions (metres). uvs: (N, 2) texture coordinates or None.
+            vertex_ids: (N,) a vertex of each point's triangle: points on the skirt's triangles are GARMENT
+                (None: the points are taken to be on the body).
 
         Returns:
             albedo (N, 3) float32 linear sRGB, roughness (N,) float32, f0 (N,) float32, region (N,) int8.
         """
         region = region_of(self.base, points_rest)
+        if self.hair is not None:
+            region[garments.hair_weight(points_rest, self.base.landmarks, self.hair) > 0.5] = HAIR
+        if self.garment_triangles is not None and vertex_ids is not None:
+            region[np.asarray(vertex_ids) >= len(self.base.vertices)] = GARMENT
         n = len(points_rest)
         albedo = np.zeros((n, 3), np.float32)
         skin = region == SKIN
@@ -159,8 +217,15 @@ class ActionSubject:
             albedo[sel] = cloth_albedo(points_rest[sel], pattern, colours, period, tilt)
         shiny = region == SHINY
         albedo[shiny] = shiny_albedo(points_rest[shiny], self.base.kind)
-        roughness = np.array([MATERIALS[k][1] for k in range(4)], np.float32)[region]
-        f0 = np.array([MATERIALS[k][2] for k in range(4)], np.float32)[region]
+        if self.hair is not None:
+            hair = region == HAIR
+            albedo[hair] = garments.hair_albedo(points_rest[hair], self.base.landmarks, self.hair)
+        if self.garment is not None:
+            skirt = region == GARMENT
+            albedo[skirt] = cloth_albedo(points_rest[skirt], self.garment.pattern, self.garment.colours,
+                                         self.garment.period_m, 0.0)
+        roughness = np.array([ALL_MATERIALS[k][1] for k in range(len(ALL_MATERIALS))], np.float32)[region]
+        f0 = np.array([ALL_MATERIALS[k][2] for k in range(len(ALL_MATERIALS))], np.float32)[region]
         return np.clip(albedo, 0.0, 1.0), roughness, f0, region.astype(np.int8)
 
 
@@ -189,17 +254,23 @@ def load_base_subject(mesh_path: str | None, subdivisions: int) -> BaseSubject:
     if mesh_path is None:
         vertices, triangles = procedural_body_mesh()
         return BaseSubject("procedural", "procedural/capsules-torus", None, 1.0, vertices, triangles, None)
-    landmarks = None
+    landmarks, shaping = None, None
     if Path(mesh_path).suffix.lower() == ".obj":
         try:
             obj = geometry.read_obj(mesh_path)
             is_makehuman = "body" in set(obj.groups)
             if is_makehuman:
-                vertices, triangles, corner_uvs = geometry.triangulate(obj, lambda g: g == "body")
+                vertices, triangles, corner_uvs, source_ids = geometry.triangulate_with_ids(obj, lambda g: g == "body")
                 units_m = MAKEHUMAN_UNITS_M
                 found = geometry.group_centroids(obj, pose.MAKEHUMAN_JOINTS.values())
                 if len(found) == len(pose.MAKEHUMAN_JOINTS):
                     landmarks = {name: found[group] for name, group in pose.MAKEHUMAN_JOINTS.items()}
+                    ids = geometry.group_vertex_ids(obj, pose.MAKEHUMAN_JOINTS.values())
+                    targets = Path(mesh_path).parent / TARGETS_FOLDER
+                    targets = targets if targets.is_dir() else SHARED_MESHES / TARGETS_FOLDER
+                    shaping = ShapingData(len(obj.vertices), source_ids, triangles, subdivisions,
+                                          {name: ids[group] for name, group in pose.MAKEHUMAN_JOINTS.items()},
+                                          str(targets))
             else:
                 vertices, triangles, corner_uvs = geometry.triangulate(
                     obj, lambda g: not (g.startswith("helper-") or g.startswith("joint-")))
@@ -228,7 +299,7 @@ def load_base_subject(mesh_path: str | None, subdivisions: int) -> BaseSubject:
             skins = tuple(str(p) for p in sorted(SHARED_MESHES.glob("skins/*.png")))
     name = "makehuman" if is_makehuman else f"{kind}/{Path(mesh_path).stem}"
     return BaseSubject(kind, name, str(mesh_path), units_m, vertices, triangles,
-                       corner_uvs if is_makehuman else None, skins, landmarks)
+                       corner_uvs if is_makehuman else None, skins, landmarks, shaping)
 
 
 def read_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -312,11 +383,14 @@ def procedural_body_mesh(step: float = 0.012) -> tuple[np.ndarray, np.ndarray]:
 
 def make_action_subject(base: BaseSubject, rng: np.random.Generator, action_index: int,
                         fold_amplitude_m: float, cycle_offset: int = 0,
-                        pose_deg: dict[str, float] | None = None) -> ActionSubject:
+                        pose_deg: dict[str, float] | None = None, body: BodyParams | None = None,
+                        hair: HairStyle | None = None, garment: GarmentStyle | None = None) -> ActionSubject:
     """Vary the base subject for one action: yaw, cloth colours and folds from `rng`; skin, skin tone
     and cloth pattern kinds cycle with `cycle_offset + action_index`, so consecutive actions differ.
-    `pose_deg` (joint angles, synthetic.pose) poses the displaced rest mesh before the yaw; it is ignored
-    (the subject stays in its rest pose) when the base has no skeleton."""
+    `body` shapes the MakeHuman mesh (its macro parameters), `hair` gives it a hair volume, `garment` a skirt;
+    `pose_deg` (joint angles, synthetic.pose) poses the shaped, folded, dressed rest mesh before the yaw. Each
+    is ignored (None in the result) when the base cannot take it: the body needs the MakeHuman targets
+    (BaseSubject.shaping), hair, skirt and pose a skeleton."""
     cycle = cycle_offset + action_index
     yaw = float(rng.uniform(-np.pi, np.pi))
     cloth = random_cloth(rng, fold_amplitude_m, cycle)
@@ -331,17 +405,106 @@ def make_action_subject(base: BaseSubject, rng: np.random.Generator, action_inde
     displacement = cloth.fold_amplitude_m * weight * fold_pattern(base.vertices, cloth.fold_freqs,
                                                                   cloth.fold_phases)
     vertices_rest = base.vertices + displacement[:, None] * normals_rest
-    vertices_posed = vertices_rest
-    if pose_deg is not None and base.skeleton is not None:
-        vertices_posed = pose.pose_vertices(vertices_rest, base.skeleton, pose_deg)
+    body = body if base.shaping is not None else None
+    hair = hair if base.landmarks is not None else None
+    garment = garment if base.landmarks is not None else None
+    skeleton = base.skeleton if pose_deg is not None or garment is not None else None
+    if body is None and hair is None and garment is None:
+        vertices_dressed, skirt = vertices_rest, None
+    else:
+        vertices_dressed, skeleton, skirt = dress(base, vertices_rest, displacement, normals_rest, body, hair,
+                                                  garment, skeleton)
+    if pose_deg is not None and skeleton is not None:
+        vertices_posed = pose.pose_vertices(vertices_dressed[:len(base.vertices)], skeleton, pose_deg)
+        if skirt is not None:
+            transforms = pose.bone_transforms(pose_deg, skeleton)
+            vertices_posed = np.concatenate([vertices_posed, pose.skin(skirt[0], skirt[2], transforms)])
     else:
         pose_deg = None
+        vertices_posed = vertices_dressed if skirt is None else np.concatenate([vertices_dressed, skirt[0]])
+    if skirt is not None:
+        vertices_rest = np.concatenate([vertices_rest, skirt[0]])
+    garment_triangles = None if skirt is None else skirt[1] + len(base.vertices)
+    triangles = base.triangles if skirt is None else np.concatenate([base.triangles, garment_triangles])
     rotation = geometry.yaw_matrix(yaw)
     vertices_world = vertices_posed @ rotation.T
-    normals_world = geometry.vertex_normals(vertices_world, base.triangles)
+    normals_world = geometry.vertex_normals(vertices_world, triangles)
     label = base.name if base.kind != "makehuman" else f"makehuman/{skin_name}"
     return ActionSubject(base, label, yaw, skin_name, skin_texture, skin_tone, cloth, vertices_rest,
-                         vertices_world, normals_world, pose_deg)
+                         vertices_world, normals_world, pose_deg, body, hair, garment, garment_triangles)
+
+
+def shape_body(base: BaseSubject, params: BodyParams) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Offsets (V, 3) metres of the base's vertices for the MakeHuman body `params` (synthetic.body, carried
+    through the base's Loop subdivisions) and the shaped skeleton landmarks (centroids of the shaped joint
+    groups). InputError when a target file is missing."""
+    shaping = base.shaping
+    if shaping is None or base.landmarks is None:
+        raise ValueError(f"{base.name} cannot be shaped (not the MakeHuman body with its targets)")
+    offsets_obj = body_shape.makehuman_offsets(shaping.targets_dir, params, shaping.obj_vertex_count) * base.units_m
+    offsets, triangles = offsets_obj[shaping.source_ids], shaping.coarse_triangles
+    for _ in range(shaping.subdivisions):
+        offsets, triangles, _ = geometry.loop_subdivide(offsets, triangles)
+    landmarks = {name: base.landmarks[name] + offsets_obj[ids].mean(axis=0)
+                 for name, ids in shaping.landmark_ids.items()}
+    return offsets, landmarks
+
+
+def dress(base: BaseSubject, vertices_rest: np.ndarray, displacement: np.ndarray, normals_rest: np.ndarray,
+          body: BodyParams | None, hair: HairStyle | None, garment: GarmentStyle | None,
+          skeleton: pose.Skeleton | None) -> tuple[np.ndarray, pose.Skeleton | None, tuple | None]:
+    """The shaped, folded body with its hair (V, 3), the skeleton of the shaped body (None when `skeleton` is
+    None) and the skirt: (rest vertices (S, 3), triangles (Tg, 3) over them, skinning weights (S, B)) or None.
+
+    vertices_rest: (V, 3) folded base vertices; displacement: (V,) their fold heights along normals_rest (V, 3).
+    """
+    vertices, normals = vertices_rest, normals_rest
+    if body is not None:
+        offsets, landmarks = shape_body(base, body)
+        shaped = base.vertices + offsets
+        normals = geometry.vertex_normals(shaped, base.triangles)
+        vertices = shaped + displacement[:, None] * normals
+        if skeleton is not None:
+            skeleton = pose.Skeleton(pose.bone_joints(landmarks), landmarks, skeleton.weights)
+    if hair is not None:
+        lift = garments.hair_displacement(vertices, base.vertices, base.landmarks, hair)
+        vertices = vertices + lift[:, None] * normals
+    skirt = None
+    if garment is not None:
+        skirt = build_skirt(vertices, base.triangles, skeleton, garment)
+    return vertices, skeleton, skirt
+
+
+SKIRT_ANGLES = 160
+"""Vertices round each skirt ring (about 9 mm apart at the hem)."""
+SKIRT_RING_SPACING_M = 0.01
+"""Vertical distance between the skirt's rings."""
+WAIST_ABOVE_PELVIS = 0.033
+"""Waist (belt) height above the pelvis joint, as a fraction of the body's height."""
+
+
+def build_skirt(vertices: np.ndarray, triangles: np.ndarray, skeleton: pose.Skeleton,
+                style: GarmentStyle) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The skirt round a rest body (vertices (V, 3), triangles (T, 3), its skeleton): rest vertices (S, 3),
+    triangles (Tg, 3) over them and skinning weights (S, len(pose.BONES)) (synthetic.garments)."""
+    landmarks = skeleton.landmarks
+    arm_bones = [pose.BONES.index(b) for b in ("l_upper_arm", "l_forearm", "r_upper_arm", "r_forearm")]
+    on_arm = skeleton.weights[:, arm_bones].sum(axis=1) > 0.3
+    keep = ~on_arm[triangles].any(axis=1)
+    height = float(vertices[:, 1].max() - vertices[:, 1].min())
+    axis = np.array([landmarks["pelvis"][0], landmarks["pelvis"][2]])
+    waist = float(landmarks["pelvis"][1]) + WAIST_ABOVE_PELVIS * height
+    knee = 0.5 * float(landmarks["l_knee"][1] + landmarks["r_knee"][1])
+    hem = knee + style.hem * (waist - knee)
+    rings = max(3, int(np.ceil((waist - hem) / SKIRT_RING_SPACING_M)) + 1)
+    heights = np.linspace(waist, hem, rings)
+    angles = np.arange(SKIRT_ANGLES) * (2.0 * np.pi / SKIRT_ANGLES)
+    extent = garments.body_extent_rings(vertices, triangles[keep], axis, heights, angles)
+    radius = garments.skirt_radii(extent, heights, style, angles)
+    skirt_vertices, skirt_triangles, _ = garments.skirt_shell(radius, heights, angles, axis)
+    body_ids = np.flatnonzero(~on_arm)
+    weights = garments.transfer_weights(skirt_vertices, vertices[body_ids], skeleton.weights[body_ids])
+    return skirt_vertices, skirt_triangles, weights
 
 
 def random_cloth(rng: np.random.Generator, fold_amplitude_m: float, cycle: int) -> ClothStyle:

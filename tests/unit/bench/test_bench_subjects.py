@@ -1,0 +1,81 @@
+"""The subject panel (bench/bench_subjects.py): its table logic on hand-made figures, and its quick mode end to end."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[3]
+SHARED = Path(os.environ.get("ULTRASTAGE_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="module")
+def panel():
+    """bench/bench_subjects.py imported by path (bench/ is not a package; its sys.path edits are undone)."""
+    saved = list(sys.path)
+    try:
+        spec = importlib.util.spec_from_file_location("bench_under_test_subjects", ROOT / "bench" / "bench_subjects.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # its dataclasses look their module up there
+        spec.loader.exec_module(module)
+    finally:
+        sys.path[:] = saved
+    return module
+
+
+def test_figures_keep_finite_values_and_add_the_best_normals(panel):
+    figures = panel.figures_of({"chamfer_mm": 1.2, "relit_psnr_db": float("nan"), "normal_mean_deg": 3.0,
+                                "normal_mean_deg_diffuse": 2.5, "not_a_figure": 7.0})
+    assert figures == {"chamfer_mm": 1.2, "normal_mean_deg": 3.0, "normal_mean_deg_diffuse": 2.5,
+                       "best_normal_mean_deg": 2.5}
+
+
+def test_worst_case_and_misses_follow_each_figures_direction(panel):
+    per = {"a": {"chamfer_mm": 1.0, "relit_psnr_db": 30.0, "heldout_albedo_psnr_db": 31.0,
+                 "heldout_normal_mean_deg": 4.0},
+           "b": {"chamfer_mm": 2.0, "relit_psnr_db": 24.0, "heldout_albedo_psnr_db": 29.0,
+                 "heldout_normal_mean_deg": 5.0},
+           "c": {"relit_psnr_db": 26.0}}
+    worst = panel.worst_cases(per)
+    assert worst["chamfer_mm"] == {"subject": "b", "value": 2.0}
+    assert worst["relit_psnr_db"] == {"subject": "b", "value": 24.0}
+    assert worst["heldout_normal_mean_deg"] == {"subject": "b", "value": 5.0}
+    missed = panel.misses(per)
+    assert missed["chamfer_mm > 1.5"] == ["b"] and missed["relit_psnr_db < 25"] == ["b"]
+    assert missed["heldout_albedo_psnr_db worse than the paper's 30.87"] == ["b"]
+    assert missed["heldout_normal_mean_deg worse than the paper's 4.3"] == ["b"]
+
+
+def test_the_panel_spans_the_extremes_and_two_other_meshes(panel):
+    names = {s.name for s in panel.SUBJECTS}
+    assert {"heavy", "thin", "tall", "short", "old", "posed", "hair", "skirt"} <= names
+    assert sum(not s.makehuman for s in panel.SUBJECTS) == 2
+    from synthetic import SimConfig
+
+    for subject in panel.SUBJECTS:  # every subject's settings make a valid config
+        SimConfig(actions=1, **subject.sim_changes(SHARED / "meshes"))
+
+
+@pytest.mark.slow
+def test_quick_mode_writes_the_table_and_json(tmp_path):
+    env = os.environ | {"ULTRASTAGE_SHARED_DATA": str(SHARED), "OMP_WAIT_POLICY": "PASSIVE"}
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_subjects.py"), "--quick", "--out", str(tmp_path)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((tmp_path / "bench_subjects.json").read_text())
+    assert report["quick"] is True and len(report["subjects"]) == 1
+    (name, subject), = report["subjects"].items()
+    assert name == ("dressed" if (SHARED / "meshes" / "makehuman_base.obj").is_file() else "procedural")
+    for key in ("chamfer_mm", "fscore_1mm", "heldout_albedo_psnr_db", "best_normal_mean_deg", "roughness_mae",
+                "relit_psnr_db", "relightset_image_psnr_db"):
+        assert math.isfinite(subject["figures"][key]), key
+        assert report["worst"][key]["subject"] == name
+    table = (tmp_path / "bench_subjects.md").read_text()
+    assert "quick: not measurements" in table and "| Chamfer (mm) |" in table and "| relit PSNR (dB) |" in table
+    assert (tmp_path / "bench_subjects.png").stat().st_size > 0
