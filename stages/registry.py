@@ -18,6 +18,7 @@ from stages.diffuse_normals import DiffuseNormalsConfig, DiffuseNormalsStage
 from stages.photometric import PhotometricConfig, PhotometricStage
 from stages.plates import PlatesStage
 from stages.numerics.novel_view import ViewShading
+from stages.numerics.specular_normals import SpecularConfig
 from stages.relight import RelightConfig, RelightStage
 from stages.relightset import RelightSetConfig, RelightSetStage
 from stages.textures import TexturesConfig, TexturesStage
@@ -107,6 +108,13 @@ PRESETS: dict[str, PipelineConfig] = {
                                                                            coverage_samples=2)),
                            execution=ExecutionConfig(scheduler="sync")),
 }
+# The test suite's accuracy gate (tests/integration/test_accuracy_gate.py: one action, 32 cameras, 128 px): the test
+# preset with the two costliest parts of its run made cheaper, the per-pixel specular fit of diffuse_normals (3
+# Levenberg-Marquardt steps, 64 occlusion directions) and the relit views (one environment), no previews.
+PRESETS["gate"] = dataclasses.replace(
+    PRESETS["test"],
+    diffuse_normals=DiffuseNormalsConfig(fit=SpecularConfig(steps=3), occlusion_directions=64, previews=False),
+    relight=dataclasses.replace(PRESETS["test"].relight, environments=("procedural:sky",), previews=False))
 
 
 def build_stages(config: PipelineConfig, through: str | None = None) -> list[Stage]:

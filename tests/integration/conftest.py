@@ -14,8 +14,25 @@ from pathlib import Path
 import pytest
 
 from synthetic import SimConfig, simulate
+from synthetic.calibration import CalibrationConfig
 
 TINY_CAMERAS = ("00000", "00001", "00002")
+
+GATE_SIM = SimConfig(actions=1, width=128, n_cameras=32, n_leds=256, mesh="procedural")
+"""The accuracy gate's capture: one action of the whole 32-camera rig at 128 x 192 px, the procedural subject
+(the same with or without ../shared/data)."""
+GATE_CALIBRATION = CalibrationConfig(target=False)
+"""Its session frames: colour chart, diffuse sphere and the marker frame (27 of the 32 cameras identify enough of
+its 12 mm balls at 128 px to be calibrated; the session is still calibrated from them); no structure-from-motion
+target."""
+
+
+@pytest.fixture(scope="session")
+def gate_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """:data:`GATE_SIM` with :data:`GATE_CALIBRATION`, simulated once per test session. Read-only."""
+    root = tmp_path_factory.mktemp("gate") / "capture"
+    simulate(root, GATE_SIM, calibration=GATE_CALIBRATION)
+    return root
 
 
 @pytest.fixture(scope="session")
