@@ -7,9 +7,9 @@ Each step runs the project's own command line in a fresh process, started by a w
 child's peak resident set and CPU seconds (``resource.getrusage(RUSAGE_CHILDREN)``, as bench/bench_memory.py does):
 
 - ``simulate``: :func:`synthetic.simulate` of the capture (with the calibration frames ``ultrastage simulate``
-  writes); its progress messages give the LED visibility's seconds and the seconds per camera (render, sensor
-  noise, DNG and ground-truth files of the three illuminations: the time from the visibility message to the last
-  camera's, over the cameras);
+  writes); its progress messages give the LED visibility's seconds and the wall and CPU seconds per camera
+  (render, sensor noise, DNG and ground-truth files of the three illuminations: the time from the visibility
+  message to the last camera's, over the cameras);
 - one ``ultrastage run --scheduler sync --no-evaluate --through STAGE`` per stage, in the pipeline's order (each
   finds the earlier stages in the store, so it runs exactly that stage): the stage's task seconds (the release's
   ``manifests/stage_runs.parquet``, summed over its tasks), the process's CPU seconds and peak RSS (the imports'
@@ -39,8 +39,8 @@ instead of measuring that width again, when its settings are the same).
     python bench/bench_resolution.py --out bench/out [--widths 192,384,768] [--reuse] [--quick]
 
 ``--quick`` (the tests' mode): the ``test`` preset on 8 cameras (128 LEDs, the subject unsubdivided), widths 48 and
-64, the stages in three runs (through ``plates``, through ``photometric``, the rest); the numbers are not
-measurements.
+64 (32 px is too small for the colour chart), the stages through ``photometric`` in two runs (through ``plates``,
+then ``photometric``) and the evaluation of that partial release; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -68,8 +68,8 @@ PRESET = "default"
 SENSOR = (6016, 4016)
 """The production sensor (width, height): what the fits are extrapolated to."""
 QUICK_WIDTHS, QUICK_CAMERAS, QUICK_PRESET = (48, 64), 8, "test"
-QUICK_STEPS = ("plates", "photometric", None)
-"""The quick mode's runs: through each named stage, then the whole DAG (None)."""
+QUICK_STEPS = ("plates", "photometric")
+"""The quick mode's runs: through each named stage (None: the whole DAG)."""
 IMPORTS = "imports"
 """The row of the floor every step's process pays: the command line's imports and the preset's stages built."""
 HEADLINE = {
@@ -117,7 +117,8 @@ def production_note() -> str:
 
 def child_env() -> dict[str, str]:
     """The steps' environment: the project first on the path, sleeping OpenMP threads, one evaluation process."""
-    return os.environ | {"PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+    path = os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return os.environ | {"PYTHONPATH": path,
                          "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
                          "ULTRASTAGE_EVALUATE_WORKERS": "1"}
 
@@ -143,11 +144,12 @@ def child_simulate(capture: Path, width: int, cameras: int, quick: bool, stamps_
     from synthetic.calibration import CalibrationConfig
 
     shutil.rmtree(capture, ignore_errors=True)
-    stamps: list[tuple[float, str]] = []
-    start = time.perf_counter()
+    stamps: list[tuple[float, float, str]] = []
+    start, cpu_start = time.perf_counter(), time.process_time()
     config = SimConfig(actions=1, width=width, n_cameras=cameras, **(quick_sim_changes() if quick else {}))
-    simulate(capture, config, progress=lambda m: stamps.append((time.perf_counter() - start, m)),
-             calibration=CalibrationConfig())
+    # one action renders in this process (synthetic.simulate.action_workers), so its CPU time is this process's
+    simulate(capture, config, calibration=CalibrationConfig(),
+             progress=lambda m: stamps.append((time.perf_counter() - start, time.process_time() - cpu_start, m)))
     stamps_file.write_text(json.dumps({"total_s": time.perf_counter() - start, "stamps": stamps}))
 
 
@@ -159,12 +161,23 @@ def child_imports(preset: str) -> None:
     build_stages(PRESETS[preset])
 
 
-def camera_seconds(stamps: list[tuple[float, str]], cameras: int) -> dict[str, float]:
-    """From the simulator's messages of one action: the LED visibility's seconds and the seconds per camera."""
-    visibility = next((t, m) for t, m in stamps if "visibility of" in m)
-    last = next(t for t, m in stamps if m.endswith(f"{cameras}/{cameras} cameras"))
-    seconds = float(visibility[1].rsplit(" in ", 1)[1].removesuffix(" s"))
-    return {"visibility_s": seconds, "cameras_s": last - visibility[0], "s_per_camera": (last - visibility[0]) / cameras}
+def camera_seconds(stamps: list[tuple[float, float, str]], cameras: int) -> dict[str, float]:
+    """From the simulator's messages of one action (wall seconds, CPU seconds, message): the LED visibility's
+    seconds and the wall and CPU seconds per camera (from the visibility message to the last camera's)."""
+    visibility = next(s for s in stamps if "visibility of" in s[2])
+    last = next(s for s in stamps if s[2].endswith(f"{cameras}/{cameras} cameras"))
+    seconds = float(visibility[2].rsplit(" in ", 1)[1].removesuffix(" s"))
+    return {"visibility_s": seconds, "cameras_s": last[0] - visibility[0],
+            "s_per_camera": (last[0] - visibility[0]) / cameras,
+            "cpu_s_per_camera": (last[1] - visibility[1]) / cameras}
+
+
+def camera_cpu_seconds(simulate: dict[str, Any], cameras: int) -> float:
+    """The simulator's CPU seconds per camera: measured (``cpu_s_per_camera``), or for measurements saved without
+    it estimated as the process's CPU seconds times the cameras' share of its wall time, over the cameras."""
+    if "cpu_s_per_camera" in simulate:
+        return simulate["cpu_s_per_camera"]
+    return simulate["cpu_s"] * simulate["cameras_s"] / max(simulate["total_s"], 1e-9) / cameras
 
 
 # --- one width --------------------------------------------------------------------------------------------------
@@ -255,7 +268,12 @@ def growth(rows: list[dict[str, Any]]) -> dict[str, Any]:
     series: dict[str, list[float]] = {f"stage {s}": [sum(step["stages"].get(s, 0.0) for step in r["steps"])
                                                      for r in rows] for s in stages}
     series["all stages"] = [sum(v for step in r["steps"] for v in step["stages"].values()) for r in rows]
+    floor = [r["imports"]["cpu_s"] for r in rows]
+    series |= {f"cpu {step['through']}": [max(r["steps"][i]["cpu_s"] - f, 1e-3) for r, f in zip(rows, floor)]
+               for i, step in enumerate(rows[0]["steps"])}
+    series["cpu all steps"] = [sum(max(s["cpu_s"] - f, 1e-3) for s in r["steps"]) for r, f in zip(rows, floor)]
     series["simulate s per camera"] = [r["simulate"]["s_per_camera"] for r in rows]
+    series["simulate CPU s per camera"] = [camera_cpu_seconds(r["simulate"], r["cameras"]) for r in rows]
     series["simulate (whole capture)"] = [r["simulate"]["wall_s"] for r in rows]
     series["evaluate"] = [r["evaluate"]["cpu_s"] for r in rows]
     series |= {f"peak MiB {step['through']}": [r["steps"][i]["peak_rss_mib"] for r in rows]
@@ -287,42 +305,55 @@ def markdown(report: dict[str, Any]) -> str:
              "(`ultrastage run --scheduler sync`, one process per stage under a watcher: its peak RSS and CPU "
              "seconds). " + report["production"] + ": not run on a CPU.", "",
              "## Seconds and peak memory per stage", "",
-             "Per width: the stage's task seconds (stage_runs.parquet) / its process's CPU seconds / its peak RSS "
-             f"MiB (the imports alone: " + ", ".join(f"{r['imports']['cpu_s']:.1f} s, {r['imports']['peak_rss_mib']:.0f} MiB"
-                                                  for r in rows[:1]) + "). `k`: seconds ~ pixels^k.", "",
-             "| step | k (task s) | " + head + " |", "|---|---|" + "---|" * len(rows)]
+             "Per width: the stage's task seconds (wall, stage_runs.parquet; inflated on a loaded machine) / its "
+             "process's CPU seconds above the imports' floor (the floor alone, per width: "
+             + ", ".join(f"{r['imports']['cpu_s']:.1f}" for r in rows) + " s CPU; "
+             + ", ".join(f"{r['imports']['peak_rss_mib']:.0f}" for r in rows) + " MiB) / the process's peak RSS "
+             "MiB. `k`: seconds ~ (pixels per view)^k, least squares in log-log over the widths, of the CPU seconds "
+             "and of the task seconds.", "",
+             "| step | k CPU | k task | " + head + " |", "|---|---|---|" + "---|" * len(rows)]
+
+    def k_of(name: str) -> str:
+        fit = g["fits"].get(name)
+        return f"{fit['k']:.2f}" if fit else "-"
+
     for i, step in enumerate(rows[0]["steps"]):
         names = list(step["stages"])
         label = ", ".join(names) if names else step["through"]
-        fit = g["fits"].get(f"stage {names[0]}") if len(names) == 1 else None
-        k = f"{fit['k']:.2f}" if fit else "-"
+        k_task = k_of(f"stage {names[0]}") if len(names) == 1 else "-"
         cells = []
         for r in rows:
             s = r["steps"][i]
-            cells.append(f"{sum(s['stages'].values()):.1f} / {s['cpu_s']:.1f} / {s['peak_rss_mib']:.0f}")
-        lines.append(f"| {label} | {k} | " + " | ".join(cells) + " |")
-    total_fit = g["fits"].get("all stages")
-    lines.append("| **all stages** | " + (f"{total_fit['k']:.2f}" if total_fit else "-") + " | " + " | ".join(
-        f"{sum(v for s in r['steps'] for v in s['stages'].values()):.1f} / {sum(s['cpu_s'] for s in r['steps']):.1f}"
+            cells.append(f"{sum(s['stages'].values()):.1f} / {s['cpu_s'] - r['imports']['cpu_s']:.1f} / "
+                         f"{s['peak_rss_mib']:.0f}")
+        lines.append(f"| {label} | {k_of('cpu ' + step['through'])} | {k_task} | " + " | ".join(cells) + " |")
+    lines.append(f"| **all stages** | {k_of('cpu all steps')} | {k_of('all stages')} | " + " | ".join(
+        f"{sum(v for s in r['steps'] for v in s['stages'].values()):.1f} / "
+        f"{sum(s['cpu_s'] - r['imports']['cpu_s'] for s in r['steps']):.1f}"
         f" / {max(s['peak_rss_mib'] for s in r['steps']):.0f}" for r in rows) + " |")
-    ev = g["fits"].get("evaluate")
-    lines.append("| evaluate | " + (f"{ev['k']:.2f}" if ev else "-") + " | " + " | ".join(
-        f"{r['evaluate']['wall_s']:.1f} (wall) / {r['evaluate']['cpu_s']:.1f} / {r['evaluate']['peak_rss_mib']:.0f}"
+    lines.append(f"| evaluate (wall / whole process CPU / peak) | {k_of('evaluate')} | - | " + " | ".join(
+        f"{r['evaluate']['wall_s']:.1f} / {r['evaluate']['cpu_s']:.1f} / {r['evaluate']['peak_rss_mib']:.0f}"
         for r in rows) + " |")
-    sim_fit = g["fits"].get("simulate s per camera")
     lines += ["", "## The simulator", "",
-              "| width | s per camera | LED visibility s | whole capture wall s / CPU s | peak MiB |",
-              "|---|---|---|---|---|"]
+              "Per camera: render, sensor noise, the DNGs of three illuminations and the ground-truth files. CPU "
+              "seconds per camera: the simulating process's (measurements saved before they were recorded: its "
+              "CPU seconds times the cameras' share of its wall time); wall seconds are this machine's under its "
+              "load.", "",
+              "| width | CPU s per camera | wall s per camera | LED visibility wall s | whole capture wall s "
+              "/ CPU s | peak MiB |", "|---|---|---|---|---|---|"]
     for r in rows:
         s = r["simulate"]
-        lines.append(f"| {r['width']} x {r['height']} | {s['s_per_camera']:.2f} | {s['visibility_s']:.1f} | "
-                     f"{s['wall_s']:.1f} / {s['cpu_s']:.1f} | {s['peak_rss_mib']:.0f} |")
-    if sim_fit:
-        per_cam = sim_fit["at_sensor_extrapolated"]
-        lines += ["", f"Seconds per camera ~ pixels^{sim_fit['k']:.2f} (R^2 {sim_fit['r2']:.3f}); at "
-                  f"{SENSOR[0]} x {SENSOR[1]} **extrapolated**: {per_cam:.0f} s per camera, "
-                  f"{per_cam * CAMERAS / 60:.0f} min for the {CAMERAS} cameras of one action (the visibility and "
-                  "calibration frames not counted; not measured)."]
+        lines.append(f"| {r['width']} x {r['height']} | {camera_cpu_seconds(s, r['cameras']):.2f} | "
+                     f"{s['s_per_camera']:.2f} | {s['visibility_s']:.1f} | {s['wall_s']:.1f} / {s['cpu_s']:.1f} | "
+                     f"{s['peak_rss_mib']:.0f} |")
+    for name, what in (("simulate CPU s per camera", "CPU seconds"), ("simulate s per camera", "wall seconds")):
+        fit = g["fits"].get(name)
+        if fit:
+            per_cam = fit["at_sensor_extrapolated"]
+            lines += ["", f"{what} per camera ~ pixels^{fit['k']:.2f} (R^2 {fit['r2']:.3f}); at {SENSOR[0]} x "
+                      f"{SENSOR[1]} **extrapolated, not measured**: {per_cam:.0f} s per camera, "
+                      f"{per_cam * CAMERAS / 60:.0f} min for the {CAMERAS} cameras of one action (the LED visibility "
+                      "and the session's calibration frames not counted)."]
     lines += ["", "## Fits (seconds ~ pixels per view ^ k) and the production sensor, extrapolated", "",
               "| series | k | R^2 | at 6016 x 4016 (extrapolated) |", "|---|---|---|---|"]
     for name, fit in g["fits"].items():
@@ -378,18 +409,19 @@ def plot(path: Path, report: dict[str, Any]) -> None:
         ax.grid(alpha=0.3)
     ax = axes[1, 0]
     grid = np.geomspace(pixels.min(), pixels.max(), 20)
-    for k, (name, values) in enumerate((n, v) for n, v in g["series"].items() if n.startswith("stage ")):
-        fit = g["fits"].get(name)
+    steps = [n for n in g["series"] if n.startswith("cpu ") and n != "cpu all steps"]
+    for k, name in enumerate(steps):
+        values, fit = g["series"][name], g["fits"].get(name)
         colour = plt.cm.tab20(k % 20)
-        label = name.removeprefix("stage ") + (f" k={fit['k']:.2f}" if fit else "")
+        label = name.removeprefix("cpu ") + (f" k={fit['k']:.2f}" if fit else "")
         ax.plot(pixels, values, "o", color=colour, label=label)
         if fit:
             ax.plot(grid, fit["a"] * grid ** fit["k"], "-", color=colour, lw=0.8)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("pixels per view")
-    ax.set_ylabel("task seconds")
-    ax.set_title("time per stage, seconds ~ pixels^k", fontsize=9)
+    ax.set_ylabel("CPU seconds above the imports")
+    ax.set_title("CPU time per stage, seconds ~ pixels^k", fontsize=9)
     ax.legend(fontsize=6, ncol=2)
     ax.grid(alpha=0.3)
     ax = axes[1, 1]
@@ -402,16 +434,16 @@ def plot(path: Path, report: dict[str, Any]) -> None:
     ax.legend(fontsize=6, ncol=2)
     ax.grid(alpha=0.3)
     ax = axes[1, 2]
-    values = g["series"]["simulate s per camera"]
-    ax.loglog(pixels, values, "o", label="measured")
-    fit = g["fits"].get("simulate s per camera")
+    values = g["series"]["simulate CPU s per camera"]
+    ax.loglog(pixels, values, "o", label="measured (CPU s)")
+    fit = g["fits"].get("simulate CPU s per camera")
     if fit:
         far = np.geomspace(pixels.min(), g["sensor_pixels"], 30)
         ax.loglog(far, fit["a"] * far ** fit["k"], "--", label=f"fit k={fit['k']:.2f} (extrapolated)")
         ax.loglog([g["sensor_pixels"]], [fit["at_sensor_extrapolated"]], "x", ms=10,
                   label=f"6016 x 4016: {fit['at_sensor_extrapolated']:.0f} s (extrapolated)")
     ax.set_xlabel("pixels per view")
-    ax.set_ylabel("simulator seconds per camera")
+    ax.set_ylabel("simulator CPU seconds per camera")
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.suptitle(f"{rows[0]['cameras']} cameras, preset {report['preset']}" + (" (quick: not measurements)"
