@@ -375,6 +375,10 @@ def markdown(report: dict[str, Any]) -> str:
               "tolerance (" + ", ".join(f"{k} {v:g}" for k, v in KNEE_TOLERANCES.items()) + "):", ""]
     for name, width in g["knees"].items():
         lines.append(f"- {HEADLINE[name][0]}: " + (f"{width} px" if width else f"not reached by {widths[-1]} px"))
+    cost = g["series"]["cpu all steps"]
+    lines += ["", "What the pixels cost (every stage's CPU seconds above the imports, per width): " + ", ".join(
+        f"{w} px {c:.0f} s" + (f" ({c / cost[0]:.1f} x)" if i else "") for i, (w, c) in enumerate(zip(widths, cost)))
+        + "."]
     lines += ["", ("The knee of the run: **" + (f"{g['knee_width']} px wide" if g["knee_reached"] else
                                                    f"not reached by {widths[-1]} px") + "** (the largest over the "
                    "headline figures).")]
