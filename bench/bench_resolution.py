@@ -13,7 +13,8 @@ child's peak resident set and CPU seconds (``resource.getrusage(RUSAGE_CHILDREN)
 - one ``ultrastage run --scheduler sync --no-evaluate --through STAGE`` per stage, in the pipeline's order (each
   finds the earlier stages in the store, so it runs exactly that stage): the stage's task seconds (the release's
   ``manifests/stage_runs.parquet``, summed over its tasks), the process's CPU seconds and peak RSS (the imports'
-  floor, :data:`IMPORTS` measured alone, is given beside them);
+  floor, :data:`IMPORTS` measured alone, is given beside them); then one run of the whole DAG, every task cached,
+  which publishes the whole release (a run publishes its own plan's products only);
 - ``ultrastage evaluate --json`` (one evaluation process, ``ULTRASTAGE_EVALUATE_WORKERS=1``): every figure, and
   the evaluation's own CPU seconds and peak RSS.
 
@@ -319,7 +320,7 @@ def markdown(report: dict[str, Any]) -> str:
 
     for i, step in enumerate(rows[0]["steps"]):
         names = list(step["stages"])
-        label = ", ".join(names) if names else step["through"]
+        label = ", ".join(names) if names else f"{step['through']} (nothing ran: publishes the release)"
         k_task = k_of(f"stage {names[0]}") if len(names) == 1 else "-"
         cells = []
         for r in rows:
@@ -488,7 +489,9 @@ def main() -> int:
     else:
         from stages.registry import STAGE_CLASSES
 
-        steps = [cls.name for cls in STAGE_CLASSES]
+        # then the whole DAG once more: every task cached, it publishes the whole release (a run publishes the
+        # products of its own plan only, so the last stage's run alone would leave the others' out)
+        steps = [cls.name for cls in STAGE_CLASSES] + [None]
     rows = []
     for width in sorted(widths):
         saved = store / f"w{width}.json"
