@@ -33,6 +33,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "relight": ["--actions", "A0000"],
     "relit_budget": ["--actions", "A0000"],
     "relightset": ["--examples", "2"],
+    "resolution": None,
     "scale": ["--sizes", "20,100"],
     "sdf_schedule": ["--schedules", "400+1200,1800+1800"],
     "sg": ["--lobes", "8,32,64"],
@@ -44,8 +45,9 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
 with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
 Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (it took 23 min 54 s there; README). Left to
 the full run: the production-size memory measurements (memory), the default capture end to end at 2 actions
-through dask (pipeline: bench_end_to_end measures the same things on small captures) and the production path on a
-GPU (gpu_production: it runs nothing where torch sees no CUDA device)."""
+through dask (pipeline: bench_end_to_end measures the same things on small captures), one action of 32 cameras
+through the whole DAG and its evaluation at 192, 384 and 768 px (resolution) and the production path on a GPU
+(gpu_production: it runs nothing where torch sees no CUDA device)."""
 SPEED_BASELINES: dict[str, str | None] = {
     "calibration": "decoding the 32 marker frames it reads (`x_decode`; `--markers`, the cameras stage's default source)",
     "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
@@ -73,6 +75,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "relight": "the simplest variant (no shadows, photometric albedo; `x_baseline`)",
     "relightset": "the simulator's render of the same view (`x_truth`)",
     "relit_budget": "no speed figure (accuracy per component swapped for the truth; seconds per piece of a view)",
+    "resolution": "the smallest width (each stage's exponent k: seconds ~ pixels^k over it), and the imports alone "
+                  "for each stage's process (`CPU s above the imports`)",
     "scale": "the same number of stub tasks through the executor alone (`x_bare`), and as one `client.map` on dask",
     "sdf_schedule": "the 1800+1800 schedule (`vs 1800+1800`)",
     "sg": "the map's order-2 SH projection (`x_sh_projection`)",
