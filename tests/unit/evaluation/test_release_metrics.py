@@ -3,6 +3,8 @@ the truth, the cameras' pose errors, the mesh figures of an offset and a scaled 
 and the relit truth's cache."""
 from __future__ import annotations
 
+import json
+
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -177,8 +179,11 @@ def test_mesh_overall_reads_the_release_and_truth_meshes(tmp_path):
     write_ply(tmp_path / "truth" / "A0000" / "mesh.ply", gt_v, gt_f)
     write_ply(tmp_path / "truth" / "A0001" / "mesh.ply", gt_v, gt_f)
     write_ply(tmp_path / "pred.ply", gt_v + np.array([0.02, 0.0, 0.0]), gt_f)
-    actions = {"A0000": SimpleNamespace(kinds={"mesh"}, path=lambda kind: tmp_path / "pred.ply"),
-               "A0001": SimpleNamespace(kinds=set(), path=None)}
+    (tmp_path / "truth" / "cameras").mkdir()
+    (tmp_path / "truth" / "cameras" / "S000.json").write_text(json.dumps({"cameras": _axis_cameras()}))
+    actions = {"A0000": SimpleNamespace(kinds={"mesh"}, path=lambda kind: tmp_path / "pred.ply",
+                                        info={"session_id": "S000"}),
+               "A0001": SimpleNamespace(kinds=set(), path=None, info={"session_id": "S000"})}
     rel = SimpleNamespace(action=actions.__getitem__)
     per_action: dict = {}
     rows: list = []
@@ -191,6 +196,25 @@ def test_mesh_overall_reads_the_release_and_truth_meshes(tmp_path):
     chamfer = [r for r in rows if r["metric"] == "chamfer_mm"]
     assert len(chamfer) == 1 and chamfer[0]["unit"] == "mm" and chamfer[0]["region"] == "mesh"
     assert chamfer[0]["source"] == "evaluate" and chamfer[0]["action_id"] == "A0000"
+    # Six cameras on the axes see all of the closed sphere: the comparable figures keep it whole.
+    assert overall["comparable_chamfer_mm"] == pytest.approx(overall["chamfer_mm"], abs=0.3)
+
+
+def _axis_cameras(distance_m: float = 2.0, size: int = 64) -> list[dict]:
+    """Six pinhole cameras on the axes at ``distance_m``, each looking at the origin (cameras.json records)."""
+    cameras = []
+    for i, axis in enumerate(np.concatenate([np.eye(3), -np.eye(3)])):
+        centre = distance_m * axis
+        forward = -axis
+        up = np.array([0.0, 1.0, 0.0]) if abs(axis[1]) < 0.5 else np.array([0.0, 0.0, 1.0])
+        right = np.cross(forward, up)
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        R = np.stack([right, down, forward])
+        K = [[size, 0.0, size / 2], [0.0, size, size / 2], [0.0, 0.0, 1.0]]
+        cameras.append({"camera_id": f"{i:05d}", "K": K, "width": size, "height": size,
+                        "cam_from_world": np.hstack([R, (-R @ centre)[:, None]]).tolist()})
+    return cameras
 
 
 def test_relit_parts_are_means_over_actions_in_order():
