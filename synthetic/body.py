@@ -26,12 +26,13 @@ from __future__ import annotations
 import functools
 import itertools
 import warnings
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 
+from pipeline.config import Documented, broken, checked
 from pipeline.errors import InputError
 
 GENDERS = ("female", "male")
@@ -50,36 +51,32 @@ make a dwarf and a giant (the head about -36 / +70 cm) that no capture frames wi
 
 
 @dataclass(frozen=True)
-class BodyParams:
-    """MakeHuman macro parameters of one body, each in [0, 1] (module docstring); ValueError when out of range."""
-    gender: float = 0.5
+class BodyParams(Documented):
+    """MakeHuman macro parameters of one body, each in [0, 1] (module docstring); InvalidConfig (a ValueError)
+    when out of range."""
+    gender: float = checked(0.5, ge=0.0, le=1.0)
     """0 female .. 1 male."""
-    age: float = 0.5
-    """MakeHuman's age slider, adult part only: 0.5 = 25 years .. 1 = 90 years."""
-    muscle: float = 0.5
+    age: float = checked(0.5, ge=0.5, le=1.0)
+    """MakeHuman's age slider, adult part only: 0.5 = 25 years .. 1 = 90 years (the child and baby corners are
+    not shipped)."""
+    muscle: float = checked(0.5, ge=0.0, le=1.0)
     """0 min .. 0.5 average .. 1 max muscle."""
-    weight: float = 0.5
+    weight: float = checked(0.5, ge=0.0, le=1.0)
     """0 min (MakeHuman's 50%) .. 0.5 average .. 1 max weight (150%)."""
-    height: float = 0.5
+    height: float = checked(0.5, ge=0.0, le=1.0)
     """0 min .. 0.5 average .. 1 max height."""
-    african: float = 1.0 / 3.0
+    african: float = checked(1.0 / 3.0, ge=0.0, le=1.0)
     """Ethnic blend weight (the three sum to 1)."""
-    asian: float = 1.0 / 3.0
+    asian: float = checked(1.0 / 3.0, ge=0.0, le=1.0)
     """Ethnic blend weight."""
-    caucasian: float = 1.0 / 3.0
+    caucasian: float = checked(1.0 / 3.0, ge=0.0, le=1.0)
     """Ethnic blend weight."""
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and 0.0 <= value <= 1.0):
-                raise ValueError(f"body {f.name} = {value!r}: must be a number in [0, 1]")
-        if self.age < 0.5:
-            raise ValueError(f"body age = {self.age!r}: must be >= 0.5 (25 years; the child and baby corners "
-                             "are not shipped)")
+    def _checks(self) -> list[str]:
         if abs(self.african + self.asian + self.caucasian - 1.0) > 1e-6:
-            raise ValueError(f"body ethnic weights ({self.african!r}, {self.asian!r}, {self.caucasian!r}) "
-                             "must sum to 1")
+            return [broken(self, "african", f"the ethnic weights ({self.african!r}, {self.asian!r}, "
+                                            f"{self.caucasian!r}) must sum to 1")]
+        return []
 
     @property
     def age_years(self) -> float:
