@@ -144,6 +144,20 @@ def list_photos(folder: str | Path, masks: str | Path | None = None, log=print) 
     return photos, notes
 
 
+def _read_pixels(path: Path, what: str) -> tuple[np.ndarray, bool]:
+    """An image file's pixels, upright by its EXIF orientation: (H, W, 4) uint8 RGBA when it has alpha, else
+    (H, W, 3) RGB, and whether it has alpha. InputError naming the file ("cannot read <what>") when PIL cannot."""
+    from PIL import Image, ImageOps
+
+    try:
+        with Image.open(path) as img:
+            img = ImageOps.exif_transpose(img)
+            has_alpha = img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info)
+            return np.asarray(img.convert("RGBA" if has_alpha else "RGB")), has_alpha
+    except Exception as error:  # PIL raises several kinds for corrupt files
+        raise InputError(path, f"cannot read {what}: {error}") from error
+
+
 def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     """A mask file as an (H, W) bool mask of a photo of ``shape`` (H, W): its first channel (times its alpha
     when it has one) >= 128, or == 1 in a label image (values 0 and 1 only), EXIF orientation applied.
@@ -151,16 +165,8 @@ def read_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:
     Raises:
         InputError: unreadable, of another size than the photo, or empty.
     """
-    from PIL import Image, ImageOps
-
     path = Path(path)
-    try:
-        with Image.open(path) as img:
-            img = ImageOps.exif_transpose(img)
-            has_alpha = img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info)
-            pixels = np.asarray(img.convert("RGBA" if has_alpha else "RGB"))
-    except Exception as error:  # PIL raises several kinds for corrupt files
-        raise InputError(path, f"cannot read mask: {error}") from error
+    pixels, has_alpha = _read_pixels(path, "mask")
     if pixels.shape[:2] != tuple(shape):
         raise InputError(path, f"mask is {pixels.shape[1]} x {pixels.shape[0]} px, its photo "
                                f"{shape[1]} x {shape[0]} px")
@@ -181,16 +187,8 @@ def read_photo(path: str | Path, mask_path: str | Path | None = None) -> tuple[n
     Raises:
         InputError: unreadable or empty image; a bad mask file (:func:`read_mask`).
     """
-    from PIL import Image, ImageOps
-
     path = Path(path)
-    try:
-        with Image.open(path) as img:
-            img = ImageOps.exif_transpose(img)
-            has_alpha = img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info)
-            rgba = np.asarray(img.convert("RGBA" if has_alpha else "RGB"))
-    except Exception as error:  # PIL raises several kinds for corrupt files
-        raise InputError(path, f"cannot read image: {error}") from error
+    rgba, has_alpha = _read_pixels(path, "image")
     if rgba.ndim != 3 or rgba.shape[0] < 1 or rgba.shape[1] < 1:
         raise InputError(path, f"empty image (shape {rgba.shape})")
     if mask_path is not None:
