@@ -32,8 +32,11 @@ dataset: setup
 	$(VENV)/bin/ultrastage simulate --out $(RUN)/capture
 	$(VENV)/bin/ultrastage run --capture $(RUN)/capture --release $(RUN)/release $(ARGS)
 
+# The suite on TEST_WORKERS pytest-xdist workers (one per core by default), a test file per worker at a time, so
+# the fixtures a file's tests share are built once; TEST_WORKERS=0 runs it in this one process.
+TEST_WORKERS ?= auto
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The slowest benches smaller than their own defaults (bench/run_all.py MAKE_BENCH_ARGS): under 45 minutes on 2 cores.
 bench: setup

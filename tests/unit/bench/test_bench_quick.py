@@ -1,6 +1,8 @@
 """Every bench runs in its quick mode (`make bench-quick`: bench/run_all.py --quick), so that none can rot: each
-writes its results, marked quick, with finite numbers. Nothing is timed; the run takes about 3 minutes on an idle
-2-core machine (the tiny simulated run the release benches share included)."""
+writes its results, marked quick, with finite numbers, and the benches whose quick output has a structure of its
+own (the subject panel, the hash-grid kernel, the engine at scale) are checked on that same run's files, so no
+quick mode runs twice in the suite. Nothing is timed; the run takes about 3 minutes on an idle 2-core machine (the
+tiny simulated run the release benches share included)."""
 from __future__ import annotations
 
 import json
@@ -67,3 +69,64 @@ def test_every_bench_writes_quick_results_with_finite_numbers(quick_run, name):
     assert data.get("quick") is True, f"{result.name} is not marked quick"
     bad = [where for where, x in _numbers(data, name) if not math.isfinite(x)]
     assert not bad, f"{result.name}: non-finite numbers at {bad[:10]}"
+
+
+@pytest.mark.slow
+def test_subject_panel_quick_mode_writes_the_table_and_json(quick_run):
+    out, proc = quick_run
+    report = json.loads((out / "bench_subjects.json").read_text())
+    assert report["quick"] is True and len(report["subjects"]) == 1
+    (name, subject), = report["subjects"].items()
+    assert name == ("dressed" if (SHARED / "meshes" / "makehuman_base.obj").is_file() else "procedural")
+    for key in ("chamfer_mm", "fscore_1mm", "heldout_albedo_psnr_db", "best_normal_mean_deg", "roughness_mae",
+                "relit_psnr_db", "relightset_image_psnr_db"):
+        assert math.isfinite(subject["figures"][key]), key
+        assert report["worst"][key]["subject"] == name
+    table = (out / "bench_subjects.md").read_text()
+    assert "quick: not measurements" in table and "| Chamfer (mm) |" in table and "| relit PSNR (dB) |" in table
+    assert (out / "bench_subjects.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_hashgrid_quick_mode_kernel_rows_agree_with_the_torch_path(quick_run):
+    out, proc = quick_run
+    result = json.loads((out / "bench_hashgrid.json").read_text())
+    paths = [row["path"] for row in result["rows"]]
+    assert "torch, 1 thread" in paths and "torch, 2 threads" in paths
+    for row in result["rows"]:
+        assert all(math.isfinite(row[k]) and row[k] > 0 for k in ("encoding_s", "field_step_s"))
+    if result["kernel_available"]:
+        assert "kernel, 1 thread" in paths
+        assert set(result["max_relative_difference_kernel_vs_torch"]) == {"features", "jacobian", "table_gradient"}
+        assert max(result["max_relative_difference_kernel_vs_torch"].values()) < 1e-5
+    assert "| path |" in (out / "bench_hashgrid.md").read_text()
+
+
+@pytest.mark.slow
+def test_scale_quick_mode_writes_finite_positive_per_task_figures(quick_run):
+    """Two tiny captures through the real engine with stub stages: the report's structure, and per-task figures
+    that are finite and positive (no timings are asserted)."""
+    out, proc = quick_run
+    report = json.loads((out / "bench_scale.json").read_text())
+    assert report["quick"] is True and report["goal_ms_per_task"] == 1.0 and report["cameras"] == 32
+    results = report["results"]
+    assert [(r["actions"], r["executor"]) for r in results] == [(2, "sync"), (4, "sync")]
+    for r in results:
+        assert set(r["runs"]) == {"cold", "cached"}
+        cold, cached = r["runs"]["cold"], r["runs"]["cached"]
+        # every stage of every scope ran cold and was found in the store on the rerun
+        assert cold["ran"] == cold["plan_tasks"] and cached["cached"] == cached["plan_tasks"] == cold["plan_tasks"]
+        assert cold["executor_tasks"] == cold["graph_tasks"] > cold["plan_tasks"] and cached["executor_tasks"] == 0
+        assert set(cold["per_task"]) == {"plan_ms", "submit_ms", "execute_ms", "bookkeeping_ms",
+                                         "bookkeeping_per_graph_task_ms", "bare_ms", "x_bare"}
+        # the baseline ran as many tasks as the engine submitted, and its ratio is the two times' quotient
+        assert r["bare_executor"]["tasks"] == cold["executor_tasks"]
+        assert math.isclose(cold["per_task"]["x_bare"], cold["per_task"]["execute_ms"] / cold["per_task"]["bare_ms"])
+        assert set(cached["per_task"]) == {"plan_ms", "bookkeeping_ms", "bookkeeping_per_graph_task_ms"}
+        for run in (cold, cached):
+            assert all(math.isfinite(v) and v > 0 for v in run["per_task"].values()), run["per_task"]
+            assert all(math.isfinite(v) and v >= 0 for v in run["phases_s"].values())
+        assert 0 < cold["max_in_flight"] <= cold["executor_tasks"]
+        assert r["peak_rss_mib"] > 0
+    table = (out / "bench_scale.md").read_text()
+    assert table.startswith("# Engine overhead at release size") and "| 4 | sync | cached |" in table

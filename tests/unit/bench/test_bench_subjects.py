@@ -1,11 +1,9 @@
-"""The subject panel (bench/bench_subjects.py): its table logic on hand-made figures, and its quick mode end to end."""
+"""The subject panel (bench/bench_subjects.py): its table logic on hand-made figures (its quick mode end to end is
+checked on run_all's quick run in test_bench_quick.py)."""
 from __future__ import annotations
 
 import importlib.util
-import json
-import math
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -60,22 +58,3 @@ def test_the_panel_spans_the_extremes_and_two_other_meshes(panel):
 
     for subject in panel.SUBJECTS:  # every subject's settings make a valid config
         SimConfig(actions=1, **subject.sim_changes(SHARED / "meshes"))
-
-
-@pytest.mark.slow
-def test_quick_mode_writes_the_table_and_json(tmp_path):
-    env = os.environ | {"ULTRASTAGE_SHARED_DATA": str(SHARED), "OMP_WAIT_POLICY": "PASSIVE"}
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_subjects.py"), "--quick", "--out", str(tmp_path)],
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=1200)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    report = json.loads((tmp_path / "bench_subjects.json").read_text())
-    assert report["quick"] is True and len(report["subjects"]) == 1
-    (name, subject), = report["subjects"].items()
-    assert name == ("dressed" if (SHARED / "meshes" / "makehuman_base.obj").is_file() else "procedural")
-    for key in ("chamfer_mm", "fscore_1mm", "heldout_albedo_psnr_db", "best_normal_mean_deg", "roughness_mae",
-                "relit_psnr_db", "relightset_image_psnr_db"):
-        assert math.isfinite(subject["figures"][key]), key
-        assert report["worst"][key]["subject"] == name
-    table = (tmp_path / "bench_subjects.md").read_text()
-    assert "quick: not measurements" in table and "| Chamfer (mm) |" in table and "| relit PSNR (dB) |" in table
-    assert (tmp_path / "bench_subjects.png").stat().st_size > 0
