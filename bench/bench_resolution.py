@@ -29,7 +29,7 @@ The **knee** of a figure is the smallest width beyond which no larger width impr
 tolerance (:data:`KNEE_TOLERANCES`: what a reader would call a change); the knee of the run is the largest over the
 headline figures. "Not reached" means the largest width still improves on the one before.
 
-The ``production`` preset is not run: it is the GPU configuration (its SDF trains :data:`PRODUCTION_NOTE`'s
+The ``production`` preset is not run: it is the GPU configuration (its SDF trains :func:`production_note`'s
 multiple of the default's samples), hours per action on a 2-core CPU; bench/bench_gpu.py times its field step.
 
 Writes bench_resolution.json, .md and bench_resolution.png (figures against pixels per view, time and memory per
@@ -101,19 +101,21 @@ def height_of(width: int) -> int:
 
 
 def production_note() -> str:
-    """How much more the production preset's SDF trains than the default's (samples per step x steps)."""
+    """How much more the production preset's SDF trains than the default's: network samples (rays x samples per
+    ray + eikonal points) x steps, over both passes of :func:`stages.numerics.sdf_mesh.pass_configs`."""
+    from stages.numerics.sdf_mesh import pass_configs
     from stages.registry import PRESETS
 
-    def samples(name: str) -> tuple[int, int]:
-        geometry = PRESETS[name].geometry
-        sdf = geometry.sdf
-        steps = sdf.iterations + (geometry.first_pass_iterations if geometry.deocclude else 0)
-        return sdf.rays_per_batch * sdf.samples_per_ray, steps
+    def passes(name: str) -> list[tuple[int, int]]:
+        return [(c.rays_per_batch * c.samples_per_ray + c.eikonal_points, c.iterations)
+                for c in pass_configs(PRESETS[name].geometry) if c is not None]
 
-    (p_samples, p_steps), (d_samples, d_steps) = samples("production"), samples(PRESET)
-    return (f"production SDF: {p_samples:,} samples a step x {p_steps:,} steps, "
-            f"{p_samples * p_steps / (d_samples * d_steps):.0f} x the {PRESET} preset's "
-            f"({d_samples:,} x {d_steps:,})")
+    def words(steps: list[tuple[int, int]]) -> str:
+        return " + ".join(f"{n:,} steps of {s:,} samples" for s, n in steps)
+
+    production, default = passes("production"), passes(PRESET)
+    ratio = sum(s * n for s, n in production) / sum(s * n for s, n in default)
+    return (f"production SDF: {words(production)}, {ratio:.0f} x the {PRESET} preset's ({words(default)})")
 
 
 def child_env() -> dict[str, str]:
