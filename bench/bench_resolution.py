@@ -237,9 +237,10 @@ def measure_width(width: int, cameras: int, preset: str, steps: list[str | None]
 
 # --- growth, knee, report ---------------------------------------------------------------------------------------
 
-def power_fit(pixels: list[float], values: list[float]) -> dict[str, float] | None:
-    """Least squares of ``log value = log a + k log pixels``: ``{k, a, r2}``; None with fewer than two positive
-    points or a single pixel count."""
+def power_fit(pixels: list[float], values: list[float]) -> dict[str, Any] | None:
+    """Least squares of ``log value = log a + k log pixels``: ``{k, a, r2, residuals, rms_residual}``, the
+    residuals being ``log value - (log a + k log pixels)`` per point (natural log: 0.1 is about 10 %); None with
+    fewer than two positive points or a single pixel count."""
     import numpy as np
 
     points = [(p, v) for p, v in zip(pixels, values) if p > 0 and v > 0]
@@ -250,7 +251,8 @@ def power_fit(pixels: list[float], values: list[float]) -> dict[str, float] | No
     residual = y - (k * x + log_a)
     spread = float(np.sum((y - y.mean()) ** 2))
     r2 = 1.0 - float(np.sum(residual ** 2)) / spread if spread > 0 else 1.0
-    return {"k": float(k), "a": float(math.exp(log_a)), "r2": r2}
+    return {"k": float(k), "a": float(math.exp(log_a)), "r2": r2, "residuals": [float(r) for r in residual],
+            "rms_residual": float(np.sqrt(np.mean(residual ** 2)))}
 
 
 def knee(widths: list[int], values: list[float], direction: int, tolerance: float) -> int | None:
@@ -358,11 +360,15 @@ def markdown(report: dict[str, Any]) -> str:
                       f"{per_cam * CAMERAS / 60:.0f} min for the {CAMERAS} cameras of one action (the LED visibility "
                       "and the session's calibration frames not counted)."]
     lines += ["", "## Fits (seconds ~ pixels per view ^ k) and the production sensor, extrapolated", "",
-              "| series | k | R^2 | at 6016 x 4016 (extrapolated) |", "|---|---|---|---|"]
+              "Residuals: log(measured) - log(fit) per width, smallest first (natural log: 0.10 is about 10 %); "
+              "with two widths they are zero.", "",
+              "| series | k | R^2 | residuals | at 6016 x 4016 (extrapolated) |", "|---|---|---|---|---|"]
     for name, fit in g["fits"].items():
         if fit:
             unit = "MiB" if name.startswith("peak") else "s"
-            lines.append(f"| {name} | {fit['k']:.2f} | {fit['r2']:.3f} | {fit['at_sensor_extrapolated']:.0f} {unit} |")
+            residuals = ", ".join(f"{r:+.2f}" for r in fit.get("residuals", []))
+            lines.append(f"| {name} | {fit['k']:.2f} | {fit['r2']:.3f} | {residuals} | "
+                         f"{fit['at_sensor_extrapolated']:.0f} {unit} |")
     lines += ["", "The SDF (`geometry`) trains a fixed number of steps of fixed rays x samples, so its training does "
               "not grow with the pixels; what grows is reading the views, the hull carved from their masks and the "
               "bank of rays worth drawing (over every pixel).", "",
