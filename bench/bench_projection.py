@@ -1,12 +1,16 @@
 """Projected wall time and storage of the whole release (2,000 actions of 32 cameras at 6016 x 4016 and the
 1,500-example relighting set) for N CPU workers and M GPUs, from the per-stage costs a run recorded.
 
-Measured: each stage's seconds per scope in a release's ``manifests/stage_runs.parquet`` (the latest run that ran
-it; a per-camera stage's seconds are the sum over its cameras, so they are one worker's seconds), the release's
+Measured: each stage's seconds per scope, from bench_resolution's report (``--resolution``, by default
+``OUT/bench_resolution.json`` where present: the CPU seconds of the stage's own process above the imports' floor at
+its largest width, one action of 32 cameras, and each stage's exponent k of CPU seconds against pixels per view over
+its widths; CPU seconds, so a loaded machine does not inflate them), or else from a release's
+``manifests/stage_runs.parquet`` (the latest run that ran it; a per-camera stage's seconds are the sum over its
+cameras, so they are one worker's seconds, wall seconds with the machine's contention in them); the release's
 bytes per asset kind (``assets.parquet``), the work store's bytes per stage (``<work>/artifacts``, hard links
 counted once), the capture's raw bytes, and, when present in ``--out``, the engine's overhead per task
-(bench_scale.json) and a worker's peak memory (bench_memory.json). Those are at the default preset and resolution
-(``make dataset``: 320 x 480, two actions on a 2-core machine shared by both workers: contention included).
+(bench_scale.json), a worker's peak memory (bench_memory.json) and the GPU's speed-up (bench_gpu.json). Those are at
+the default preset.
 
 Scaled to the production preset by stated rules (the table says which rule each stage gets):
 
@@ -16,9 +20,14 @@ Scaled to the production preset by stated rules (the table says which rule each 
   materials 1024^2 and occlusion 2048^2 vs 256^2 and 512^2);
 - ``relight``: maps x novel views (6 vs 3) x SG lobes (64 vs 32);
 - ``geometry`` (the GPU stage, ``resources = {"GPU": 1}``): x the SDF's ray samples over both passes
-  (production 2 x 20,000 steps of 4096 rays x 16 samples vs 600 + 1,800 steps of 512 x 8), divided by an
-  ASSUMED speed-up of one GPU over the one CPU core that measured it (``--gpu-speedup``; no GPU here);
+  (production 2 x 20,000 steps of 4096 rays x 16 samples vs 600 + 1,800 steps of 512 x 8), divided by the
+  speed-up of one GPU over one CPU core: ``--gpu-speedup``, else bench_gpu's measured field-step speed-up where it
+  saw a GPU, else an ASSUMED :data:`ASSUMED_GPU_SPEEDUP`;
 - the relighting set: seconds per example x (512 / 256)^2 pixels x 2 SG lobes, for 1,500 examples.
+
+With bench_resolution's exponents the CPU work is projected a second time with each per-pixel stage's pixel
+factor raised to its measured k: for a cost that is a fixed part plus a per-pixel part, the whole factor is an upper
+bound and the measured power law a lower one. The report marks every figure measured, projected or assumed.
 
 Wall time for N CPU workers (one core each, as the default cluster runs them) and M GPUs:
 ``raw hashing + max(CPU work / N, GPU work / M) + one action's critical path + engine``, where raw hashing (the
@@ -29,8 +38,8 @@ the assets table) is done by the task that wrote the file (its success record), 
 at the single-thread rate; and the engine term is bench_scale's planning and bookkeeping per task. Disk and network
 bandwidth are not counted. Writes bench_projection.json, bench_projection.md and bench_projection.png (matplotlib).
 
-``python bench/bench_projection.py --out bench/out [--release runs/default/release] [--gpu-speedup 100]
-[--driver-cores 16]``
+``python bench/bench_projection.py --out bench/out [--release runs/default/release] [--resolution
+bench/out/bench_resolution.json] [--gpu-speedup 100] [--driver-cores 16]``
 """
 from __future__ import annotations
 
@@ -328,8 +337,8 @@ def main() -> int:
                         help="ASSUMED: cores of the machine that plans (its thread pool hashes the raw frames)")
     parser.add_argument("--resolution", default=None,
                         help="bench_resolution.json whose CPU figures give the stage seconds (its largest width) and "
-                             "the measured exponents (default: OUT/bench_resolution.json when present, not with "
-                             "--quick; 'none': the release's stage_runs task seconds)")
+                             "the measured exponents (default: OUT/bench_resolution.json when present and not a "
+                             "quick run's, not with --quick; 'none': the release's stage_runs task seconds)")
     parser.add_argument("--quick", action="store_true",
                         help="project from bench/_quick.py's tiny run (checks the bench; not the figures)")
     args = parser.parse_args()
@@ -353,7 +362,8 @@ def main() -> int:
     per_session = {cls.name for cls in STAGE_CLASSES if cls.scope == "session"}
     examples_measured = max(1, info["examples"])
     resolution_path = args.resolution
-    if resolution_path is None and not args.quick and (out / "bench_resolution.json").is_file():
+    if resolution_path is None and not args.quick and (out / "bench_resolution.json").is_file() and \
+            not json.loads((out / "bench_resolution.json").read_text()).get("quick"):
         resolution_path = str(out / "bench_resolution.json")
     exponents, source = None, None
     if resolution_path not in (None, "none"):
