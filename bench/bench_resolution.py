@@ -29,7 +29,7 @@ The **knee** of a figure is the smallest width beyond which no larger width impr
 tolerance (:data:`KNEE_TOLERANCES`: what a reader would call a change); the knee of the run is the largest over the
 headline figures. "Not reached" means the largest width still improves on the one before.
 
-The ``production`` preset is not run: it is the GPU configuration (its SDF trains :data:`PRODUCTION_NOTE`'s
+The ``production`` preset is not run: it is the GPU configuration (its SDF trains :func:`production_note`'s
 multiple of the default's samples), hours per action on a 2-core CPU; bench/bench_gpu.py times its field step.
 
 Writes bench_resolution.json, .md and bench_resolution.png (figures against pixels per view, time and memory per
@@ -101,19 +101,21 @@ def height_of(width: int) -> int:
 
 
 def production_note() -> str:
-    """How much more the production preset's SDF trains than the default's (samples per step x steps)."""
+    """How much more the production preset's SDF trains than the default's: network samples (rays x samples per
+    ray + eikonal points) x steps, over both passes of :func:`stages.numerics.sdf_mesh.pass_configs`."""
+    from stages.numerics.sdf_mesh import pass_configs
     from stages.registry import PRESETS
 
-    def samples(name: str) -> tuple[int, int]:
-        geometry = PRESETS[name].geometry
-        sdf = geometry.sdf
-        steps = sdf.iterations + (geometry.first_pass_iterations if geometry.deocclude else 0)
-        return sdf.rays_per_batch * sdf.samples_per_ray, steps
+    def passes(name: str) -> list[tuple[int, int]]:
+        return [(c.rays_per_batch * c.samples_per_ray + c.eikonal_points, c.iterations)
+                for c in pass_configs(PRESETS[name].geometry) if c is not None]
 
-    (p_samples, p_steps), (d_samples, d_steps) = samples("production"), samples(PRESET)
-    return (f"production SDF: {p_samples:,} samples a step x {p_steps:,} steps, "
-            f"{p_samples * p_steps / (d_samples * d_steps):.0f} x the {PRESET} preset's "
-            f"({d_samples:,} x {d_steps:,})")
+    def words(steps: list[tuple[int, int]]) -> str:
+        return " + ".join(f"{n:,} steps of {s:,} samples" for s, n in steps)
+
+    production, default = passes("production"), passes(PRESET)
+    ratio = sum(s * n for s, n in production) / sum(s * n for s, n in default)
+    return (f"production SDF: {words(production)}, {ratio:.0f} x the {PRESET} preset's ({words(default)})")
 
 
 def child_env() -> dict[str, str]:
@@ -235,9 +237,10 @@ def measure_width(width: int, cameras: int, preset: str, steps: list[str | None]
 
 # --- growth, knee, report ---------------------------------------------------------------------------------------
 
-def power_fit(pixels: list[float], values: list[float]) -> dict[str, float] | None:
-    """Least squares of ``log value = log a + k log pixels``: ``{k, a, r2}``; None with fewer than two positive
-    points or a single pixel count."""
+def power_fit(pixels: list[float], values: list[float]) -> dict[str, Any] | None:
+    """Least squares of ``log value = log a + k log pixels``: ``{k, a, r2, residuals, rms_residual}``, the
+    residuals being ``log value - (log a + k log pixels)`` per point (natural log: 0.1 is about 10 %); None with
+    fewer than two positive points or a single pixel count."""
     import numpy as np
 
     points = [(p, v) for p, v in zip(pixels, values) if p > 0 and v > 0]
@@ -248,7 +251,8 @@ def power_fit(pixels: list[float], values: list[float]) -> dict[str, float] | No
     residual = y - (k * x + log_a)
     spread = float(np.sum((y - y.mean()) ** 2))
     r2 = 1.0 - float(np.sum(residual ** 2)) / spread if spread > 0 else 1.0
-    return {"k": float(k), "a": float(math.exp(log_a)), "r2": r2}
+    return {"k": float(k), "a": float(math.exp(log_a)), "r2": r2, "residuals": [float(r) for r in residual],
+            "rms_residual": float(np.sqrt(np.mean(residual ** 2)))}
 
 
 def knee(widths: list[int], values: list[float], direction: int, tolerance: float) -> int | None:
@@ -356,11 +360,15 @@ def markdown(report: dict[str, Any]) -> str:
                       f"{per_cam * CAMERAS / 60:.0f} min for the {CAMERAS} cameras of one action (the LED visibility "
                       "and the session's calibration frames not counted)."]
     lines += ["", "## Fits (seconds ~ pixels per view ^ k) and the production sensor, extrapolated", "",
-              "| series | k | R^2 | at 6016 x 4016 (extrapolated) |", "|---|---|---|---|"]
+              "Residuals: log(measured) - log(fit) per width, smallest first (natural log: 0.10 is about 10 %); "
+              "with two widths they are zero.", "",
+              "| series | k | R^2 | residuals | at 6016 x 4016 (extrapolated) |", "|---|---|---|---|---|"]
     for name, fit in g["fits"].items():
         if fit:
             unit = "MiB" if name.startswith("peak") else "s"
-            lines.append(f"| {name} | {fit['k']:.2f} | {fit['r2']:.3f} | {fit['at_sensor_extrapolated']:.0f} {unit} |")
+            residuals = ", ".join(f"{r:+.2f}" for r in fit.get("residuals", []))
+            lines.append(f"| {name} | {fit['k']:.2f} | {fit['r2']:.3f} | {residuals} | "
+                         f"{fit['at_sensor_extrapolated']:.0f} {unit} |")
     lines += ["", "The SDF (`geometry`) trains a fixed number of steps of fixed rays x samples, so its training does "
               "not grow with the pixels; what grows is reading the views, the hull carved from their masks and the "
               "bank of rays worth drawing (over every pixel).", "",
