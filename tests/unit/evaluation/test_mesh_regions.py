@@ -7,7 +7,7 @@ import open3d as o3d
 import pytest
 
 from evaluation.mesh_regions import HEIGHT_BANDS, region_errors, truth_face_regions
-from synthetic.garments import SKIRT_PARTS, SKIRT_THICKNESS_M, skirt_shell, skirt_triangle_parts
+from synthetic.garments import SKIRT_PARTS, skirt_shell, skirt_triangle_parts
 
 
 def sphere(radius: float, resolution: int = 60) -> tuple[np.ndarray, np.ndarray]:
@@ -92,4 +92,3 @@ def test_truth_face_regions_finds_the_body_inside_the_skirt():
     lower_fraction = (lower_v[lower_f].mean(axis=1)[:, 1] + 0.55) / 0.65
     assert (lower_named == np.where(lower_fraction < HEIGHT_BANDS[0][2], "feet", "legs")).all()
     assert list(named[len(body_f):]) == [SKIRT_PARTS[p] for p in skirt_triangle_parts(len(skirt_f), 24)]
-    assert abs(SKIRT_THICKNESS_M - 0.004) < 1e-12
