@@ -218,6 +218,26 @@ def skirt_shell(radius: np.ndarray, heights: np.ndarray, angles: np.ndarray,
     return vertices, triangles, is_outer
 
 
+SKIRT_PARTS = ("skirt_outer", "skirt_inner", "skirt_hem", "skirt_waist")
+"""Names of :func:`skirt_triangle_parts`' labels, in label order."""
+
+
+def skirt_triangle_parts(n_triangles: int, n_angles: int) -> np.ndarray:
+    """Which part of the skirt (an index into SKIRT_PARTS) each of :func:`skirt_shell`'s triangles is on, from the
+    shell's triangle count and its vertices per ring: (n_triangles,) int64 in the order skirt_shell writes them
+    (outer surface, inner surface, hem band, waist band).
+
+    Raises:
+        ValueError: ``n_triangles`` is not 4 x rings x ``n_angles`` for some rings >= 2.
+    """
+    rings, remainder = divmod(int(n_triangles), 4 * int(n_angles))
+    if remainder or rings < 2:
+        raise ValueError(f"{n_triangles} triangles are not a skirt shell of {n_angles} vertices per ring "
+                         f"(4 x rings x {n_angles}, rings >= 2)")
+    side = 2 * (rings - 1) * n_angles
+    return np.repeat(np.arange(4, dtype=np.int64), [side, side, 2 * n_angles, 2 * n_angles])
+
+
 def transfer_weights(points: np.ndarray, body_vertices: np.ndarray, body_weights: np.ndarray,
                      k: int = 8) -> np.ndarray:
     """Skinning weights (N, B) of points (N, 3): the inverse-distance mean of the weights (V, B) of their k
