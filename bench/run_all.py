@@ -121,6 +121,10 @@ def machine_lines() -> list[str]:
     return lines
 
 
+READS_OTHER_BENCHES = frozenset({"bench_projection"})
+"""Benches that read other benches' results from ``--out``: run after every other bench."""
+
+
 def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
     """The arguments run_all gives bench ``name`` beyond ``--out`` (None: not run in this mode)."""
     if quick:
@@ -176,7 +180,8 @@ def main() -> int:
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    scripts = sorted(HERE.glob("bench_*.py"))
+    # the benches that read others' results (the projection reads bench_resolution.json, bench_gpu.json) run last
+    scripts = sorted(HERE.glob("bench_*.py"), key=lambda s: (s.stem in READS_OTHER_BENCHES, s.name))
     if args.only:
         wanted = {f"bench_{n}.py" for n in args.only.split(",")}
         scripts = [s for s in scripts if s.name in wanted]
