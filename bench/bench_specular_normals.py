@@ -63,7 +63,7 @@ def variants(default_roughness: float) -> dict[str, dict]:
 
 def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]]:
     from pipeline.codecs.exr import read_exr
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.photometric import corrected_normals, photometric_maps
     from stages.numerics.specular_normals import fit_diffuse_normals, view_directions

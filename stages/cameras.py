@@ -49,8 +49,8 @@ from calibration.markers import MarkerCalibrationConfig
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.layout import ArtifactWriter
-from stages.numerics.camera import camera_centre
+from artifacts.layout import ArtifactWriter
+from artifacts.camera import camera_centre
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
+from artifacts.facade import ActionArtifacts
 from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
 
 

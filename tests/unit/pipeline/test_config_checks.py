@@ -16,7 +16,7 @@ from pipeline.config import (Documented, InvalidConfig, broken, check, checked, 
 from pipeline.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[3]
-PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests", "evaluation")
+PROJECT_PACKAGES = ("pipeline", "artifacts", "stages", "calibration", "synthetic", "manifests", "evaluation")
 
 
 @dataclass(frozen=True)
@@ -191,7 +191,7 @@ def test_rules_stay_out_of_the_dict_and_the_key():
 # ------------------------------------------------------------------------------------------------ one place
 
 DATA_TYPES = {
-    "stages.numerics.camera.Camera": "a camera (K, pose, size), checked as data, not a config",
+    "artifacts.camera.Camera": "a camera (K, pose, size), checked as data, not a config",
     "stages.numerics.hull.HullGrid": "a voxel grid (occupancy, bounds), checked as data",
     "calibration.light.LightModel": "a fitted model's coefficients, checked as data",
 }

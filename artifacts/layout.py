@@ -3,7 +3,7 @@
 :data:`PRODUCTS` gives the stage and the path inside its artifact folder of every product another stage or the
 consumer API reads; :data:`RELEASE_KINDS` the kind of the release's assets manifest that holds it;
 :class:`ArtifactWriter` gives a stage the paths of the products it writes. The readers are in
-:mod:`stages.artifacts`. This module imports nothing of the project, so a stage that only writes its products
+:mod:`artifacts.facade`. This module imports nothing of the project, so a stage that only writes its products
 through it keeps its cache key's code digest to its own modules.
 """
 from __future__ import annotations
