@@ -38,7 +38,7 @@ def prepare(root: Path, seed: int, width: int, cameras: int, **sim_changes) -> P
     """Simulate and run through photometric; returns the work folder."""
     from pipeline.runner import ExecutionConfig
     from stages.registry import PRESETS, build_stages
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     shutil.rmtree(root, ignore_errors=True)

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.cli import main as cli
+from ultrastage.cli import main as cli
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from synthetic import SimConfig, simulate
 
 SYNC = ExecutionConfig(scheduler="sync")
