@@ -27,8 +27,8 @@ from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import ArtifactWriter
-from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
+from artifacts.layout import COLMAP_MODEL_DIR, ArtifactWriter
+from stages.conventions import distortion_fields, srgb_png
 from stages.exr_headers import EXR_HEADERS
 
 ILLUMINATIONS = ("full_on", "pos", "neg")

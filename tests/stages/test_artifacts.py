@@ -12,7 +12,7 @@ from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
 from artifacts.facade import ActionArtifacts
 from manifests import release_artifacts
-from artifacts.layout import PRODUCTS, RELEASE_KINDS, ArtifactWriter
+from artifacts.layout import PRODUCTS, RELEASE_KINDS, ArtifactWriter, released_files
 from stages.decode import transforms_json
 
 H, W = 6, 4
@@ -148,6 +148,27 @@ def test_the_writer_gives_a_stage_its_own_products_only(tmp_path):
 
 def test_every_released_product_is_a_product():
     assert set(RELEASE_KINDS) <= set(PRODUCTS)
+
+
+def test_released_files_come_from_the_products_table(tmp_path):
+    from stages.exports import RELEASED
+
+    files = released_files("exports", tmp_path, RELEASED)
+    assert [(rel, kind) for _, rel, kind, _ in files] == [
+        ("mesh/textured.obj", "mesh_textured"), ("mesh/textured.mtl", "mesh_material"),
+        ("mesh/textured.png", "mesh_texture"), ("mesh/textured.glb", "mesh_glb"),
+        ("colmap/sparse/0/cameras.txt", "colmap_cameras_txt"), ("colmap/sparse/0/images.txt", "colmap_images_txt"),
+        ("colmap/sparse/0/points3D.txt", "colmap_points3D_txt"), ("colmap/sparse/0/points3D.ply", "colmap_points3D_ply")]
+    assert all(path == tmp_path / rel and camera is None for path, rel, _, camera in files)
+    # an optional product is listed only when its file is there
+    assert released_files("cameras", tmp_path, ("calibration_summary",), optional=("calibration_summary",)) == []
+    (tmp_path / "calibration.json").write_text("{}")
+    assert released_files("cameras", tmp_path, ("calibration_summary",), optional=("calibration_summary",)) == [
+        (tmp_path / "calibration.json", "calibration.json", "calibration", None)]
+    with pytest.raises(KeyError, match="written by stage 'exports', not 'cameras'"):
+        released_files("cameras", tmp_path, ("export_mesh",))
+    with pytest.raises(KeyError, match="a release does not hold it"):
+        released_files("cameras", tmp_path, ("calibration_colmap",))
 
 
 def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
