@@ -79,7 +79,7 @@ compat: $(COMPAT_STAMP)
 	$(COMPAT_VENV)/bin/python tests/compat/check_release.py $(RUN)/release
 
 lint: setup
-	$(PY) -m compileall -q pipeline stages manifests calibration synthetic evaluation
+	$(PY) -m compileall -q pipeline artifacts stages manifests calibration synthetic evaluation ultrastage
 
 clean-runs:
 	rm -rf runs

@@ -60,7 +60,7 @@ def quick_run(out: Path) -> Path:
 def _make_quick_run(root: Path) -> None:
     from pipeline.runner import ExecutionConfig
     from stages.registry import PRESETS, build_stages
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
 
     sim = quick_capture_config()
     record = json.loads(json.dumps({"simulate": sim.to_json()}))

@@ -49,7 +49,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
     """The variants of one action (module docstring)."""
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.specular_normals import view_directions
@@ -224,7 +224,7 @@ def main() -> int:
         return 0
     from pipeline.runner import read_run_record
 
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
 
     work = Path(read_run_record(release)["work"])  # run.json holds it relative to the release
     capture_json = json.loads((capture / "capture.json").read_text())

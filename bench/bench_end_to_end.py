@@ -72,7 +72,7 @@ def run_once(capture: Path, root: Path, preset: str, through: str | None, action
              fresh: bool = True) -> dict:
     """One ``run_pipeline`` of the DAG (``through``: only that stage and what it needs); wall seconds, the tasks'
     seconds per stage, ran/cached counts."""
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
     from stages.registry import PRESETS, build_stages
 
     if fresh:

@@ -61,10 +61,10 @@ def load_release_views(release: Path, action: str, geometry):
     """The SDF views of one released action as the geometry stage with config ``geometry`` loads them
     (:func:`stages.geometry.load_sdf_views` through the artifact facade: the photometric normal maps, masks and
     cameras of ``transforms.json``)."""
-    from stages.artifacts import ActionArtifacts
+    from manifests import release_artifacts
     from stages.geometry import load_sdf_views
 
-    return load_sdf_views(ActionArtifacts.from_release(release, action), geometry.min_alpha)[1]
+    return load_sdf_views(release_artifacts(release, action), geometry.min_alpha)[1]
 
 
 def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -337,11 +337,10 @@ def main() -> int:
     out = Path(args.out)
     capture, release = Path(args.capture), Path(args.release)
     gt_mesh = capture / "ground_truth" / args.action / "mesh.ply"
-    from manifests import ReleaseError
-    from stages.artifacts import ActionArtifacts
+    from manifests import ReleaseError, release_artifacts
 
     try:
-        ActionArtifacts.from_release(release, args.action).existing("transforms")
+        release_artifacts(release, args.action).existing("transforms")
         missing = [] if gt_mesh.exists() else [str(gt_mesh)]
     except (ReleaseError, KeyError, FileNotFoundError) as exc:
         missing = [f"{args.action} of a release at {release} ({exc})"] + ([] if gt_mesh.exists() else [str(gt_mesh)])

@@ -45,7 +45,7 @@ TASK_LINE = re.compile(r"\[\s*(\d+)/(\d+)\]\s+([\d.]+)s\s+(\w+)\s+(\S+)\s+(\w+)"
 
 
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "stages.cli", *args]
+    return [sys.executable, "-m", "ultrastage.cli", *args]
 
 
 def _run_logged(cmd: list[str], log: Path, timeout_s: float, env: dict | None = None) -> dict:

@@ -52,11 +52,12 @@ def find_sdf(work: Path, release: Path, action: str) -> Path | None:
     """The geometry stage's artifact (holding ``sdf/sdf.pt``) in the work store ``work`` whose mesh is the
     release's (hard link or same bytes; the most recently committed first), else the last committed one."""
     from pipeline.store import ArtifactStore
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
+    from manifests import release_artifacts
 
     store = ArtifactStore(work / "artifacts")
     folders = [f for f in store.committed_dirs("geometry", action) if (f / "sdf" / "sdf.pt").is_file()]
-    released = ActionArtifacts.from_release(release, action)
+    released = release_artifacts(release, action)
     if released.has("mesh"):
         release_mesh = released.existing("mesh")
         for folder in folders:

@@ -89,7 +89,7 @@ def sweep(values: tuple, default) -> list:
 def white_references(release: Path, capture: Path, action: str, session: str) -> dict[str, np.ndarray]:
     """camera_id -> white_reference (3,): the decode stage's calibrated cameras in the release's work store
     (what the materials stage used, through the artifact facade), else the capture's rig.json."""
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
 
     work = release.parent / f"{release.name}.work" / "artifacts"
     decoded = ActionArtifacts.from_store(work, action, session, ("decode",)) if work.is_dir() else None
@@ -105,10 +105,10 @@ def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig)
     reads them (:func:`stages.materials.load_bake_views`): the welded textured mesh and its atlas, the baked
     albedo texture and one BakeView per camera (full_on | pos | neg stacked, valid = alpha above
     ``cfg.min_alpha`` inside the mask), with the cameras' white references (:func:`white_references`)."""
-    from stages.artifacts import ActionArtifacts
+    from manifests import release_artifacts
     from stages.materials import load_bake_views
 
-    artifacts = ActionArtifacts.from_release(release, action)
+    artifacts = release_artifacts(release, action)
     view = artifacts.backend.view
     session = view.info.get("session_id") or "S000"
     white = white_references(release, capture, action, session)

@@ -62,7 +62,7 @@ def main() -> int:
     from pipeline.runner import ExecutionConfig
     from evaluation.release import evaluate_release
     from stages.registry import PRESETS, build_stages
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     report = {"quick": args.quick}

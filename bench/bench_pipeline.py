@@ -40,7 +40,7 @@ def main() -> int:
     from evaluation.release import evaluate_release
     from stages.numerics.photometric import PhotometricParams
     from stages.registry import PRESETS, build_stages
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     start = time.perf_counter()

@@ -158,16 +158,16 @@ def fit_environments(names: list[str], capture: Path, progress, lobes_sweep: tup
 
 class ActionScene:
     """What the relight stage renders one action from, read from the release through the artifact facade
-    (:meth:`stages.artifacts.ActionArtifacts.from_release`) by the stage's own loader
+    (:func:`manifests.release_artifacts`) by the stage's own loader
     (:func:`stages.relightable.load_relightable_asset` with the stage's ``min_alpha``, ``diffuse_normals`` and
     ``diffuse_albedo``): the mesh, the captured views as reprojection sources with their mesh depth, the atlas
     and its textures."""
 
     def __init__(self, release: Path, action: str):
-        from stages.artifacts import ActionArtifacts
+        from manifests import release_artifacts
         from stages.relightable import load_relightable_asset
 
-        self.artifacts = ActionArtifacts.from_release(release, action)
+        self.artifacts = release_artifacts(release, action)
         self.view = self.artifacts.backend.view
         self.asset, _ = load_relightable_asset(self.artifacts, CONFIG.min_alpha, CONFIG.diffuse_normals,
                                                CONFIG.diffuse_albedo)

@@ -81,7 +81,7 @@ def main() -> int:
     work = Path(args.work) if args.work else release.with_name(release.name + ".work")
 
     from pipeline.capture import open_capture
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
     from stages.relightable import load_relightable_asset
     from stages.numerics.metrics import angular_error_deg, relit_psnr
     from stages.numerics.novel_view import relight_view

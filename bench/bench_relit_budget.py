@@ -163,10 +163,9 @@ class ActionBudget:
     def __init__(self, release: Path, capture: Path, action: str, threads: int, quick: bool,
                  truth_visibility: Path | None = None):
         from evaluation.release import relit_truth_lights
-        from manifests import open_release
+        from manifests import open_release, release_artifacts
         from pipeline.codecs.exr import read_exr
         from pipeline.codecs.mesh import read_ply
-        from stages.artifacts import ActionArtifacts
         from stages.numerics.gbuffer import SourceView
         from stages.numerics.raycast import mesh_scene
         from stages.relightable import load_relightable_asset
@@ -177,7 +176,7 @@ class ActionBudget:
         t0 = time.perf_counter()
         rel = open_release(release)
         self.view = rel.action(action)
-        self.asset, self.cameras = load_relightable_asset(ActionArtifacts.from_release(rel, action), cfg.min_alpha,
+        self.asset, self.cameras = load_relightable_asset(release_artifacts(rel, action), cfg.min_alpha,
                                                           cfg.diffuse_normals, cfg.diffuse_albedo)
         self.cams = self.view.render_cameras()
         self.environments = self.view.release.load(self.view.asset("render_environments", None))["environments"]
@@ -224,7 +223,7 @@ def _gbuffer_from_truth(gb: dict, true: dict, K: np.ndarray, pose: np.ndarray, k
     """A G-buffer (:func:`stages.numerics.novel_view.novel_view_gbuffer`'s keys) whose silhouette, normals and albedo
     are the truth render's, on the points of ``gb`` (the true mesh's G-buffer); roughness, occlusion and diffuse
     ratio kept from ``gb`` (the nearest of its pixels off its mask)."""
-    from stages.numerics.camera import Camera
+    from artifacts.camera import Camera
 
     mask = np.asarray(true["mask"], bool)
     h, w = mask.shape

@@ -158,7 +158,7 @@ def child_simulate(capture: Path, width: int, cameras: int, quick: bool, stamps_
 
 def child_imports(preset: str) -> None:
     """The floor of a step's process: the command line's imports and the preset's stages."""
-    import stages.cli  # noqa: F401
+    import ultrastage.cli  # noqa: F401
     from stages.registry import PRESETS, build_stages
 
     build_stages(PRESETS[preset])
@@ -212,7 +212,7 @@ def measure_width(width: int, cameras: int, preset: str, steps: list[str | None]
     print(f"w{width}: simulated in {sim['wall_s']:.1f} s ({sim['s_per_camera']:.2f} s per camera), peak "
           f"{sim['peak_rss_mib']:.0f} MiB", flush=True)
     result["imports"] = watched(me + ["--child-imports", preset], scratch, IMPORTS)
-    run = [sys.executable, "-m", "stages.cli", "run", "--capture", str(capture), "--release", str(release),
+    run = [sys.executable, "-m", "ultrastage.cli", "run", "--capture", str(capture), "--release", str(release),
            "--preset", preset, "--scheduler", "sync", "--no-evaluate"]
     result["steps"], seen = [], {}
     for step in steps:
@@ -225,7 +225,7 @@ def measure_width(width: int, cameras: int, preset: str, steps: list[str | None]
         print(f"w{width}: {name}: {', '.join(f'{s} {v:.1f} s' for s, v in new.items()) or 'nothing ran'}; "
               f"process {measured['cpu_s']:.1f} s CPU, peak {measured['peak_rss_mib']:.0f} MiB", flush=True)
     figures = scratch / "evaluate.json"
-    result["evaluate"] = watched([sys.executable, "-m", "stages.cli", "evaluate", "--release", str(release),
+    result["evaluate"] = watched([sys.executable, "-m", "ultrastage.cli", "evaluate", "--release", str(release),
                                   "--truth", str(capture / "ground_truth"), "--json", str(figures)], scratch,
                                  "evaluate")
     result["figures"] = {k: float(v) for k, v in json.loads(figures.read_text()).items()

@@ -38,7 +38,7 @@ def prepare(root: Path, seed: int, width: int, cameras: int, **sim_changes) -> P
     """Simulate and run through photometric; returns the work folder."""
     from pipeline.runner import ExecutionConfig
     from stages.registry import PRESETS, build_stages
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
     from synthetic import SimConfig, simulate
 
     shutil.rmtree(root, ignore_errors=True)
@@ -63,7 +63,7 @@ def variants(default_roughness: float) -> dict[str, dict]:
 
 def evaluate(root: Path, default_roughness: float) -> dict[str, dict[str, float]]:
     from pipeline.codecs.exr import read_exr
-    from stages.artifacts import ActionArtifacts
+    from artifacts.facade import ActionArtifacts
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.photometric import corrected_normals, photometric_maps
     from stages.numerics.specular_normals import fit_diffuse_normals, view_directions

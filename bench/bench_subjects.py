@@ -208,7 +208,7 @@ def run_subject(subject: Subject, folder: Path, sim_changes: dict, preset: str, 
     simulate(folder / "capture", config, calibration=CalibrationConfig())
     record["simulate_s"] = time.perf_counter() - started
     started = time.perf_counter()
-    command = [sys.executable, "-m", "stages.cli", "run", "--capture", str(folder / "capture"),
+    command = [sys.executable, "-m", "ultrastage.cli", "run", "--capture", str(folder / "capture"),
                "--release", str(folder / "release"), "--preset", preset] + (["--scheduler", "sync"] if quick else [])
     env = os.environ | {"PYTHONPATH": os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
     if quick:

@@ -57,8 +57,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from stages.artifacts import transforms_cameras
-from stages.numerics.camera import Camera
+from artifacts.facade import transforms_cameras
+from artifacts.camera import Camera
 from stages.numerics.gbuffer import SourceView, reproject_gbuffer
 from stages.numerics.metrics import angular_error_deg, downsample_to, ssim
 
@@ -178,7 +178,7 @@ class ActionGBuffers:
     def roughness(self, cam: str) -> np.ndarray:
         """(H, W) float32 roughness of the materials' texture seen by camera ``cam`` through the textured mesh;
         the texture's median where that mesh misses a pixel."""
-        from stages.artifacts import load_atlas_mesh
+        from artifacts.facade import load_atlas_mesh
         from stages.numerics.raycast import mesh_scene
         from stages.diffuse_normals import materials_roughness
 

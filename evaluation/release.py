@@ -558,7 +558,7 @@ def texture_in_camera(obj_path: Path, textures: dict[str, np.ndarray], K: np.nda
     """Textures of the atlas seen by a camera through the textured mesh: name -> (H, W[, C]) and the hit
     mask (H, W). ``where``: (H, W) bool, the only pixels the textures are looked up at (0 elsewhere); None:
     every pixel."""
-    from stages.artifacts import load_atlas_mesh
+    from artifacts.facade import load_atlas_mesh
     from stages.numerics.bake import sample_texture
     from stages.numerics.raycast import mesh_scene, render_uvs
 

@@ -297,11 +297,11 @@ class ActionView:
 
     @property
     def artifacts(self):
-        """This action through the artifact facade (:class:`stages.artifacts.ActionArtifacts` over the release,
-        :class:`stages.artifacts.ReleaseBackend`): the typed readers below read through it, and
+        """This action through the artifact facade (:class:`artifacts.facade.ActionArtifacts` over the release,
+        :class:`artifacts.facade.ReleaseBackend`): the typed readers below read through it, and
         ``stages.relightable.load_relightable_asset(view.artifacts)`` gives the asset the renderer relights."""
         if self._artifacts is None:
-            from stages.artifacts import ActionArtifacts, ReleaseBackend
+            from artifacts.facade import ActionArtifacts, ReleaseBackend
 
             self._artifacts = ActionArtifacts(ReleaseBackend(self))
         return self._artifacts
@@ -353,7 +353,7 @@ class ActionView:
         'view_count' or 'confidence' (T, T), float32 (the materials' 'roughness', 'occlusion', 'diffuse_ratio',
         ... likewise), or 'albedo_preview', the albedo's sRGB PNG (T, T, 3) uint8; texel row 0 is v = 1 (OBJ
         convention). KeyError naming the kinds present for a texture the action lacks."""
-        from stages.layout import RELEASE_KINDS
+        from artifacts.layout import RELEASE_KINDS
 
         if name == "albedo_preview":
             return self.artifacts.png("albedo_texture_png")
@@ -397,6 +397,18 @@ def open_release(path: str | Path) -> Release:
         ReleaseError (a FileNotFoundError): the folder does not exist or holds no manifests.
     """
     return Release(path)
+
+
+def release_artifacts(release: str | Path | Release, action_id: str):
+    """One action of a release through the artifact facade (:class:`artifacts.facade.ActionArtifacts` over
+    :class:`artifacts.facade.ReleaseBackend`): the folder or an opened :class:`Release`, and an action id.
+
+    Raises:
+        KeyError: no action with that id in the release.
+        ReleaseError: the folder is not a release.
+    """
+    release = release if isinstance(release, Release) else Release(release)
+    return release.action(action_id).artifacts
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -329,7 +329,7 @@ RELIGHT_EXAMPLES = TableSpec(
 
 BASELINE_METRICS = TableSpec(
     name="baseline_metrics",
-    description="Test metrics of a single-image baseline (AlbedoNet or NormalNet, stages.baselines) on a split of "
+    description="Test metrics of a single-image baseline (AlbedoNet or NormalNet, ultrastage.baselines) on a split of "
                 "the relighting set, beside its checkpoint (not a release manifest): one value per row, per example "
                 "and over the whole split, for the trained network and the trivial baselines on the same examples. "
                 "All metrics are taken on the examples' masked pixels.",

@@ -49,8 +49,8 @@ from calibration.markers import MarkerCalibrationConfig
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.layout import ArtifactWriter
-from stages.numerics.camera import camera_centre
+from artifacts.layout import ArtifactWriter, released_files
+from artifacts.camera import camera_centre
 
 
 @dataclass(frozen=True)
@@ -126,7 +126,7 @@ class CamerasStage(Stage):
                     raise
                 ctx.log.warning("session %s: %s; keeping the rig spec's cameras", ctx.scope_id, exc.reason)
                 left_out = getattr(exc, "left_out", {})
-                (ctx.out_dir / "calibration.json").write_text(json.dumps(
+                ArtifactWriter(self.name, ctx.out_dir).path("calibration_summary").write_text(json.dumps(
                     {"source": "rig", "fallback_from": "markers", "reason": exc.reason}
                     | ({"left_out": left_out} if left_out else {}), indent=1))
                 source = "rig"
@@ -183,7 +183,7 @@ class CamerasStage(Stage):
                                                   f"{len(result.cameras)} of {len(rig_cams)} cameras: "
                                                   + "; ".join(result.notes[:6]), left_out)
         if result.reconstruction is not None:
-            write_colmap_text(result, ctx.out_dir / "colmap")
+            write_colmap_text(result, ArtifactWriter(self.name, ctx.out_dir).path("calibration_colmap"))
         cameras = [_record(rig_cams[c], cal.K.tolist(), cal.dist.tolist(), cal.cam_from_world.tolist())
                    for c, cal in sorted(result.cameras.items())]
         missing = {c: "marker calibration failed: " + next((n.split(": ", 1)[1] for n in result.notes
@@ -195,7 +195,8 @@ class CamerasStage(Stage):
         summary = result.summary() | {"source": "markers", "unregistered": missing, "timings": timings,
                                       "frame": self.config.markers.frame,
                                       "nominal_offset_mm": list(result.alignment_residual_mm or [])}
-        (ctx.out_dir / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))
+        ArtifactWriter(self.name, ctx.out_dir).path("calibration_summary").write_text(
+            json.dumps(summary, indent=1, default=float))
         for cam, why in sorted(missing.items()):
             ctx.log.warning("session %s: camera %s %s", ctx.scope_id, cam, why)
         return cameras, {"n_cameras": len(cameras), "missing_views": missing, "calibration_left_out": left_out,
@@ -239,7 +240,7 @@ class CamerasStage(Stage):
         if not result.aligned:
             raise InputError(where, "calibration could not be aligned to the rig's nominal camera centres: "
                                           + "; ".join(result.notes[-3:]))
-        write_colmap_text(result, ctx.out_dir / "colmap")
+        write_colmap_text(result, ArtifactWriter(self.name, ctx.out_dir).path("calibration_colmap"))
         shutil.rmtree(ctx.out_dir / "work", ignore_errors=True)
         cameras = []
         for name, cal in sorted(result.cameras.items()):
@@ -250,7 +251,8 @@ class CamerasStage(Stage):
         missing |= {c: "no white-light frame to calibrate from" for c in rig_cams
                     if f"{c}.png" not in names and c not in broken}
         summary = result.summary() | {"unregistered": missing}
-        (ctx.out_dir / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))
+        ArtifactWriter(self.name, ctx.out_dir).path("calibration_summary").write_text(
+            json.dumps(summary, indent=1, default=float))
         for cam, why in sorted(missing.items()):
             ctx.log.warning("session %s: camera %s %s", ctx.scope_id, cam, why)
         return cameras, {"n_cameras": len(cameras), "missing_views": missing, "calibration_left_out": broken,
@@ -263,9 +265,7 @@ class CamerasStage(Stage):
         # are the marker frames (or the structure-from-motion frames), which the release does not hold, so no
         # name in it could point at a released file. The calibrated cameras are released under their images'
         # names in the exports stage's model (colmap/sparse/0) and transforms.json; the summary is released.
-        if (artifact / "calibration.json").exists():
-            return [(artifact / "calibration.json", "calibration.json", "calibration", None)]
-        return []
+        return released_files(self.name, artifact, ("calibration_summary",), optional=("calibration_summary",))
 
 
 def _frames(folder: Path, camera_ids: list[str]) -> dict[str, Path]:

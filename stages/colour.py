@@ -23,7 +23,7 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,9 @@
-"""File conventions of the release that more than one stage writes by: where the COLMAP model lies, the
-nerfstudio distortion fields of a camera, and the 8-bit sRGB encoding of the linear images (CONVENTIONS.md).
+"""File conventions of the release that more than one stage writes by: the nerfstudio distortion fields of a
+camera and the 8-bit sRGB encoding of the linear images (CONVENTIONS.md).
 
 The decode stage writes the PNGs and ``transforms.json`` (which names the COLMAP model's points), the exports
-stage the COLMAP model and the points' colours; both take these from here rather than from each other.
+stage the COLMAP model and the points' colours; both take these from here rather than from each other (and where
+the COLMAP model lies from :data:`artifacts.layout.COLMAP_MODEL_DIR`).
 """
 from __future__ import annotations
 
@@ -11,11 +12,6 @@ from typing import Any
 import numpy as np
 
 from pipeline.codecs.image import srgb_encode
-
-COLMAP_MODEL_DIR = "colmap/sparse/0"
-"""Where the exports stage's COLMAP model lies in the action folder (the sparse/0 layout COLMAP, nerfstudio
-and gaussian-splatting readers look for); transforms.json names its points3D.ply."""
-
 
 def srgb_png(linear_rgb: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8: the sRGB transfer curve of the linear values clipped to [0, 1], no exposure change

@@ -26,9 +26,9 @@ from pipeline.config import Documented
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
-from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import COLMAP_MODEL_DIR, ArtifactWriter
+from stages.conventions import distortion_fields, srgb_png
 from stages.exr_headers import EXR_HEADERS
 
 ILLUMINATIONS = ("full_on", "pos", "neg")

@@ -19,9 +19,9 @@ from pipeline.codecs.image import preview_normals, write_png
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from stages.exr_headers import EXR_HEADERS
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
-from stages.numerics.camera import Camera
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter
+from artifacts.camera import Camera
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
@@ -82,7 +82,7 @@ class DiffuseNormalsConfig(Documented):
 def _roughness_atlas(textured_obj: str, roughness_exr: str) -> tuple[Any, Any, np.ndarray]:
     """The textured mesh's ray-casting scene, its atlas and the roughness texture (once per process, by the
     files' paths)."""
-    from stages.artifacts import load_atlas_mesh
+    from artifacts.facade import load_atlas_mesh
     from stages.numerics.raycast import mesh_scene
 
     vertices, faces, atlas = load_atlas_mesh(Path(textured_obj))

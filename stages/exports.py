@@ -23,8 +23,9 @@ import numpy as np
 
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
-from stages.conventions import COLMAP_MODEL_DIR, distortion_fields, srgb_png
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter, released_files
+from stages.conventions import distortion_fields, srgb_png
 
 
 @dataclass(frozen=True)
@@ -141,6 +142,12 @@ def obj_with_texture(obj_text: str, mtl_name: str) -> str:
 
 # --------------------------------------------------------------------------------------------------- stage
 
+RELEASED = ("export_mesh", "export_material", "export_texture", "export_glb", "colmap_cameras", "colmap_images",
+            "colmap_points", "colmap_points_ply")
+"""The products this stage publishes, in order (their paths and kinds: :data:`artifacts.layout.PRODUCTS`,
+:data:`artifacts.layout.RELEASE_KINDS`)."""
+
+
 class ExportsStage(Stage):
     name = "exports"
     version = "1"
@@ -157,36 +164,28 @@ class ExportsStage(Stage):
         cameras = [c for c in upstream.camera_records().values()
                    if upstream.has("full_on_png", c["camera_id"])]
 
-        mesh = out / "mesh"
-        mesh.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(upstream.existing("albedo_texture_png"), mesh / "textured.png")
+        writer = ArtifactWriter(self.name, out)
+        writer.path("export_mesh").parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(upstream.existing("albedo_texture_png"), writer.path("export_texture"))
         mtl = upstream.existing("textured_material").read_text()
-        (mesh / "textured.mtl").write_text("\n".join("map_Kd textured.png" if line.startswith("map_Kd ") else line
-                                                     for line in mtl.splitlines()) + "\n")
+        writer.path("export_material").write_text("\n".join("map_Kd textured.png" if line.startswith("map_Kd ")
+                                                            else line for line in mtl.splitlines()) + "\n")
         textured_obj = upstream.existing("textured_mesh")
-        (mesh / "textured.obj").write_text(obj_with_texture(textured_obj.read_text(), "textured.mtl"))
-        _write_glb(mesh / "textured.obj", mesh / "textured.glb")
+        writer.path("export_mesh").write_text(obj_with_texture(textured_obj.read_text(), "textured.mtl"))
+        _write_glb(writer.path("export_mesh"), writer.path("export_glb"))
 
         obj = read_obj(textured_obj)
         points, normals, uv = sample_surface(obj["vertices"], obj["faces"], obj["uvs"], cfg.colmap_points, cfg.seed)
         colours = point_colours(upstream.exr("albedo_texture"), uv)
-        model = out / COLMAP_MODEL_DIR
-        model.mkdir(parents=True, exist_ok=True)
-        (model / "cameras.txt").write_text(colmap_cameras_txt(cameras))
-        (model / "images.txt").write_text(colmap_images_txt(cameras))
-        (model / "points3D.txt").write_text(colmap_points3d_txt(points, colours))
-        (model / "points3D.ply").write_bytes(points_ply(points, normals, colours))
+        writer.path("colmap_cameras").parent.mkdir(parents=True, exist_ok=True)
+        writer.path("colmap_cameras").write_text(colmap_cameras_txt(cameras))
+        writer.path("colmap_images").write_text(colmap_images_txt(cameras))
+        writer.path("colmap_points").write_text(colmap_points3d_txt(points, colours))
+        writer.path("colmap_points_ply").write_bytes(points_ply(points, normals, colours))
         return {"cameras": len(cameras), "colmap_points": int(len(points))}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = []
-        for name, kind in (("textured.obj", "mesh_textured"), ("textured.mtl", "mesh_material"),
-                           ("textured.png", "mesh_texture"), ("textured.glb", "mesh_glb")):
-            files.append((artifact / "mesh" / name, f"mesh/{name}", kind, None))
-        for name in ("cameras.txt", "images.txt", "points3D.txt", "points3D.ply"):
-            kind = "colmap_" + name.replace(".", "_")
-            files.append((artifact / COLMAP_MODEL_DIR / name, f"{COLMAP_MODEL_DIR}/{name}", kind, None))
-        return files
+        return released_files(self.name, artifact, RELEASED)
 
 
 def _write_glb(obj_path: Path, glb_path: Path) -> None:

@@ -23,8 +23,8 @@ import numpy as np
 from pipeline.codecs.image import preview_normals, write_png
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 from stages.numerics.sdf_mesh import SDFMeshConfig
 

@@ -25,8 +25,8 @@ from pipeline.codecs.raw import decode_raw
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts, read_cameras
-from stages.layout import ArtifactWriter
+from artifacts.facade import ActionArtifacts, read_cameras
+from artifacts.layout import ArtifactWriter
 from stages.numerics.light_model import sphere_samples, validated_light_model
 
 ILLUMINATIONS = ("full_on", "pos", "neg")

@@ -48,8 +48,8 @@ from stages.exr_headers import EXR_HEADERS
 from pipeline.codecs.image import preview_linear, preview_scalar, write_png
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter
 from stages.numerics import numeric_threads
 from stages.numerics.material_textures import MaterialTexturesConfig
 
@@ -70,7 +70,7 @@ class MaterialsConfig(MaterialTexturesConfig):
 def load_bake_views(artifacts: ActionArtifacts, min_alpha: float) -> tuple[list[Any], list[Any]]:
     """The stage's observations: per camera with maps (sorted by id), a :class:`stages.numerics.bake.BakeView`
     with ``images["obs"]`` (H, W, 9) = full_on | pos | neg and valid = alpha above ``min_alpha`` inside the
-    mask, and its :class:`stages.numerics.camera.Camera`."""
+    mask, and its :class:`artifacts.camera.Camera`."""
     from stages.numerics.bake import BakeView
 
     views, cameras = [], []

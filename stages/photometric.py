@@ -16,9 +16,9 @@ from pipeline.codecs.image import preview_linear, preview_normals, write_png
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
-from stages.numerics.camera import Camera
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter
+from artifacts.camera import Camera
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,

@@ -14,8 +14,8 @@ from calibration.colour import apply_colour_matrix
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.raw import decode_raw
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter
 
 
 class PlatesStage(Stage):

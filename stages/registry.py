@@ -28,7 +28,7 @@ STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage
                                           MaterialsStage, DiffuseNormalsStage, RelightStage, RelightSetStage,
                                           ExportsStage)
 
-CODE_PACKAGES: tuple[str, ...] = ("stages", "calibration", "synthetic", "pipeline.codecs")
+CODE_PACKAGES: tuple[str, ...] = ("stages", "artifacts", "calibration", "synthetic", "pipeline.codecs")
 """The project's packages whose code can change a stage's output: a stage's cache key holds the digests of its
 module and of the modules under these that it imports. The engine (pipeline.stage, graph, store, config, runner),
 the command line and manifests/ are left out: they decide what runs and where, not what a stage computes."""

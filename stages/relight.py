@@ -46,11 +46,11 @@ from pipeline.codecs.image import label_picture, preview_linear, preview_normals
 from stages.exr_headers import EXR_HEADERS
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
+from artifacts.facade import ActionArtifacts
 from stages.relightable import load_relightable_asset
-from stages.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter
 from stages.numerics import numeric_threads
-from stages.numerics.camera import Camera
+from artifacts.camera import Camera
 from stages.numerics.learned_blend import LearnedBlendConfig
 from stages.environments import fit_environments, raw_environment_inputs
 from stages.numerics.novel_view import ViewShading, auto_exposure, relight_view

@@ -3,7 +3,7 @@ render from.
 
 A module of its own, imported only by those stages (and by users who re-render a release): it imports the
 renderer (G-buffer sources, novel views, ray casting), and a stage's cache key holds the code of every module it
-imports, so the stages that only read products through :mod:`stages.artifacts` do not rerun when the renderer
+imports, so the stages that only read products through :mod:`artifacts.facade` do not rerun when the renderer
 changes.
 """
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import InputError
-from stages.artifacts import ActionArtifacts
-from stages.numerics.camera import Camera
+from artifacts.facade import ActionArtifacts
+from artifacts.camera import Camera
 from stages.numerics.gbuffer import SourceView
 from stages.numerics.mesh import vertex_normals
 from stages.numerics.novel_view import ActionAsset

@@ -41,9 +41,9 @@ from pipeline.errors import InputError
 from pipeline.hashing import code_digests
 from pipeline.stage import Stage, StageContext
 from pipeline.store import link_or_copy
-from stages.artifacts import ActionArtifacts
+from artifacts.facade import ActionArtifacts
 from stages.relightable import load_relightable_asset
-from stages.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.novel_view import ViewShading
@@ -406,5 +406,5 @@ def example_name(action_id: str, index: int) -> str:
 
 
 def camera_centres(cameras: dict[str, Any]) -> np.ndarray:
-    """World centres (C, 3) of :class:`stages.numerics.camera.Camera` s."""
+    """World centres (C, 3) of :class:`artifacts.camera.Camera` s."""
     return np.array([c.centre for c in cameras.values()]).reshape(-1, 3)

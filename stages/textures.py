@@ -15,8 +15,8 @@ from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import preview_linear, preview_normals, preview_scalar, write_png
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
-from stages.artifacts import ActionArtifacts
-from stages.layout import ArtifactWriter
+from artifacts.facade import ActionArtifacts
+from artifacts.layout import ArtifactWriter
 from stages.exr_headers import EXR_HEADERS
 
 

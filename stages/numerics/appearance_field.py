@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from pipeline.config import Documented, checked, to_dict
 from stages.numerics import torch_threads
 from stages.numerics.hull import check_camera
-from stages.numerics.camera import camera_centre, pixel_rays
+from artifacts.camera import camera_centre, pixel_rays
 from stages.numerics.neural_fields import (
     HashEncoding,
     HashGridConfig,

@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from stages.numerics.mesh import Atlas, _check_mesh, face_normals, vertex_normals
+from artifacts.atlas import Atlas
+from stages.numerics.mesh import _check_mesh, face_normals, vertex_normals
 from stages.numerics.raycast import mesh_scene, render_mesh
 
 __all__ = ["BakeView", "BakeResult", "rasterize_atlas", "bake_textures", "gather_observations",
@@ -109,7 +110,7 @@ def rasterize_atlas(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas,
 
     Args:
         vertices: (V, 3) metres; faces: (F, 3) int, the mesh ``atlas`` was made from.
-        atlas: its :class:`~stages.numerics.mesh.Atlas`.
+        atlas: its :class:`~artifacts.atlas.Atlas`.
         texture_size: ``T``.
 
     Returns:
@@ -466,7 +467,7 @@ def bake_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Atlas, views: 
     """Bake per-camera maps into ``T x T`` textures of the atlas (see the module docstring for the method).
 
     Args:
-        vertices: (V, 3) metres; faces: (F, 3) int; atlas: the mesh's :class:`~stages.numerics.mesh.Atlas`.
+        vertices: (V, 3) metres; faces: (F, 3) int; atlas: the mesh's :class:`~artifacts.atlas.Atlas`.
         views: cameras with their maps (:class:`BakeView`), all with the same image names.
         texture_size: ``T``.
         max_views: views blended per texel (the best by score).

@@ -49,7 +49,7 @@ from typing import Sequence
 
 import numpy as np
 
-from stages.numerics.camera import as_pose, camera_centre, lift_points, pixel_coordinates
+from artifacts.camera import as_pose, camera_centre, lift_points, pixel_coordinates
 
 __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "nearest_views", "source_candidates",
            "reproject_gbuffer", "fuse_normals", "interpolate_camera", "novel_camera_pairs"]

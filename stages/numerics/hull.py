@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from stages.numerics.camera import pixel_coordinates
+from artifacts.camera import pixel_coordinates
 
 __all__ = ["HullGrid", "visual_hull", "check_camera"]
 

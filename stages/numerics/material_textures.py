@@ -102,7 +102,7 @@ def texel_samples(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albedo_te
                   views: list[Any], cfg: MaterialTexturesConfig) -> dict[str, Any]:
     """Step 1 of the roughness: the texels of a ``cfg.texture_size`` atlas and their observations.
 
-    vertices (V, 3), faces (F, 3) and atlas: :func:`stages.artifacts.load_atlas_mesh`; albedo_texture (T', T', 3):
+    vertices (V, 3), faces (F, 3) and atlas: :func:`artifacts.facade.load_atlas_mesh`; albedo_texture (T', T', 3):
     the baked white-light albedo; views: :class:`stages.numerics.bake.BakeView` with ``images["obs"]`` (H, W, 9) =
     full_on | pos | neg. Returns ``covered`` (T, T) bool, per covered texel in row-major order ``points`` and
     ``normals`` (N, 3) float64 and ``albedo`` (N, 3), and ``obs``: :func:`stages.numerics.bake.gather_observations`
@@ -201,7 +201,7 @@ def material_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albed
                       progress: Callable[[int, int, str], None] | None = None) -> MaterialTextures:
     """Roughness by inverse rendering under full_on / pos / neg, ambient occlusion and the albedos without it.
 
-    vertices (V, 3), faces (F, 3), atlas: the welded textured mesh (:func:`stages.artifacts.load_atlas_mesh`);
+    vertices (V, 3), faces (F, 3), atlas: the welded textured mesh (:func:`artifacts.facade.load_atlas_mesh`);
     albedo_texture (T', T', 3): the baked white-light albedo; views: :class:`stages.numerics.bake.BakeView` with
     ``images["obs"]`` (H, W, 9) = full_on | pos | neg; white_per_view (C, 3): each view's white reference.
     ``progress(step, steps, message)`` is told after the observations and after the fit."""

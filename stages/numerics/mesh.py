@@ -9,7 +9,7 @@ out of the surface. SDFs are negative inside, positive outside.
   be, only those are evaluated on the fine grid, and ``skimage.measure.marching_cubes`` runs on the fine
   grid with a mask of those blocks. On a smooth SDF the result is the dense marching cubes' exactly.
 - :func:`largest_component`, :func:`decimate` (quadric, open3d), :func:`vertex_normals`.
-- :func:`uv_atlas`: xatlas charts and packing into an :class:`Atlas`.
+- :func:`uv_atlas`: xatlas charts and packing into an :class:`artifacts.atlas.Atlas`.
 
 UV convention (OBJ / OpenGL): ``u`` goes right and ``v`` goes *up*, both in ``[0, 1]`` over the whole
 texture. A ``(T, T)`` texture array has row 0 at the top, so texel ``(row, col)`` has its centre at
@@ -19,15 +19,15 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
+from artifacts.atlas import Atlas
+
 __all__ = [
-    "Atlas",
     "extract_mesh",
     "largest_component",
     "decimate",
@@ -312,30 +312,6 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------- atlas
-@dataclass(frozen=True, eq=False)
-class Atlas:
-    """A UV atlas of a mesh: the mesh's vertices split along chart seams, each with one UV.
-
-    Attributes:
-        vmapping: (V',) int64, the input vertex each atlas vertex copies (``vertices[vmapping]``).
-        faces: (F, 3) int32 into the atlas vertices; face ``i`` is input face ``i`` (same order).
-        uvs: (V', 2) float32 in [0, 1], OBJ convention: u right, v *up* (texel row ``r`` of a ``T x T``
-            texture has ``v = 1 - (r + 0.5) / T``).
-        width, height: the square the charts were packed in, in texels (``padding`` is in these); xatlas
-            lands near, not at, the requested resolution, so baking at ``texture_size`` scales the
-            padding by ``texture_size / width``.
-        stats: xatlas ``charts``, ``utilization``, ``packed_width``/``packed_height``,
-            ``texels_per_metre`` (packed texels), ``seconds``.
-    """
-
-    vmapping: np.ndarray
-    faces: np.ndarray
-    uvs: np.ndarray
-    width: int
-    height: int
-    stats: dict
-
-
 def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, padding: int = 2,
              max_iterations: int = 1, brute_force: bool = False, seed_normals: bool = True) -> Atlas:
     """Cut the mesh into charts, flatten and pack them (xatlas) into a ``resolution`` square texture.

@@ -18,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.config import Documented, checked
-from stages.numerics.camera import Camera
+from artifacts.camera import Camera
 
 HALF_MAX = 60000.0
 """Radiance is clipped here before it is written as half float (max 65504)."""

@@ -22,7 +22,7 @@ def _check_camera(K: np.ndarray, cam_from_world: np.ndarray, height: int, width:
 
 def camera_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
                 pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World-space rays through pixel centres (:meth:`stages.numerics.camera.Camera.rays_with_depth_scale`).
+    """World-space rays through pixel centres (:meth:`artifacts.camera.Camera.rays_with_depth_scale`).
 
     Args:
         K: (3, 3) intrinsics. cam_from_world: (3, 4) ``[R | t]``.
@@ -32,7 +32,7 @@ def camera_rays(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: i
         origins (N, 3) float64 (the camera centre), directions (N, 3) float64 unit, and
         z_per_t (N,) float64: camera depth per unit of ray length (depth_m = t * z_per_t).
     """
-    from stages.numerics.camera import Camera
+    from artifacts.camera import Camera
 
     _check_camera(K, cam_from_world, height, width)
     return Camera(K, cam_from_world, width, height).rays_with_depth_scale(pixels)

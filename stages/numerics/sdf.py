@@ -56,7 +56,7 @@ from stages.numerics import hashgrid_kernel
 from stages.numerics.hull import HullGrid, check_camera, visual_hull
 from stages.numerics.neural_fields import (HashEncoding, HashGridConfig, instant_ngp_adam, lr_factor, neus_composite,
                                            ray_box, resolve_device)
-from stages.numerics.camera import camera_centre, pixel_coordinates, pixel_rays
+from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays
 
 __all__ = [
     "HashGridConfig",

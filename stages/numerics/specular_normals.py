@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from pipeline.config import Documented, checked
-from stages.numerics.camera import Camera
+from artifacts.camera import Camera
 from stages.numerics.photometric import corrected_normals
 
 __all__ = ["SOLVERS", "SpecularConfig", "SpecularFit", "view_directions", "fit_diffuse_normals", "white_light_specular",
@@ -67,10 +67,10 @@ class SpecularFit:
 def view_directions(K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int) -> np.ndarray:
     """(H, W, 3) float32 unit stage-frame directions from the surface seen at each pixel towards the camera
     (the pixel's ray reversed; lens distortion is ignored, which moves them by far less than a degree):
-    :meth:`stages.numerics.camera.Camera.view_directions`.
+    :meth:`artifacts.camera.Camera.view_directions`.
 
     K: (3, 3) intrinsics. cam_from_world: (3, 4) or (4, 4) ``[R | t]``."""
-    from stages.numerics.camera import Camera
+    from artifacts.camera import Camera
 
     return Camera(K, cam_from_world, width, height).view_directions()
 

@@ -24,7 +24,7 @@ import pytest
 
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, STAGE_CLASSES, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 
 pytestmark = pytest.mark.slow
 

@@ -44,7 +44,7 @@ import pytest
 from pipeline.errors import ConfigError
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.integration.conftest import TINY_CAMERAS as CAMERAS
 
 SYNC = ExecutionConfig(scheduler="sync")

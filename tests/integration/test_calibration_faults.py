@@ -17,7 +17,7 @@ import pytest
 
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from synthetic import SimConfig, simulate
 from synthetic.calibration import CalibrationConfig
 

@@ -9,7 +9,7 @@ import pytest
 
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.integration.conftest import dask_cluster
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.cli import main as cli
+from ultrastage.cli import main as cli
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from synthetic import SimConfig, simulate
 
 SYNC = ExecutionConfig(scheduler="sync")
@@ -89,8 +89,8 @@ def test_the_release_gives_the_relightable_asset_of_the_work_store(first_run):
     """What a researcher re-renders the release with: the facade's release backend gives the asset (sources'
     normals, albedo, valid pixels, depth and cameras; textures; meshes) the relight stage built from the work
     store."""
-    from manifests import open_release
-    from stages.artifacts import ActionArtifacts
+    from manifests import open_release, release_artifacts
+    from artifacts.facade import ActionArtifacts
     from stages.relightable import load_relightable_asset
     from stages.relight import RelightStage
 
@@ -99,7 +99,7 @@ def test_the_release_gives_the_relightable_asset_of_the_work_store(first_run):
     for action_id, session_id in zip(rel.actions.action_id, rel.actions.session_id):
         stored = ActionArtifacts.from_store(out / "work" / "artifacts", action_id, session_id, RelightStage.requires)
         store_asset, store_cameras = load_relightable_asset(stored)
-        release_asset, release_cameras = load_relightable_asset(ActionArtifacts.from_release(rel, action_id))
+        release_asset, release_cameras = load_relightable_asset(release_artifacts(rel, action_id))
         assert list(store_cameras) == list(release_cameras) == [f"{i:05d}" for i in range(6)]
         for cam_id, cam in store_cameras.items():
             other = release_cameras[cam_id]
@@ -224,8 +224,8 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
     from manifests import open_release
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import read_png
-    from stages.artifacts import read_cameras
-    from stages.artifacts import load_light_model
+    from artifacts.facade import read_cameras
+    from artifacts.facade import load_light_model
     from stages.diffuse_normals import refit_diffuse_normals
 
     out, _ = first_run

@@ -35,7 +35,7 @@ import pytest
 
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from synthetic import SimConfig, simulate
 from tests.integration.conftest import ROOT, dask_cluster
 
@@ -53,7 +53,7 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _cli_command(capture: Path, release: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "stages.cli", "run", "--capture", str(capture), "--release", str(release),
+    return [sys.executable, "-m", "ultrastage.cli", "run", "--capture", str(capture), "--release", str(release),
             "--preset", "test", "--through", THROUGH, "--no-evaluate", *extra]
 
 
@@ -269,7 +269,7 @@ def _mounted(folder: Path, *mount_args: str):
 
 
 def _cli(capsys, capture: Path, release: Path, work: Path, *extra: str) -> tuple[int, str, str]:
-    from stages.cli import main as cli
+    from ultrastage.cli import main as cli
 
     capsys.readouterr()
     code = cli(["run", "--capture", str(capture), "--release", str(release), "--work", str(work), "--preset", "test",
@@ -307,7 +307,7 @@ def _pages(folder: Path) -> int:
 @pytest.fixture(scope="module")
 def reference_changed(tiny_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The release an uninterrupted run with OVERRIDE writes (sync, in this process)."""
-    from stages.cli import main as cli
+    from ultrastage.cli import main as cli
 
     out = tmp_path_factory.mktemp("reference_changed")
     (out / "o.yaml").write_text(OVERRIDE)

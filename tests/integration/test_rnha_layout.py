@@ -18,7 +18,7 @@ from PIL import Image
 
 from pipeline.runner import ExecutionConfig
 from stages.registry import PRESETS, build_stages
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.integration.conftest import TINY_CAMERAS as CAMERAS
 
 SYNC = ExecutionConfig(scheduler="sync")
@@ -62,7 +62,7 @@ def test_a_run_on_the_layout_publishes_maps_close_to_the_truth(layout, tiny_capt
     from pipeline.codecs.exr import read_exr
     from pipeline.codecs.image import mask_from_png, read_png
     from pipeline.codecs.srgb8 import read_mask8
-    from stages.cli import main
+    from ultrastage.cli import main
     from stages.numerics.metrics import angular_error_deg
 
     release = tmp_path / "release"
@@ -189,7 +189,7 @@ TRANSFORMS_FAILS = {
 
 @pytest.mark.parametrize("case", sorted(TRANSFORMS_FAILS))
 def test_a_bad_transforms_json_stops_the_run_naming_it(case, layout, tmp_path, capsys):
-    from stages.cli import main
+    from ultrastage.cli import main
 
     capture = tmp_path / "rnha"
     shutil.copytree(layout, capture)

@@ -10,8 +10,9 @@ import pytest
 from manifests import asset_row, write_table
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
-from stages.artifacts import ActionArtifacts
-from stages.layout import PRODUCTS, RELEASE_KINDS, ArtifactWriter
+from artifacts.facade import ActionArtifacts
+from manifests import release_artifacts
+from artifacts.layout import PRODUCTS, RELEASE_KINDS, ArtifactWriter, released_files
 from stages.decode import transforms_json
 
 H, W = 6, 4
@@ -67,7 +68,7 @@ def sources(tmp_path: Path) -> tuple[ActionArtifacts, Path]:
 
 def test_release_backend_reads_what_the_store_backend_reads(sources):
     store, release = sources
-    released = ActionArtifacts.from_release(release, "A0000")
+    released = release_artifacts(release, "A0000")
     assert list(store.cameras()) == list(released.cameras()) == list(MAPPED)
     assert sorted(store.calibrated_cameras()) == sorted(released.calibrated_cameras()) == list(CALIBRATED)
     for (cam_id, cam, normal_alpha, mask, valid), (cam_id_r, cam_r, normal_alpha_r, mask_r, valid_r) in zip(
@@ -91,7 +92,7 @@ def test_release_backend_reads_what_the_store_backend_reads(sources):
 
 def test_an_unknown_product_is_a_key_error_in_both_backends(sources):
     store, release = sources
-    for artifacts in (store, ActionArtifacts.from_release(release, "A0000")):
+    for artifacts in (store, release_artifacts(release, "A0000")):
         with pytest.raises(KeyError, match="unknown product 'normals'"):
             artifacts.map("normals", "00000")
         assert not artifacts.has("normals", "00000")
@@ -103,12 +104,12 @@ def test_a_product_the_source_cannot_hold(sources):
         store.mesh()
     assert "plate" in PRODUCTS and "plate" not in RELEASE_KINDS
     with pytest.raises(KeyError, match="product 'plate' is not published in a release"):
-        ActionArtifacts.from_release(release, "A0000").path("plate", "00000")
+        release_artifacts(release, "A0000").path("plate", "00000")
 
 
 def test_a_missing_product_names_action_kind_and_file(sources):
     store, release = sources
-    released = ActionArtifacts.from_release(release, "A0000")
+    released = release_artifacts(release, "A0000")
     with pytest.raises(KeyError, match="action A0000, the action \\(no camera\\): no 'mesh' asset in the release"):
         released.mesh()
     with pytest.raises(FileNotFoundError, match="photometric artifact, camera 00002, albedo: file .*albedo/00002.exr "
@@ -119,12 +120,12 @@ def test_a_missing_product_names_action_kind_and_file(sources):
                                                 "the assets table but missing on disk"):
         released.map("albedo", "00001")
     with pytest.raises(KeyError, match="action 'A0001' is not in the release"):
-        ActionArtifacts.from_release(release, "A0001")
+        release_artifacts(release, "A0001")
 
 
 def test_a_camera_absent_from_the_maps(sources):
     store, release = sources
-    released = ActionArtifacts.from_release(release, "A0000")
+    released = release_artifacts(release, "A0000")
     for artifacts in (store, released):
         assert "00002" in artifacts.calibrated_cameras() and "00002" not in artifacts.cameras()
         assert not artifacts.has("normal_alpha", "00002")
@@ -149,24 +150,45 @@ def test_every_released_product_is_a_product():
     assert set(RELEASE_KINDS) <= set(PRODUCTS)
 
 
+def test_released_files_come_from_the_products_table(tmp_path):
+    from stages.exports import RELEASED
+
+    files = released_files("exports", tmp_path, RELEASED)
+    assert [(rel, kind) for _, rel, kind, _ in files] == [
+        ("mesh/textured.obj", "mesh_textured"), ("mesh/textured.mtl", "mesh_material"),
+        ("mesh/textured.png", "mesh_texture"), ("mesh/textured.glb", "mesh_glb"),
+        ("colmap/sparse/0/cameras.txt", "colmap_cameras_txt"), ("colmap/sparse/0/images.txt", "colmap_images_txt"),
+        ("colmap/sparse/0/points3D.txt", "colmap_points3D_txt"), ("colmap/sparse/0/points3D.ply", "colmap_points3D_ply")]
+    assert all(path == tmp_path / rel and camera is None for path, rel, _, camera in files)
+    # an optional product is listed only when its file is there
+    assert released_files("cameras", tmp_path, ("calibration_summary",), optional=("calibration_summary",)) == []
+    (tmp_path / "calibration.json").write_text("{}")
+    assert released_files("cameras", tmp_path, ("calibration_summary",), optional=("calibration_summary",)) == [
+        (tmp_path / "calibration.json", "calibration.json", "calibration", None)]
+    with pytest.raises(KeyError, match="written by stage 'exports', not 'cameras'"):
+        released_files("cameras", tmp_path, ("export_mesh",))
+    with pytest.raises(KeyError, match="a release does not hold it"):
+        released_files("cameras", tmp_path, ("calibration_colmap",))
+
+
 def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
-    """The cameras and colour stages write through stages.layout only: their keys' code records do not hold the
+    """The cameras and colour stages write through artifacts.layout only: their keys' code records do not hold the
     facade's readers (nor the renderer load_relightable_asset imports), so editing those cannot rerun them."""
     from pipeline.hashing import code_digests
     from stages.registry import CODE_PACKAGES
 
-    assert set(code_digests("stages.layout", CODE_PACKAGES)) == {"stages", "stages.layout"}
+    assert set(code_digests("artifacts.layout", CODE_PACKAGES)) == {"artifacts", "artifacts.layout"}
     for module in ("stages.cameras", "stages.colour"):
         modules = set(code_digests(module, CODE_PACKAGES))
-        assert "stages.layout" in modules and "stages.artifacts" not in modules, module
-    assert "stages.artifacts" in code_digests("stages.decode", CODE_PACKAGES)  # a stage that reads through it
+        assert "artifacts.layout" in modules and "artifacts.facade" not in modules, module
+    assert "artifacts.facade" in code_digests("stages.decode", CODE_PACKAGES)  # a stage that reads through it
 
 
 RENDERER = {"stages.numerics.novel_view", "stages.numerics.gbuffer", "stages.numerics.learned_blend"}
 """The novel-view renderer's own modules (the SG and shadowing ones serve the specular fit and de-occlusion too)."""
 
 
-@pytest.mark.parametrize("module", ["stages.artifacts", "stages.decode", "stages.photometric", "stages.geometry",
+@pytest.mark.parametrize("module", ["artifacts.facade", "stages.decode", "stages.photometric", "stages.geometry",
                                     "stages.lights", "stages.textures"])
 def test_reading_through_the_facade_keeps_the_renderer_out_of_a_stage_key(module):
     """The relightable asset (and the renderer it imports) is in stages.relightable, which only the stages that
@@ -188,7 +210,7 @@ def test_materials_f0_from_the_store_record_and_from_the_release_config(sources,
     assert ActionArtifacts({**store.upstream, "materials": materials}).materials_f0() == 0.03
     with pytest.raises(KeyError, match="materials"):
         store.materials_f0()  # not upstream
-    released = ActionArtifacts.from_release(release, "A0000")
+    released = release_artifacts(release, "A0000")
     with pytest.raises(InputError, match="config.yaml: no materials.f0"):
         released.materials_f0()  # a release without its config
     (release / "config.yaml").write_text("materials:\n  f0: 0.05\n")

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
-from stages.artifacts import fitted_f0, load_atlas_mesh
+from artifacts.facade import fitted_f0, load_atlas_mesh
 from stages.numerics.material_textures import roughness_median, surface_median, texel_uvs
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals

@@ -11,7 +11,7 @@ from pipeline.codecs.exr import write_exr
 from pipeline.config import merge
 from pipeline.errors import ConfigError, InputError
 from stages.environments import environment_label, find_environment, load_environment, raw_environment_inputs
-from stages.numerics.camera import Camera
+from artifacts.camera import Camera
 from stages.numerics.novel_view import ViewShading
 from stages.relight import RelightConfig, novel_cameras
 from synthetic.rig import look_at

@@ -129,7 +129,7 @@ def make_set():
 @pytest.fixture(scope="session")
 def trained(fake_set, tmp_path_factory) -> dict[str, Path]:
     """Output folders of ``ultrastage train <network> --preset tiny`` on the fake set, by network."""
-    from stages.cli import main
+    from ultrastage.cli import main
 
     out = {}
     for network in ("albedonet", "normalnet"):

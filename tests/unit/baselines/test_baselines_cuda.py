@@ -15,10 +15,10 @@ import pytest
 import torch
 
 from manifests import read_standalone_table
-from stages.baselines.config import preset
-from stages.baselines.data import RelightDataset
-from stages.baselines.models import build_network, predict_image
-from stages.baselines.train import CHECKPOINT_NAME, METRICS_NAME, load_network, masked_mse, read_checkpoint, train
+from ultrastage.baselines.config import preset
+from ultrastage.baselines.data import RelightDataset
+from ultrastage.baselines.models import build_network, predict_image
+from ultrastage.baselines.train import CHECKPOINT_NAME, METRICS_NAME, load_network, masked_mse, read_checkpoint, train
 
 NO_CUDA = "torch sees no CUDA device (torch.cuda.is_available() is False): the GPU path is not exercised here"
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason=NO_CUDA)

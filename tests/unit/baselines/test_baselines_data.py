@@ -1,4 +1,4 @@
-"""The relighting set's PyTorch Dataset and transforms (stages.baselines.data) on the fake set."""
+"""The relighting set's PyTorch Dataset and transforms (ultrastage.baselines.data) on the fake set."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from pipeline.errors import InputError
-from stages.baselines.data import RelightDataset, flip_horizontal, random_crop
-from stages.baselines.metrics import input_image_albedo
-from stages.baselines.models import AlbedoNet, NormalNet, predict_image
+from ultrastage.baselines.data import RelightDataset, flip_horizontal, random_crop
+from ultrastage.baselines.metrics import input_image_albedo
+from ultrastage.baselines.models import AlbedoNet, NormalNet, predict_image
 
 
 def test_dataset_reads_the_split_masked(fake_set):

@@ -1,4 +1,4 @@
-"""Albedo and normal metrics of the baselines (stages.baselines.metrics), hand-checked."""
+"""Albedo and normal metrics of the baselines (ultrastage.baselines.metrics), hand-checked."""
 from __future__ import annotations
 
 import math
@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from stages.baselines import metrics
+from ultrastage.baselines import metrics
 
 
 def _albedo(seed=0, size=24):

@@ -11,9 +11,9 @@ from PIL import Image
 
 from pipeline.codecs.exr import read_exr, write_exr
 from pipeline.codecs.image import read_png
-from stages.baselines import predict
-from stages.baselines.train import CHECKPOINT_NAME
-from stages.cli import main
+from ultrastage.baselines import predict
+from ultrastage.baselines.train import CHECKPOINT_NAME
+from ultrastage.cli import main
 from stages.numerics import sh
 
 

@@ -9,9 +9,9 @@ import torch
 import yaml
 
 from manifests import read_standalone_table
-from stages.baselines.config import preset
-from stages.baselines.train import CHECKPOINT_NAME, METRICS_NAME, read_checkpoint, train
-from stages.cli import main
+from ultrastage.baselines.config import preset
+from ultrastage.baselines.train import CHECKPOINT_NAME, METRICS_NAME, read_checkpoint, train
+from ultrastage.cli import main
 
 
 def _overall(out_dir):

@@ -11,7 +11,7 @@ import pytest
 from evaluation.heldout import ActionGBuffers, compare_maps, heldout_metrics, spread_heldout, summarise
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import write_png
-from stages.numerics.camera import Camera
+from artifacts.camera import Camera
 from stages.numerics.raycast import render_mesh
 from synthetic.rig import look_at
 

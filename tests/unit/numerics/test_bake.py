@@ -14,7 +14,8 @@ from stages.numerics.bake import (
     rasterize_atlas,
     sample_texture,
 )
-from stages.numerics.mesh import Atlas, uv_atlas
+from artifacts.atlas import Atlas
+from stages.numerics.mesh import uv_atlas
 from synthetic.rig import look_at as rig_look_at
 
 RADIUS = 0.3

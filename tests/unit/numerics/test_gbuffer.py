@@ -323,7 +323,7 @@ def test_subpixel_input_checks(sphere_scene):
 def test_spread_heldout_and_summary():
     from evaluation.heldout import spread_heldout, summarise
 
-    from stages.numerics.camera import Camera
+    from artifacts.camera import Camera
 
     cams = {f"{i:05d}": Camera(K, ring_camera(i * 30.0), 64, 64) for i in range(12)}
     assert spread_heldout(cams, 2) == ("00000", "00006")  # the opposite side of the ring

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.hashing import clear_code_cache, code_digest, code_digests
 from pipeline.runner import ExecutionConfig
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.unit.pipeline.conftest import ToyConfig
 
 PACKAGE = "ustest_codepkg"

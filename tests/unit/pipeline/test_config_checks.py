@@ -16,7 +16,8 @@ from pipeline.config import (Documented, InvalidConfig, broken, check, checked, 
 from pipeline.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[3]
-PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests", "evaluation")
+PROJECT_PACKAGES = ("pipeline", "artifacts", "stages", "calibration", "synthetic", "manifests", "evaluation",
+                    "ultrastage")
 
 
 @dataclass(frozen=True)
@@ -191,7 +192,7 @@ def test_rules_stay_out_of_the_dict_and_the_key():
 # ------------------------------------------------------------------------------------------------ one place
 
 DATA_TYPES = {
-    "stages.numerics.camera.Camera": "a camera (K, pose, size), checked as data, not a config",
+    "artifacts.camera.Camera": "a camera (K, pose, size), checked as data, not a config",
     "stages.numerics.hull.HullGrid": "a voxel grid (occupancy, bounds), checked as data",
     "calibration.light.LightModel": "a fitted model's coefficients, checked as data",
 }
@@ -240,7 +241,7 @@ def _nested_configs(cls: type) -> set[type]:
 
 def test_every_config_is_validated_when_it_is_built():
     from calibration.geometric import RigRefineConfig
-    from stages.baselines.config import TrainConfig
+    from ultrastage.baselines.config import TrainConfig
     from stages.numerics.appearance_field import AppearanceFieldConfig
     from stages.registry import PipelineConfig
     from synthetic.calibration import CalibrationConfig

@@ -13,7 +13,7 @@ import manifests.writer
 from pipeline.hashing import DigestCache
 from pipeline.runner import ExecutionConfig
 from pipeline.store import SUCCESS
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.unit.pipeline.conftest import toy_stages
 
 SYNC = ExecutionConfig(scheduler="sync")

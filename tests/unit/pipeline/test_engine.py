@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.graph import downstream_of, topo_order
 from pipeline.runner import ExecutionConfig
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.unit.pipeline.conftest import toy_stages
 
 SYNC = ExecutionConfig(scheduler="sync")

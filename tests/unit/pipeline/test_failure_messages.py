@@ -11,7 +11,7 @@ from pipeline.hashing import DigestCache
 from pipeline.runner import ExecutionConfig
 from pipeline.stage import Stage, StageContext
 from pipeline.store import ArtifactStore
-from stages.run import run_pipeline
+from ultrastage.run import run_pipeline
 from tests.unit.pipeline.conftest import ToyConfig, toy_stages
 
 SYNC = ExecutionConfig(scheduler="sync")

@@ -35,7 +35,7 @@ def test_a_second_run_is_refused_and_a_dead_runs_lock_is_taken_over(tmp_path):
     work = tmp_path / "release.work"  # the CLI's default work folder for this release
     first = _holder(work)
     try:
-        second = subprocess.run([sys.executable, "-m", "stages.cli", "run", "--capture", str(tmp_path / "capture"),
+        second = subprocess.run([sys.executable, "-m", "ultrastage.cli", "run", "--capture", str(tmp_path / "capture"),
                                  "--release", str(release), "--preset", "test", "--no-evaluate"],
                                 env=ENV, cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert second.returncode == 2, second.stderr

@@ -180,7 +180,7 @@ def test_unreadable_mesh_files_are_refused_naming_the_file(tmp_path, capsys):
             subject.load_base_subject(str(path), 0)
     with pytest.raises(InputError, match="missing.ply"):
         subject.resolve_mesh(str(tmp_path / "missing.ply"))
-    from stages.cli import main
+    from ultrastage.cli import main
 
     code = main(["simulate", "--out", str(tmp_path / "out"), "--mesh", str(corrupt), "--pose-variation", "0.5"])
     assert code == 2 and "corrupt.glb" in capsys.readouterr().err

@@ -1,14 +1,23 @@
 """Where each product of the stages lies: in its stage's artifact folder and in a release.
 
 :data:`PRODUCTS` gives the stage and the path inside its artifact folder of every product another stage or the
-consumer API reads; :data:`RELEASE_KINDS` the kind of the release's assets manifest that holds it;
-:class:`ArtifactWriter` gives a stage the paths of the products it writes. The readers are in
-:mod:`stages.artifacts`. This module imports nothing of the project, so a stage that only writes its products
-through it keeps its cache key's code digest to its own modules.
+consumer API reads, or that a stage publishes; :data:`RELEASE_KINDS` the kind of the release's assets manifest
+that holds it; :class:`ArtifactWriter` gives a stage the paths of the products it writes, and
+:func:`released_files` the files a stage publishes, derived from the two tables (the cameras and exports stages
+publish through it). The readers are in :mod:`artifacts.facade`. This module imports nothing of the project, so
+a stage that only writes its products through it keeps its cache key's code digest to its own modules.
 """
 from __future__ import annotations
 
 from pathlib import Path
+
+COLMAP_MODEL_DIR = "colmap/sparse/0"
+"""Where the exports stage's COLMAP model lies in the action folder (the sparse/0 layout COLMAP, nerfstudio
+and gaussian-splatting readers look for); transforms.json names its points3D.ply."""
+
+# The exports stage's COLMAP text model: product -> file name in COLMAP_MODEL_DIR.
+_COLMAP_FILES = {"colmap_cameras": "cameras.txt", "colmap_images": "images.txt", "colmap_points": "points3D.txt",
+                 "colmap_points_ply": "points3D.ply"}
 
 # The textures of the atlas: the textures stage bakes the first four, the materials stage fits the rest.
 _TEXTURES = {"albedo": "textures", "normal": "textures", "view_count": "textures", "confidence": "textures",
@@ -19,6 +28,8 @@ _TEXTURES = {"albedo": "textures", "normal": "textures", "view_count": "textures
 #: camera id, other fields (``{environment}``) are named by the reader.
 PRODUCTS: dict[str, tuple[str, str]] = {
     "session_cameras": ("cameras", "cameras.json"),
+    "calibration_summary": ("cameras", "calibration.json"),
+    "calibration_colmap": ("cameras", "colmap"),  # a folder: the calibration's own COLMAP text model
     "colour_matrix": ("colour", "colour/{camera}.json"),
     "plate": ("plates", "plates/{camera}.exr"),
     "light_model": ("lights", "light_model.json"),
@@ -46,12 +57,19 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     **{f"render_{name}": ("relight", f"renders/{{camera}}/{name}.{'png' if name == 'mask' else 'exr'}")
        for name in ("normal", "albedo", "roughness", "mask")},
     "relit": ("relight", "renders/{camera}/{environment}.exr"),
+    "export_mesh": ("exports", "mesh/textured.obj"),
+    "export_material": ("exports", "mesh/textured.mtl"),
+    "export_texture": ("exports", "mesh/textured.png"),
+    "export_glb": ("exports", "mesh/textured.glb"),
+    **{product: ("exports", f"{COLMAP_MODEL_DIR}/{name}") for product, name in _COLMAP_FILES.items()},
     "relight_examples": ("relightset", "relight/examples.json"),
     "relight_example": ("relightset", "relight/{example}/example.json"),
 }
 
 #: The release's asset kind of each product a release holds (the kinds the stages' ``release_files`` give;
-#: ``cameras`` is read from ``transforms``, the release's copy of the calibrated cameras).
+#: ``cameras`` is read from ``transforms``, the release's copy of the calibrated cameras; ``textured_mesh`` and
+#: ``textured_material`` are read from the exports stage's copies, ``export_mesh`` and ``export_material``, which
+#: the release holds under the same kinds).
 RELEASE_KINDS: dict[str, str] = {
     **{p: p for p in ("transforms", "full_on", "pos", "neg", "full_on_png", "pos_png", "neg_png", "normal_alpha",
                       "albedo", "mask", "normal_diffuse", "albedo_diffuse", "mesh", "render_cameras",
@@ -61,6 +79,12 @@ RELEASE_KINDS: dict[str, str] = {
     "albedo_texture_png": "texture_albedo_preview",
     **{f"{name}_texture": f"texture_{name}" for name in _TEXTURES},
     "relit": "relit_{environment}",
+    "calibration_summary": "calibration",
+    "export_mesh": "mesh_textured",
+    "export_material": "mesh_material",
+    "export_texture": "mesh_texture",
+    "export_glb": "mesh_glb",
+    **{product: "colmap_" + name.replace(".", "_") for product, name in _COLMAP_FILES.items()},
 }
 
 
@@ -68,6 +92,28 @@ def check_product(product: str) -> None:
     """KeyError naming the known products when ``product`` is not one of :data:`PRODUCTS`."""
     if product not in PRODUCTS:
         raise KeyError(f"unknown product {product!r}; products are {sorted(PRODUCTS)}")
+
+
+def released_files(stage: str, artifact: Path, products: tuple[str, ...],
+                   optional: tuple[str, ...] = ()) -> list[tuple[Path, str, str, str | None]]:
+    """``(file, path in the action's release folder, kind, camera)`` of the files a stage publishes: each of
+    ``products`` (one file each, no camera) at its :data:`PRODUCTS` path in the artifact folder ``artifact`` and
+    at the same path in the release, under its :data:`RELEASE_KINDS` kind, in the order given. A product in
+    ``optional`` is left out when its file is not there; a required one is listed whether or not it is (the
+    publisher names a missing file). KeyError for a product that is another stage's or not released."""
+    files = []
+    for product in products:
+        check_product(product)
+        owner, rel = PRODUCTS[product]
+        if owner != stage:
+            raise KeyError(f"product {product!r} is written by stage {owner!r}, not {stage!r}")
+        if product not in RELEASE_KINDS:
+            raise KeyError(f"product {product!r} has no kind in RELEASE_KINDS: a release does not hold it")
+        path = Path(artifact) / rel
+        if product in optional and not path.is_file():
+            continue
+        files.append((path, rel, RELEASE_KINDS[product], None))
+    return files
 
 
 class ArtifactWriter:

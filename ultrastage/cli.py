@@ -257,7 +257,7 @@ def _stop(process: Any) -> None:
 
 
 def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
-    from stages.run import run_pipeline
+    from ultrastage.run import run_pipeline
     from stages.registry import build_stages
 
     config = _resolve_config(args.preset, args.config, args.scheduler)
@@ -378,8 +378,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from pipeline.config import load_overrides, merge
-    from stages.baselines.config import preset
-    from stages.baselines.train import CHECKPOINT_NAME, METRICS_NAME, default_out_dir, evaluate, select_device, train
+    from ultrastage.baselines.config import preset
+    from ultrastage.baselines.train import CHECKPOINT_NAME, METRICS_NAME, default_out_dir, evaluate, select_device, train
 
     config = preset(args.preset, args.network)
     if args.config:
@@ -398,7 +398,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_predict(args: argparse.Namespace) -> int:
-    from stages.baselines.predict import predict_folder
+    from ultrastage.baselines.predict import predict_folder
 
     result = predict_folder([Path(c) for c in args.checkpoint], Path(args.images), Path(args.out),
                             Path(args.environment) if args.environment else None, args.environment_rotation,

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from stages.cli import SUMMARY_WIDTH, build_parser, summary_table
+from ultrastage.cli import SUMMARY_WIDTH, build_parser, summary_table
 from stages.registry import STAGE_CLASSES
 
 
@@ -81,7 +81,7 @@ def test_summary_fits_100_columns_and_names_what_failed():
 
 def test_truth_prefetch_traces_the_visibility_beside_the_run(tmp_path):
     from evaluation.release import RELIT_CACHE, truth_visibility_folder
-    from stages.cli import _start_truth_prefetch, _stop
+    from ultrastage.cli import _start_truth_prefetch, _stop
     from synthetic import SimConfig, simulate
 
     capture = simulate(tmp_path / "capture", SimConfig(actions=1, width=48, n_cameras=2, n_leds=64,

@@ -1,4 +1,4 @@
-"""The pinhole camera type (stages.numerics.camera): shapes, a hand-computed case, round trips, JSON."""
+"""The pinhole camera type (artifacts.camera): shapes, a hand-computed case, round trips, JSON."""
 from __future__ import annotations
 
 import json
@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from stages.numerics.camera import Camera, camera_centre, pixel_coordinates, pixel_rays
+from artifacts.camera import Camera, camera_centre, pixel_coordinates, pixel_rays
 
 K = np.array([[100.0, 0.0, 32.0], [0.0, 110.0, 24.0], [0.0, 0.0, 1.0]])
 

@@ -1,6 +1,6 @@
 """A PyTorch ``Dataset`` over the single-image relighting set's Parquet index (``relight_examples``).
 
-    from stages.baselines.data import RelightDataset
+    from ultrastage.baselines.data import RelightDataset
     train = RelightDataset("runs/default/release", "train", crop=256, flip=True, seed=0)
     item = train[0]   # image (3, 256, 256) sRGB [0, 1] masked, albedo (3, ...) linear, normal (3, ...), mask (1, ...)
     loader = torch.utils.data.DataLoader(train, batch_size=8, shuffle=True)

@@ -1,12 +1,12 @@
 """The artifact facade: the stages' products read by what they are, from the work store or from a release.
 
-Where each product lies is :mod:`stages.layout`'s (:data:`~stages.layout.PRODUCTS` in its stage's artifact
-folder, :data:`~stages.layout.RELEASE_KINDS` in the release's assets manifest). Two small backends resolve a
+Where each product lies is :mod:`artifacts.layout`'s (:data:`~artifacts.layout.PRODUCTS` in its stage's artifact
+folder, :data:`~artifacts.layout.RELEASE_KINDS` in the release's assets manifest). Two small backends resolve a
 product (and a camera) to a file: :class:`StoreBackend` over a stage task's upstream folders of the work store,
 :class:`ReleaseBackend` over one action of a release. :class:`ActionArtifacts` reads each product by what it is
 (cameras, normal maps, masks, mesh, atlas, textures, light model, colour matrices) through either, so the
 stages and the consumer API (:class:`manifests.consumer.ActionView`) read the same way (a stage writes its own
-products at :class:`stages.layout.ArtifactWriter`'s paths). The asset the ``relight`` and ``relightset``
+products at :class:`artifacts.layout.ArtifactWriter`'s paths). The asset the ``relight`` and ``relightset``
 stages render from is built by :func:`stages.relightable.load_relightable_asset` from either source (in a module
 of its own: the renderer it imports stays out of the cache keys of the stages that only read products here).
 """
@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from artifacts.camera import Camera
+from artifacts.layout import PRODUCTS, RELEASE_KINDS, check_product
 from pipeline.codecs.exr import read_exr
 from pipeline.codecs.image import mask_from_png, read_png
 from pipeline.errors import InputError
-from stages.layout import PRODUCTS, RELEASE_KINDS, check_product
-from stages.numerics.camera import Camera
 
 
 class StoreBackend:
@@ -155,7 +155,7 @@ def load_atlas_mesh(obj_path: Path):
     Atlas)``: the OBJ splits vertices along chart seams; welding identical positions gives back one
     surface, so normals and depth maps are continuous across seams."""
     from pipeline.codecs.mesh import read_obj
-    from stages.numerics.mesh import Atlas
+    from artifacts.atlas import Atlas
 
     obj = read_obj(obj_path)
     if obj["uvs"] is None or obj["uv_faces"] is None or not np.array_equal(obj["uv_faces"], obj["faces"]):
@@ -172,9 +172,11 @@ class ActionArtifacts:
     """The products of one action, read by what they are, from the work store or from a release.
 
     ``source``: a stage task's upstream folders by stage name (the work store, :class:`StoreBackend`) or a
-    backend (:class:`StoreBackend`, :class:`ReleaseBackend`). Readers raise KeyError for an unknown product, or
-    one the source cannot hold, and FileNotFoundError naming the product, camera and file when its file is
-    not there.
+    backend (:class:`StoreBackend`, :class:`ReleaseBackend`). One action of a release opens as
+    :func:`manifests.release_artifacts` (``release_artifacts(release, action_id)``, the folder or an opened
+    release), the action's :attr:`manifests.consumer.ActionView.artifacts`: the manifests read through this
+    facade, never the other way. Readers raise KeyError for an unknown product, or one the source cannot hold,
+    and FileNotFoundError naming the product, camera and file when its file is not there.
     """
 
     def __init__(self, source: Mapping[str, Path] | StoreBackend | ReleaseBackend):
@@ -195,19 +197,6 @@ class ActionArtifacts:
                 return None
             upstream[stage] = folder
         return cls(upstream)
-
-    @classmethod
-    def from_release(cls, release: Any, action_id: str) -> "ActionArtifacts":
-        """One action of a release (its folder or an opened :class:`manifests.consumer.Release`).
-
-        Raises:
-            KeyError: no action with that id in the release.
-            manifests.ReleaseError: the folder is not a release.
-        """
-        from manifests.consumer import Release
-
-        release = release if isinstance(release, Release) else Release(release)
-        return cls(ReleaseBackend(release.action(action_id)))
 
     @property
     def upstream(self) -> dict[str, Path]:
@@ -303,7 +292,7 @@ class ActionArtifacts:
         return read_ply(self.existing("mesh"))
 
     def atlas_mesh(self) -> tuple[np.ndarray, np.ndarray, Any]:
-        """The textured mesh welded (vertices, faces, :class:`stages.numerics.mesh.Atlas`)."""
+        """The textured mesh welded (vertices, faces, :class:`artifacts.atlas.Atlas`)."""
         return load_atlas_mesh(self.existing("textured_mesh"))
 
     def texture(self, product: str, channels: int = 3) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 ``train(release, config, out_dir)`` trains on the ``train`` split with the MSE on the masked pixels (as the
 paper; the AlbedoNet's in linear space, on its albedo before the clip to [0, 1]), then measures the ``test``
-split (:mod:`stages.baselines.metrics`) for the network and the trivial baselines. Everything goes into
+split (:mod:`ultrastage.baselines.metrics`) for the network and the trivial baselines. Everything goes into
 ``out_dir`` (default :func:`default_out_dir`, beside the release, never in it):
 
 * ``checkpoint.pt``: ``{format, format_version, network, config, step, model, optimizer, losses}``, written
@@ -46,7 +46,7 @@ instead of a sigmoid albedo."""
 CHECKPOINT_NAME = "checkpoint.pt"
 METRICS_NAME = "test_metrics.parquet"
 TRIVIAL_METHOD = {"albedonet": "input_image", "normalnet": "constant_normal"}
-"""The trivial baseline each network is compared with (stages.baselines.metrics)."""
+"""The trivial baseline each network is compared with (ultrastage.baselines.metrics)."""
 
 
 @dataclass
