@@ -108,3 +108,23 @@ def test_bad_inputs_are_refused():
         sg_direction_irradiance(lobes, d, samples=0)
     with pytest.raises(ValueError, match="directions"):
         sg_direction_irradiance(lobes, np.zeros((4, 3)))
+
+
+def test_smith_specular_is_the_simulators_ggx():
+    """The same lights and visibility through the simulator's GGX (synthetic.shading.ggx_weights, which renders the
+    relit truth) give the same specular to float32 rounding."""
+    from synthetic.shading import ggx_weights
+
+    rng = np.random.default_rng(5)
+    directions = fibonacci_sphere(128)
+    normals = unit_rows(rng.normal(size=(300, 3)))
+    view = unit_rows(normals + 0.7 * rng.normal(size=(300, 3)))
+    view[np.sum(normals * view, axis=1) < 0.05] = normals[np.sum(normals * view, axis=1) < 0.05]
+    rough = rng.uniform(0.25, 0.9, 300)
+    f0 = rng.uniform(0.02, 0.05, 300)
+    irradiance = rng.uniform(0.0, 1.0, (128, 3))
+    visibility = (normals @ directions.T > 0) & (rng.uniform(size=(300, 128)) > 0.3)
+    ours = shade_directions(normals, view, np.zeros((300, 3)), rough, irradiance, visibility, directions, f0=f0,
+                            shadowing="smith")["specular"]
+    weights = ggx_weights(normals, view, directions, rough ** 2, f0) * visibility
+    np.testing.assert_allclose(ours, weights @ irradiance, rtol=2e-4, atol=1e-7)
