@@ -19,7 +19,8 @@ order of :data:`COMPONENTS`:
   told apart by their roughness, :func:`simulator_f0`) and its specular shadowing term (height-correlated Smith, ``shadowing="smith"``);
 * ``visibility``: the self-occlusion traced against the true mesh instead of ours (from the same surface points,
   each moved to the nearest point of the mesh traced against);
-* ``lighting``: the SG lobes and their closed-form shading replaced by exact integration of the environment map:
+* ``lighting``: the SG lobes and the stage's shading of them (ViewShading.integration: the sum over the visibility
+  directions, or the closed forms) replaced by exact integration of the environment map:
   the truth's own distant lights (:func:`synthetic.relight.environment_lights`, its light count), each occluded per
   pixel (traced against the mesh of the visibility row), with the simulator's GGX (:func:`synthetic.shading.ggx_weights`);
   an extra row integrates the SG lobes' own map exactly (the fit's share apart from the closed forms');
@@ -33,7 +34,10 @@ over actions, views and environments. The ``released`` row scores the release's 
 when the release was made with the defaults this bench uses).
 
 ``python bench/bench_relit_budget.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
-writes DIR/bench_relit_budget.json, .md (the table) and .png (a bar plot of the dB recovered). Defaults
+writes DIR/bench_relit_budget.json, .md (the table) and .png (a bar plot of the dB recovered). ``--shading
+field=value,...`` renders every row with a variant of the stage's ViewShading (e.g. ``integration=closed_form``: the SG
+lobes' closed forms instead of the sum over the visibility directions; ``visibility_directions=512``), ``--rows`` and
+``--views`` measure a subset, ``--tag`` names the files. Defaults
 runs/default/release and runs/default/capture; without them or the ground truth it prints why and exits 0.
 ``--quick`` (the tests' mode): the tiny run of ``bench/_quick.py``, its first view and first environment; the
 numbers are not measurements.

@@ -14,7 +14,10 @@ For each novel camera (placed between neighbouring captured cameras,
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
 3. shading: Lambertian diffuse + GGX specular under the lobes (F0 ``shading.f0``, skin's 0.028), with the mesh's
-   self-occlusion (:func:`stages.numerics.shadowing.shade_sg_visible`) when ``shading.shadows``. The sources' albedo is
+   self-occlusion when ``shading.shadows``: by default the lobes' energy is put on the ``shading.visibility_directions``
+   the occlusion is traced for and the BRDF summed over them, each direction occluded per pixel
+   (:mod:`stages.numerics.direction_lights`; ``shading.integration: closed_form``: the lobes' closed forms scaled
+   by their visible fractions, :func:`stages.numerics.shadowing.shade_sg_visible`). The sources' albedo is
    ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view; with
    ``diffuse_albedo`` off or without those maps, the white-light albedo times the materials stage's diffuse
    ratio); it still holds the stage's ambient occlusion, so with shadows it is divided by the occlusion
@@ -231,6 +234,7 @@ def _environments_record(environments: list[dict[str, Any]], cfg: RelightConfig,
     return {"environments": [{k: v for k, v in e.items() if k != "lobes"} | {"lobes": e["lobes"].numpy().to_dict()}
                              for e in environments],
             "shading": {"sg_lobes": cfg.sg_lobes, "shadows": shading.shadows, "f0": shading.f0,
+                        "integration": shading.integration, "visibility_directions": shading.visibility_directions,
                         "normals": shading.normals, "radiance_units": "the environment map's",
                         "alpha": (f"pixel coverage of {samples} x {samples} rays, radiance premultiplied"
                                   if samples > 1 else "mask (pixel centres)")},

@@ -1,0 +1,81 @@
+"""shade_gbuffer's environment integration (ViewShading.integration) on a ray-cast sphere standing on a floor."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.numerics.camera import Camera
+from stages.numerics.novel_view import ViewShading, shade_gbuffer
+from stages.numerics.raycast import mesh_scene, render_mesh
+from stages.numerics.sg import SGLobes
+
+
+def sphere_on_floor():
+    import open3d as o3d
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=0.3, resolution=24)
+    vertices = np.asarray(sphere.vertices) + [0.0, 0.3, 0.0]
+    faces = np.asarray(sphere.triangles)
+    floor_v = np.array([[-2.0, 0.0, -2.0], [2.0, 0.0, -2.0], [2.0, 0.0, 2.0], [-2.0, 0.0, 2.0]])
+    floor_f = np.array([[0, 2, 1], [0, 3, 2]]) + len(vertices)
+    return np.vstack([vertices, floor_v]), np.vstack([faces, floor_f])
+
+
+def gbuffer(scene, K, pose, h, w) -> dict:
+    seen = render_mesh(None, None, K, pose, h, w, scene=scene)
+    mask = seen["hit"]
+    pix = np.flatnonzero(mask.reshape(-1))
+    camera = Camera(K, pose, w, h)
+    points = camera.lift_depth_map(seen["depth_m"]).reshape(-1, 3)[pix]
+    view = camera.centre[None] - points
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    ones = np.where(mask, 1.0, 0.0).astype(np.float32)
+    return {"mask": mask, "hit": mask, "pix": pix, "points": points, "view_dirs": view,
+            "normal_fused": seen["normals_world"], "albedo": 0.5 * np.repeat(ones[..., None], 3, axis=2),
+            "diffuse_ratio": np.repeat(ones[..., None], 3, axis=2), "occlusion": ones, "roughness": 0.45 * ones}
+
+
+@pytest.fixture(scope="module")
+def view():
+    vertices, faces = sphere_on_floor()
+    scene = mesh_scene(vertices, faces)
+    h, w = 48, 64
+    K = np.array([[60.0, 0.0, w / 2], [0.0, 60.0, h / 2], [0.0, 0.0, 1.0]])
+    # looking at the sphere from 2 m, 30 degrees above the floor (OpenCV: y down in the image)
+    eye = np.array([0.0, 1.0 + 0.3, 1.73])
+    forward = np.array([0.0, 0.3, 0.0]) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    R = np.stack([right, down, forward])
+    pose = np.concatenate([R, (-R @ eye)[:, None]], axis=1)
+    lobes = SGLobes(np.array([[0.0, 1.0, 0.0], [0.6, 0.6, 0.53]], np.float32), np.array([2.0, 40.0], np.float32),
+                    np.array([[1.0, 1.0, 1.0], [4.0, 3.0, 2.0]], np.float32))
+    return scene, gbuffer(scene, K, pose, h, w), K, pose, lobes
+
+
+def test_directions_and_closed_forms_agree_on_the_whole_and_stay_finite(view):
+    """The sum over the 256 visibility directions against the lobes' closed forms, both with the floor and the
+    sphere occluding: measured 1.14% mean relative difference over the image (bound 2%); with only the diffuse
+    summed over the directions 0.33% (bound 0.6%): the specular is where the two differ most."""
+    scene, gb, K, pose, lobes = view
+    images = {}
+    for integration in ("directions", "closed_form", "directions_diffuse"):
+        out = shade_gbuffer(gb, scene, K, pose, [lobes], ViewShading(integration=integration, coverage_samples=1))
+        image = out["images"][0]
+        assert np.all(np.isfinite(image)) and np.all(image >= 0)
+        images[integration] = image[gb["mask"]]
+    reference = images["closed_form"].mean()
+    assert reference > 0
+    assert np.abs(images["directions"] - images["closed_form"]).mean() / reference < 0.02
+    assert np.abs(images["directions_diffuse"] - images["closed_form"]).mean() / reference < 0.006
+
+
+def test_without_shadows_every_direction_above_the_horizon_lights(view):
+    scene, gb, K, pose, lobes = view
+    lit = shade_gbuffer(gb, scene, K, pose, [lobes], ViewShading(shadows=False, coverage_samples=1))["images"][0]
+    shadowed = shade_gbuffer(gb, scene, K, pose, [lobes], ViewShading(coverage_samples=1))["images"][0]
+    assert np.all(shadowed <= lit + 1e-6)
+    # the sphere shadows the floor and the floor the sphere's underside: measured 0.942 of the light, bound 0.97
+    assert shadowed.sum() < 0.97 * lit.sum()
