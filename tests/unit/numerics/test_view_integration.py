@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.numerics.camera import Camera
+from artifacts.camera import Camera
 from stages.numerics.novel_view import ViewShading, shade_gbuffer
 from stages.numerics.raycast import mesh_scene, render_mesh
 from stages.numerics.sg import SGLobes
