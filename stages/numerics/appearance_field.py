@@ -52,6 +52,9 @@ from artifacts.camera import camera_centre, pixel_rays
 from stages.numerics.neural_fields import (
     HashEncoding,
     HashGridConfig,
+    check_bounds,
+    check_view_list,
+    check_view_map,
     instant_ngp_adam,
     lr_factor,
     neus_composite,
@@ -183,9 +186,7 @@ class AppearanceField(torch.nn.Module):
     def __init__(self, bounds: np.ndarray, encoding: HashGridConfig = APPEARANCE_PRESETS["cpu"].encoding,
                  hidden_width: int = 64, hidden_layers: int = 2, albedo_max: float = 1.0, seed: int = 0):
         super().__init__()
-        b = np.asarray(bounds, np.float64)
-        if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
-            raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
+        b = check_bounds(bounds)
         self.bounds = b
         self.encoding_config = encoding
         self.hidden_width, self.hidden_layers = int(hidden_width), int(hidden_layers)
@@ -255,10 +256,7 @@ class _Surface:
         else:
             raise ValueError(f"geometry must be an SDFField or a function points -> (sdf, gradient), got "
                              f"{type(geometry).__name__}")
-        b = np.asarray(b, np.float64)
-        if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
-            raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {b!r}")
-        self.bounds = b
+        self.bounds = check_bounds(b)
         self.chunk = chunk
         self._proposals: dict[tuple[float, str], ProposalGrid] = {}
 
@@ -436,22 +434,15 @@ def _check_depth(depth_m: np.ndarray | None, shape: tuple[int, int], where: str)
 
 
 def _check_views(views: Sequence[AppearanceView]) -> list[tuple[np.ndarray, np.ndarray]]:
-    if not isinstance(views, (list, tuple)) or len(views) == 0:
-        raise ValueError("views must be a non-empty list of AppearanceView")
+    check_view_list(views, AppearanceView)
     cams = []
     for i, v in enumerate(views):
-        if not isinstance(v, AppearanceView):
-            raise ValueError(f"views[{i}] is {type(v).__name__}, expected AppearanceView")
         valid = np.asarray(v.valid)
         if valid.ndim != 2 or min(valid.shape) < 1:
             raise ValueError(f"views[{i}].valid must be (H, W), got shape {valid.shape}")
         H, W = valid.shape
         for name in ("albedo", "normals_world"):
-            a = np.asarray(getattr(v, name))
-            if a.shape != (H, W, 3):
-                raise ValueError(f"views[{i}].{name} must be (H, W, 3) = {(H, W, 3)}, got {a.shape}")
-            if not np.isfinite(a[valid.astype(bool)]).all():
-                raise ValueError(f"views[{i}].{name} holds NaN or Inf on valid pixels")
+            check_view_map(getattr(v, name), (H, W, 3), f"views[{i}].{name}", valid=valid)
         _check_depth(v.depth_m, (H, W), f"views[{i}]")
         cams.append(check_camera(v.K, v.cam_from_world, f"views[{i}]"))
     if not any(np.asarray(v.valid).any() for v in views):

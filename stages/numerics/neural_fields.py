@@ -4,7 +4,8 @@ The normal-supervised SDF (:mod:`stages.numerics.sdf`) and the volume-rendered a
 (:mod:`stages.numerics.appearance_field`) are both an Instant-NGP hash grid (:class:`HashGridConfig`,
 :class:`HashEncoding`) feeding a small MLP, rendered along rays through a box (:func:`ray_box`) with NeuS
 weights (:func:`neus_composite`) and trained with Instant-NGP's Adam (:func:`instant_ngp_adam`) under a warm-up
-and cosine learning-rate schedule (:func:`lr_factor`) on the device :func:`resolve_device` picks.
+and cosine learning-rate schedule (:func:`lr_factor`) on the device :func:`resolve_device` picks. Both check
+their inputs with the same functions: :func:`check_bounds`, :func:`check_view_list`, :func:`check_view_map`.
 """
 from __future__ import annotations
 
@@ -221,6 +222,38 @@ class HashEncoding(torch.nn.Module):
         if L < L_all:
             jac = F.pad(jac, (0, (L_all - L) * Fd))
         return enc, jac
+
+
+# ------------------------------------------------------------------------------------------------ input checks
+
+
+def check_bounds(bounds: Any) -> np.ndarray:
+    """``bounds`` as a float64 (2, 3) [min, max] box; ValueError unless finite with max > min on every axis."""
+    b = np.asarray(bounds, np.float64)
+    if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
+        raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
+    return b
+
+
+def check_view_list(views: Any, view_type: type) -> None:
+    """ValueError unless ``views`` is a non-empty list or tuple of ``view_type``, naming the first that is not."""
+    if not isinstance(views, (list, tuple)) or len(views) == 0:
+        raise ValueError(f"views must be a non-empty list of {view_type.__name__}")
+    for i, v in enumerate(views):
+        if not isinstance(v, view_type):
+            raise ValueError(f"views[{i}] is {type(v).__name__}, expected {view_type.__name__}")
+
+
+def check_view_map(values: Any, shape: tuple[int, ...], where: str, valid: np.ndarray | None = None) -> np.ndarray:
+    """A view's per-pixel map as an array of ``shape`` ((H, W) or (H, W, C)); with ``valid`` (H, W) it must also
+    be finite on the valid pixels. ``where`` names the map in the ValueError (e.g. ``views[3].normals_world``)."""
+    a = np.asarray(values)
+    if a.shape != tuple(shape):
+        named = "(H, W)" if len(shape) == 2 else f"(H, W, {shape[2]})"
+        raise ValueError(f"{where} must be {named} = {tuple(shape)}, got {a.shape}")
+    if valid is not None and not np.isfinite(a[np.asarray(valid, bool)]).all():
+        raise ValueError(f"{where} holds NaN or Inf on valid pixels")
+    return a
 
 
 # ------------------------------------------------------------------------------------------------ rendering and training

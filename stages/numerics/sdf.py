@@ -54,8 +54,8 @@ from pipeline.config import Documented, checked, to_dict
 from stages.numerics import torch_threads
 from stages.numerics import hashgrid_kernel
 from stages.numerics.hull import HullGrid, check_camera, visual_hull
-from stages.numerics.neural_fields import (HashEncoding, HashGridConfig, instant_ngp_adam, lr_factor, neus_composite,
-                                           ray_box, resolve_device)
+from stages.numerics.neural_fields import (HashEncoding, HashGridConfig, check_bounds, check_view_list, check_view_map,
+                                           instant_ngp_adam, lr_factor, neus_composite, ray_box, resolve_device)
 from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays
 
 __all__ = [
@@ -254,9 +254,7 @@ class SDFField(torch.nn.Module):
     def __init__(self, bounds: np.ndarray, encoding: HashGridConfig = HashGridConfig(), hidden_width: int = 64,
                  hidden_layers: int = 2, init_radius_m: float | None = None):
         super().__init__()
-        b = np.asarray(bounds, np.float64)
-        if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
-            raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
+        b = check_bounds(bounds)
         self.bounds = b
         self.encoding_config = encoding
         self.hidden_width = int(hidden_width)
@@ -493,27 +491,18 @@ def _start_key(masks: list[np.ndarray], cams: list, config: "SDFConfig", bounds:
 
 
 def _check_views(views: Sequence[SDFView], normal_supervision: bool) -> list[tuple[np.ndarray, np.ndarray]]:
-    if not isinstance(views, (list, tuple)) or len(views) == 0:
-        raise ValueError("views must be a non-empty list of SDFView")
+    check_view_list(views, SDFView)
     cams = []
     for i, v in enumerate(views):
-        if not isinstance(v, SDFView):
-            raise ValueError(f"views[{i}] is {type(v).__name__}, expected SDFView")
         mask = np.asarray(v.mask)
         if mask.ndim != 2 or min(mask.shape) < 1:
             raise ValueError(f"views[{i}].mask must be (H, W), got shape {mask.shape}")
         H, W = mask.shape
-        n = np.asarray(v.normals_world)
-        if n.shape != (H, W, 3):
-            raise ValueError(f"views[{i}].normals_world must be (H, W, 3) = {(H, W, 3)}, got {n.shape}")
-        if np.asarray(v.normal_valid).shape != (H, W):
-            raise ValueError(f"views[{i}].normal_valid must be (H, W) = {(H, W)}, got {np.shape(v.normal_valid)}")
-        if normal_supervision and not np.isfinite(n[np.asarray(v.normal_valid, bool)]).all():
-            raise ValueError(f"views[{i}].normals_world holds NaN or Inf on valid pixels")
+        normal_valid = check_view_map(v.normal_valid, (H, W), f"views[{i}].normal_valid")
+        check_view_map(v.normals_world, (H, W, 3), f"views[{i}].normals_world",
+                       valid=normal_valid if normal_supervision else None)
         if v.sample_weight is not None:
-            sw = np.asarray(v.sample_weight)
-            if sw.shape != (H, W):
-                raise ValueError(f"views[{i}].sample_weight must be (H, W) = {(H, W)}, got {sw.shape}")
+            sw = check_view_map(v.sample_weight, (H, W), f"views[{i}].sample_weight")
             if not (np.isfinite(sw).all() and (sw >= 0).all()):
                 raise ValueError(f"views[{i}].sample_weight must be finite and >= 0")
         cams.append(check_camera(v.K, v.cam_from_world, f"views[{i}]"))
@@ -981,9 +970,7 @@ def _hull_and_bounds(masks, Ks, Ts, cams, config: SDFConfig, bounds: np.ndarray 
                              config.hull_dilate_px)
         box = coarse.tight_bounds(margin_m=float(coarse.voxel_size.max()))
     else:
-        box = np.asarray(bounds, np.float64)
-        if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[1] > box[0]).all():
-            raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
+        box = check_bounds(bounds)
         stage_box = box
     hull = visual_hull(masks, Ks, Ts, box, config.hull_resolution, config.hull_max_misses, config.hull_dilate_px)
     sdf_bounds = hull.tight_bounds(config.hull_margin_m)
