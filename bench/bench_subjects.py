@@ -22,7 +22,8 @@ same settings is read back, not run again (``--fresh`` runs it again).
 ../shared is absent) on a tiny capture (96 px, 8 cameras, 128 LEDs, unsubdivided mesh) through the ``test`` preset
 and the ``sync`` scheduler: it checks that the panel runs; its numbers are not measurements.
 
-    nice -n 10 python bench/bench_subjects.py --out bench/out            # the panel (about 10 x 10 min on 2 cores)
+    nice -n 10 python bench/bench_subjects.py --out bench/out            # the panel: 4.5-7 CPU minutes a subject
+    python bench/bench_subjects.py --out bench/out --subjects thin,short  # some of its subjects
     python bench/bench_subjects.py --quick --out /tmp/quick              # the tests' mode
 """
 from __future__ import annotations
