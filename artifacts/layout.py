@@ -3,12 +3,14 @@
 :data:`PRODUCTS` gives the stage and the path inside its artifact folder of every product another stage or the
 consumer API reads, or that a stage publishes; :data:`RELEASE_KINDS` the kind of the release's assets manifest
 that holds it; :class:`ArtifactWriter` gives a stage the paths of the products it writes, and
-:func:`released_files` the files a stage publishes, derived from the two tables (the cameras and exports stages
-publish through it). The readers are in :mod:`artifacts.facade`. This module imports nothing of the project, so
+:func:`released_files` the files a stage publishes, derived from the two tables (every stage that publishes
+files in the action's release folder lists them through it, per camera where a product is one file a camera). The readers are in :mod:`artifacts.facade`. This module imports nothing of the project, so
 a stage that only writes its products through it keeps its cache key's code digest to its own modules.
 """
 from __future__ import annotations
 
+import re
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 COLMAP_MODEL_DIR = "colmap/sparse/0"
@@ -24,8 +26,13 @@ _TEXTURES = {"albedo": "textures", "normal": "textures", "view_count": "textures
              "roughness": "materials", "roughness_fit_rms": "materials", "occlusion": "materials",
              "albedo_deoccluded": "materials", "diffuse_ratio": "materials", "albedo_intrinsic": "materials"}
 
+# The PNG previews of the atlas's textures (``previews/texture_<name>.png``) and the stage that draws each.
+_TEXTURE_PREVIEWS = {"normal": "textures", "confidence": "textures", "roughness": "materials",
+                     "occlusion": "materials", "albedo_intrinsic": "materials"}
+
 #: Where each product lives inside its stage's artifact folder: (stage, relative path); ``{camera}`` is a
-#: camera id, other fields (``{environment}``) are named by the reader.
+#: camera id, other fields (``{environment}``) are named by the reader or the writer. The previews (PNGs for
+#: people, under ``previews/``) are products too, so that a stage writes them at these paths.
 PRODUCTS: dict[str, tuple[str, str]] = {
     "session_cameras": ("cameras", "cameras.json"),
     "calibration_summary": ("cameras", "calibration.json"),
@@ -45,18 +52,28 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     "normal_alpha": ("photometric", "normal_alpha/{camera}.exr"),
     "albedo": ("photometric", "albedo/{camera}.exr"),
     "mask": ("photometric", "mask/{camera}.png"),
+    "normal_preview": ("photometric", "previews/normal_{camera}.png"),
+    "albedo_preview": ("photometric", "previews/albedo_{camera}.png"),
+    "normals_sheet": ("photometric", "previews/normals_sheet.png"),
     "normal_diffuse": ("diffuse_normals", "normal_diffuse/{camera}.exr"),
     "albedo_diffuse": ("diffuse_normals", "albedo_diffuse/{camera}.exr"),
+    "normal_diffuse_preview": ("diffuse_normals", "previews/normal_diffuse_{camera}.png"),
+    "normals_diffuse_sheet": ("diffuse_normals", "previews/normals_diffuse_sheet.png"),
     "mesh": ("geometry", "mesh/mesh.ply"),
+    "sdf_losses_preview": ("geometry", "previews/sdf_losses.png"),
+    "mesh_normals_preview": ("geometry", "previews/mesh_normals.png"),
     "textured_mesh": ("textures", "mesh/textured.obj"),
     "textured_material": ("textures", "mesh/textured.mtl"),
     "albedo_texture_png": ("textures", "textures/albedo.png"),
     **{f"{name}_texture": (stage, f"textures/{name}.exr") for name, stage in _TEXTURES.items()},
+    **{f"texture_{name}_preview": (stage, f"previews/texture_{name}.png") for name, stage in _TEXTURE_PREVIEWS.items()},
     "render_cameras": ("relight", "renders/cameras.json"),
     "render_environments": ("relight", "renders/environments.json"),
     **{f"render_{name}": ("relight", f"renders/{{camera}}/{name}.{'png' if name == 'mask' else 'exr'}")
        for name in ("normal", "albedo", "roughness", "mask")},
     "relit": ("relight", "renders/{camera}/{environment}.exr"),
+    "relit_preview": ("relight", "previews/relit.png"),
+    "turntable_preview": ("relight", "previews/turntable.png"),
     "export_mesh": ("exports", "mesh/textured.obj"),
     "export_material": ("exports", "mesh/textured.mtl"),
     "export_texture": ("exports", "mesh/textured.png"),
@@ -69,7 +86,9 @@ PRODUCTS: dict[str, tuple[str, str]] = {
 #: The release's asset kind of each product a release holds (the kinds the stages' ``release_files`` give;
 #: ``cameras`` is read from ``transforms``, the release's copy of the calibrated cameras; ``textured_mesh`` and
 #: ``textured_material`` are read from the exports stage's copies, ``export_mesh`` and ``export_material``, which
-#: the release holds under the same kinds).
+#: the release holds under the same kinds, so the textures stage does not publish its own: a stage publishes the
+#: products it names to :func:`released_files`, not every product of its own that has a kind here). The
+#: per-camera previews are not released, only their contact sheets (both sheets under the kind ``preview``).
 RELEASE_KINDS: dict[str, str] = {
     **{p: p for p in ("transforms", "full_on", "pos", "neg", "full_on_png", "pos_png", "neg_png", "normal_alpha",
                       "albedo", "mask", "normal_diffuse", "albedo_diffuse", "mesh", "render_cameras",
@@ -79,6 +98,13 @@ RELEASE_KINDS: dict[str, str] = {
     "albedo_texture_png": "texture_albedo_preview",
     **{f"{name}_texture": f"texture_{name}" for name in _TEXTURES},
     "relit": "relit_{environment}",
+    "normals_sheet": "preview",
+    "normals_diffuse_sheet": "preview",
+    "sdf_losses_preview": "preview_sdf_losses",
+    "mesh_normals_preview": "preview_mesh_normals",
+    **{f"texture_{name}_preview": f"preview_texture_{name}" for name in _TEXTURE_PREVIEWS},
+    "relit_preview": "preview_relit",
+    "turntable_preview": "preview_turntable",
     "calibration_summary": "calibration",
     "export_mesh": "mesh_textured",
     "export_material": "mesh_material",
@@ -94,13 +120,20 @@ def check_product(product: str) -> None:
         raise KeyError(f"unknown product {product!r}; products are {sorted(PRODUCTS)}")
 
 
-def released_files(stage: str, artifact: Path, products: tuple[str, ...],
-                   optional: tuple[str, ...] = ()) -> list[tuple[Path, str, str, str | None]]:
+def released_files(stage: str, artifact: Path, products: tuple[str, ...], optional: tuple[str, ...] = (),
+                   fields: Mapping[str, Collection[str]] | None = None) -> list[tuple[Path, str, str, str | None]]:
     """``(file, path in the action's release folder, kind, camera)`` of the files a stage publishes: each of
-    ``products`` (one file each, no camera) at its :data:`PRODUCTS` path in the artifact folder ``artifact`` and
-    at the same path in the release, under its :data:`RELEASE_KINDS` kind, in the order given. A product in
-    ``optional`` is left out when its file is not there; a required one is listed whether or not it is (the
-    publisher names a missing file). KeyError for a product that is another stage's or not released."""
+    ``products`` at its :data:`PRODUCTS` path in the artifact folder ``artifact`` and at the same path in the
+    release, under its :data:`RELEASE_KINDS` kind, product by product in the order given.
+
+    A product whose path has no field is one file with no camera: left out when it is in ``optional`` and its
+    file is not there; a required one is listed whether or not it is (the publisher names a missing file). A
+    product whose path has fields (``{camera}``, ``{environment}``) is every file of the artifact that its path
+    matches, sorted by path, zero or more: ``{camera}`` is the row's camera, every field fills the kind
+    (``relit_{environment}``); a field named in ``fields`` matches only the values given there (a path whose
+    field would match another product's file, as ``renders/{camera}/{environment}.exr`` matches
+    ``renders/<camera>/normal.exr``, needs them). KeyError for a product that is another stage's or not
+    released."""
     files = []
     for product in products:
         check_product(product)
@@ -109,11 +142,33 @@ def released_files(stage: str, artifact: Path, products: tuple[str, ...],
             raise KeyError(f"product {product!r} is written by stage {owner!r}, not {stage!r}")
         if product not in RELEASE_KINDS:
             raise KeyError(f"product {product!r} has no kind in RELEASE_KINDS: a release does not hold it")
-        path = Path(artifact) / rel
-        if product in optional and not path.is_file():
+        if "{" not in rel:
+            path = Path(artifact) / rel
+            if product in optional and not path.is_file():
+                continue
+            files.append((path, rel, RELEASE_KINDS[product], None))
             continue
-        files.append((path, rel, RELEASE_KINDS[product], None))
+        for path, values in _matching_files(Path(artifact), rel, fields or {}):
+            files.append((path, rel.format(**values), RELEASE_KINDS[product].format(**values), values.get("camera")))
     return files
+
+
+def _matching_files(artifact: Path, rel: str, fields: Mapping[str, Collection[str]]) -> list[tuple[Path, dict[str, str]]]:
+    """``(file, {field: value})`` of the files under ``artifact`` that the product path ``rel`` (with ``{field}``
+    parts, each one path component or part of one) matches, sorted by path; a field in ``fields`` only takes
+    the values given there."""
+    parts = re.split(r"\{(\w+)\}", rel)  # literal, field, literal, field, ..., literal
+    pattern = "".join(re.escape(part) if i % 2 == 0 else f"(?P<{part}>[^/]+)" for i, part in enumerate(parts))
+    glob = "".join(part if i % 2 == 0 else "*" for i, part in enumerate(parts))
+    found = []
+    for path in sorted(artifact.glob(glob)):
+        match = re.fullmatch(pattern, path.relative_to(artifact).as_posix())
+        if match is None or not path.is_file():
+            continue
+        values = match.groupdict()
+        if all(values[name] in allowed for name, allowed in fields.items() if name in values):
+            found.append((path, values))
+    return found
 
 
 class ArtifactWriter:

@@ -171,6 +171,30 @@ def test_released_files_come_from_the_products_table(tmp_path):
         released_files("cameras", tmp_path, ("calibration_colmap",))
 
 
+def test_released_files_list_a_per_camera_product_file_by_file(tmp_path):
+    for camera in ("00001", "00000"):
+        write_png(tmp_path / "full_on" / f"{camera}.png", np.zeros((2, 2), np.uint8))
+    (tmp_path / "full_on" / "notes.txt").write_text("not a PNG: no product's path matches it")
+    files = released_files("decode", tmp_path, ("full_on", "full_on_png"))
+    # full_on has no EXR here: a per-camera product lists the files that are there, sorted, zero or more
+    assert files == [(tmp_path / "full_on" / f"{c}.png", f"full_on/{c}.png", "full_on_png", c) for c in ("00000", "00001")]
+
+
+def test_released_files_fill_the_kind_from_the_fields_and_take_only_the_values_given(tmp_path):
+    for camera in ("N000", "N001"):
+        for name in ("normal.exr", "sky.exr", "studio.exr"):
+            (tmp_path / "renders" / camera).mkdir(parents=True, exist_ok=True)
+            (tmp_path / "renders" / camera / name).write_bytes(b"")
+    files = released_files("relight", tmp_path, ("render_normal", "relit"), fields={"environment": ("sky", "studio")})
+    assert [(rel, kind, camera) for _, rel, kind, camera in files] == [
+        ("renders/N000/normal.exr", "render_normal", "N000"), ("renders/N001/normal.exr", "render_normal", "N001"),
+        ("renders/N000/sky.exr", "relit_sky", "N000"), ("renders/N000/studio.exr", "relit_studio", "N000"),
+        ("renders/N001/sky.exr", "relit_sky", "N001"), ("renders/N001/studio.exr", "relit_studio", "N001")]
+    # without the environments, relit's {environment} also matches the G-buffer's normal.exr
+    assert ("renders/N000/normal.exr", "relit_normal") in [
+        (rel, kind) for _, rel, kind, _ in released_files("relight", tmp_path, ("relit",))]
+
+
 def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
     """The cameras and colour stages write through artifacts.layout only: their keys' code records do not hold the
     facade's readers (nor the renderer load_relightable_asset imports), so editing those cannot rerun them."""
