@@ -26,6 +26,14 @@ _TEXTURES = {"albedo": "textures", "normal": "textures", "view_count": "textures
              "roughness": "materials", "roughness_fit_rms": "materials", "occlusion": "materials",
              "albedo_deoccluded": "materials", "diffuse_ratio": "materials", "albedo_intrinsic": "materials"}
 
+# The files of a relighting-set example (``relight/<example>/``): product -> file name; ``relight_example_<x>``
+# is released under the kind ``relight_<x>``.
+_EXAMPLE_FILES = {"image": "image.exr", "image_png": "image.png", "albedo": "albedo.exr", "albedo_png": "albedo.png",
+                  "normal": "normal.exr", "normal_png": "normal.png", "mask": "mask.png"}
+EXAMPLE_PRODUCTS = tuple(f"relight_example_{name}" for name in _EXAMPLE_FILES)
+"""The products of the files of a relighting-set example besides its ``example.json``, in the order the
+relightset stage publishes them."""
+
 # The PNG previews of the atlas's textures (``previews/texture_<name>.png``) and the stage that draws each.
 _TEXTURE_PREVIEWS = {"normal": "textures", "confidence": "textures", "roughness": "materials",
                      "occlusion": "materials", "albedo_intrinsic": "materials"}
@@ -81,6 +89,7 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     **{product: ("exports", f"{COLMAP_MODEL_DIR}/{name}") for product, name in _COLMAP_FILES.items()},
     "relight_examples": ("relightset", "relight/examples.json"),
     "relight_example": ("relightset", "relight/{example}/example.json"),
+    **{f"relight_example_{name}": ("relightset", f"relight/{{example}}/{file}") for name, file in _EXAMPLE_FILES.items()},
 }
 
 #: The release's asset kind of each product a release holds (the kinds the stages' ``release_files`` give;
@@ -89,6 +98,7 @@ PRODUCTS: dict[str, tuple[str, str]] = {
 #: the release holds under the same kinds, so the textures stage does not publish its own: a stage publishes the
 #: products it names to :func:`released_files`, not every product of its own that has a kind here). The
 #: per-camera previews are not released, only their contact sheets (both sheets under the kind ``preview``).
+#: The relighting set's examples (``relight_example*``) lie at the release's root, not in an action's folder.
 RELEASE_KINDS: dict[str, str] = {
     **{p: p for p in ("transforms", "full_on", "pos", "neg", "full_on_png", "pos_png", "neg_png", "normal_alpha",
                       "albedo", "mask", "normal_diffuse", "albedo_diffuse", "mesh", "render_cameras",
@@ -111,6 +121,8 @@ RELEASE_KINDS: dict[str, str] = {
     "export_texture": "mesh_texture",
     "export_glb": "mesh_glb",
     **{product: "colmap_" + name.replace(".", "_") for product, name in _COLMAP_FILES.items()},
+    "relight_example": "relight_example",
+    **{f"relight_example_{name}": f"relight_{name}" for name in _EXAMPLE_FILES},
 }
 
 
@@ -143,14 +155,29 @@ def released_files(stage: str, artifact: Path, products: tuple[str, ...], option
         if product not in RELEASE_KINDS:
             raise KeyError(f"product {product!r} has no kind in RELEASE_KINDS: a release does not hold it")
         if "{" not in rel:
-            path = Path(artifact) / rel
-            if product in optional and not path.is_file():
+            if product in optional and not (Path(artifact) / rel).is_file():
                 continue
-            files.append((path, rel, RELEASE_KINDS[product], None))
+            files.append(released_file(stage, artifact, product))
             continue
         for path, values in _matching_files(Path(artifact), rel, fields or {}):
             files.append((path, rel.format(**values), RELEASE_KINDS[product].format(**values), values.get("camera")))
     return files
+
+
+def released_file(stage: str, artifact: Path, product: str, camera: str | None = None,
+                  **fields: str) -> tuple[Path, str, str, str | None]:
+    """``(file, path in the release, kind, camera)`` of one file of a stage's product, its fields filled (the
+    ``example`` of ``relight/{example}/image.exr``): at its :data:`PRODUCTS` path in the artifact folder and the
+    same path in the release, under its :data:`RELEASE_KINDS` kind; listed whether or not the file is there (the
+    publisher names a missing file). KeyError for a product that is another stage's or not released."""
+    check_product(product)
+    owner, rel = PRODUCTS[product]
+    if owner != stage:
+        raise KeyError(f"product {product!r} is written by stage {owner!r}, not {stage!r}")
+    if product not in RELEASE_KINDS:
+        raise KeyError(f"product {product!r} has no kind in RELEASE_KINDS: a release does not hold it")
+    rel = rel.format(camera=camera, **fields)
+    return Path(artifact) / rel, rel, RELEASE_KINDS[product].format(camera=camera, **fields), camera
 
 
 def _matching_files(artifact: Path, rel: str, fields: Mapping[str, Collection[str]]) -> list[tuple[Path, dict[str, str]]]:
