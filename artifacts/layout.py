@@ -3,8 +3,8 @@
 :data:`PRODUCTS` gives the stage and the path inside its artifact folder of every product another stage or the
 consumer API reads, or that a stage publishes; :data:`RELEASE_KINDS` the kind of the release's assets manifest
 that holds it; :class:`ArtifactWriter` gives a stage the paths of the products it writes, and
-:func:`released_files` the files a stage publishes, derived from the two tables (every stage that publishes
-files in the action's release folder lists them through it, per camera where a product is one file a camera). The readers are in :mod:`artifacts.facade`. This module imports nothing of the project, so
+:func:`released_files` (and :func:`released_file`, one file) the files a stage publishes, derived from the two
+tables (every stage lists the files it publishes through them, per camera where a product is one file a camera). The readers are in :mod:`artifacts.facade`. This module imports nothing of the project, so
 a stage that only writes its products through it keeps its cache key's code digest to its own modules.
 """
 from __future__ import annotations

@@ -195,6 +195,55 @@ def test_released_files_fill_the_kind_from_the_fields_and_take_only_the_values_g
         (rel, kind) for _, rel, kind, _ in released_files("relight", tmp_path, ("relit",))]
 
 
+def test_each_released_product_is_published_by_one_stage_at_its_own_path():
+    """The stages' published products (their RELEASED tuples) cover the kinds of RELEASE_KINDS once each; the
+    textures stage's OBJ and MTL are left to the exports stage's copies (same kinds), so no mesh is published
+    twice, and no two published products share a path."""
+    from stages import (decode, diffuse_normals, exports, geometry, materials, photometric, relight, relightset,
+                        textures)
+
+    published = {"cameras": ("calibration_summary",), "decode": decode.RELEASED,
+                 "photometric": photometric.RELEASED, "diffuse_normals": diffuse_normals.RELEASED,
+                 "geometry": geometry.RELEASED, "textures": textures.RELEASED, "materials": materials.RELEASED,
+                 "relight": relight.RELEASED_RENDERS + relight.RELEASED_PREVIEWS, "exports": exports.RELEASED,
+                 "relightset": relightset.RELEASED}
+    products = [product for stage_products in published.values() for product in stage_products]
+    assert len(products) == len(set(products))
+    assert all(PRODUCTS[product][0] == stage for stage, names in published.items() for product in names)
+    assert set(RELEASE_KINDS) - set(products) == {"textured_mesh", "textured_material"}
+    assert {RELEASE_KINDS[p] for p in ("textured_mesh", "textured_material")} == \
+        {RELEASE_KINDS[p] for p in ("export_mesh", "export_material")}
+    paths = [PRODUCTS[product][1] for product in products]
+    assert len(paths) == len(set(paths))
+
+
+def test_released_file_fills_the_fields_of_one_file(tmp_path):
+    from artifacts.layout import released_file
+
+    assert released_file("relightset", tmp_path, "relight_example_image_png", example="A0000_01") == (
+        tmp_path / "relight" / "A0000_01" / "image.png", "relight/A0000_01/image.png", "relight_image_png", None)
+    assert released_file("relight", tmp_path, "relit", "N000", environment="sky") == (
+        tmp_path / "renders" / "N000" / "sky.exr", "renders/N000/sky.exr", "relit_sky", "N000")
+    with pytest.raises(KeyError, match="a release does not hold it"):
+        released_file("relightset", tmp_path, "relight_examples")
+
+
+def test_normal_sheet_tiles_the_previews_written_at_the_tables_paths(tmp_path):
+    from stages.previews import write_normal_sheet
+
+    writer = ArtifactWriter("photometric", tmp_path)
+    for value, camera in enumerate(("00000", "00001")):
+        write_png(writer.path("normal_preview", camera), np.full((40, 50, 3), 10 * (value + 1), np.uint8))
+    write_normal_sheet(writer, "normal_preview", "normals_sheet",
+                       {"00000": {}, "00001": {}, "00002": {"missing": "no frames"}})
+    from pipeline.codecs.image import read_png
+
+    sheet = read_png(tmp_path / "previews" / "normals_sheet.png")
+    assert sheet.shape == (40, 8 * 50, 3)  # one row of 8 columns; the missing camera has no tile
+    # the tiles' bottom-right pixels (the labels are in their top-left corners)
+    assert sheet[39, 49, 0] == 10 and sheet[39, 99, 0] == 20 and sheet[39, 149, 0] == 0
+
+
 def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
     """The cameras and colour stages write through artifacts.layout only: their keys' code records do not hold the
     facade's readers (nor the renderer load_relightable_asset imports), so editing those cannot rerun them."""
