@@ -27,11 +27,14 @@ from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from calibration.colour import apply_colour_matrix
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import COLMAP_MODEL_DIR, ArtifactWriter
+from artifacts.layout import COLMAP_MODEL_DIR, ArtifactWriter, released_files
 from stages.conventions import distortion_fields, srgb_png
 from stages.exr_headers import EXR_HEADERS
 
 ILLUMINATIONS = ("full_on", "pos", "neg")
+RELEASED = ("transforms",) + tuple(p for illum in ILLUMINATIONS for p in (illum, f"{illum}_png"))
+"""The products this stage publishes, in order: transforms.json, then each illumination's EXRs and its PNGs, a
+file a camera (their paths and kinds: :data:`artifacts.layout.PRODUCTS`, :data:`artifacts.layout.RELEASE_KINDS`)."""
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Camera axes: OpenCV (x right, y down, z forward) to OpenGL (x right, y up, z back); its own inverse."""
 
@@ -189,8 +192,4 @@ class DecodeStage(Stage):
         return {"views": view_stats}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = [(artifact / "transforms.json", "transforms.json", "transforms", None)]
-        for illum in ILLUMINATIONS:
-            files += [(p, f"{illum}/{p.name}", illum, p.stem) for p in sorted((artifact / illum).glob("*.exr"))]
-            files += [(p, f"{illum}/{p.name}", f"{illum}_png", p.stem) for p in sorted((artifact / illum).glob("*.png"))]
-        return files
+        return released_files(self.name, artifact, RELEASED)

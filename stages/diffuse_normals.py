@@ -20,13 +20,18 @@ from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from stages.exr_headers import EXR_HEADERS
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter, released_files
 from artifacts.camera import Camera
 from stages.numerics.photometric import normals_with_alpha
 from stages.numerics.shadowing import deocclude_view
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.numerics.specular_normals import SpecularConfig, specular_free_normals, view_directions, white_light_specular
 from stages.previews import write_normal_sheet
+
+
+RELEASED = ("normal_diffuse", "albedo_diffuse", "normals_diffuse_sheet")
+"""The products this stage publishes, in order: the per-camera maps and the normals' contact sheet (when the
+previews are on; the per-camera previews stay in the work store)."""
 
 
 @dataclass(frozen=True)
@@ -235,18 +240,16 @@ class DiffuseNormalsStage(Stage):
 
     def _preview(self, ctx: StageContext, view: str, normals: np.ndarray, alpha: np.ndarray) -> None:
         if self.config.previews:
-            write_png(ctx.out_dir / "previews" / f"normal_diffuse_{view}.png", preview_normals(normals, alpha))
+            write_png(ArtifactWriter(self.name, ctx.out_dir).path("normal_diffuse_preview", view),
+                      preview_normals(normals, alpha))
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            write_normal_sheet(ctx.out_dir / "previews", "normal_diffuse", "normals_diffuse_sheet.png",
-                               view_stats)
+            write_normal_sheet(ArtifactWriter(self.name, ctx.out_dir), "normal_diffuse_preview",
+                               "normals_diffuse_sheet", view_stats)
         fitted = [s for s in view_stats.values() if s.get("fitted")]
         return {"views": view_stats, "fitted_views": len(fitted),
                 "seconds": float(sum(s["seconds"] for s in fitted))}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = [(p, f"{slot}/{p.name}", slot, p.stem) for slot in ("normal_diffuse", "albedo_diffuse")
-                 for p in sorted((artifact / slot).glob("*.exr"))]
-        sheet = artifact / "previews" / "normals_diffuse_sheet.png"
-        return files + ([(sheet, f"previews/{sheet.name}", "preview", None)] if sheet.exists() else [])
+        return released_files(self.name, artifact, RELEASED, optional=("normals_diffuse_sheet",))

@@ -24,9 +24,14 @@ from pipeline.codecs.image import preview_normals, write_png
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter, released_files
 from stages.numerics import numeric_threads
 from stages.numerics.sdf_mesh import SDFMeshConfig
+
+
+RELEASED = ("mesh", "sdf_losses_preview", "mesh_normals_preview")
+"""The products this stage publishes, in order: the mesh and its previews (when on). The SDF (``sdf/``) stays in
+the work store."""
 
 
 @dataclass(frozen=True)
@@ -129,8 +134,9 @@ class GeometryStage(Stage):
             indent=1, default=float))
         write_ply(ArtifactWriter(self.name, out).path("mesh"), vertices, faces, normals=vertex_normals(vertices, faces))
         if cfg.previews:
-            _loss_plot(out / "previews" / "sdf_losses.png", result.history)
-            write_png(out / "previews" / "mesh_normals.png", _normals_comparison(vertices, faces, views))
+            writer = ArtifactWriter(self.name, out)
+            _loss_plot(writer.path("sdf_losses_preview"), result.history)
+            write_png(writer.path("mesh_normals_preview"), _normals_comparison(vertices, faces, views))
         return {"cameras": len(views), "train_seconds": fitted.train_seconds, "passes": fitted.passes,
                 "faces_extracted": int(mesh_stats["faces_extracted"]), "mesh_faces": int(len(faces)),
                 "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
@@ -139,8 +145,4 @@ class GeometryStage(Stage):
                 "mesh": {k: v for k, v in mesh_stats.items() if isinstance(v, (int, float, str))}}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = [(artifact / "mesh" / "mesh.ply", "mesh/mesh.ply", "mesh", None)]
-        for name, kind in (("sdf_losses.png", "preview_sdf_losses"), ("mesh_normals.png", "preview_mesh_normals")):
-            if (artifact / "previews" / name).exists():
-                files.append((artifact / "previews" / name, f"previews/{name}", kind, None))
-        return files
+        return released_files(self.name, artifact, RELEASED, optional=RELEASED[1:])

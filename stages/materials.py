@@ -49,11 +49,17 @@ from pipeline.codecs.image import preview_linear, preview_scalar, write_png
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter, released_files
 from stages.numerics import numeric_threads
 from stages.numerics.material_textures import MaterialTexturesConfig
 
 ILLUMINATION_DIRS = ("full_on", "pos", "neg")
+
+
+RELEASED_PREVIEWS = ("texture_albedo_intrinsic_preview", "texture_occlusion_preview", "texture_roughness_preview")
+RELEASED = ("albedo_deoccluded_texture", "albedo_intrinsic_texture", "diffuse_ratio_texture", "occlusion_texture",
+            "roughness_texture", "roughness_fit_rms_texture") + RELEASED_PREVIEWS
+"""The products this stage publishes, in order: its textures, then their previews (when on)."""
 
 
 @dataclass(frozen=True)
@@ -116,15 +122,11 @@ class MaterialsStage(Stage):
             write_exr(out.path(f"{name}_texture"), getattr(result, name),
                       header=EXR_HEADERS[f"texture_{name}"])
         if cfg.previews:
-            previews = ctx.out_dir / "previews"
-            write_png(previews / "texture_roughness.png", preview_scalar(result.roughness))
-            write_png(previews / "texture_occlusion.png", preview_scalar(result.occlusion))
-            write_png(previews / "texture_albedo_intrinsic.png", preview_linear(result.albedo_intrinsic, exposure=1.0))
+            write_png(out.path("texture_roughness_preview"), preview_scalar(result.roughness))
+            write_png(out.path("texture_occlusion_preview"), preview_scalar(result.occlusion))
+            write_png(out.path("texture_albedo_intrinsic_preview"),
+                      preview_linear(result.albedo_intrinsic, exposure=1.0))
         return result.stats | {"load_s": load_s}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = [(p, f"textures/{p.name}", f"texture_{p.stem}", None)
-                 for p in sorted((artifact / "textures").glob("*.exr"))]
-        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
-            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
-        return files
+        return released_files(self.name, artifact, RELEASED, optional=RELEASED_PREVIEWS)

@@ -17,7 +17,7 @@ from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter, released_files
 from artifacts.camera import Camera
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.exr_headers import EXR_HEADERS
@@ -25,6 +25,11 @@ from stages.numerics.photometric import (PhotometricParams, corrected_normals, f
                                          normals_with_alpha, photometric_maps)
 from stages.numerics.specular_normals import view_directions
 from stages.previews import write_normal_sheet
+
+
+RELEASED = ("normal_alpha", "albedo", "mask", "normals_sheet")
+"""The products this stage publishes, in order: the per-camera maps and the normals' contact sheet (when the
+previews are on; the per-camera previews stay in the work store)."""
 
 
 @dataclass(frozen=True)
@@ -130,8 +135,8 @@ class PhotometricStage(Stage):
         write_exr(out.path("albedo", view), albedo, header=EXR_HEADERS["albedo"])
         write_png(out.path("mask", view), maps.mask)
         if self.config.previews:
-            write_png(ctx.out_dir / "previews" / f"normal_{view}.png", preview_normals(normals, maps.alpha))
-            write_png(ctx.out_dir / "previews" / f"albedo_{view}.png", preview_linear(albedo, exposure=1.0))
+            write_png(out.path("normal_preview", view), preview_normals(normals, maps.alpha))
+            write_png(out.path("albedo_preview", view), preview_linear(albedo, exposure=1.0))
         return {"mask_fraction": float(mask.mean()), "facing_away_fraction": facing_away,
                 "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
                 "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,
@@ -139,14 +144,9 @@ class PhotometricStage(Stage):
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
         if self.config.previews:
-            write_normal_sheet(ctx.out_dir / "previews", "normal", "normals_sheet.png", view_stats)
+            write_normal_sheet(ArtifactWriter(self.name, ctx.out_dir), "normal_preview", "normals_sheet", view_stats)
         fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
         return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = []
-        for slot, ext in (("normal_alpha", "exr"), ("albedo", "exr"), ("mask", "png")):
-            files += [(p, f"{slot}/{p.name}", slot, p.stem) for p in sorted((artifact / slot).glob(f"*.{ext}"))]
-        files += [(p, f"previews/{p.name}", "preview", None)
-                  for p in sorted((artifact / "previews").glob("*sheet*.png"))]
-        return files
+        return released_files(self.name, artifact, RELEASED, optional=("normals_sheet",))

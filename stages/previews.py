@@ -1,11 +1,12 @@
-"""Contact sheets of the per-camera previews the stages write (``previews/<prefix>_<camera>.png``)."""
+"""Contact sheets of the per-camera previews the stages write (``previews/<prefix>_<camera>.png``, at the
+paths :data:`artifacts.layout.PRODUCTS` names)."""
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from artifacts.layout import ArtifactWriter
 from pipeline.codecs.image import label_picture, read_png, write_png
 
 
@@ -24,11 +25,11 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 8, labels: list[str
     return sheet
 
 
-def write_normal_sheet(previews: Path, prefix: str, sheet: str, view_stats: dict[str, dict[str, Any]]) -> None:
-    """``previews/<sheet>``: the per-camera previews ``<prefix>_<camera>.png`` of the views that ran,
-    side by side, each tile labelled with its camera id (nothing when none was written)."""
-    paths = {v: previews / f"{prefix}_{v}.png" for v in sorted(view_stats) if "missing" not in view_stats[v]}
+def write_normal_sheet(out: ArtifactWriter, tile: str, sheet: str, view_stats: dict[str, dict[str, Any]]) -> None:
+    """The product ``sheet``: the per-camera previews (product ``tile``) of the views that ran, side by side,
+    each tile labelled with its camera id (nothing when none was written); both at ``out``'s paths."""
+    paths = {v: out.path(tile, v) for v in sorted(view_stats) if "missing" not in view_stats[v]}
     shown = [v for v, p in paths.items() if p.exists()]
     if shown:
-        write_png(previews / sheet,
+        write_png(out.path(sheet),
                   contact_sheet([read_png(paths[v]) for v in shown], labels=[f"cam {v}" for v in shown]))

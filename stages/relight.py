@@ -51,7 +51,7 @@ from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from artifacts.facade import ActionArtifacts
 from stages.relightable import load_relightable_asset
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter, released_files
 from stages.numerics import numeric_threads
 from artifacts.camera import Camera
 from stages.numerics.learned_blend import LearnedBlendConfig
@@ -62,6 +62,14 @@ TURNTABLE_FRAMES = 12
 """Views of ``previews/turntable.png`` (30 degrees apart about +y)."""
 TURNTABLE_SIZE = (240, 160)
 """(height, width) in pixels of each turntable view."""
+
+
+RELEASED_RENDERS = ("render_cameras", "render_environments", "render_normal", "render_albedo", "render_roughness",
+                    "render_mask", "relit")
+RELEASED_PREVIEWS = ("relit_preview", "turntable_preview")
+"""The products this stage publishes: the renders (each view's maps, mask and relit images under the
+environments that ``renders/environments.json`` names, and the two JSON records), then the previews (when
+on)."""
 
 
 @dataclass(frozen=True)
@@ -154,26 +162,16 @@ class RelightStage(Stage):
         out.path("render_environments").write_text(json.dumps(_environments_record(environments, cfg, blend),
                                                               indent=1, default=float))
         if cfg.previews:
-            _write_previews(ctx.out_dir / "previews", sheet_rows, asset)
+            _write_previews(out, sheet_rows, asset)
         return _run_stats(views, environments, asset, blend) | {"seconds": time.perf_counter() - started}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        files = []
-        renders = artifact / "renders"
-        for p in sorted(renders.rglob("*")):
-            if not p.is_file():
-                continue
-            rel = p.relative_to(renders).as_posix()
-            if p.parent == renders or p.stem in ("normal", "albedo", "roughness", "mask"):
-                kind = f"render_{p.stem}"
-            else:
-                kind = f"relit_{p.stem}"
-            camera = p.parent.name if p.parent != renders else None
-            files.append((p, f"renders/{rel}", kind, camera))
-        for name in ("relit", "turntable"):
-            if (artifact / "previews" / f"{name}.png").exists():
-                files.append((artifact / "previews" / f"{name}.png", f"previews/{name}.png", f"preview_{name}", None))
-        return files
+        """The renders (sorted by path, so each view's files lie together), then the previews (when on)."""
+        environments = [e["label"] for e in ActionArtifacts({self.name: artifact}).json("render_environments")
+                        ["environments"]]
+        renders = released_files(self.name, artifact, RELEASED_RENDERS, fields={"environment": environments})
+        return sorted(renders, key=lambda f: f[0]) + released_files(self.name, artifact, RELEASED_PREVIEWS,
+                                                                    optional=RELEASED_PREVIEWS)
 
 
 def learned_blend(asset: Any, cfg: RelightConfig, log: Any) -> Any:
@@ -250,14 +248,14 @@ def _run_stats(views: list[Camera], environments: list[dict[str, Any]], asset: A
             "blend_seconds": float(blend.record["gather_s"] + blend.record["train_s"]) if blend is not None else 0.0}
 
 
-def _write_previews(folder: Path, sheet_rows: list[np.ndarray], asset: Any) -> None:
-    """``relit.png`` (views x environments) and ``turntable.png`` (the textured mesh from TURNTABLE_FRAMES
-    azimuths)."""
+def _write_previews(out: ArtifactWriter, sheet_rows: list[np.ndarray], asset: Any) -> None:
+    """``previews/relit.png`` (views x environments) and ``previews/turntable.png`` (the textured mesh from
+    TURNTABLE_FRAMES azimuths)."""
     from stages.numerics.turntable import turntable_cameras, turntable_strip
 
     if sheet_rows:
-        write_png(folder / "relit.png", np.concatenate(sheet_rows, axis=0))
+        write_png(out.path("relit_preview"), np.concatenate(sheet_rows, axis=0))
     cams = turntable_cameras(asset.vertices, TURNTABLE_FRAMES, *TURNTABLE_SIZE)
     strip = turntable_strip(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, asset.albedo_tex, cams,
                             *TURNTABLE_SIZE)
-    write_png(folder / "turntable.png", preview_linear(strip, exposure=1.0))
+    write_png(out.path("turntable_preview"), preview_linear(strip, exposure=1.0))

@@ -43,7 +43,7 @@ from pipeline.stage import Stage, StageContext
 from pipeline.store import link_or_copy
 from artifacts.facade import ActionArtifacts
 from stages.relightable import load_relightable_asset
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import EXAMPLE_PRODUCTS, PRODUCTS, ArtifactWriter, released_file
 from stages.exr_headers import EXR_HEADERS
 from stages.numerics import numeric_threads
 from stages.numerics.novel_view import ViewShading
@@ -53,7 +53,11 @@ HDRI_FOLDERS = "hdri-folders"
 """Pool entry: every map in the folders environment names are looked up in ($ULTRASTAGE_HDRI, the capture's
 ``environments/``, ../shared/data/hdri); the procedural sky and studio when they hold none."""
 _HDR_SUFFIXES = (".hdr", ".exr")
-EXAMPLE_FILES = ("image.exr", "image.png", "albedo.exr", "albedo.png", "normal.exr", "normal.png", "mask.png")
+EXAMPLE_FILES = tuple(Path(PRODUCTS[product][1]).name for product in EXAMPLE_PRODUCTS)
+"""The names of an example's files besides its example.json (``image.exr``, ``image.png``, ...)."""
+RELEASED = EXAMPLE_PRODUCTS + ("relight_example",)
+"""The products of an example this stage publishes at the release root, in order (their paths and kinds:
+:data:`artifacts.layout.PRODUCTS`, :data:`artifacts.layout.RELEASE_KINDS`)."""
 #: Bumped when the files of an example change for the same inputs (enters every example key).
 RENDER_FORMAT = 1
 
@@ -248,23 +252,25 @@ def _reuse_example(old: tuple[dict[str, Any], Path], folder: Path) -> dict[str, 
     return {"png_exposure": row["png_exposure"], "mask_pixels": row["mask_pixels"]}
 
 
-def _render_example(folder: Path, asset: Any, draw: dict[str, Any], pool: _ActionPool, cfg: RelightSetConfig,
-                    directions: np.ndarray | None) -> dict[str, Any]:
-    """Renders one drawn example and writes its files; returns the row's ``png_exposure`` and ``mask_pixels``."""
+def _render_example(out: ArtifactWriter, example_id: str, asset: Any, draw: dict[str, Any], pool: _ActionPool,
+                    cfg: RelightSetConfig, directions: np.ndarray | None) -> dict[str, Any]:
+    """Renders one drawn example and writes its files at ``out``'s paths; returns the row's ``png_exposure`` and
+    ``mask_pixels``."""
     from stages.numerics.relightset import encode_normals, render_example, tone_map
 
     env_index = draw["environment_index"]
     example = render_example(asset, draw["K"], draw["cam_from_world"], cfg.size, pool.lobes(env_index),
                              draw["rotation_deg"], cfg.shading, directions, cfg.png_level)
     image, mask, albedo, normals_cam = (example[k] for k in ("image", "mask", "albedo", "normals_camera"))
-    write_exr(folder / "image.exr", np.concatenate([image, example["alpha"][..., None]], axis=2),
+    path = lambda name: out.path(f"relight_example_{name}", example=example_id)  # noqa: E731
+    write_exr(path("image"), np.concatenate([image, example["alpha"][..., None]], axis=2),
               header=EXR_HEADERS["relightset_image"])
-    write_png(folder / "image.png", tone_map(image, example["exposure"]))
-    write_exr(folder / "albedo.exr", albedo, header=EXR_HEADERS["relightset_albedo"])
-    write_png(folder / "albedo.png", tone_map(albedo, 1.0))
-    write_exr(folder / "normal.exr", normals_cam, half=False, header=EXR_HEADERS["relightset_normal"])
-    write_png(folder / "normal.png", encode_normals(normals_cam, mask))
-    write_png(folder / "mask.png", mask)
+    write_png(path("image_png"), tone_map(image, example["exposure"]))
+    write_exr(path("albedo"), albedo, header=EXR_HEADERS["relightset_albedo"])
+    write_png(path("albedo_png"), tone_map(albedo, 1.0))
+    write_exr(path("normal"), normals_cam, half=False, header=EXR_HEADERS["relightset_normal"])
+    write_png(path("normal_png"), encode_normals(normals_cam, mask))
+    write_png(path("mask"), mask)
     return {"png_exposure": float(example["exposure"]), "mask_pixels": int(mask.sum())}
 
 
@@ -347,7 +353,7 @@ class RelightSetStage(Stage):
                 reused += 1
             else:
                 t0 = time.perf_counter()
-                row |= _render_example(record.parent, asset, draw, pool, cfg, directions)
+                row |= _render_example(out, example_id, asset, draw, pool, cfg, directions)
                 seconds.append(time.perf_counter() - t0)
             record.write_text(json.dumps(row, indent=1, sort_keys=True))
             rows.append(row)
@@ -386,14 +392,8 @@ class RelightSetStage(Stage):
 
     def release_root_files(self, artifact: Path) -> list[tuple[Path, str, str]]:
         """(file, path under the release root, kind) of every example file."""
-        files = []
-        for row in self.manifest_rows(artifact).get("relight_examples", []):
-            folder = artifact / "relight" / row["example_id"]
-            for name in EXAMPLE_FILES + ("example.json",):
-                files.append((folder / name, f"relight/{row['example_id']}/{name}",
-                              f"relight_{Path(name).stem}" + ("_png" if name.endswith(".png") and
-                                                              Path(name).stem != "mask" else "")))
-        return files
+        return [released_file(self.name, artifact, product, example=row["example_id"])[:3]
+                for row in self.manifest_rows(artifact).get("relight_examples", []) for product in RELEASED]
 
     def manifest_rows(self, artifact: Path) -> dict[str, list[dict[str, Any]]]:
         path = artifact / "relight" / "examples.json"

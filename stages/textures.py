@@ -16,8 +16,17 @@ from pipeline.codecs.image import preview_linear, preview_normals, preview_scala
 from pipeline.config import Documented, checked
 from pipeline.stage import Stage, StageContext
 from artifacts.facade import ActionArtifacts
-from artifacts.layout import ArtifactWriter
+from artifacts.layout import ArtifactWriter, released_files
 from stages.exr_headers import EXR_HEADERS
+
+
+RELEASED_PREVIEWS = ("texture_confidence_preview", "texture_normal_preview")
+RELEASED = ("albedo_texture", "albedo_texture_png", "confidence_texture", "normal_texture",
+            "view_count_texture") + RELEASED_PREVIEWS
+"""The products this stage publishes, in order: the textures (and the albedo's PNG), then their previews (when
+on). Not the textured OBJ and its MTL (``textured_mesh``, ``textured_material``): the exports stage publishes
+its copies under the same kinds, with the texture beside the OBJ (this artifact's MTL points at
+``../textures/albedo.png``, a path some loaders refuse) and a GLB."""
 
 
 @dataclass(frozen=True)
@@ -69,15 +78,7 @@ class TexturesStage(Stage):
                 "bake": {k: v for k, v in result.baked.stats.items() if isinstance(v, (int, float, str))}}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
-        # mesh/textured.obj is published by the exports stage, with its texture beside it (this artifact's
-        # MTL points at ../textures/albedo.png, a path some loaders refuse) and a GLB.
-        files = []
-        for p in sorted((artifact / "textures").iterdir()):
-            kind = f"texture_{p.stem}" if p.suffix == ".exr" else f"texture_{p.stem}_preview"
-            files.append((p, f"textures/{p.name}", kind, None))
-        for p in sorted((artifact / "previews").glob("*.png")) if (artifact / "previews").exists() else []:
-            files.append((p, f"previews/{p.name}", f"preview_{p.stem}", None))
-        return files
+        return released_files(self.name, artifact, RELEASED, optional=RELEASED_PREVIEWS)
 
 
 def _write_textures(out: Path, result: Any, previews: bool) -> None:
@@ -102,5 +103,5 @@ def _write_textures(out: Path, result: Any, previews: bool) -> None:
               material={"name": "albedo", "map_Kd": "../textures/albedo.png"})
     if previews:
         covered = baked.covered.astype(np.float32)
-        write_png(out / "previews" / "texture_normal.png", preview_normals(baked.textures["normal"], covered))
-        write_png(out / "previews" / "texture_confidence.png", preview_scalar(baked.confidence))
+        write_png(writer.path("texture_normal_preview"), preview_normals(baked.textures["normal"], covered))
+        write_png(writer.path("texture_confidence_preview"), preview_scalar(baked.confidence))

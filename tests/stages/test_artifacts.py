@@ -171,6 +171,79 @@ def test_released_files_come_from_the_products_table(tmp_path):
         released_files("cameras", tmp_path, ("calibration_colmap",))
 
 
+def test_released_files_list_a_per_camera_product_file_by_file(tmp_path):
+    for camera in ("00001", "00000"):
+        write_png(tmp_path / "full_on" / f"{camera}.png", np.zeros((2, 2), np.uint8))
+    (tmp_path / "full_on" / "notes.txt").write_text("not a PNG: no product's path matches it")
+    files = released_files("decode", tmp_path, ("full_on", "full_on_png"))
+    # full_on has no EXR here: a per-camera product lists the files that are there, sorted, zero or more
+    assert files == [(tmp_path / "full_on" / f"{c}.png", f"full_on/{c}.png", "full_on_png", c) for c in ("00000", "00001")]
+
+
+def test_released_files_fill_the_kind_from_the_fields_and_take_only_the_values_given(tmp_path):
+    for camera in ("N000", "N001"):
+        for name in ("normal.exr", "sky.exr", "studio.exr"):
+            (tmp_path / "renders" / camera).mkdir(parents=True, exist_ok=True)
+            (tmp_path / "renders" / camera / name).write_bytes(b"")
+    files = released_files("relight", tmp_path, ("render_normal", "relit"), fields={"environment": ("sky", "studio")})
+    assert [(rel, kind, camera) for _, rel, kind, camera in files] == [
+        ("renders/N000/normal.exr", "render_normal", "N000"), ("renders/N001/normal.exr", "render_normal", "N001"),
+        ("renders/N000/sky.exr", "relit_sky", "N000"), ("renders/N000/studio.exr", "relit_studio", "N000"),
+        ("renders/N001/sky.exr", "relit_sky", "N001"), ("renders/N001/studio.exr", "relit_studio", "N001")]
+    # without the environments, relit's {environment} also matches the G-buffer's normal.exr
+    assert ("renders/N000/normal.exr", "relit_normal") in [
+        (rel, kind) for _, rel, kind, _ in released_files("relight", tmp_path, ("relit",))]
+
+
+def test_each_released_product_is_published_by_one_stage_at_its_own_path():
+    """The stages' published products (their RELEASED tuples) cover the kinds of RELEASE_KINDS once each; the
+    textures stage's OBJ and MTL are left to the exports stage's copies (same kinds), so no mesh is published
+    twice, and no two published products share a path."""
+    from stages import (decode, diffuse_normals, exports, geometry, materials, photometric, relight, relightset,
+                        textures)
+
+    published = {"cameras": ("calibration_summary",), "decode": decode.RELEASED,
+                 "photometric": photometric.RELEASED, "diffuse_normals": diffuse_normals.RELEASED,
+                 "geometry": geometry.RELEASED, "textures": textures.RELEASED, "materials": materials.RELEASED,
+                 "relight": relight.RELEASED_RENDERS + relight.RELEASED_PREVIEWS, "exports": exports.RELEASED,
+                 "relightset": relightset.RELEASED}
+    products = [product for stage_products in published.values() for product in stage_products]
+    assert len(products) == len(set(products))
+    assert all(PRODUCTS[product][0] == stage for stage, names in published.items() for product in names)
+    assert set(RELEASE_KINDS) - set(products) == {"textured_mesh", "textured_material"}
+    assert {RELEASE_KINDS[p] for p in ("textured_mesh", "textured_material")} == \
+        {RELEASE_KINDS[p] for p in ("export_mesh", "export_material")}
+    paths = [PRODUCTS[product][1] for product in products]
+    assert len(paths) == len(set(paths))
+
+
+def test_released_file_fills_the_fields_of_one_file(tmp_path):
+    from artifacts.layout import released_file
+
+    assert released_file("relightset", tmp_path, "relight_example_image_png", example="A0000_01") == (
+        tmp_path / "relight" / "A0000_01" / "image.png", "relight/A0000_01/image.png", "relight_image_png", None)
+    assert released_file("relight", tmp_path, "relit", "N000", environment="sky") == (
+        tmp_path / "renders" / "N000" / "sky.exr", "renders/N000/sky.exr", "relit_sky", "N000")
+    with pytest.raises(KeyError, match="a release does not hold it"):
+        released_file("relightset", tmp_path, "relight_examples")
+
+
+def test_normal_sheet_tiles_the_previews_written_at_the_tables_paths(tmp_path):
+    from stages.previews import write_normal_sheet
+
+    writer = ArtifactWriter("photometric", tmp_path)
+    for value, camera in enumerate(("00000", "00001")):
+        write_png(writer.path("normal_preview", camera), np.full((40, 50, 3), 10 * (value + 1), np.uint8))
+    write_normal_sheet(writer, "normal_preview", "normals_sheet",
+                       {"00000": {}, "00001": {}, "00002": {"missing": "no frames"}})
+    from pipeline.codecs.image import read_png
+
+    sheet = read_png(tmp_path / "previews" / "normals_sheet.png")
+    assert sheet.shape == (40, 8 * 50, 3)  # one row of 8 columns; the missing camera has no tile
+    # the tiles' bottom-right pixels (the labels are in their top-left corners)
+    assert sheet[39, 49, 0] == 10 and sheet[39, 99, 0] == 20 and sheet[39, 149, 0] == 0
+
+
 def test_writing_through_the_layout_keeps_the_readers_out_of_a_stage_key():
     """The cameras and colour stages write through artifacts.layout only: their keys' code records do not hold the
     facade's readers (nor the renderer load_relightable_asset imports), so editing those cannot rerun them."""
