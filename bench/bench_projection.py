@@ -412,7 +412,7 @@ def main() -> int:
     engine_note = "not measured (run bench_scale.py)"
     if scale_path.is_file():
         scale = json.loads(scale_path.read_text())
-        largest = max((r for r in scale["results"] if r["executor"] == "dask") or scale["results"],
+        largest = max([r for r in scale["results"] if r["executor"] == "dask"] or scale["results"],
                       key=lambda r: r["actions"])
         cold = largest["runs"]["cold"]
         per_graph = (cold["phases_s"]["plan_s"] + cold["phases_s"]["bookkeeping_s"]) / cold["graph_tasks"]
