@@ -148,12 +148,7 @@ def released_files(stage: str, artifact: Path, products: tuple[str, ...], option
     released."""
     files = []
     for product in products:
-        check_product(product)
-        owner, rel = PRODUCTS[product]
-        if owner != stage:
-            raise KeyError(f"product {product!r} is written by stage {owner!r}, not {stage!r}")
-        if product not in RELEASE_KINDS:
-            raise KeyError(f"product {product!r} has no kind in RELEASE_KINDS: a release does not hold it")
+        rel = _released_path(stage, product)
         if "{" not in rel:
             if product in optional and not (Path(artifact) / rel).is_file():
                 continue
@@ -164,18 +159,25 @@ def released_files(stage: str, artifact: Path, products: tuple[str, ...], option
     return files
 
 
-def released_file(stage: str, artifact: Path, product: str, camera: str | None = None,
-                  **fields: str) -> tuple[Path, str, str, str | None]:
-    """``(file, path in the release, kind, camera)`` of one file of a stage's product, its fields filled (the
-    ``example`` of ``relight/{example}/image.exr``): at its :data:`PRODUCTS` path in the artifact folder and the
-    same path in the release, under its :data:`RELEASE_KINDS` kind; listed whether or not the file is there (the
-    publisher names a missing file). KeyError for a product that is another stage's or not released."""
+def _released_path(stage: str, product: str) -> str:
+    """A released product's :data:`PRODUCTS` path (its fields unfilled); KeyError for a product that is another
+    stage's or not released."""
     check_product(product)
     owner, rel = PRODUCTS[product]
     if owner != stage:
         raise KeyError(f"product {product!r} is written by stage {owner!r}, not {stage!r}")
     if product not in RELEASE_KINDS:
         raise KeyError(f"product {product!r} has no kind in RELEASE_KINDS: a release does not hold it")
+    return rel
+
+
+def released_file(stage: str, artifact: Path, product: str, camera: str | None = None,
+                  **fields: str) -> tuple[Path, str, str, str | None]:
+    """``(file, path in the release, kind, camera)`` of one file of a stage's product, its fields filled (the
+    ``example`` of ``relight/{example}/image.exr``): at its :data:`PRODUCTS` path in the artifact folder and the
+    same path in the release, under its :data:`RELEASE_KINDS` kind; listed whether or not the file is there (the
+    publisher names a missing file). KeyError for a product that is another stage's or not released."""
+    rel = _released_path(stage, product)
     rel = rel.format(camera=camera, **fields)
     return Path(artifact) / rel, rel, RELEASE_KINDS[product].format(camera=camera, **fields), camera
 
