@@ -16,11 +16,14 @@ PROJECT_PACKAGES = ("pipeline", "stages", "calibration", "synthetic", "manifests
 
 
 def load_bench(name: str):
-    """Import bench/<name>.py as a module (its own sys.path edits are undone afterwards)."""
+    """Import bench/<name>.py as a module, with bench/ on sys.path while it loads (its helpers' imports) and the
+    module in sys.modules (its dataclasses look their module up there); sys.path is restored afterwards."""
     saved = list(sys.path)
     try:
+        sys.path.insert(0, str(BENCH))
         spec = importlib.util.spec_from_file_location(f"bench_under_test_{name}", BENCH / f"{name}.py")
         module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module
         spec.loader.exec_module(module)
     finally:
         sys.path[:] = saved

@@ -2,28 +2,18 @@
 projection with the measured exponents, and where its GPU speed-up comes from (measured, given or assumed)."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[3] / "bench"
+from tests.unit.bench.test_bench_defaults import load_bench
+
 
 
 @pytest.fixture(scope="module")
 def projection():
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_projection_under_test", BENCH / "bench_projection.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCH))
-    return module
+    return load_bench("bench_projection")
 
 
 def _row(width: int, floor: float, steps: list[tuple[str, dict[str, float], float]]) -> dict:

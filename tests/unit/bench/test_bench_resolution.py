@@ -2,27 +2,17 @@
 and the knee of a figure against the width."""
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[3] / "bench"
+from tests.unit.bench.test_bench_defaults import load_bench
+
 
 
 @pytest.fixture(scope="module")
 def resolution():
-    sys.path.insert(0, str(BENCH))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_resolution_under_test", BENCH / "bench_resolution.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCH))
-    return module
+    return load_bench("bench_resolution")
 
 
 def test_power_fit_recovers_an_exact_power_law_with_zero_residuals(resolution):

@@ -2,12 +2,12 @@
 checked on run_all's quick run in test_bench_quick.py)."""
 from __future__ import annotations
 
-import importlib.util
 import os
-import sys
 from pathlib import Path
 
 import pytest
+
+from tests.unit.bench.test_bench_defaults import load_bench
 
 ROOT = Path(__file__).resolve().parents[3]
 SHARED = Path(os.environ.get("ULTRASTAGE_SHARED_DATA", ROOT.parent / "shared" / "data"))
@@ -15,16 +15,8 @@ SHARED = Path(os.environ.get("ULTRASTAGE_SHARED_DATA", ROOT.parent / "shared" / 
 
 @pytest.fixture(scope="module")
 def panel():
-    """bench/bench_subjects.py imported by path (bench/ is not a package; its sys.path edits are undone)."""
-    saved = list(sys.path)
-    try:
-        spec = importlib.util.spec_from_file_location("bench_under_test_subjects", ROOT / "bench" / "bench_subjects.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module  # its dataclasses look their module up there
-        spec.loader.exec_module(module)
-    finally:
-        sys.path[:] = saved
-    return module
+    """bench/bench_subjects.py imported by path (bench/ is not a package)."""
+    return load_bench("bench_subjects")
 
 
 def test_figures_keep_finite_values_and_add_the_best_normals(panel):
