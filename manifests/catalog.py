@@ -75,7 +75,7 @@ def write_run_manifests(release: Path, capture: Capture, plan: Plan, digests: Di
         table_rows.setdefault("relight_examples", [])
     for table, rows in sorted(table_rows.items()):
         write_table_keeping(release, table, rows, keep)
-    asset_rows += _write_split_lists(release)
+    asset_rows += write_split_lists(release)
     write_table_keeping(release, "actions", action_rows, keep)
     write_table_keeping(release, "frames", concat_validated("frames", frame_tables), keep)
     write_table_keeping(release, "assets", asset_rows, keep)
@@ -169,7 +169,7 @@ def _stage_run_rows(plan: Plan, run_id: str, places: dict[Path, str]) -> list[di
             for t in plan.tasks]
 
 
-def _write_split_lists(release: Path) -> list[dict[str, Any]]:
+def write_split_lists(release: Path) -> list[dict[str, Any]]:
     """``relight/splits/<split>.txt``: the relighting set's example ids per split, one a line (for the codes that
     read list files), rewritten from the whole relight_examples table; their asset rows."""
     table = read_manifest(release, "relight_examples")

@@ -397,6 +397,19 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_merge_sets(args: argparse.Namespace) -> int:
+    from ultrastage.merge_sets import merge_relight_sets, parse_sources
+
+    def names(text: str | None) -> tuple[str, ...]:
+        return tuple(t.strip() for t in text.split(",") if t.strip()) if text else ()
+
+    result = merge_relight_sets(parse_sources(args.sources), Path(args.out), subject_from=args.subject_from,
+                                test=names(args.test), validation=names(args.validation), seed=args.seed,
+                                replace=args.replace)
+    print(f"wrote {result.out} ({sum(result.examples.values())} examples)")
+    return 0
+
+
 def cmd_predict(args: argparse.Namespace) -> int:
     from ultrastage.baselines.predict import predict_folder
 
@@ -537,6 +550,22 @@ def build_parser() -> argparse.ArgumentParser:
                                  "(default: <release>.baselines/<network>/ beside the release); resumes from it")
     p.add_argument("--evaluate-only", action="store_true", help="only measure the test split with OUT's checkpoint")
     p.set_defaults(fn=cmd_train)
+
+    p = sub.add_parser("merge-sets", help="one relighting set from the relighting sets of several releases, "
+                                          "split by subject")
+    p.add_argument("out", help="folder of the merged set (a release layout holding only the relighting set)")
+    p.add_argument("sources", nargs="+", metavar="[NAME=]RELEASE",
+                   help="releases to merge; NAME prefixes their example ids (default: the folder's name, or the "
+                        "name of the folder above one called 'release')")
+    p.add_argument("--subject-from", choices=("subject", "release"), default="subject",
+                   help="'subject': the sources' subject names as they are (one subject in two releases stays one); "
+                        "'release': each source's subjects are its own (NAME/subject)")
+    p.add_argument("--test", help="comma-separated subjects (or source names: all their subjects) for the test split")
+    p.add_argument("--validation", help="comma-separated subjects (or source names) for the validation split")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the splits drawn per subject when neither --test nor --validation is given")
+    p.add_argument("--replace", action="store_true", help="replace OUT (once the new set is complete)")
+    p.set_defaults(fn=cmd_merge_sets)
 
     p = sub.add_parser("predict", help="albedo and normal maps of photos (and relit images under an HDR map)")
     p.add_argument("--checkpoint", action="append", required=True,
