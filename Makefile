@@ -49,9 +49,12 @@ bench-full: setup
 # The subject panel (bench/bench_subjects.py): ten one-action captures at the default width (MakeHuman bodies at the
 # extremes of its macro targets, posed, with hair, in a skirt; the ICT head and the procedural subject), each through
 # the whole pipeline and its evaluation, one at a time; the table per subject and the worst cases go to bench/out
-# (bench_subjects.md / .json / .png). Part of `make bench-full`, not of `make bench` (too long for its 45 minutes).
+# (bench_subjects.md / .json / .png). Then the panel's relighting set: AlbedoNet and NormalNet trained on the panel's
+# subjects and on make dataset's one body, measured on the same held-out subjects (bench_panel_set.md / .json).
+# Part of `make bench-full`, not of `make bench` (too long for its 45 minutes).
 panel: setup
 	nice -n 10 $(PY) bench/bench_subjects.py --out bench/out
+	nice -n 10 $(PY) bench/bench_panel_set.py --out bench/out
 
 # Every bench on the smallest inputs that run its code (the tests run it too): checks, not measurements.
 bench-quick: setup

@@ -29,6 +29,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "gpu_production": None,
     "heldout_field": ["--lengths", "100,400"],
     "memory": None,
+    "panel_set": None,
     "pipeline": None,
     "relight": ["--actions", "A0000"],
     "relit_budget": ["--actions", "A0000"],
@@ -46,8 +47,9 @@ with its own defaults): per bench (name without ``bench_``) its arguments, or No
 Chosen so that ``make bench`` fits in 45 minutes on an idle 2-core machine (it took 23 min 54 s there; README). Left to
 the full run: the production-size memory measurements (memory), the default capture end to end at 2 actions
 through dask (pipeline: bench_end_to_end measures the same things on small captures), one action of 32 cameras
-through the whole DAG and its evaluation at 192, 384 and 768 px (resolution) and the production path on a GPU
-(gpu_production: it runs nothing where torch sees no CUDA device)."""
+through the whole DAG and its evaluation at 192, 384 and 768 px (resolution), the subject panel and the baselines
+trained on its relighting set (subjects, panel_set) and the production path on a GPU (gpu_production: it runs nothing
+where torch sees no CUDA device)."""
 SPEED_BASELINES: dict[str, str | None] = {
     "calibration": "decoding the 32 marker frames it reads (`x_decode`; `--markers`, the cameras stage's default source)",
     "decode": "rawpy's default call (`imread().postprocess()`) on the same file, and a memory copy of the bytes a "
@@ -83,6 +85,7 @@ SPEED_BASELINES: dict[str, str | None] = {
     "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",
     "specular_normals": "eq. 1's ratio (the `eq1` row)",
     "subjects": "no speed figure (the pipeline's accuracy per subject: `make panel`)",
+    "panel_set": "the trivial baselines on the same test examples (accuracy, not speed: `make panel`)",
     "textures": "the stage on the undecimated mesh (`x undecimated`; `make bench-full` only)",
 }
 """Per bench (name without ``bench_``): the simple baseline its speed figures are a ratio to, timed in the same
@@ -121,7 +124,7 @@ def machine_lines() -> list[str]:
     return lines
 
 
-READS_OTHER_BENCHES = frozenset({"bench_projection"})
+READS_OTHER_BENCHES = frozenset({"bench_projection", "bench_panel_set"})
 """Benches that read other benches' results from ``--out``: run after every other bench."""
 
 

@@ -130,3 +130,25 @@ def test_scale_quick_mode_writes_finite_positive_per_task_figures(quick_run):
         assert r["peak_rss_mib"] > 0
     table = (out / "bench_scale.md").read_text()
     assert table.startswith("# Engine overhead at release size") and "| 4 | sync | cached |" in table
+
+
+@pytest.mark.slow
+def test_panel_set_quick_mode_trains_both_networks_on_both_sets_against_one_test_split(quick_run):
+    """The tiny run merged under two names: both training sets share the test subject, both networks trained on
+    each, and the table's trivial column equals the metrics the trivial baseline got in the panel set's run."""
+    out, proc = quick_run
+    report = json.loads((out / "bench_panel_set.json").read_text())
+    assert report["quick"] is True and report["test_subjects"] == ["qb"]
+    for name, merged in report["sets"].items():
+        assert merged["examples"]["test"] > 0 and merged["examples"]["train"] > 0, name
+        assert [s.split("/")[0] for s in merged["subjects"]["test"]] == ["qb"], name
+    trivial = {"albedonet": "input_image", "normalnet": "constant_normal"}
+    for network, by_set in report["results"].items():
+        assert set(by_set) == {"panel", "one_body"}
+        for name, result in by_set.items():
+            assert result["steps"] == 4 and set(result["overall"]) == {network, trivial[network]}, (network, name)
+            assert set(result["per_subject"][network]) == {"qb"}
+        # one test split: the trivial baseline scores the same whichever set the network was trained on
+        assert by_set["panel"]["overall"][trivial[network]] == by_set["one_body"]["overall"][trivial[network]]
+    table = (out / "bench_panel_set.md").read_text()
+    assert "quick: not measurements" in table and "albedonet on one_body" in table and "worst subject" in table
