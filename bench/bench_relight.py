@@ -192,14 +192,16 @@ class ActionScene:
         t0 = time.perf_counter()
         gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
                                 depth_tolerance_m=CONFIG.shading.depth_tolerance_m,
-                                normal_fusion_m=CONFIG.shading.normal_fusion_m)
+                                normal_fusion_m=CONFIG.shading.normal_fusion_m,
+                                rim_normal_px=CONFIG.shading.rim_normal_px)
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
             cam["K"], cam["cam_from_world"], h, w, CONFIG.shading.coverage_samples, self.asset.scene,
             centre_hit=gb["hit"]))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
             self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
-            depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m)
+            depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m,
+            rim_normal_px=CONFIG.shading.rim_normal_px)
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
         for width in FUSION_WIDTHS_M:
