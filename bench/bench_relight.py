@@ -184,7 +184,7 @@ class ActionScene:
         """The stage's G-buffer of a novel camera (stages.numerics.novel_view.novel_view_gbuffer), with every normal
         choice and both source albedos, per mask pixel, and the full maps for the decomposition;
         ``stage_seconds`` times the stage's G-buffer alone (not the variants' extra work)."""
-        from stages.numerics.gbuffer import fuse_normals
+        from stages.numerics.gbuffer import fade_rim_normals, fuse_normals
         from stages.numerics.raycast import pixel_coverage
         from stages.numerics.novel_view import novel_view_gbuffer, silhouette_alpha
 
@@ -192,19 +192,23 @@ class ActionScene:
         t0 = time.perf_counter()
         gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
                                 depth_tolerance_m=CONFIG.shading.depth_tolerance_m,
-                                normal_fusion_m=CONFIG.shading.normal_fusion_m)
+                                normal_fusion_m=CONFIG.shading.normal_fusion_m,
+                                rim_normal_px=CONFIG.shading.rim_normal_px)
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
             cam["K"], cam["cam_from_world"], h, w, CONFIG.shading.coverage_samples, self.asset.scene,
             centre_hit=gb["hit"]))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
             self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
-            depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m)
+            depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m,
+            rim_normal_px=CONFIG.shading.rim_normal_px)
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
-        for width in FUSION_WIDTHS_M:
-            full[f"fused_{width:g}"] = fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
-                                                    gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m)
+        for width in FUSION_WIDTHS_M:  # as the stage's fused normals, rim fade included: only the split differs
+            full[f"fused_{width:g}"] = fade_rim_normals(
+                fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
+                             gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m),
+                gb["normal_mesh"], gb["mask"], CONFIG.shading.rim_normal_px)
         return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"],
                 "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,

@@ -33,6 +33,13 @@ masks), and the dB it recovers over the stage's render (one at a time) or over t
 over actions, views and environments. The ``released`` row scores the release's own images (equal to ``stage``
 when the release was made with the defaults this bench uses).
 
+A second table splits the stage's render at the silhouette (:func:`silhouette_split`): the squared error's shares in
+the interior, in a band of :data:`SILHOUETTE_BAND_PX` pixels of either outline and in one mask only, and the PSNR with
+that band's alpha swapped for the true mesh's coverage (``outline``), its colour for the truth's (``colour``), both,
+and both on the truth camera's own ray grid (``both_camera_grid``: the simulator's ``supersample`` x ``supersample``
+rays per pixel instead of the stage's ``coverage_samples`` grid); beside it our mesh's outline against the true
+mesh's (:func:`outline_offset_px`: mean offset outwards and RMS coverage difference at 8 x 8 rays per pixel).
+
 ``python bench/bench_relit_budget.py --out DIR [--release DIR --capture DIR --actions A0000,A0001 --threads 2]``
 writes DIR/bench_relit_budget.json, .md (the table) and .png (a bar plot of the dB recovered). ``--shading
 field=value,...`` renders every row with a variant of the stage's ViewShading (e.g. ``integration=closed_form``: the SG
@@ -261,6 +268,92 @@ def fill_nearest(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return image[rows, cols]
 
 
+SILHOUETTE_BAND_PX = 2
+"""Width of the silhouette band of :func:`silhouette_split`: pixels within this of either mask's outline."""
+
+
+def pixel_classes(pred_mask: np.ndarray, true_mask: np.ndarray, band_px: float = SILHOUETTE_BAND_PX
+                  ) -> dict[str, np.ndarray]:
+    """The union of two masks (H, W) split into (H, W) bool classes: ``interior`` (in both, farther than ``band_px``
+    from either outline), ``band`` (in both, within ``band_px`` of either outline: distance from a pixel to the
+    nearest pixel on the other side of a mask's edge, 1 for the pixels touching it), ``pred_only`` and
+    ``true_only`` (in one mask only)."""
+    from scipy.ndimage import distance_transform_edt
+
+    pm, tm = np.asarray(pred_mask, bool), np.asarray(true_mask, bool)
+    if pm.shape != tm.shape or pm.ndim != 2:
+        raise ValueError(f"masks must both be (H, W), got {pm.shape} and {tm.shape}")
+
+    def to_edge(m: np.ndarray) -> np.ndarray:
+        if m.all() or not m.any():
+            return np.full(m.shape, np.inf)
+        return np.where(m, distance_transform_edt(m), distance_transform_edt(~m))
+
+    near = (to_edge(pm) <= band_px) | (to_edge(tm) <= band_px)
+    both = pm & tm
+    return {"interior": both & ~near, "band": both & near, "pred_only": pm & ~tm, "true_only": tm & ~pm}
+
+
+def outline_offset_px(pred_coverage: np.ndarray, true_coverage: np.ndarray) -> dict[str, float]:
+    """How far one silhouette lies outside another, from their pixel coverages (H, W) in [0, 1]: ``offset_px`` the
+    covered area's difference over the true outline's length (the sum of the true coverage's gradient magnitude,
+    ``np.gradient``: one per pixel of a straight edge), positive outwards; ``edge_rms`` the RMS coverage difference
+    over the pixels either outline crosses (0 < coverage < 1); ``outline_px`` the length."""
+    pred = np.asarray(pred_coverage, np.float64)
+    true = np.asarray(true_coverage, np.float64)
+    if pred.shape != true.shape or pred.ndim != 2:
+        raise ValueError(f"coverages must both be (H, W), got {pred.shape} and {true.shape}")
+    gy, gx = np.gradient(true)
+    length = float(np.hypot(gx, gy).sum())
+    edge = ((pred > 0) & (pred < 1)) | ((true > 0) & (true < 1))
+    return {"offset_px": float((pred.sum() - true.sum()) / length) if length > 0 else 0.0,
+            "edge_rms": float(np.sqrt(np.mean((pred - true)[edge] ** 2))) if edge.any() else 0.0,
+            "outline_px": length}
+
+
+def unpremultiplied(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The colour (H, W, 3) of an image premultiplied by ``alpha`` (H, W): image / alpha where alpha > 0, the nearest
+    such pixel's colour elsewhere (0 for an empty alpha)."""
+    alpha = np.asarray(alpha, np.float64)
+    if not (alpha > 0).any():
+        return np.zeros(np.shape(image), np.float64)
+    colour = np.where(alpha[..., None] > 0, np.asarray(image, np.float64) / np.maximum(alpha, 1e-6)[..., None], 0.0)
+    return fill_nearest(colour, alpha > 0)
+
+
+def silhouette_split(image: np.ndarray, alpha: np.ndarray, mask: np.ndarray, true: dict, true_alpha: np.ndarray,
+                     true_alpha_camera: np.ndarray) -> dict[str, Any]:
+    """What a relit view's silhouette band costs (:func:`pixel_classes`, band of :data:`SILHOUETTE_BAND_PX`): the
+    shares of the squared error (the PSNR's, :func:`score`'s exposure) per class, and the PSNR with the band's (its
+    pixels and the one-mask ones) alpha and colour swapped for the truth's: ``outline`` (the true mesh's coverage
+    ``true_alpha`` (H, W), on the stage's ray grid, our colour), ``colour`` (the truth's colour, the truth's
+    radiance over its coverage, our alpha), ``both`` and ``both_camera_grid`` (the truth's colour at the coverage of
+    the truth camera's own rays, ``true_alpha_camera``); masks are alpha >= 0.5 as the stage's."""
+    from stages.numerics.metrics import relit_psnr
+
+    radiance, true_mask = np.asarray(true["radiance"], np.float64), np.asarray(true["mask"], bool)
+    classes = pixel_classes(mask, true_mask)
+    result = relit_psnr(image, mask, radiance, true_mask)
+    scale = result["scale"]
+    pred = np.clip(np.where(mask[..., None], image, 0.0) * scale, 0, 1)
+    ref = np.clip(np.where(true_mask[..., None], radiance, 0.0) * scale, 0, 1)
+    sq = ((pred - ref) ** 2).sum(axis=2)
+    total = max(float(sq.sum()), 1e-30)
+    band = classes["band"] | classes["pred_only"] | classes["true_only"]
+    colour, true_colour = unpremultiplied(image, alpha), unpremultiplied(radiance, true_alpha_camera)
+
+    def swapped(c: np.ndarray, a: np.ndarray) -> float:
+        c = np.where(band[..., None], c, colour)
+        a = np.where(band, a, alpha)
+        return relit_psnr(c * a[..., None], a >= 0.5, radiance, true_mask)["psnr_db"]
+
+    return {"psnr_db": result["psnr_db"], "shares": {k: float(sq[v].sum() / total) for k, v in classes.items()},
+            "pixels": {k: int(v.sum()) for k, v in classes.items()},
+            "swaps": {"outline": swapped(colour, true_alpha), "colour": swapped(true_colour, alpha),
+                      "both": swapped(true_colour, true_alpha),
+                      "both_camera_grid": swapped(true_colour, true_alpha_camera)}}
+
+
 def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict[str, frozenset],
                 progress) -> dict:
     """Every row's PSNR and SSIM for one novel camera under every environment, with the time of each piece."""
@@ -301,7 +394,8 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
                 gb = _gbuffer_from_truth(gbuffer(frozenset({"geometry", "albedo"})), true0, K, pose, shading.normals)
             else:
                 gb = timed("gbuffer", novel_view_gbuffer, ab.assets[key[:2]], K, pose, h, w, sources=shading.sources,
-                           depth_tolerance_m=shading.depth_tolerance_m, normal_fusion_m=shading.normal_fusion_m)
+                           depth_tolerance_m=shading.depth_tolerance_m, normal_fusion_m=shading.normal_fusion_m,
+                           rim_normal_px=shading.rim_normal_px)
             gbuffers[key] = gb
         return gbuffers[key]
 
@@ -403,11 +497,21 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
         except (KeyError, FileNotFoundError):
             pass
     results["released"] = released
+    # the stage's render against the true mesh's outline (silhouette_split)
+    gb, (alpha, mask) = gbuffer(frozenset()), silhouette(frozenset())
+    true_alpha = timed("silhouette", pixel_coverage, K, pose, h, w, shading.coverage_samples, ab.true_scene)
+    camera_grid = timed("silhouette", pixel_coverage, K, pose, h, w, ab.truth.config.supersample, ab.true_scene,
+                        edges_only=False)
+    split = {label: silhouette_split(image, alpha, mask, truths[label], true_alpha, camera_grid)
+             for label, (image, _) in images[frozenset()].items()}
+    ours = timed("silhouette", pixel_coverage, K, pose, h, w, 8, ab.asset.scene)
+    outline = outline_offset_px(ours, pixel_coverage(K, pose, h, w, 8, ab.true_scene))
+    outline["mm_per_px"] = float(np.median(gb["depth_m"][gb["mask"]]) / K[0, 0] * 1e3) if gb["mask"].any() else 0.0
     progress(f"  {cam['camera_id']}: " + "; ".join(
         f"{label} " + ", ".join(f"{v['psnr_db']:.2f}" for v in envs.values()) for label, envs in results.items())
         + " dB; " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
     return {"camera_id": cam["camera_id"], "pixels": int(len(gbuffer(frozenset())["pix"])),
-            "rows": results, "seconds": times}
+            "rows": results, "silhouette": {"environments": split, "outline": outline}, "seconds": times}
 
 
 def budget_rows() -> dict[str, frozenset]:
@@ -444,6 +548,23 @@ def summarise(report: dict) -> dict:
     return means
 
 
+def summarise_silhouette(report: dict) -> dict:
+    """Means over actions, views and environments of :func:`silhouette_split` (shares, PSNRs and the dB each swap
+    recovers over the stage's render) and over views of :func:`outline_offset_px` (with the offset in mm)."""
+    splits = [e for a in report["actions"].values() for v in a["views"] for e in v["silhouette"]["environments"].values()]
+    outlines = [v["silhouette"]["outline"] for a in report["actions"].values() for v in a["views"]]
+    stage = float(np.mean([e["psnr_db"] for e in splits]))
+    swaps = {k: float(np.mean([e["swaps"][k] for e in splits])) for k in splits[0]["swaps"]}
+    return {"psnr_db": stage, "n": len(splits),
+            "shares": {k: float(np.mean([e["shares"][k] for e in splits])) for k in splits[0]["shares"]},
+            "pixel_shares": {k: float(np.mean([e["pixels"][k] / max(sum(e["pixels"].values()), 1) for e in splits]))
+                             for k in splits[0]["pixels"]},
+            "swaps": swaps, "recovered_db": {k: v - stage for k, v in swaps.items()},
+            "offset_px": float(np.mean([o["offset_px"] for o in outlines])),
+            "offset_mm": float(np.mean([o["offset_px"] * o["mm_per_px"] for o in outlines])),
+            "edge_rms": float(np.mean([o["edge_rms"] for o in outlines]))}
+
+
 def markdown(report: dict) -> str:
     s = report["summary"]
     changed = report.get("shading_overrides") or {}
@@ -457,6 +578,17 @@ def markdown(report: dict) -> str:
     for label, m in s.items():
         rec = f"{m['recovered_db']:+.2f}" if "recovered_db" in m else ""
         lines.append(f"| {label} | {m['psnr_db']:.2f} | {m['ssim']:.4f} | {rec} |")
+    sil = report["silhouette"]
+    lines += ["", f"## The silhouette band ({SILHOUETTE_BAND_PX} px of either outline, and the pixels in one mask "
+              f"only; {sil['n']} images)", "",
+              "| class | pixels | squared error |", "|---|---:|---:|"]
+    lines += [f"| {k} | {sil['pixel_shares'][k]:.1%} | {sil['shares'][k]:.1%} |" for k in sil["shares"]]
+    lines += ["", "| the band's ... swapped for the truth's | PSNR dB | dB recovered |", "|---|---:|---:|",
+              f"| nothing (the stage's render) | {sil['psnr_db']:.2f} | |"]
+    lines += [f"| {k} | {sil['swaps'][k]:.2f} | {sil['recovered_db'][k]:+.2f} |" for k in sil["swaps"]]
+    lines += ["", f"Our mesh's outline against the true mesh's (8 x 8 rays per pixel): {sil['offset_px']:+.3f} px "
+              f"({sil['offset_mm']:+.2f} mm) outside on average, RMS coverage difference {sil['edge_rms']:.3f} on the "
+              "pixels either outline crosses."]
     t = report["seconds_per_view"]
     lines += ["", "Seconds per view (mean): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items()), ""]
     return "\n".join(lines)
@@ -538,6 +670,7 @@ def main() -> int:
         report["actions"][action] = {"load_s": ab.load_s, "views": views}
         report["views"], report["environments"] = len(cams), len(envs)
     report["summary"] = summarise(report)
+    report["silhouette"] = summarise_silhouette(report)
     seconds: dict[str, list[float]] = {}
     for action in report["actions"].values():
         for view in action["views"]:

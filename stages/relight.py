@@ -10,7 +10,9 @@ For each novel camera (placed between neighbouring captured cameras,
    materials textures through the textured mesh's UVs (pixels the mesh covers but no source sees take the
    baked textures and the mesh's smooth normals; ``shading.normals: mesh`` uses those everywhere). The shading
    normals are by default ``fused``: the reprojected normals' detail on the mesh normals' low frequencies
-   (:func:`stages.numerics.gbuffer.fuse_normals`, split at ``shading.normal_fusion_m`` on the surface);
+   (:func:`stages.numerics.gbuffer.fuse_normals`, split at ``shading.normal_fusion_m`` on the surface), faded to
+   the mesh's normals over the ``shading.rim_normal_px`` pixels inside the silhouette
+   (:func:`stages.numerics.gbuffer.fade_rim_normals`);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
 3. shading: Lambertian diffuse + GGX specular under the lobes (F0 ``shading.f0``, skin's 0.028), with the mesh's
@@ -133,8 +135,9 @@ class RelightStage(Stage):
     # 7: the coverage grid cast at the silhouette only; 6: antialiased silhouettes (alpha = pixel coverage);
     # 5: fused shading normals (normal_fusion_m); 4: G-buffers read the sources with cubic convolution
     # 9: the relit sheet's tiles are labelled (view, environment); previews/turntable.png, the textured mesh
-    # from TURNTABLE_FRAMES azimuths side by side
-    version = "9"
+    # from TURNTABLE_FRAMES azimuths side by side; 10: the fused normals fade to the mesh's on the silhouette's rim
+    # (shading.rim_normal_px)
+    version = "10"
     scope = "action"
     requires = ("geometry", "textures", "materials", "decode", "photometric", "diffuse_normals")
     outputs = ("renders", "previews")

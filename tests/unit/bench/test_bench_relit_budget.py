@@ -67,3 +67,46 @@ def test_budget_rows_swap_one_component_then_accumulate(budget):
     assert rows[f"+ {budget.COMPONENTS[-1]}"] == set(budget.COMPONENTS)
     cumulative = [rows[f"+ {c}"] for c in budget.COMPONENTS]
     assert all(a < b for a, b in zip(cumulative, cumulative[1:]))
+
+
+def test_pixel_classes_split_the_union_of_two_masks_by_the_band(budget):
+    # two 10-column squares, one shifted a column right: columns 2-11 and 3-12 of rows 2-11
+    pred = np.zeros((14, 16), bool)
+    true = np.zeros((14, 16), bool)
+    pred[2:12, 2:12] = True
+    true[2:12, 3:13] = True
+    classes = budget.pixel_classes(pred, true, band_px=2)
+    assert classes["pred_only"].sum() == 10 and classes["pred_only"][2:12, 2].all()
+    assert classes["true_only"].sum() == 10 and classes["true_only"][2:12, 12].all()
+    # interior: at least 3 px from both outlines (rows 4-9, columns 5-9)
+    assert classes["interior"].sum() == 6 * 5 and classes["interior"][4:10, 5:10].all()
+    assert classes["band"].sum() == (pred & true).sum() - 30
+    total = sum(c.astype(int) for c in classes.values())
+    assert np.array_equal(total, (pred | true).astype(int))  # a partition of the union
+    with pytest.raises(ValueError, match="masks"):
+        budget.pixel_classes(pred, true[:3])
+
+
+def test_outline_offset_of_a_straight_edge_moved_a_quarter_pixel_out(budget):
+    # a vertical edge through column 5 at half coverage, and the same edge 0.25 px farther right
+    true = np.zeros((8, 10))
+    true[:, :5] = 1.0
+    true[:, 5] = 0.5
+    pred = true.copy()
+    pred[:, 5] = 0.75
+    out = budget.outline_offset_px(pred, true)
+    assert out["outline_px"] == pytest.approx(8.0)  # one pixel of outline per row
+    assert out["offset_px"] == pytest.approx(0.25)
+    assert out["edge_rms"] == pytest.approx(0.25)
+    assert budget.outline_offset_px(true, true)["offset_px"] == 0.0
+    assert budget.outline_offset_px(np.zeros((4, 4)), np.zeros((4, 4)))["offset_px"] == 0.0  # no outline
+
+
+def test_unpremultiplied_divides_by_alpha_and_fills_the_rest_from_the_nearest_pixel(budget):
+    alpha = np.array([[1.0, 0.5, 0.0]])
+    image = np.array([[[0.2, 0.4, 0.6], [0.1, 0.1, 0.1], [0.0, 0.0, 0.0]]])
+    colour = budget.unpremultiplied(image, alpha)
+    assert colour.shape == (1, 3, 3)
+    assert np.allclose(colour[0, 0], [0.2, 0.4, 0.6]) and np.allclose(colour[0, 1], [0.2, 0.2, 0.2])
+    assert np.allclose(colour[0, 2], colour[0, 1])
+    assert np.all(budget.unpremultiplied(image, np.zeros((1, 3))) == 0)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from stages.numerics.gbuffer import (INTERPOLATIONS, WEIGHTINGS, SourceView, _sample_consistent, camera_centre,
-                                     fuse_normals, nearest_views, reproject_gbuffer)
+                                     fade_rim_normals, fuse_normals, nearest_views, reproject_gbuffer)
 from stages.numerics.metrics import angular_error_deg
 from stages.numerics.raycast import camera_rays
 from synthetic.rig import look_at as rig_look_at
@@ -416,3 +416,44 @@ def test_fuse_normals_input_checks():
         with pytest.raises(ValueError, match="sigma_px"):
             fuse_normals(n, n, m, sigma)
 
+
+
+def test_fade_rim_normals_hand_case_square():
+    # a 6 x 6 square in a 10 x 10 image: distances to the outside 1 (outer ring), 2, 3 (the 2 x 2 centre)
+    mask = np.zeros((10, 10), bool)
+    mask[2:8, 2:8] = True
+    n = np.zeros((10, 10, 3))
+    n[..., 0] = 1.0
+    b = np.zeros((10, 10, 3))
+    b[..., 2] = 1.0
+    out = fade_rim_normals(n, b, mask, rim_px=2.0)
+    assert out.shape == (10, 10, 3) and out.dtype == np.float32
+    # w = (rim + 1 - d) / rim: 1 on the outer ring, 0.5 on the next, 0 at the centre
+    assert np.allclose(out[2, 2:8], [0, 0, 1]) and np.allclose(out[2:8, 7], [0, 0, 1])
+    assert np.allclose(out[3, 3:7], [np.sqrt(0.5), 0, np.sqrt(0.5)], atol=1e-6)
+    assert np.allclose(out[4:6, 4:6], [1, 0, 0])
+    assert np.all(out[~mask] == 0)
+    # no rim: the normals unchanged on the mask
+    assert np.allclose(fade_rim_normals(n, b, mask, 0.0)[mask], n[mask])
+
+
+def test_fade_rim_normals_keeps_the_normals_where_the_base_is_undefined_and_checks_inputs():
+    mask = np.ones((5, 5), bool)
+    mask[0] = False
+    n = np.broadcast_to(_unit(np.array([0.3, 0.0, 1.0])), (5, 5, 3)).copy()
+    b = np.zeros((5, 5, 3))
+    b[..., 1] = 1.0
+    b[1, 2] = np.nan  # undefined base on the outer ring: the normal is kept
+    b[1, 3] = 0.0
+    out = fade_rim_normals(n, b, mask, 3.0)
+    assert np.all(np.isfinite(out))
+    assert np.allclose(out[1, 2], n[1, 2], atol=1e-6) and np.allclose(out[1, 3], n[1, 3], atol=1e-6)
+    assert np.allclose(out[1, 1], [0, 1, 0], atol=1e-6)
+    assert np.allclose(np.linalg.norm(out[mask], axis=-1), 1.0, atol=1e-6)
+    with pytest.raises(ValueError, match="normals must be"):
+        fade_rim_normals(n[..., :2], b, mask, 1.0)
+    with pytest.raises(ValueError, match="must match"):
+        fade_rim_normals(n, b[:3], mask, 1.0)
+    for rim in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="rim_px"):
+            fade_rim_normals(n, b, mask, rim)
