@@ -110,6 +110,7 @@ def main() -> int:
     parser.add_argument("--preset", default="cpu", help="training preset (ultrastage.baselines.config.PRESETS)")
     parser.add_argument("--steps", type=int, default=0, help="training steps (0: the preset's)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--seed", type=int, default=0, help="training seed (initial weights, crops, flips)")
     parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
     out = Path(args.out)
@@ -133,7 +134,8 @@ def main() -> int:
     sets = build_sets(panel, one_body, test, work / "sets")
     sources = sorted(set(panel) | {"onebody"})
 
-    report: dict = {"quick": args.quick, "preset": args.preset, "threads": args.threads, "test_subjects": list(test),
+    report: dict = {"quick": args.quick, "preset": args.preset, "threads": args.threads, "seed": args.seed,
+                    "test_subjects": list(test),
                     "sets": {}, "results": {}}
     for set_name, folder in sets.items():
         record = json.loads((folder / "merge.json").read_text())
@@ -141,7 +143,7 @@ def main() -> int:
     for network in NETWORKS:
         for set_name, folder in sets.items():
             config = preset(args.preset, network)
-            config = dataclasses.replace(config, threads=args.threads, device="cpu",
+            config = dataclasses.replace(config, threads=args.threads, device="cpu", seed=args.seed,
                                          **({"steps": args.steps} if args.steps else {}))
             shutil.rmtree(work / "train" / set_name / network, ignore_errors=True)  # the sets change: never resume
             started, cpu = time.perf_counter(), time.process_time()
@@ -168,7 +170,7 @@ def markdown(report: dict) -> str:
              f"({sets['panel']['examples']['test']} examples). Training sets: "
              + "; ".join(f"`{n}` {s['examples']['train']} examples of {len(s['subjects']['train'])} subject(s)"
                          for n, s in sets.items())
-             + f". Preset `{report['preset']}`, {report['threads']} thread(s).", ""]
+             + f". Preset `{report['preset']}`, training seed {report.get('seed', 0)}, {report['threads']} thread(s).", ""]
     for network, by_set in report["results"].items():
         trivial = TRIVIAL_METHOD[network]
         columns = [(f"{trivial} (trivial)", by_set["panel"]["overall"][trivial],
