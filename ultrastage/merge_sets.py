@@ -131,13 +131,6 @@ def _assign_splits(subjects_by_source: dict[str, list[str]], test: Sequence[str]
     return {s: chosen.get(s, "train") for s in all_subjects}
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:  # another file system, or links not allowed
-        shutil.copy2(src, dst)
-
-
 def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
                        subject_from: Literal["subject", "release"] = "subject", test: Sequence[str] = (),
                        validation: Sequence[str] = (), seed: int = 0,
@@ -153,10 +146,9 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
             the file). ConfigError: an unknown ``subject_from``, an unknown subject in ``test``/``validation``,
             a subject in both, no example left for train, or ``out`` exists and ``replace`` is not set.
     """
-    import pandas as pd
-
     from manifests.catalog import write_split_lists
     from manifests.writer import asset_row, file_sha256, write_table
+    from pipeline.store import link_or_copy, swap_into_place
     from ultrastage.baselines.data import open_relight_set
 
     if subject_from not in ("subject", "release"):
@@ -165,30 +157,33 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
     if out.exists() and not replace:
         raise ConfigError(f"{out}: exists; choose another folder or replace it (--replace)")
 
-    frames: dict[str, pd.DataFrame] = {}
+    records: dict[str, list[dict[str, Any]]] = {}  # the rows of each source's relight_examples, as Python values
+    roots: dict[str, Path] = {}
     shas: dict[str, dict[str, str]] = {}
     conventions: dict[str, Path] = {}
     for source in sources:
         release = open_relight_set(source.release)
-        frame = release.relight_examples.copy()
-        assets = release.dataframe("assets") if release.has_table("assets") else None
-        known = dict(zip(assets["path"], assets["sha256"])) if assets is not None else {}
-        for column in FILE_COLUMNS:
-            for rel in frame[column]:
+        rows_of_source = release.table("relight_examples").to_pylist()
+        assets = release.table("assets") if release.has_table("assets") else None
+        known = dict(zip(assets.column("path").to_pylist(), assets.column("sha256").to_pylist())) \
+            if assets is not None else {}
+        for record in rows_of_source:
+            for column in FILE_COLUMNS:
+                rel = record[column]
                 path = release.root / rel
                 if not path.is_file():
                     raise InputError(path, f"file of the relighting set of source {source.name!r} not found")
                 if rel in known:
                     shas.setdefault(source.name, {})[rel] = known[rel]
-        frames[source.name] = frame
+        records[source.name], roots[source.name] = rows_of_source, release.root
         if (release.root / "CONVENTIONS.md").is_file():
             conventions[source.name] = release.root / "CONVENTIONS.md"
 
     def subject_of(source: str, subject: str) -> str:
         return subject if subject_from == "subject" else f"{source}/{subject}"
 
-    subjects_by_source = {name: sorted({subject_of(name, s) for s in frame["subject"]})
-                          for name, frame in frames.items()}
+    subjects_by_source = {name: sorted({subject_of(name, r["subject"]) for r in rows_of_source})
+                          for name, rows_of_source in records.items()}
     split_of_subject = _assign_splits(subjects_by_source, test, validation, seed, split_ratios)
     if "train" not in split_of_subject.values():
         raise ConfigError("no subject is left for the train split")
@@ -199,8 +194,8 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
         rows: list[dict[str, Any]] = []
         asset_rows: list[dict[str, Any]] = []
         for source in sources:
-            root = Path(source.release)
-            for record in frames[source.name].to_dict("records"):
+            root = roots[source.name]
+            for record in records[source.name]:
                 example_id = f"{source.name}_{record['example_id']}"
                 action_id = f"{source.name}_{record['action_id']}"
                 subject = subject_of(source.name, record["subject"])
@@ -211,7 +206,7 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
                 for column in FILE_COLUMNS:
                     src = root / record[column]
                     dst = folder / Path(record[column]).name
-                    _link_or_copy(src, dst)
+                    link_or_copy(src, dst)
                     digest = {"bytes": dst.stat().st_size, "sha256": file_sha256(dst)}
                     expected = shas.get(source.name, {}).get(record[column])
                     if expected is not None and expected != digest["sha256"]:
@@ -220,7 +215,7 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
                     row[column] = dst.relative_to(tmp).as_posix()
                     asset_rows.append(asset_row(tmp, dst, FILE_KINDS[column], action_id=action_id, digest=digest))
                 example_json = folder / "example.json"
-                example_json.write_text(json.dumps(_jsonable(row), indent=1, sort_keys=True))
+                example_json.write_text(json.dumps(row, indent=1, sort_keys=True))
                 asset_rows.append(asset_row(tmp, example_json, "relight_example", action_id=action_id))
                 rows.append(row)
         write_table(tmp, "relight_examples", rows)
@@ -238,7 +233,7 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
             result.examples[split] = sum(r["split"] == split for r in rows)
             result.subjects[split] = sorted(s for s, sp in split_of_subject.items() if sp == split)
         record = {
-            "sources": [{"name": s.name, "release": str(s.release), "examples": int(len(frames[s.name])),
+            "sources": [{"name": s.name, "release": str(s.release), "examples": len(records[s.name]),
                          "subjects": subjects_by_source[s.name]} for s in sources],
             "subject_from": subject_from,
             "splits_from": "named" if (test or validation) else "drawn",
@@ -249,13 +244,7 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
         (tmp / MERGE_RECORD).write_text(json.dumps(record, indent=1) + "\n")
         asset_rows.append(asset_row(tmp, tmp / MERGE_RECORD, "document"))
         write_table(tmp, "assets", asset_rows)
-        if out.exists():
-            old = out.parent / f".{out.name}.{uuid.uuid4().hex[:8]}.old"
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
+        swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -266,11 +255,3 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
         log("note: the test split is empty (`ultrastage train` measures the test split; name subjects with --test)")
     return result
 
-
-def _jsonable(row: dict[str, Any]) -> dict[str, Any]:
-    out = {}
-    for key, value in row.items():
-        if hasattr(value, "item"):  # numpy scalars
-            value = value.item()
-        out[key] = value
-    return out
