@@ -184,7 +184,7 @@ class ActionScene:
         """The stage's G-buffer of a novel camera (stages.numerics.novel_view.novel_view_gbuffer), with every normal
         choice and both source albedos, per mask pixel, and the full maps for the decomposition;
         ``stage_seconds`` times the stage's G-buffer alone (not the variants' extra work)."""
-        from stages.numerics.gbuffer import fade_rim_normals, fuse_normals
+        from stages.numerics.gbuffer import shading_normals
         from stages.numerics.raycast import pixel_coverage
         from stages.numerics.novel_view import novel_view_gbuffer, silhouette_alpha
 
@@ -205,10 +205,9 @@ class ActionScene:
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
         for width in FUSION_WIDTHS_M:  # as the stage's fused normals, rim fade included: only the split differs
-            full[f"fused_{width:g}"] = fade_rim_normals(
-                fuse_normals(gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
-                             gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m),
-                gb["normal_mesh"], gb["mask"], CONFIG.shading.rim_normal_px)
+            full[f"fused_{width:g}"] = shading_normals(
+                gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
+                gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m, CONFIG.shading.rim_normal_px)
         return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"],
                 "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,

@@ -52,7 +52,7 @@ import numpy as np
 from artifacts.camera import as_pose, camera_centre, lift_points, pixel_coordinates
 
 __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "nearest_views", "source_candidates",
-           "reproject_gbuffer", "fuse_normals", "fade_rim_normals", "interpolate_camera", "novel_camera_pairs"]
+           "reproject_gbuffer", "fuse_normals", "fade_rim_normals", "shading_normals", "interpolate_camera", "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")
@@ -570,6 +570,15 @@ def fade_rim_normals(normals: np.ndarray, normal_base: np.ndarray, mask: np.ndar
     norm = np.linalg.norm(blend, axis=-1, keepdims=True)
     out = np.divide(blend, norm, out=n.copy(), where=norm > 1e-6)
     return np.where(mask[..., None], out, 0.0).astype(np.float32)
+
+
+def shading_normals(normal_detail: np.ndarray, normal_base: np.ndarray, mask: np.ndarray, sigma_px: float,
+                    rim_px: float) -> np.ndarray:
+    """A novel view's shading normals: :func:`fuse_normals` (``normal_detail``'s detail above ``sigma_px`` on
+    ``normal_base``'s low frequencies), then :func:`fade_rim_normals` to ``normal_base`` over the silhouette's
+    ``rim_px`` pixels. Shapes and checks as those two: (H, W, 3) unit normals and an (H, W) bool mask in,
+    (H, W, 3) float32 out, unit inside the mask, 0 outside."""
+    return fade_rim_normals(fuse_normals(normal_detail, normal_base, mask, sigma_px), normal_base, mask, rim_px)
 
 
 def interpolate_camera(K_a: np.ndarray, cam_from_world_a: np.ndarray, K_b: np.ndarray,

@@ -59,7 +59,7 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
     ``hit`` (the pixel-centre rays that meet the mesh),
     ``depth_m``, ``normal_reprojected`` (the mesh's smooth normal where no source sees the pixel),
-    ``normal_mesh``, ``normal_fused`` (:func:`stages.numerics.gbuffer.fuse_normals`: the reprojected normals'
+    ``normal_mesh``, ``normal_fused`` (:func:`stages.numerics.gbuffer.shading_normals`: the reprojected normals'
     detail on the mesh normals' low frequencies, faded to the mesh's normals on the silhouette's rim), ``albedo`` (the sources', reprojected, the baked white-light
     texture where no source sees the pixel), ``roughness``, ``occlusion``, ``diffuse_ratio`` (1 where the
     sources' albedo is already ``albedo_diffuse``); per mask pixel ``pix`` (flat indices), ``points`` (P, 3)
@@ -67,7 +67,7 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     of the mesh's silhouette in the mask) and ``normal_fusion_px`` (the split in pixels).
     """
     from stages.numerics.bake import sample_texture
-    from stages.numerics.gbuffer import fade_rim_normals, fuse_normals, reproject_gbuffer
+    from stages.numerics.gbuffer import reproject_gbuffer, shading_normals
     from stages.numerics.raycast import render_attributes, render_mesh, render_uvs
 
     K, pose = np.asarray(K, np.float64), np.asarray(cam_from_world, np.float64)
@@ -100,8 +100,7 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     fusion_px = float(normal_fusion_m * K[0, 0] / np.median(depth[mask])) if mask.any() else 1.0
     return {"mask": mask, "hit": seen["hit"], "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
             "normal_reprojected": normal_reprojected, "normal_mesh": mesh_normals.astype(np.float32),
-            "normal_fused": fade_rim_normals(fuse_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3)),
-                                             mesh_normals, mask, rim_normal_px),
+            "normal_fused": shading_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3), rim_normal_px),
             "normal_fusion_px": fusion_px,
             "albedo": np.where(mask[..., None], albedo, 0.0).astype(np.float32),
             "roughness": texture(asset.roughness_tex, 0.0), "occlusion": texture(asset.occlusion_tex, 1.0),

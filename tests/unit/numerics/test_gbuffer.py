@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from stages.numerics.gbuffer import (INTERPOLATIONS, WEIGHTINGS, SourceView, _sample_consistent, camera_centre,
-                                     fade_rim_normals, fuse_normals, nearest_views, reproject_gbuffer)
+                                     fade_rim_normals, fuse_normals, nearest_views, reproject_gbuffer,
+                                     shading_normals)
 from stages.numerics.metrics import angular_error_deg
 from stages.numerics.raycast import camera_rays
 from synthetic.rig import look_at as rig_look_at
@@ -457,3 +458,22 @@ def test_fade_rim_normals_keeps_the_normals_where_the_base_is_undefined_and_chec
     for rim in (-1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="rim_px"):
             fade_rim_normals(n, b, mask, rim)
+
+
+def test_shading_normals_fuse_then_fade_the_rim():
+    """The novel view's shading normals are the fused normals with the rim faded to the base: on a square, the
+    outer ring is the base's, the centre keeps the fused detail; rim 0 is the fusion alone."""
+    rng = np.random.default_rng(4)
+    mask = np.zeros((16, 16), bool)
+    mask[3:13, 3:13] = True
+    detail = _unit(np.array([0.0, 0.0, 1.0]) + 0.2 * rng.standard_normal((16, 16, 3)))
+    base = np.broadcast_to(_unit(np.array([0.2, 0.0, 1.0])), (16, 16, 3)).copy()
+    out = shading_normals(detail, base, mask, 2.0, 3.0)
+    fused = fuse_normals(detail, base, mask, 2.0)
+    assert out.shape == (16, 16, 3) and out.dtype == np.float32 and np.all(np.isfinite(out))
+    np.testing.assert_array_equal(out, fade_rim_normals(fused, base, mask, 3.0))
+    np.testing.assert_allclose(out[3, 3:13], base[3, 3:13], atol=1e-6)      # outer ring: the base
+    np.testing.assert_allclose(out[6:10, 6:10], fused[6:10, 6:10], atol=1e-6)  # 4 px in and more: fused
+    assert not np.allclose(fused[3, 3:13], base[3, 3:13], atol=1e-3)         # (the ring did change)
+    np.testing.assert_array_equal(shading_normals(detail, base, mask, 2.0, 0.0), fused)
+    assert np.all(out[~mask] == 0)
