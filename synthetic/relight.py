@@ -395,6 +395,8 @@ class TruthRelighter:
             0 off the subject; ``mask`` (H, W) bool; ``normals_world`` (H, W, 3) (facing the camera);
             ``albedo`` (H, W, 3); ``roughness`` (H, W); ``depth_m`` (H, W) camera z; ``visibility`` (H, W)
             cosine-weighted visible fraction of the sphere of light directions. Off the mask all are 0.
+            ``backface`` (H, W): the share of the pixel's rays that meet the back of a face, the inside of an
+            open mesh seen through its opening (rendered black); 0 everywhere on a closed mesh.
         """
         K = np.asarray(K, dtype=np.float64)
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
@@ -419,5 +421,9 @@ class TruthRelighter:
         fine = shading.view_from_hits(hits, radiance[:, 0:3], *maps, camera.height, camera.width)
         view = shading.pixel_average(fine, s) if s > 1 else fine
         rgb = np.nan_to_num(view.radiance, nan=0.0, posinf=0.0, neginf=0.0)
+        backface = np.zeros(camera.height * camera.width, np.float32)
+        backface[hits.pixels] = hits.backface
+        backface = backface.reshape(height, s, width, s).mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
         return {"radiance": rgb, "mask": view.mask, "normals_world": view.normals_world, "albedo": view.albedo,
-                "roughness": view.roughness, "depth_m": view.depth_m, "visibility": view.visibility}
+                "roughness": view.roughness, "depth_m": view.depth_m, "visibility": view.visibility,
+                "backface": backface}

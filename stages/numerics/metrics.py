@@ -240,19 +240,23 @@ def downsample_to(
 
 
 def relit_psnr(pred_rgb: np.ndarray, pred_mask: np.ndarray, true_rgb: np.ndarray, true_mask: np.ndarray,
-               percentile: float = 99.0) -> dict[str, float]:
+               percentile: float = 99.0, exclude: np.ndarray | None = None) -> dict[str, float]:
     """PSNR of a relit HDR image against the ground-truth rendering, after a common exposure.
 
     HDR radiance has no fixed peak, so both images are scaled by ``1 / p`` with ``p`` the ``percentile``
     of the truth's radiance (all channels) on its subject, then clipped to [0, 1] (what a display shows);
     the error is taken over the union of both masks (a silhouette error counts; outside its mask an image
-    is 0).
+    is 0), less the ``exclude`` pixels. The exposure does not depend on ``exclude``: a figure with pixels left
+    out is on the same scale as the one without.
 
     Args:
         pred_rgb, true_rgb: (H, W, 3) linear radiance; pred_mask, true_mask: (H, W) bool.
+        exclude: optional (H, W) bool, pixels left out of the error (e.g. where the truth shows what no
+            reconstruction can: the inside of an open mesh).
 
     Returns:
-        ``psnr_db``, ``rmse`` (in the scaled units), ``scale`` (the 1/p applied), ``pixels`` (union).
+        ``psnr_db``, ``rmse`` (in the scaled units), ``scale`` (the 1/p applied), ``pixels`` (union less
+        ``exclude``). ValueError when no pixel is left.
     """
     pred = np.asarray(pred_rgb, np.float64)
     true = np.asarray(true_rgb, np.float64)
@@ -261,6 +265,8 @@ def relit_psnr(pred_rgb: np.ndarray, pred_mask: np.ndarray, true_rgb: np.ndarray
         raise ValueError(f"images must both be (H, W, 3), got {pred.shape} and {true.shape}")
     if pm.shape != pred.shape[:2] or tm.shape != pred.shape[:2]:
         raise ValueError(f"masks must be {pred.shape[:2]}, got {pm.shape} and {tm.shape}")
+    if exclude is not None and np.shape(exclude) != pred.shape[:2]:
+        raise ValueError(f"exclude must be {pred.shape[:2]}, got {np.shape(exclude)}")
     if not tm.any():
         raise ValueError("the truth mask is empty: nothing to compare")
     pred = np.where(pm[..., None], np.nan_to_num(pred, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
@@ -268,6 +274,10 @@ def relit_psnr(pred_rgb: np.ndarray, pred_mask: np.ndarray, true_rgb: np.ndarray
     peak = float(np.percentile(true[tm], percentile))
     scale = 1.0 / peak if peak > 0 else 1.0
     union = pm | tm
+    if exclude is not None:
+        union &= ~np.asarray(exclude, bool)
+        if not union.any():
+            raise ValueError("exclude leaves no pixel of either mask to compare")
     diff = np.clip(pred[union] * scale, 0, 1) - np.clip(true[union] * scale, 0, 1)
     mse = float(np.mean(diff ** 2))
     return {"psnr_db": float(10 * np.log10(1.0 / max(mse, 1e-12))), "rmse": float(np.sqrt(mse)),

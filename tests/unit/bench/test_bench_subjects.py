@@ -32,14 +32,17 @@ def test_worst_case_and_misses_follow_each_figures_direction(panel):
            "b": {"chamfer_mm": 2.0, "relit_psnr_db": 24.0, "heldout_albedo_psnr_db": 29.0,
                  "heldout_normal_mean_deg": 5.0, "heldout_normal_mean_deg_diffuse": 4.2,
                  "comparable_chamfer_mm": 1.6},
-           "d": {"chamfer_mm": 1.7, "comparable_chamfer_mm": 1.4},
+           "d": {"chamfer_mm": 1.7, "comparable_chamfer_mm": 1.4, "relit_psnr_db": 22.0,
+                 "comparable_relit_psnr_db": 25.5},
            "c": {"relit_psnr_db": 26.0}}
     worst = panel.worst_cases(per)
     assert worst["chamfer_mm"] == {"subject": "b", "value": 2.0}
-    assert worst["relit_psnr_db"] == {"subject": "b", "value": 24.0}
+    assert worst["relit_psnr_db"] == {"subject": "d", "value": 22.0}
+    assert worst["comparable_relit_psnr_db"] == {"subject": "d", "value": 25.5}
     assert worst["heldout_normal_mean_deg"] == {"subject": "b", "value": 5.0}
     missed = panel.misses(per)
-    assert missed["chamfer_mm > 1.5"] == ["b", "d"] and missed["relit_psnr_db < 25"] == ["b"]
+    assert missed["chamfer_mm > 1.5"] == ["b", "d"] and missed["relit_psnr_db < 25"] == ["b", "d"]
+    assert missed["comparable_relit_psnr_db < 25"] == []
     assert missed["comparable_chamfer_mm > 1.5"] == ["b"]
     assert worst["comparable_chamfer_mm"] == {"subject": "b", "value": 1.6}
     assert missed["heldout_albedo_psnr_db worse than the paper's 30.87"] == ["b"]

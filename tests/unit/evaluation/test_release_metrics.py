@@ -261,11 +261,18 @@ def test_relit_truth_cache_round_trip_and_keys(tmp_path: Path):
     assert len({key, cache.key(2 * K, pose, 6, 4, env), cache.key(K, pose, 6, 5, env),
                 cache.key(K, pose, 6, 4, 2 * env)}) == 4
     render = {"radiance": np.random.default_rng(0).random((6, 4, 3)), "mask": np.ones((6, 4), bool),
-              "normals_world": np.zeros((6, 4, 3), np.float32), "albedo": np.full((6, 4, 3), 0.5, np.float32)}
+              "normals_world": np.zeros((6, 4, 3), np.float32), "albedo": np.full((6, 4, 3), 0.5, np.float32),
+              "backface": np.tile(np.float32([0.0, 0.25, 0.5, 1.0]), (6, 1))}
     cache.save(key, render)
     back = cache.load(key)
+    assert set(back) == set(render)
     for name in render:
         np.testing.assert_array_equal(back[name], render[name].astype(back[name].dtype))
+    # an entry written without the backface map (an older cache) is rendered again
+    np.savez_compressed(tmp_path / "cache" / f"{key[:32]}.npz",
+                        **{k: v for k, v in render.items() if k != "backface"})
+    assert cache.load(key) is None
+    cache.save(key, render)
     # another light count or another truth file is another cache
     assert RelitTruthCache(tmp_path / "cache", truth, "A0000", lights=2048).key(K, pose, 6, 4, env) != key
     (truth / "A0000" / "truth.json").write_text('{"changed": 1}')

@@ -94,3 +94,27 @@ def test_bad_inputs_raise():
         relit_psnr(img[1:], mask, img, mask)
     with pytest.raises(ValueError, match="masks"):
         relit_psnr(img, mask[1:], img, mask)
+
+
+def test_excluded_pixels_leave_the_error_not_the_exposure():
+    """Hand case: the truth is 4 on the disc, the prediction 3 except on excluded pixels where it is 0 (a cap
+    over an opening the truth shows black): with them left out only the 0.25 error remains, at the same scale."""
+    mask = disc_mask()
+    true = np.full((*mask.shape, 3), 4.0)
+    pred = np.full_like(true, 3.0)
+    exclude = np.zeros_like(mask)
+    exclude[8, 8:12] = True
+    pred[exclude] = 0.0
+    plain = relit_psnr(pred, mask, true, mask)
+    out = relit_psnr(pred, mask, true, mask, exclude=exclude)
+    assert out["scale"] == plain["scale"] == pytest.approx(0.25)
+    assert out["pixels"] == mask.sum() - exclude.sum()
+    assert out["psnr_db"] == pytest.approx(10 * math.log10(16.0))
+    n = mask.sum()
+    assert plain["psnr_db"] == pytest.approx(-10 * math.log10(((n - 4) * 0.0625 + 4 * 1.0) / n))
+    # an all-False exclude changes nothing; excluding everything is an error
+    assert relit_psnr(pred, mask, true, mask, exclude=np.zeros_like(mask)) == plain
+    with pytest.raises(ValueError, match="no pixel"):
+        relit_psnr(pred, mask, true, mask, exclude=np.ones_like(mask))
+    with pytest.raises(ValueError, match="exclude must be"):
+        relit_psnr(pred, mask, true, mask, exclude=exclude[1:])

@@ -240,3 +240,40 @@ def test_relighter_refuses_a_subject_that_is_not_the_captured_one(capture, tmp_p
     files.write_ply(moved / "ground_truth" / "A0000" / "mesh.ply", vertices, relighter_free.subject.triangles)
     with pytest.raises(ValueError, match="differs from the captured one"):
         TruthRelighter(moved, "A0000", lights=16)
+
+
+def test_backface_share_marks_the_inside_of_an_open_mesh_only(relighter, cameras, tmp_path):
+    """The closed procedural subject shows no back face; an open bust (a sphere cut at the neck) seen from below
+    shows its black inside through the opening, and from the side none of it."""
+    import trimesh
+
+    env = np.ones((16, 32, 3), np.float32)
+    for camera in cameras:
+        out = render(relighter, camera, env)
+        assert out["backface"].shape == out["mask"].shape and out["backface"].dtype == np.float32
+        assert not out["backface"].any()
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=12.0)
+    keep = ball.vertices[ball.faces][:, :, 1].min(axis=1) > -4.0  # the opening faces -y
+    path = tmp_path / "bust.ply"
+    trimesh.Trimesh(ball.vertices, ball.faces[keep], process=False).export(path)
+    config = SimConfig(actions=1, width=32, n_cameras=1, n_leds=16, mesh=str(path), noise=False, background=False,
+                       led_error=0.0, supersample=2)
+    bust = TruthRelighter(simulate(tmp_path / "bust_capture", config), "A0000", lights=16)
+    vertices = bust.subject.vertices_world
+    centre = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
+    K = np.array([[40.0, 0.0, 15.5], [0.0, 40.0, 15.5], [0.0, 0.0, 1.0]])
+
+    def look_from(offset: np.ndarray, rotation: np.ndarray) -> dict:
+        eye = centre + offset
+        return bust.render(K, np.column_stack([rotation, -rotation @ eye]), 32, 32, env)
+
+    below = look_from(np.array([0.0, -0.6, 0.0]), np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]))  # looks up +y
+    inside = below["backface"] == 1.0
+    assert inside[12:20, 12:20].all()  # the middle of the view: through the opening onto the inside of the shell
+    assert below["mask"][inside].all() and np.all(below["radiance"][inside] == 0)
+    assert np.all((below["backface"] >= 0) & (below["backface"] <= 1))
+    rim = (below["backface"] > 0) & (below["backface"] < 1)
+    assert rim.any() and (below["backface"][rim] % 0.25 == 0).all()  # the cut's rim: a share of the 2 x 2 rays
+    side = look_from(np.array([0.0, 0.0, -0.6]), np.eye(3))  # looks along +z at the bust's side
+    assert side["mask"].sum() > 100 and not side["backface"].any()
