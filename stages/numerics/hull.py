@@ -173,6 +173,7 @@ def visual_hull(
     dilate_px: float = 2,
     min_views: int = 3,
     conservative: bool = True,
+    component_views: float = 0.0,
 ) -> HullGrid:
     """Voxel visual hull of the masks (silhouette carving).
 
@@ -192,6 +193,12 @@ def visual_hull(
             half-diagonal of the mask: a superset of the subject, for bounding samples). False: the classic
             centre-in-mask test (closer to the subject's surface, may cut thin parts; for a hull used as a
             shape estimate).
+        component_views: in [0, 1]; connected components (26-connected) of the hull whose best voxel lies
+            inside the masks of fewer than this share of the views that hold the hull's best voxel are dropped.
+            Space close to a camera is seen by few views, and those behind the subject hold it inside their
+            silhouettes: with cameras near a small subject (a head 0.5 m from the lenses) such pockets sit
+            in the box's corners, apart from the subject, and would make its box as large as the stage's.
+            0: every component is kept.
 
     Returns:
         :class:`HullGrid`.
@@ -206,6 +213,8 @@ def visual_hull(
     res = np.broadcast_to(np.asarray(resolution, np.int64), (3,))
     if (res < 1).any() or res.max() > 1024:
         raise ValueError(f"resolution must be in 1..1024 per axis, got {resolution!r}")
+    if not 0.0 <= component_views <= 1.0:
+        raise ValueError(f"component_views must be in [0, 1], got {component_views}")
     if max_misses < 0 or dilate_px < 0 or min_views < 1:
         raise ValueError(f"max_misses and dilate_px must be >= 0 and min_views >= 1, got {max_misses}, {dilate_px}, "
                          f"{min_views}")
@@ -250,6 +259,22 @@ def visual_hull(
         keep = misses <= max_misses
         alive, hits, misses = alive[keep], hits[keep], misses[keep]
     occupancy = np.zeros(int(np.prod(res)), bool)
-    occupancy[alive[hits >= min(min_views, len(masks))]] = True
+    occupied = hits >= min(min_views, len(masks))
+    occupancy[alive[occupied]] = True
     grid.occupancy = occupancy.reshape(tuple(res))
+    if component_views > 0 and occupied.any():
+        views_inside = np.zeros(int(np.prod(res)), np.int16)
+        views_inside[alive[occupied]] = hits[occupied]
+        grid.occupancy = _well_seen_components(grid.occupancy, views_inside.reshape(tuple(res)), component_views)
     return grid
+
+
+def _well_seen_components(occupancy: np.ndarray, views_inside: np.ndarray, share: float) -> np.ndarray:
+    """``occupancy`` without the 26-connected components whose largest ``views_inside`` (per voxel, the views
+    whose masks hold it) is under ``share`` times the largest of all."""
+    labels, count = ndimage.label(occupancy, structure=np.ones((3, 3, 3), bool))
+    if count <= 1:
+        return occupancy
+    best = ndimage.maximum(views_inside, labels, index=np.arange(1, count + 1))
+    keep = np.concatenate([[False], np.asarray(best) >= share * float(np.max(best))])
+    return keep[labels]

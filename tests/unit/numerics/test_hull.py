@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.numerics.hull import HullGrid, check_camera, visual_hull
+from stages.numerics.hull import HullGrid, _well_seen_components, check_camera, visual_hull
 
 RADIUS = 0.3
 BOUNDS = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
@@ -154,3 +154,61 @@ def test_input_checks(sphere_hull):
         check_camera(np.zeros((3, 3)), Ts[0])
     with pytest.raises(ValueError, match="empty"):
         HullGrid(np.zeros((4, 4, 4), bool), BOUNDS).tight_bounds()
+
+
+def disc_mask(K, T, point, radius, size=64):
+    """Pixels whose ray passes within ``radius`` of ``point``."""
+    R, t = T[:, :3], T[:, 3]
+    o = -R.T @ t
+    rows, cols = np.mgrid[0:size, 0:size]
+    pix = np.stack([cols.ravel(), rows.ravel(), np.ones(size * size)], 1)
+    d = np.linalg.solve(K, pix.T).T @ R
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    v = point - o
+    closest = v - (d @ v)[:, None] * d
+    return (np.linalg.norm(closest, axis=1) < radius).reshape(size, size)
+
+
+def test_component_views_drops_a_pocket_only_a_few_views_hold():
+    """A 4 cm ball in a corner of the box, in the frame of 3 of the 8 views (and in their masks): the plain hull
+    keeps it apart from the sphere and its box reaches the corner; with component_views 0.5 it is dropped (held
+    by 3 views against the sphere's 8) and the box is the sphere's."""
+    cams = sphere_cameras()
+    pocket = np.array([0.45, -0.42, 0.4])
+    masks = [sphere_mask(K, T) | disc_mask(K, T, pocket, 0.04) for K, T in cams]
+    Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
+    plain = visual_hull(masks, Ks, Ts, BOUNDS, 40, max_misses=0, dilate_px=0)
+    assert plain.contains(pocket[None])[0]
+    assert plain.tight_bounds()[1, 0] > 0.45 and plain.tight_bounds()[0, 1] < -0.45
+    kept = visual_hull(masks, Ks, Ts, BOUNDS, 40, max_misses=0, dilate_px=0, component_views=0.5)
+    assert not kept.contains(pocket[None])[0]
+    np.testing.assert_allclose(kept.tight_bounds(), [[-0.325] * 3, [0.325] * 3], atol=0.026)
+    sphere_only = visual_hull([sphere_mask(K, T) for K, T in cams], Ks, Ts, BOUNDS, 40, max_misses=0, dilate_px=0)
+    assert not (plain.occupancy & sphere_only.occupancy & ~kept.occupancy).any()  # every sphere voxel stays
+    assert 0 < (plain.occupancy & ~kept.occupancy).sum() < 0.01 * kept.occupancy.sum()  # the pocket goes
+
+
+def test_component_views_keeps_a_single_component_and_checks_its_range(sphere_hull):
+    grid, cams, masks = sphere_hull
+    Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
+    same = visual_hull(masks, Ks, Ts, BOUNDS, 40, max_misses=0, dilate_px=0, component_views=1.0)
+    np.testing.assert_array_equal(same.occupancy, grid.occupancy)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="component_views"):
+            visual_hull(masks, Ks, Ts, BOUNDS, 8, component_views=bad)
+
+
+def test_well_seen_components_hand_case():
+    """Two blobs (26-connected: the diagonal pair is one): the best voxels held by 8 and 3 views."""
+    occ = np.zeros((6, 6, 6), bool)
+    occ[0, 0, 0] = occ[1, 1, 1] = True          # one component through the corner
+    occ[4:6, 4:6, 4:6] = True                   # another
+    views = np.zeros((6, 6, 6), np.int16)
+    views[0, 0, 0], views[1, 1, 1] = 2, 8
+    views[4:6, 4:6, 4:6] = 3
+    kept = _well_seen_components(occ, views, 0.5)   # 3 < 0.5 x 8
+    assert kept[0, 0, 0] and kept[1, 1, 1] and not kept[4:6, 4:6, 4:6].any()
+    np.testing.assert_array_equal(_well_seen_components(occ, views, 0.375), occ)  # 3 >= 0.375 x 8
+    single = np.zeros_like(occ)
+    single[2, 2, 2] = True
+    np.testing.assert_array_equal(_well_seen_components(single, views, 1.0), single)
