@@ -35,10 +35,10 @@ def sphere_cameras(n=8, dist=2.0, size=64):
     return cams
 
 
-def sphere_mask(K, T, size=64, radius=RADIUS):
-    """Analytic silhouette: pixels whose ray passes within ``radius`` of the origin."""
+def sphere_mask(K, T, size=64, radius=RADIUS, centre=np.zeros(3)):
+    """Analytic silhouette: pixels whose ray passes within ``radius`` of ``centre`` (the origin)."""
     R, t = T[:, :3], T[:, 3]
-    o = -R.T @ t
+    o = -R.T @ t - centre
     rows, cols = np.mgrid[0:size, 0:size]
     pix = np.stack([cols.ravel(), rows.ravel(), np.ones(size * size)], 1)
     d = np.linalg.solve(K, pix.T).T @ R
@@ -156,26 +156,13 @@ def test_input_checks(sphere_hull):
         HullGrid(np.zeros((4, 4, 4), bool), BOUNDS).tight_bounds()
 
 
-def disc_mask(K, T, point, radius, size=64):
-    """Pixels whose ray passes within ``radius`` of ``point``."""
-    R, t = T[:, :3], T[:, 3]
-    o = -R.T @ t
-    rows, cols = np.mgrid[0:size, 0:size]
-    pix = np.stack([cols.ravel(), rows.ravel(), np.ones(size * size)], 1)
-    d = np.linalg.solve(K, pix.T).T @ R
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    v = point - o
-    closest = v - (d @ v)[:, None] * d
-    return (np.linalg.norm(closest, axis=1) < radius).reshape(size, size)
-
-
 def test_component_views_drops_a_pocket_only_a_few_views_hold():
     """A 4 cm ball in a corner of the box, in the frame of 3 of the 8 views (and in their masks): the plain hull
     keeps it apart from the sphere and its box reaches the corner; with component_views 0.5 it is dropped (held
     by 3 views against the sphere's 8) and the box is the sphere's."""
     cams = sphere_cameras()
     pocket = np.array([0.45, -0.42, 0.4])
-    masks = [sphere_mask(K, T) | disc_mask(K, T, pocket, 0.04) for K, T in cams]
+    masks = [sphere_mask(K, T) | sphere_mask(K, T, radius=0.04, centre=pocket) for K, T in cams]
     Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
     plain = visual_hull(masks, Ks, Ts, BOUNDS, 40, max_misses=0, dilate_px=0)
     assert plain.contains(pocket[None])[0]
