@@ -87,31 +87,31 @@ BOUNDS: tuple[Bound, ...] = (
     _share("photometric", "albedo_ssim", 0.784, 0.7300),
     _share("photometric", "mask_iou", 0.983, 0.9788),
     # diffuse_normals: the normals and albedo with the specular reflection fitted out
-    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.767, 9.71),
-    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.44, 21.44),
+    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.679, 9.599),
+    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.38, 21.38),
     # geometry: the neural SDF's mesh against the true mesh
-    _error("geometry", "chamfer_mm", 6.66, 8.32),
-    _fscore("geometry", "fscore_5mm", 0.466, 0.373),
-    _fscore("geometry", "fscore_1mm", 0.0842, 0.0674),
-    _share("geometry", "normal_consistency", 0.918, 0.8975),
+    _error("geometry", "chamfer_mm", 6.82, 8.525),
+    _fscore("geometry", "fscore_5mm", 0.4466, 0.3573),
+    _fscore("geometry", "fscore_1mm", 0.09085, 0.07268),
+    _share("geometry", "normal_consistency", 0.9236, 0.9045),
     # held-out views (the paper's table 1): two cameras' maps synthesised from the other 25 through the mesh
-    _psnr("heldout", "heldout_albedo_psnr_db", 25.82, 24.82),
-    _share("heldout", "heldout_albedo_ssim", 0.884, 0.8550),
-    _error("heldout", "heldout_normal_mean_deg", 6.43, 8.04),
-    _psnr("heldout", "heldout_albedo_psnr_db_truth", 24.77, 23.77),
-    _error("heldout", "heldout_normal_mean_deg_truth", 9.08, 11.3),
-    _share("heldout", "heldout_coverage", 0.926, 0.9075),
+    _psnr("heldout", "heldout_albedo_psnr_db", 27.76, 26.76),
+    _share("heldout", "heldout_albedo_ssim", 0.9101, 0.8876),
+    _error("heldout", "heldout_normal_mean_deg", 6.35, 7.938),
+    _psnr("heldout", "heldout_albedo_psnr_db_truth", 25.84, 24.84),
+    _error("heldout", "heldout_normal_mean_deg_truth", 8.826, 11.03),
+    _share("heldout", "heldout_coverage", 0.9367, 0.9209),
     # textures and materials: the baked albedo, the fitted roughness, the de-occluded albedo, seen from every camera
-    _psnr("textures", "albedo_texture_psnr_db", 23.71, 22.71),
-    _error("materials", "roughness_mae", 0.2635, 0.329),
-    _psnr("materials", "albedo_deoccluded_psnr_db", 24.83, 23.83),
+    _psnr("textures", "albedo_texture_psnr_db", 23.92, 22.92),
+    _error("materials", "roughness_mae", 0.2363, 0.2954),
+    _psnr("materials", "albedo_deoccluded_psnr_db", 25.32, 24.32),
     # relight: the relit novel view against the true subject under the same environment, and its shading normals
-    _psnr("relight", "relit_psnr_db", 17.65, 16.65),
-    _error("relight", "relit_normal_mean_deg", 12.19, 15.2),
+    _psnr("relight", "relit_psnr_db", 18.98, 17.98),
+    _error("relight", "relit_normal_mean_deg", 11.15, 13.94),
     # relightset: the single-image relighting set's examples against the true subject
-    _psnr("relightset", "relightset_image_psnr_db", 20.50, 19.50),
-    _error("relightset", "relightset_normal_mean_deg", 12.63, 15.8),
-    _psnr("relightset", "relightset_albedo_psnr_db", 28.32, 27.32),
+    _psnr("relightset", "relightset_image_psnr_db", 20.95, 19.95),
+    _error("relightset", "relightset_normal_mean_deg", 13.05, 16.31),
+    _psnr("relightset", "relightset_albedo_psnr_db", 25.99, 24.99),
 )
 
 SYNC = ExecutionConfig(scheduler="sync")
