@@ -50,10 +50,9 @@ USER_KNOBS: dict[str, str] = {
     "PhotometricConfig.use_clean_plate": "turns a step off: segment by threshold where a session's plate is bad",
     "DiffuseNormalsConfig.use_materials_roughness": "turns an input off: the roughness prior instead of the "
                                                     "materials' roughness (an ablation a user compares)",
-    # The SDF's loss weights and hull tolerances: what a user tunes to a subject or a rig (weight_mask, its
-    # sibling, is turned by the cpu preset).
+    # The SDF's loss weights and hull tolerances: what a user tunes to a subject or a rig (weight_mask and
+    # weight_eikonal, their siblings, are turned by the cpu preset).
     "SDFConfig.weight_normal": "loss weight, tuned per subject as weight_mask is",
-    "SDFConfig.weight_eikonal": "loss weight, tuned per subject as weight_mask is",
     "SDFConfig.weight_curvature": "turns the smoothness term on (0 = off) for noisy normals",
     "SDFConfig.weight_hull": "loss weight, tuned per subject as weight_mask is",
     "SDFConfig.hull_max_misses": "tolerance of the hull to a camera with a bad mask on a real rig",
