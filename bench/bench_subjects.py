@@ -16,7 +16,9 @@ the worst subject; the subjects that miss Chamfer <= 1.5 mm, relit >= 25 dB or a
 and ``bench_subjects.md`` (the table: one row per figure, one column per subject, the worst case), and
 ``bench_subjects.png`` (Chamfer and relit PSNR per subject) into ``--out``; each subject's capture, release and
 work folder under ``--out/subjects/<name>/``. A subject whose capture and evaluation are already there with the
-same settings is read back, not run again (``--fresh`` runs it again).
+same settings is read back, not run again (``--fresh`` simulates and runs it again; ``--rerun`` keeps its
+simulation and runs the pipeline again on it, reusing its work folder's stages that did not change: a code change
+measured on the same captures).
 
 ``--quick``: one subject (the MakeHuman body with a random shape, hair and a skirt; the procedural subject where
 ../shared is absent) on a tiny capture (96 px, 8 cameras, 128 LEDs, unsubdivided mesh) through the ``test`` preset
@@ -196,10 +198,13 @@ def markdown(report: dict) -> str:
         paper = PAPER_TABLE1.get(key.removesuffix("_diffuse"))
         lines.append(f"| {title} | " + " | ".join(cells) + f" | {worst_cell} | {_fmt(paper)} |")
     lines.append("| seconds (simulate + run) | " + " | ".join(
-        f"{report['subjects'][n]['simulate_s']:.0f} + {report['subjects'][n]['run_s']:.0f}" for n in names) + " | | |")
+        f"{report['subjects'][n]['simulate_s']:.0f} + {report['subjects'][n]['run_s']:.0f}"
+        + ("*" if report["subjects"][n].get("work_reused") else "") for n in names) + " | | |")
     lines.append("| CPU seconds (simulate + run) | " + " | ".join(
         f"{report['subjects'][n]['simulate_cpu_s']:.0f} + {report['subjects'][n]['run_cpu_s']:.0f}"
         if "run_cpu_s" in report["subjects"][n] else "" for n in names) + " | | |")
+    if any(report["subjects"][n].get("work_reused") for n in names):
+        lines += ["", "\\* run again on its simulation and work folder (`--rerun`): only the stages that changed ran."]
     commits = sorted({report["subjects"][n].get("code", {}).get("commit", "?")[:7] for n in names})
     lines += ["", f"Code: commit {', '.join(commits)} (the commit each subject ran on)."]
     lines += ["", "Subjects:", ""]
@@ -217,29 +222,49 @@ def _fmt(value) -> str:
     return f"{value:.3f}" if abs(value) < 10 else f"{value:.2f}"
 
 
-def run_subject(subject: Subject, folder: Path, sim_changes: dict, preset: str, quick: bool, fresh: bool) -> dict:
-    """Simulate, run and evaluate one subject under ``folder``; its record (settings, seconds, figures)."""
+def what_to_reuse(saved: dict, settings: dict, capture_there: bool, fresh: bool, rerun: bool) -> str:
+    """What of a subject's earlier run to keep: ``"record"`` (its saved figures: same settings, not ``fresh`` nor
+    ``rerun``), ``"simulation"`` (``rerun`` with the same settings and its capture there: run the pipeline again on
+    it) or ``"nothing"`` (simulate and run)."""
+    same = bool(saved) and saved.get("settings") == json.loads(json.dumps(settings))
+    if fresh or not same:
+        return "nothing"
+    if not rerun:
+        return "record" if "figures" in saved else "nothing"
+    return "simulation" if capture_there and "simulate_s" in saved else "nothing"
+
+
+def run_subject(subject: Subject, folder: Path, sim_changes: dict, preset: str, quick: bool, fresh: bool,
+                rerun: bool = False) -> dict:
+    """Simulate, run and evaluate one subject under ``folder``; its record (settings, seconds, figures). ``rerun``:
+    keep a simulation made with the same settings and run the pipeline again on it (its work folder kept)."""
     from synthetic import SimConfig, simulate
     from synthetic.calibration import CalibrationConfig
 
     config = SimConfig(actions=1, **sim_changes)
     settings = {"simulator": config.to_json(), "preset": preset}
     record_path = folder / "subject.json"
-    if not fresh and record_path.is_file():
-        saved = json.loads(record_path.read_text())
-        if saved.get("settings") == json.loads(json.dumps(settings)) and "figures" in saved:
-            print(f"== {subject.name}: read back ({record_path})", flush=True)
-            if "evaluation" in saved:  # the table's figures from the saved evaluation, as FIGURES lists them now
-                saved["figures"] = figures_of(saved["evaluation"])
-            return saved
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
+    saved = json.loads(record_path.read_text()) if record_path.is_file() else {}
+    reuse = what_to_reuse(saved, settings, (folder / "capture" / "capture.json").is_file(), fresh, rerun)
+    if reuse == "record":
+        print(f"== {subject.name}: read back ({record_path})", flush=True)
+        if "evaluation" in saved:  # the table's figures from the saved evaluation, as FIGURES lists them now
+            saved["figures"] = figures_of(saved["evaluation"])
+        return saved
+    keep = reuse == "simulation"
     record: dict = {"what": subject.what, "settings": settings, "code": code_version(),
-                    "load_average_at_start": os.getloadavg()[0]}
-    started, cpu = time.perf_counter(), cpu_seconds()
-    print(f"== {subject.name}: simulating ({subject.what})", flush=True)
-    simulate(folder / "capture", config, calibration=CalibrationConfig())
-    record["simulate_s"], record["simulate_cpu_s"] = time.perf_counter() - started, cpu_seconds() - cpu
+                    "load_average_at_start": os.getloadavg()[0], "work_reused": keep}
+    if keep:
+        print(f"== {subject.name}: running again on its simulation ({folder / 'capture'})", flush=True)
+        record["simulate_s"], record["simulate_cpu_s"] = saved["simulate_s"], saved["simulate_cpu_s"]
+        shutil.rmtree(folder / "release", ignore_errors=True)
+    else:
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir(parents=True)
+        started, cpu = time.perf_counter(), cpu_seconds()
+        print(f"== {subject.name}: simulating ({subject.what})", flush=True)
+        simulate(folder / "capture", config, calibration=CalibrationConfig())
+        record["simulate_s"], record["simulate_cpu_s"] = time.perf_counter() - started, cpu_seconds() - cpu
     started, cpu = time.perf_counter(), cpu_seconds()
     command = [sys.executable, "-m", "ultrastage.cli", "run", "--capture", str(folder / "capture"),
                "--release", str(folder / "release"), "--preset", preset] + (["--scheduler", "sync"] if quick else [])
@@ -322,7 +347,10 @@ def main() -> int:
     parser.add_argument("--subjects", help="comma-separated subject names (default: all of the panel)")
     parser.add_argument("--shared", default=os.environ.get("ULTRASTAGE_SHARED_DATA", str(DEFAULT_SHARED)),
                         help="the shared data folder (meshes/ inside; default ../shared/data beside the repository)")
-    parser.add_argument("--fresh", action="store_true", help="run every subject again, even one already evaluated")
+    parser.add_argument("--fresh", action="store_true", help="simulate and run every subject again, even one already "
+                                                               "evaluated")
+    parser.add_argument("--rerun", action="store_true", help="run the pipeline again on every subject's simulation "
+                                                               "(simulated again only where its settings changed)")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -352,7 +380,7 @@ def main() -> int:
             skipped.append(subject.name)
             continue
         subjects[subject.name] = run_subject(subject, out / "subjects" / subject.name, quick_changes | changes,
-                                             preset, args.quick, args.fresh)
+                                             preset, args.quick, args.fresh, args.rerun)
     per = {n: r["figures"] for n, r in subjects.items()}
     width = (quick_capture_config().width if args.quick else __import__("synthetic").SimConfig().width)
     report = {"quick": args.quick, "preset": preset, "width": width, "seconds": time.perf_counter() - started,

@@ -58,3 +58,18 @@ def test_the_panel_spans_the_extremes_and_two_other_meshes(panel):
 
     for subject in panel.SUBJECTS:  # every subject's settings make a valid config
         SimConfig(actions=1, **subject.sim_changes(SHARED / "meshes"))
+
+
+def test_what_to_reuse_of_an_earlier_run(panel):
+    """Read back a finished subject; with --rerun keep only its simulation (same settings, capture there); simulate
+    again when the settings changed, the capture is gone or --fresh asks for it."""
+    settings = {"simulator": {"seed": 0, "width": 320}, "preset": "default"}
+    done = {"settings": {"simulator": {"seed": 0, "width": 320}, "preset": "default"}, "figures": {}, "simulate_s": 20.0}
+    reuse = panel.what_to_reuse
+    assert reuse(done, settings, True, fresh=False, rerun=False) == "record"
+    assert reuse(done, settings, True, fresh=False, rerun=True) == "simulation"
+    assert reuse(done, settings, False, fresh=False, rerun=True) == "nothing"        # the capture is gone
+    assert reuse(done, settings, True, fresh=True, rerun=True) == "nothing"
+    assert reuse(done, {**settings, "preset": "fast"}, True, fresh=False, rerun=True) == "nothing"
+    assert reuse({}, settings, True, fresh=False, rerun=False) == "nothing"
+    assert reuse({k: v for k, v in done.items() if k != "figures"}, settings, True, fresh=False, rerun=False) == "nothing"
