@@ -412,7 +412,7 @@ def comparable_exclude(true: dict[str, np.ndarray]) -> np.ndarray:
     the comparable relit figures: those where any of the truth's rays meets the back of a face, the inside of an
     open mesh seen through its opening (a neck cut), which the simulator renders black and no watertight
     reconstruction can show. On a closed mesh only the odd pixel whose ray slips between two triangles onto a
-    back face (the accuracy gate's subject: 0.0007 dB between the two figures)."""
+    back face (on the accuracy gate's subject the two figures differ by under 0.001 dB)."""
     return np.asarray(true["backface"], np.float32) > 0.0
 
 
@@ -745,7 +745,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     camera (:class:`synthetic.relight.TruthRelighter`, kept in ``cache_dir`` by :class:`RelitTruthCache`
     when given): PSNR after a common exposure (:func:`stages.numerics.metrics.relit_psnr`), per view and
     environment, averaged; ``comparable_relit_psnr_db``, the same over the pixels where the truth shows no inside
-    of an open mesh (:func:`comparable_exclude`; equal to the plain figure on a closed mesh); and
+    of an open mesh (:func:`comparable_exclude`; on a closed mesh within a hair of the plain figure); and
     ``relit_normal_mean_deg``, the released shading normals
     (``renders/<view>/normal.exr``) against the true subject's, mean angle over the pixels both masks cover,
     averaged over views."""

@@ -396,7 +396,8 @@ class TruthRelighter:
             ``albedo`` (H, W, 3); ``roughness`` (H, W); ``depth_m`` (H, W) camera z; ``visibility`` (H, W)
             cosine-weighted visible fraction of the sphere of light directions. Off the mask all are 0.
             ``backface`` (H, W): the share of the pixel's rays that meet the back of a face, the inside of an
-            open mesh seen through its opening (rendered black); 0 everywhere on a closed mesh.
+            open mesh seen through its opening (rendered black); on a closed mesh 0 but for the odd ray that slips
+            between two triangles.
         """
         K = np.asarray(K, dtype=np.float64)
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)

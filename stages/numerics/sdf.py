@@ -164,8 +164,8 @@ class SDFConfig(Documented):
     """Hull components whose best voxel is inside the masks of fewer than this share of the views that hold the
     hull's best voxel are not the subject (:func:`stages.numerics.hull.visual_hull`'s ``component_views``): pockets
     of space next to the cameras, which the views behind the subject hold inside its silhouette. On the ICT head
-    (cameras 0.54 m from it) they made the SDF's box 0.86 m wide for a 0.34 m head; the subject is held by all
-    32 views, such pockets by at most 7."""
+    (cameras 0.54 m from it) the head is held by all 32 views and such pockets by at most 7; kept, they would make
+    the SDF's box 0.86 m wide for a 0.34 m head."""
     hull_margin_m: float = checked(0.03, ge=0.0)
     """The SDF's bounds are the hull's bounding box grown by this margin."""
     hull_init_tight: bool = True
