@@ -182,8 +182,8 @@ def merge_relight_sets(sources: Sequence[SetSource], out: str | Path,
     def subject_of(source: str, subject: str) -> str:
         return subject if subject_from == "subject" else f"{source}/{subject}"
 
-    subjects_by_source = {name: sorted({subject_of(name, r["subject"]) for r in rows_of_source})
-                          for name, rows_of_source in records.items()}
+    subjects_by_source = {name: sorted({subject_of(name, r["subject"]) for r in examples})
+                          for name, examples in records.items()}
     split_of_subject = _assign_splits(subjects_by_source, test, validation, seed, split_ratios)
     if "train" not in split_of_subject.values():
         raise ConfigError("no subject is left for the train split")

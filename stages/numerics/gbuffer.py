@@ -52,7 +52,8 @@ import numpy as np
 from artifacts.camera import as_pose, camera_centre, lift_points, pixel_coordinates
 
 __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "nearest_views", "source_candidates",
-           "reproject_gbuffer", "fuse_normals", "fade_rim_normals", "shading_normals", "interpolate_camera", "novel_camera_pairs"]
+           "reproject_gbuffer", "fuse_normals", "fade_rim_normals", "shading_normals", "interpolate_camera",
+           "novel_camera_pairs"]
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")

@@ -100,7 +100,8 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     fusion_px = float(normal_fusion_m * K[0, 0] / np.median(depth[mask])) if mask.any() else 1.0
     return {"mask": mask, "hit": seen["hit"], "depth_m": depth, "pix": pix, "points": points, "view_dirs": view_dirs,
             "normal_reprojected": normal_reprojected, "normal_mesh": mesh_normals.astype(np.float32),
-            "normal_fused": shading_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3), rim_normal_px),
+            "normal_fused": shading_normals(normal_reprojected, mesh_normals, mask, max(fusion_px, 1e-3),
+                                            rim_normal_px),
             "normal_fusion_px": fusion_px,
             "albedo": np.where(mask[..., None], albedo, 0.0).astype(np.float32),
             "roughness": texture(asset.roughness_tex, 0.0), "occlusion": texture(asset.occlusion_tex, 1.0),
