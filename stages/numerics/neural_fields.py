@@ -273,13 +273,22 @@ def ray_box(origins: np.ndarray, dirs: np.ndarray, bounds: np.ndarray) -> tuple[
 
 
 def neus_composite(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, delta: torch.Tensor,
-                   inv_s: float, cos_anneal: float) -> tuple[torch.Tensor, torch.Tensor]:
+                   inv_s: float, cos_anneal: float, from_outside: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """NeuS weights of K samples per ray. sdf (R, K), grad (R, K, 3), dirs (R, 3), delta (R,) spacing.
 
     Each sample stands for a section of length ``delta``; the SDF at its ends is extrapolated with the
     gradient along the ray (NeuS's estimate, exact for a plane), the section's alpha is
     ``(Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with ``Phi`` the logistic CDF of sharpness ``inv_s``.
-    Returns ``(weights (R, K), alpha (R, K))``.
+
+    ``from_outside``: the samples are a window of a ray that comes from far outside the surface (``Phi = 1``)
+    without crossing it before the window. The opacity the ray gathers on its way to the window's first
+    section, ``1 - Phi(f_start)``, is then added to the first sample's weight and the rest attenuated by it,
+    so that the opacity (the weights' sum) is NeuS's for the whole ray, ``1 - Phi(min f)`` on a ray whose SDF
+    falls and rises once, wherever the window starts. Without it a ray whose window starts near the surface (a
+    ray grazing the silhouette, where the SDF stays small for centimetres) is rendered too transparent: just
+    inside the outline a mask of 1 then pulls the surface outwards.
+
+    Returns ``(weights (R, K), alpha (R, K))``; ``alpha`` are the sections' own alphas either way.
     """
     true_cos = (grad * dirs.unsqueeze(1)).sum(-1)
     # NeuS's cosine annealing: early on the density also lives where the ray leaves the surface.
@@ -289,7 +298,12 @@ def neus_composite(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, de
     next_cdf = torch.sigmoid((sdf + iter_cos * half) * inv_s)
     alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
-    return alpha * trans, alpha
+    weights = alpha * trans
+    if from_outside and weights.shape[1] > 0:
+        before = (1.0 - prev_cdf[:, :1]).clamp(0.0, 1.0)  # (R, 1) opacity gathered before the window
+        weights = weights * (1.0 - before)
+        weights = torch.cat([weights[:, :1] + before, weights[:, 1:]], 1)
+    return weights, alpha
 
 
 def instant_ngp_adam(params: Any, lr: float) -> torch.optim.Adam:

@@ -210,6 +210,55 @@ def test_neus_composite_of_a_plane():
     assert float(miss.sum()) < 1e-3
 
 
+def _tangent_ray_window(offset_m: float, window_m: float, k: int = 16):
+    """Samples over ``+-window_m`` around the closest approach of a ray passing ``offset_m`` outside (negative:
+    inside) a sphere of radius 0.15 m at the origin: sdf (1, k), grad (1, k, 3), dirs (1, 3), delta (1,)."""
+    radius = 0.15
+    delta = 2 * window_m / k
+    t = -window_m + (torch.arange(k, dtype=torch.float64) + 0.5) * delta
+    points = torch.stack([t, torch.full_like(t, radius + offset_m), torch.zeros_like(t)], -1)
+    sdf = points.norm(dim=-1) - radius
+    grad = points / points.norm(dim=-1, keepdim=True)
+    return sdf[None], grad[None], torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64), torch.tensor([delta])
+
+
+@pytest.mark.parametrize("offset_mm", [-1.0, -0.25, 0.0, 0.5, 2.0])
+def test_neus_composite_from_outside_gives_the_whole_rays_opacity(offset_mm):
+    # A ray grazing a sphere: its SDF falls from far outside to offset_mm at the closest approach and rises
+    # again, so NeuS's opacity of the whole ray is 1 - sigmoid(inv_s * offset). An 8 mm window around the
+    # closest approach starts where the SDF is still within a few mm of it; from_outside adds what the ray
+    # gathered before the window and gives that opacity (to the sections' extrapolation error), the window alone
+    # gives less.
+    inv_s = 800.0
+    sdf, grad, dirs, delta = _tangent_ray_window(offset_mm / 1000.0, 0.008)
+    whole_ray = 1.0 - torch.sigmoid(torch.tensor(inv_s * offset_mm / 1000.0, dtype=torch.float64))
+    weights, alpha = neus_composite(sdf, grad, dirs, delta, inv_s=inv_s, cos_anneal=1.0, from_outside=True)
+    window_only, alpha_plain = neus_composite(sdf, grad, dirs, delta, inv_s=inv_s, cos_anneal=1.0)
+    assert float(weights.sum()) == pytest.approx(float(whole_ray), abs=0.005)
+    assert float(window_only.sum()) < float(whole_ray) - 0.1
+    torch.testing.assert_close(alpha, alpha_plain)
+    assert float(weights.min()) >= 0.0 and float(weights.sum()) <= 1.0
+
+
+def test_neus_composite_from_outside_changes_nothing_when_the_window_starts_far_out():
+    # A window that starts 0.2 m in front of a plane (Phi ~ 1 there): the same weights with or without it.
+    t = torch.linspace(0.3, 0.7, 41).unsqueeze(0)
+    sdf, grad = 0.5 - t, torch.tensor([0.0, 0.0, -1.0]).expand(1, 41, 3)
+    dirs, delta = torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.01])
+    plain, _ = neus_composite(sdf, grad, dirs, delta, inv_s=200.0, cos_anneal=1.0)
+    outside, _ = neus_composite(sdf, grad, dirs, delta, inv_s=200.0, cos_anneal=1.0, from_outside=True)
+    torch.testing.assert_close(outside, plain, atol=1e-6, rtol=0)
+
+
+def test_neus_composite_from_outside_has_gradients_to_the_first_sample():
+    # The opacity before the window depends on the first sample's SDF: a mask loss there moves it.
+    sdf, grad, dirs, delta = _tangent_ray_window(0.0005, 0.008, k=8)
+    sdf = sdf.clone().requires_grad_(True)
+    weights, _ = neus_composite(sdf, grad, dirs, delta, inv_s=800.0, cos_anneal=1.0, from_outside=True)
+    weights.sum().backward()
+    assert sdf.grad is not None and float(sdf.grad[0, 0]) < 0.0  # a larger SDF there: less opacity
+
+
 def test_render_view_of_a_sphere_field():
     grid = HullGrid(np.zeros((32, 32, 32), bool), BOUNDS)
     sd = (np.linalg.norm(grid.centers(), axis=-1) - 0.25).astype(np.float32)
