@@ -26,6 +26,7 @@ __all__ = [
     "resolve_device",
     "ray_box",
     "neus_composite",
+    "neus_opacity_before",
     "instant_ngp_adam",
     "lr_factor",
 ]
@@ -273,37 +274,42 @@ def ray_box(origins: np.ndarray, dirs: np.ndarray, bounds: np.ndarray) -> tuple[
 
 
 def neus_composite(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, delta: torch.Tensor,
-                   inv_s: float, cos_anneal: float, from_outside: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+                   inv_s: float, cos_anneal: float) -> tuple[torch.Tensor, torch.Tensor]:
     """NeuS weights of K samples per ray. sdf (R, K), grad (R, K, 3), dirs (R, 3), delta (R,) spacing.
 
     Each sample stands for a section of length ``delta``; the SDF at its ends is extrapolated with the
     gradient along the ray (NeuS's estimate, exact for a plane), the section's alpha is
     ``(Phi(f_prev) - Phi(f_next)) / Phi(f_prev)`` with ``Phi`` the logistic CDF of sharpness ``inv_s``.
-
-    ``from_outside``: the samples are a window of a ray that comes from far outside the surface (``Phi = 1``)
-    without crossing it before the window. The opacity the ray gathers on its way to the window's first
-    section, ``1 - Phi(f_start)``, is then added to the first sample's weight and the rest attenuated by it,
-    so that the opacity (the weights' sum) is NeuS's for the whole ray, ``1 - Phi(min f)`` on a ray whose SDF
-    falls and rises once, wherever the window starts. Without it a ray whose window starts near the surface (a
-    ray grazing the silhouette, where the SDF stays small for centimetres) is rendered too transparent: just
-    inside the outline a mask of 1 then pulls the surface outwards.
-
-    Returns ``(weights (R, K), alpha (R, K))``; ``alpha`` are the sections' own alphas either way.
+    Returns ``(weights (R, K), alpha (R, K))``.
     """
+    prev_cdf, next_cdf = _section_cdfs(sdf, grad, dirs, delta, inv_s, cos_anneal)
+    alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
+    return alpha * trans, alpha
+
+
+def neus_opacity_before(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, delta: torch.Tensor,
+                        inv_s: float, cos_anneal: float) -> torch.Tensor:
+    """The NeuS opacity (R,) a ray gathers before a window of samples (the arguments of :func:`neus_composite`),
+    when it comes from far outside the surface (``Phi = 1``) without crossing it first: ``1 - Phi(f_start)``,
+    ``f_start`` the SDF at the start of the first sample's section.
+
+    The whole ray's opacity is then ``before + (1 - before) * weights.sum(1)``: NeuS's ``1 - Phi(min f)`` on a ray
+    whose SDF falls and rises once, wherever the window starts. The window alone misses it where the window starts
+    near the surface: on a ray grazing the silhouette the SDF stays within a few mm of its minimum for centimetres.
+    """
+    prev_cdf, _ = _section_cdfs(sdf[:, :1], grad[:, :1], dirs, delta, inv_s, cos_anneal)
+    return (1.0 - prev_cdf[:, 0]).clamp(0.0, 1.0)
+
+
+def _section_cdfs(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, delta: torch.Tensor, inv_s: float,
+                  cos_anneal: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``Phi`` at the start and the end of each sample's section (R, K) each."""
     true_cos = (grad * dirs.unsqueeze(1)).sum(-1)
     # NeuS's cosine annealing: early on the density also lives where the ray leaves the surface.
     iter_cos = -(F.relu(-true_cos * 0.5 + 0.5) * (1.0 - cos_anneal) + F.relu(-true_cos) * cos_anneal)
     half = (delta * 0.5).unsqueeze(1)
-    prev_cdf = torch.sigmoid((sdf - iter_cos * half) * inv_s)
-    next_cdf = torch.sigmoid((sdf + iter_cos * half) * inv_s)
-    alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha + 1e-7], 1), 1)[:, :-1]
-    weights = alpha * trans
-    if from_outside and weights.shape[1] > 0:
-        before = (1.0 - prev_cdf[:, :1]).clamp(0.0, 1.0)  # (R, 1) opacity gathered before the window
-        weights = weights * (1.0 - before)
-        weights = torch.cat([weights[:, :1] + before, weights[:, 1:]], 1)
-    return weights, alpha
+    return torch.sigmoid((sdf - iter_cos * half) * inv_s), torch.sigmoid((sdf + iter_cos * half) * inv_s)
 
 
 def instant_ngp_adam(params: Any, lr: float) -> torch.optim.Adam:

@@ -87,31 +87,31 @@ BOUNDS: tuple[Bound, ...] = (
     _share("photometric", "albedo_ssim", 0.784, 0.7300),
     _share("photometric", "mask_iou", 0.983, 0.9788),
     # diffuse_normals: the normals and albedo with the specular reflection fitted out
-    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.679, 9.599),
-    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.38, 21.38),
+    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.653, 9.566),
+    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.28, 21.28),
     # geometry: the neural SDF's mesh against the true mesh
-    _error("geometry", "chamfer_mm", 6.82, 8.525),
-    _fscore("geometry", "fscore_5mm", 0.4466, 0.3573),
-    _fscore("geometry", "fscore_1mm", 0.09085, 0.07268),
-    _share("geometry", "normal_consistency", 0.9236, 0.9045),
+    _error("geometry", "chamfer_mm", 6.568, 8.21),
+    _fscore("geometry", "fscore_5mm", 0.479, 0.3832),
+    _fscore("geometry", "fscore_1mm", 0.1021, 0.0817),
+    _share("geometry", "normal_consistency", 0.925, 0.9062),
     # held-out views (the paper's table 1): two cameras' maps synthesised from the other 25 through the mesh
-    _psnr("heldout", "heldout_albedo_psnr_db", 27.76, 26.76),
-    _share("heldout", "heldout_albedo_ssim", 0.9101, 0.8876),
-    _error("heldout", "heldout_normal_mean_deg", 6.35, 7.938),
-    _psnr("heldout", "heldout_albedo_psnr_db_truth", 25.84, 24.84),
-    _error("heldout", "heldout_normal_mean_deg_truth", 8.826, 11.03),
-    _share("heldout", "heldout_coverage", 0.9367, 0.9209),
+    _psnr("heldout", "heldout_albedo_psnr_db", 27.42, 26.42),
+    _share("heldout", "heldout_albedo_ssim", 0.9109, 0.8886),
+    _error("heldout", "heldout_normal_mean_deg", 6.484, 8.105),
+    _psnr("heldout", "heldout_albedo_psnr_db_truth", 25.4, 24.4),
+    _error("heldout", "heldout_normal_mean_deg_truth", 8.563, 10.7),
+    _share("heldout", "heldout_coverage", 0.948, 0.935),
     # textures and materials: the baked albedo, the fitted roughness, the de-occluded albedo, seen from every camera
-    _psnr("textures", "albedo_texture_psnr_db", 23.92, 22.92),
-    _error("materials", "roughness_mae", 0.2363, 0.2954),
-    _psnr("materials", "albedo_deoccluded_psnr_db", 25.32, 24.32),
+    _psnr("textures", "albedo_texture_psnr_db", 23.97, 22.97),
+    _error("materials", "roughness_mae", 0.2005, 0.2506),
+    _psnr("materials", "albedo_deoccluded_psnr_db", 25.39, 24.39),
     # relight: the relit novel view against the true subject under the same environment, and its shading normals
-    _psnr("relight", "relit_psnr_db", 18.98, 17.98),
-    _error("relight", "relit_normal_mean_deg", 11.15, 13.94),
+    _psnr("relight", "relit_psnr_db", 19.51, 18.51),
+    _error("relight", "relit_normal_mean_deg", 11.25, 14.06),
     # relightset: the single-image relighting set's examples against the true subject
-    _psnr("relightset", "relightset_image_psnr_db", 20.95, 19.95),
-    _error("relightset", "relightset_normal_mean_deg", 13.05, 16.31),
-    _psnr("relightset", "relightset_albedo_psnr_db", 25.99, 24.99),
+    _psnr("relightset", "relightset_image_psnr_db", 21.55, 20.55),
+    _error("relightset", "relightset_normal_mean_deg", 12.49, 15.61),
+    _psnr("relightset", "relightset_albedo_psnr_db", 28.09, 27.09),
 )
 
 SYNC = ExecutionConfig(scheduler="sync")
