@@ -141,7 +141,7 @@ class SDFConfig(Documented):
     importance_fraction: float = checked(0.0, ge=0.0, lt=1.0)
     """Share of each batch's rays drawn in proportion to the views' :attr:`SDFView.sample_weight` (the rest
     uniformly from every ray worth drawing); 0 = uniform only. Views without weights count as weight 0."""
-    before_window: Literal["none", "opacity", "opacity_and_normal"] = "opacity_and_normal"
+    before_window: Literal["none", "opacity", "opacity_and_normal"] = "opacity"
     """What counts of the NeuS mass a ray gathers on its way to its sampling window
     (:func:`stages.numerics.neural_fields.neus_opacity_before`): ``none``, the window's samples alone; ``opacity``,
     it counts in the mask loss's opacity (the whole ray's, NeuS's ``1 - Phi(min f)``); ``opacity_and_normal``, it
@@ -150,10 +150,9 @@ class SDFConfig(Documented):
     opacity is far too low just inside the outline (0.11 instead of 0.69 a millimetre inside a 15 cm sphere at
     ``inv_s`` 800 with an 8 mm window) and the mask loss pulls the surface outwards. Geometry stage on the default
     capture, both actions at SDF seeds 0, 1 and 2 (cpu preset): Chamfer 1.30 mm on average with ``none``, 1.26 with
-    ``opacity``, 1.20 with ``opacity_and_normal`` (lower than ``none`` in 5 of the 6 runs). The test preset's blurry
-    density (``inv_s_end`` 150) over its 3 cm windows spreads that mass far before the window, and the first sample
-    does not stand for it: there ``opacity`` (gate capture Chamfer 6.82 mm with ``none``, 6.57 with ``opacity``,
-    7.07 with ``opacity_and_normal``)."""
+    ``opacity``, 1.20 with ``opacity_and_normal``. The first sample stands for the mass before the window only
+    where the surface curves gently over the window's length: on the gate capture (test preset, 3 cm windows) the
+    Chamfer is 6.82 / 6.57 / 7.07 mm, on the ICT head (1 mm pixels) the comparable Chamfer 0.69 / 0.76 / 0.88 mm."""
     weight_hull: float = checked(1.0, ge=0.0)
     """Weight of the hull prior ``relu(d_hull(x) - f(x))`` at sample and random points outside the hull: the
     subject lies inside its visual hull, so the SDF there is at least the distance to the hull. It keeps
@@ -260,7 +259,6 @@ SDF_PRESETS: dict[str, SDFConfig] = {
         hull_resolution=32, hull_dilate_px=1.0, hull_init_steps=60, hull_init_points=1024, eikonal_points=64,
         proposal_voxel_m=0.04, proposal_update_every=20, window_m=0.08, window_min_m=0.03,
         inv_s_start=30.0, inv_s_end=150.0, initial_levels=2, log_every=10, warmup_iterations=5,
-        before_window="opacity",
     ),
 }
 
