@@ -141,18 +141,19 @@ class SDFConfig(Documented):
     importance_fraction: float = checked(0.0, ge=0.0, lt=1.0)
     """Share of each batch's rays drawn in proportion to the views' :attr:`SDFView.sample_weight` (the rest
     uniformly from every ray worth drawing); 0 = uniform only. Views without weights count as weight 0."""
-    before_window: Literal["none", "opacity", "opacity_and_normal"] = "opacity"
+    before_window: Literal["none", "opacity", "opacity_and_normal"] = "opacity_and_normal"
     """What counts of the NeuS mass a ray gathers on its way to its sampling window
     (:func:`stages.numerics.neural_fields.neus_opacity_before`): ``none``, the window's samples alone; ``opacity``,
     it counts in the mask loss's opacity (the whole ray's, NeuS's ``1 - Phi(min f)``); ``opacity_and_normal``, it
     also counts in the rendered normal, at the first sample's normal (the sample nearest to it). The window of a
     ray grazing the silhouette starts where the SDF is within a fraction of a mm of its minimum, so a window-only
     opacity is far too low just inside the outline (0.11 instead of 0.69 a millimetre inside a 15 cm sphere at
-    ``inv_s`` 800 with an 8 mm window) and the mask loss pulls the surface outwards. Geometry stage on the default
-    capture, both actions at SDF seeds 0, 1 and 2 (cpu preset): Chamfer 1.30 mm on average with ``none``, 1.26 with
-    ``opacity``, 1.20 with ``opacity_and_normal``. The first sample stands for the mass before the window only
-    where the surface curves gently over the window's length: on the gate capture (test preset, 3 cm windows) the
-    Chamfer is 6.82 / 6.57 / 7.07 mm, on the ICT head (1 mm pixels) the comparable Chamfer 0.69 / 0.76 / 0.88 mm."""
+    ``inv_s`` 800 with an 8 mm window) and the mask loss pulls the surface outwards. On the subject panel's seven
+    plain bodies (cpu preset) the mean Chamfer is 1.35 mm with ``none``, 1.28 with ``opacity`` and 1.17 with
+    ``opacity_and_normal``. The first sample stands for the mass before the window only where the surface curves
+    gently over the window's length: the test preset (3 cm windows at ``inv_s`` 150) takes ``opacity`` (gate
+    capture Chamfer 6.82 / 6.57 / 7.07 mm), and on the ICT head (about 1.2 mm pixels, its surface already 0.5-1 mm
+    inside the truth) the comparable Chamfer is 0.69 / 0.76 / 0.88 mm."""
     weight_hull: float = checked(1.0, ge=0.0)
     """Weight of the hull prior ``relu(d_hull(x) - f(x))`` at sample and random points outside the hull: the
     subject lies inside its visual hull, so the SDF there is at least the distance to the hull. It keeps
@@ -259,6 +260,7 @@ SDF_PRESETS: dict[str, SDFConfig] = {
         hull_resolution=32, hull_dilate_px=1.0, hull_init_steps=60, hull_init_points=1024, eikonal_points=64,
         proposal_voxel_m=0.04, proposal_update_every=20, window_m=0.08, window_min_m=0.03,
         inv_s_start=30.0, inv_s_end=150.0, initial_levels=2, log_every=10, warmup_iterations=5,
+        before_window="opacity",
     ),
 }
 
