@@ -412,8 +412,15 @@ def test_heldout_white_albedo_is_predicted_view_dependent(first_run):
     models = {m: heldout_metrics(release, "A0000", heldout=held, data=data, albedo_model=m)
               for m in ("view_dependent", "white")}
     assert {m: r["heldout_albedo_model"] for m, r in models.items()} == {"view_dependent": "view_dependent", "white": "white"}
-    # the normals are the same synthesis either way; only the albedo differs
-    assert models["view_dependent"]["heldout_normal_mean_deg"] == models["white"]["heldout_normal_mean_deg"]
+    # the normals are the same synthesis either way; only the albedo differs. The view-dependent model is scored
+    # where its albedo is valid too (the diffuse maps' reprojection), which can drop a pixel at the outline, so the
+    # normal figures agree to the odd pixel (measured 0.004 deg apart on this capture), not to the last bit.
+    white_normals = synthesise_heldout(data, "00004", held)
+    view_dependent = predict_white_albedo(data, "00004", held)
+    both = white_normals["valid"] & view_dependent["valid"]
+    assert both.sum() >= white_normals["valid"].sum() - 5
+    assert models["view_dependent"]["heldout_normal_mean_deg"] == pytest.approx(
+        models["white"]["heldout_normal_mean_deg"], abs=0.05)
     assert models["view_dependent"]["heldout_albedo_psnr_db"] != models["white"]["heldout_albedo_psnr_db"]
     assert heldout_metrics(release, "A0000", heldout=held, data=data.with_albedo(True))["heldout_albedo_model"] == "diffuse"
     with pytest.raises(ValueError, match="albedo_model"):
