@@ -1133,14 +1133,14 @@ def _step_losses(field_: SDFField, bank: _RayBank, batch: _Batch, samples: _Samp
     dirs = batch.dirs[samples.ray]
     weights, _ = neus_composite(sdf, grad, dirs, samples.delta, inv_s, cos_anneal)
     opacity = weights.sum(1)
-    if config.before_window == "opacity":
+    if config.before_window != "none":
         before = neus_opacity_before(sdf, grad, dirs, samples.delta, inv_s, cos_anneal)
-        opacity = before + (1.0 - before) * opacity
-    elif config.before_window == "opacity_and_normal":
-        before = neus_opacity_before(sdf, grad, dirs, samples.delta, inv_s, cos_anneal).unsqueeze(1)
-        weights = weights * (1.0 - before)
-        weights = torch.cat([weights[:, :1] + before, weights[:, 1:]], 1)
-        opacity = weights.sum(1)
+        if config.before_window == "opacity":
+            opacity = before + (1.0 - before) * opacity
+        else:  # "opacity_and_normal": the mass before the window goes to the first sample, the rest is attenuated
+            weights = weights * (1.0 - before).unsqueeze(1)
+            weights = torch.cat([weights[:, :1] + before.unsqueeze(1), weights[:, 1:]], 1)
+            opacity = weights.sum(1)
     unit = F.normalize(grad, dim=-1, eps=1e-8)
     rendered_normal = (weights.unsqueeze(-1) * unit).sum(1)
 

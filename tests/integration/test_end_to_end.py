@@ -415,10 +415,10 @@ def test_heldout_white_albedo_is_predicted_view_dependent(first_run):
     # the normals are the same synthesis either way; only the albedo differs. The view-dependent model is scored
     # where its albedo is valid too (the diffuse maps' reprojection), which can drop a pixel at the outline, so the
     # normal figures agree to the odd pixel (measured 0.004 deg apart on this capture), not to the last bit.
-    white_normals = synthesise_heldout(data, "00004", held)
+    synthesis = synthesise_heldout(data, "00004", held)
     view_dependent = predict_white_albedo(data, "00004", held)
-    both = white_normals["valid"] & view_dependent["valid"]
-    assert both.sum() >= white_normals["valid"].sum() - 5
+    both = synthesis["valid"] & view_dependent["valid"]
+    assert both.sum() >= synthesis["valid"].sum() - 5
     assert models["view_dependent"]["heldout_normal_mean_deg"] == pytest.approx(
         models["white"]["heldout_normal_mean_deg"], abs=0.05)
     assert models["view_dependent"]["heldout_albedo_psnr_db"] != models["white"]["heldout_albedo_psnr_db"]
