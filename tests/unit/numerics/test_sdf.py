@@ -22,6 +22,8 @@ from stages.numerics.sdf import (
     _draw_rays,
     fit_to_signed_distance,
     render_view,
+    sharpness_for_pixels,
+    subject_pixel_m,
     train_sdf,
 )
 
@@ -317,6 +319,50 @@ def test_the_mass_before_the_window_takes_the_outward_bias_off_the_sphere(traine
     assert offset_mm["none"] > 2.0, offset_mm
     assert 0.0 < offset_mm["opacity"] < 2.0, offset_mm
     assert abs(offset_mm["opacity_and_normal"]) < 1.1, offset_mm
+
+
+def test_subject_pixel_m_is_the_median_depth_over_focal():
+    # Three cameras 2 m, 3 m and 4 m from the origin along -z, +x and +z (focal 1000 px): 2, 3 and 4 mm per pixel;
+    # one with the origin behind it does not count.
+    K = np.array([[1000.0, 0, 50], [0, 1000.0, 50], [0, 0, 1]])
+    cams = [(K, look_at(np.array([0.0, 0.0, -2.0]))), (K, look_at(np.array([3.0, 0.0, 0.0]))),
+            (K, look_at(np.array([0.0, 0.0, 4.0])))]
+    assert subject_pixel_m(cams, np.zeros(3)) == pytest.approx(0.003)
+    away = look_at(np.array([0.0, 0.0, 1.0]))
+    away[2] *= -1  # the depth row negated: the origin lies behind this camera
+    assert subject_pixel_m(cams + [(K, away)], np.zeros(3)) == pytest.approx(0.003)
+    # (0, 0, -1) is 1 m deep for the first camera and 3 m for the second (depth is along the optical axis).
+    assert subject_pixel_m(cams[:2], np.array([0.0, 0.0, -1.0])) == pytest.approx(0.002)
+    with pytest.raises(ValueError, match="behind every camera"):
+        subject_pixel_m([(K, away)], np.zeros(3))
+
+
+def test_sharpness_for_pixels_raises_only_the_final_sharpness_of_fine_pixels():
+    config = dataclasses.replace(SDF_PRESETS["cpu"], inv_s_start=50.0, inv_s_end=800.0, inv_s_end_per_pixel=4.0)
+    assert sharpness_for_pixels(config, 0.005) is config  # 4 / 5 mm = 800: not above the preset's
+    assert sharpness_for_pixels(config, 0.006) is config  # coarser pixels never soften it
+    fine = sharpness_for_pixels(config, 0.001)
+    assert fine.inv_s_end == pytest.approx(4000.0) and fine.inv_s_start == 50.0
+    sharp_start = dataclasses.replace(config, inv_s_start=800.0)
+    assert sharpness_for_pixels(sharp_start, 0.001).inv_s_start == pytest.approx(4000.0)
+    off = dataclasses.replace(config, inv_s_end_per_pixel=0.0)
+    assert sharpness_for_pixels(off, 1e-4) is off
+    with pytest.raises(ValueError, match="pixel_m"):
+        sharpness_for_pixels(config, 0.0)
+
+
+def test_training_reports_the_pixel_footprint_and_the_sharpness_it_used():
+    # sphere_views: 2 m away at a focal of ~46 px, ~4.3 cm per pixel; 1 transition width per pixel is inv_s 23,
+    # 20 per pixel is ~460, above the tiny preset's 150.
+    torch.set_num_threads(1)
+    views = sphere_views(n=4)
+    pixel_m = 2.0 / views[0].K[0, 0]
+    plain = train_sdf(views, TINY, bounds=BOUNDS)
+    assert plain.stats["subject_pixel_m"] == pytest.approx(pixel_m, rel=0.1)
+    assert plain.stats["inv_s_end"] == TINY.inv_s_end
+    raised = train_sdf(views, dataclasses.replace(TINY, inv_s_end_per_pixel=20.0), bounds=BOUNDS)
+    assert raised.stats["inv_s_end"] == pytest.approx(20.0 / plain.stats["subject_pixel_m"])
+    assert raised.history["inv_s"][-1] > 2 * TINY.inv_s_end
 
 
 def test_same_seed_same_weights_other_seed_differs():
