@@ -215,8 +215,9 @@ class SDFConfig(Documented):
     head: median -0.9 mm) and a sharper one moves out. Whole runs of the ICT head (1.1 mm pixels, 8 mm windows) at
     ``inv_s_end`` 800 / 1600 / 3200 / 6400: comparable Chamfer 0.88 / 0.61 / 0.36 / 0.23 mm, relit 22.8 / 24.1 /
     26.0 / 27.6 dB. The geometry stage alone on the default body: at 5 mm pixels 1.12 / 1.48 / 1.53 mm at 800 /
-    1600 / 3200, at 2.1 mm pixels (768 px wide) 0.96 / 1.00 mm at 800 / 1600. The cpu preset's 4 per pixel keeps
-    about 800 at 5 mm and gives the head about 3600."""
+    1600 / 3200, at 2.1 mm pixels (768 px wide) 0.96 / 1.00 mm at 800 / 1600; the unseen capture (4.2 mm pixels,
+    whole run) 1.23 mm at 800 and 1.46 mm at 961. The cpu preset's 3.2 per pixel leaves subjects seen at 4 mm per
+    pixel or coarser at 800 (every body of the panel and both captures) and gives the head about 2900."""
     coarse_to_fine: float = checked(0.5, ge=0.0, le=1.0)
     """Fraction of the steps over which the hash levels are switched on one by one (from
     ``initial_levels``), as Neuralangelo; 0 = all levels from the start."""
@@ -251,7 +252,7 @@ SDF_PRESETS: dict[str, SDFConfig] = {
                                 base_resolution=16, finest_resolution=512),
         hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
         hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5, weight_eikonal=0.05,
-        grazing_cos_min=0.05, outlier_fraction=0.02, inv_s_end_per_pixel=4.0,
+        grazing_cos_min=0.05, outlier_fraction=0.02, inv_s_end_per_pixel=3.2,
     ),
     # Full-resolution captures on a GPU.
     "production": SDFConfig(
