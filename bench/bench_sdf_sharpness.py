@@ -1,0 +1,237 @@
+"""SDF sharpness: the geometry stage's mesh against the final NeuS sharpness, with the masks the pipeline publishes
+and with oracle masks of the rays the SDF casts.
+
+The SDF casts one ray through each pixel's centre and trains its opacity on the pixel's mask. On one action of a
+simulated capture and its release (the views as the geometry stage loads them,
+:func:`stages.geometry.load_sdf_views` through the artifact facade), this bench runs the stage's own function
+(:func:`stages.numerics.sdf_mesh.sdf_mesh` with :class:`stages.geometry.GeometryConfig`: both passes, the published
+mesh) once per (masks, ``inv_s_end``):
+
+- masks ``pipeline``: the released masks (the photometric stage's);
+- masks ``centre``: an oracle, each view's mask replaced by the pixels whose centre ray meets the truth mesh (traced
+  with open3d from the view's calibrated camera) and the normals kept only there;
+- ``inv_s_end``: the final sharpness as given (``inv_s_end_per_pixel`` off), and a first row per mask kind with the
+  stage default as it is (the rule of :func:`stages.numerics.sdf.sharpness_for_pixels`; its ``inv_s_end`` the one
+  training used).
+
+Per row: Chamfer, F-score at 1 mm and normal consistency (``stages.numerics.meshmetrics.mesh_metrics``), the
+median signed offset of the prediction outside the truth per region of the truth
+(:func:`evaluation.mesh_regions.region_errors`: negative is inside) and the CPU seconds (one thread, as ``make
+dataset`` runs the stage). Per action: the pixel footprint at the subject (:func:`stages.numerics.sdf.subject_pixel_m`)
+and how much wider the released masks are than the centre rays' (area difference over the centre mask's outline,
+pixels, mean over the views). A row's Chamfer moves by about 0.1-0.2 mm with the SDF's seed: compare rows of one
+run, and several actions before reading a difference under that as real.
+
+``python bench/bench_sdf_sharpness.py --out bench/out [--capture C --release R] [--action A0000] [--inv-s
+800,1600,3200] [--masks pipeline,centre] [--workers 2] [--quick]``: defaults are runs/default (``make dataset``);
+without them it prints why and exits 0. ``--quick`` (the tests' mode): the tiny run of ``bench/_quick.py`` with the
+schedule and meshes of ``bench_sdf_schedule``'s quick mode and one sharpness value beside the default; the numbers are not
+measurements.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from _quick import QUICK_HELP, quick_run  # noqa: E402
+
+INV_S = (800.0, 1600.0, 3200.0)
+QUICK_INV_S = (300.0,)
+MASKS = ("pipeline", "centre")
+
+
+def geometry_config(inv_s_end: float | None, quick: bool):
+    """The stage default; with ``inv_s_end`` its SDF's final sharpness set to it (the pixel rule off). ``quick``:
+    ``bench_sdf_schedule``'s quick schedule (its step counts over 60, a coarser hull, small meshes)."""
+    from bench_sdf_schedule import quick_schedule_config, schedule_config
+    from stages.geometry import GeometryConfig
+
+    base = GeometryConfig()
+    first, second = base.first_pass_iterations or base.sdf.iterations, base.sdf.iterations
+    cfg = quick_schedule_config(first, second) if quick else schedule_config(first, second)
+    if quick:  # the test preset's sharpness range: a few dozen steps cannot reach the cpu preset's
+        cfg = dataclasses.replace(cfg, sdf=dataclasses.replace(cfg.sdf, inv_s_start=30.0, inv_s_end=150.0))
+    if inv_s_end is not None:
+        cfg = dataclasses.replace(cfg, sdf=dataclasses.replace(cfg.sdf, inv_s_end=float(inv_s_end),
+                                                                inv_s_end_per_pixel=0.0))
+    return cfg
+
+
+def centre_ray_masks(views: list, truth_v: np.ndarray, truth_f: np.ndarray) -> list[np.ndarray]:
+    """(H, W) bool per view: the pixels whose ray through the pixel centre (the SDF's ray) meets the truth mesh."""
+    import open3d as o3d
+
+    from artifacts.camera import camera_centre, pixel_rays
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(np.asarray(truth_v, np.float32), np.asarray(truth_f, np.uint32))
+    out = []
+    for view in views:
+        H, W = np.asarray(view.mask).shape
+        rows, cols = np.mgrid[0:H, 0:W]
+        dirs = pixel_rays(view.K, view.cam_from_world, cols.astype(np.float64), rows.astype(np.float64))[0]
+        origins = np.broadcast_to(camera_centre(view.cam_from_world), dirs.shape)
+        rays = np.concatenate([origins, dirs], axis=-1).reshape(-1, 6).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        out.append(np.isfinite(hit).reshape(H, W))
+    return out
+
+
+def mask_widening_px(masks: list[np.ndarray], reference: list[np.ndarray]) -> float:
+    """Mean over the views of how much wider ``masks`` are than ``reference``: area difference over the
+    reference's outline length (pixels on its inner boundary), in pixels."""
+    from scipy import ndimage
+
+    values = []
+    for mask, ref in zip(masks, reference):
+        outline = int((ref & ~ndimage.binary_erosion(ref)).sum())
+        if outline:
+            values.append((int(np.asarray(mask, bool).sum()) - int(ref.sum())) / outline)
+    return float(np.mean(values)) if values else float("nan")
+
+
+def _load(capture: Path, release: Path, action: str, quick: bool):
+    from bench_geometry import load_release_views
+
+    from pipeline.codecs.mesh import read_ply
+
+    views = load_release_views(release, action, geometry_config(None, quick))
+    truth_v, truth_f = read_ply(capture / "ground_truth" / action / "mesh.ply")
+    return views, truth_v, truth_f
+
+
+def run_row(args: tuple[str, str, str, str, float | None, bool]) -> dict:
+    """One (masks, inv_s_end) row: the stage's passes on the action's views, the mesh measured."""
+    os.environ.setdefault("ULTRASTAGE_NUMERIC_THREADS", "1")
+    import torch
+
+    from evaluation.mesh_regions import region_errors, truth_face_regions
+    from stages.numerics.meshmetrics import mesh_metrics
+    from stages.numerics.sdf_mesh import sdf_mesh
+
+    torch.set_num_threads(1)
+    capture, release, action, masks, inv_s_end, quick = args
+    capture, release = Path(capture), Path(release)
+    views, truth_v, truth_f = _load(capture, release, action, quick)
+    if masks == "centre":
+        views = [dataclasses.replace(v, mask=m, normal_valid=np.asarray(v.normal_valid, bool) & m)
+                 for v, m in zip(views, centre_ray_masks(views, truth_v, truth_f))]
+    cfg = geometry_config(inv_s_end, quick)
+    cpu = time.process_time()
+    fitted = sdf_mesh(views, cfg)
+    cpu = time.process_time() - cpu
+    metrics = mesh_metrics(fitted.vertices, fitted.faces, truth_v, truth_f)
+    truth = json.loads((capture / "ground_truth" / action / "truth.json").read_text())
+    garment = (truth.get("subject") or {}).get("garment") or {}
+    region, names = truth_face_regions(truth_v, truth_f, int(garment.get("triangles", 0)))
+    regions = region_errors(fitted.vertices, fitted.faces, truth_v, truth_f, region, names,
+                            20_000 if quick else 200_000)
+    return {"masks": masks, "inv_s_end_set": inv_s_end, "inv_s_end": float(fitted.result.stats["inv_s_end"]),
+            "subject_pixel_m": float(fitted.result.stats["subject_pixel_m"]), "cpu_s": cpu,
+            "chamfer_mm": float(metrics["chamfer_mm"]), "fscore_1mm": float(metrics["fscore_1mm"]),
+            "normal_consistency": float(metrics["normal_consistency"]),
+            "offset_median_mm": {name: float(r["offset_median_mm"]) for name, r in regions.items()}}
+
+
+def plot(path: Path, report: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    for masks, colour in zip(MASKS, ("tab:blue", "tab:orange")):
+        rows = sorted((r for r in report["rows"] if r["masks"] == masks), key=lambda r: r["inv_s_end"])
+        if rows:
+            ax.plot([r["inv_s_end"] for r in rows], [r["chamfer_mm"] for r in rows], "o-", color=colour,
+                    label=f"{masks} masks")
+            for r in rows:
+                if r["inv_s_end_set"] is None:
+                    ax.annotate("default", (r["inv_s_end"], r["chamfer_mm"]), textcoords="offset points",
+                                xytext=(4, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_xlabel("final NeuS sharpness inv_s_end (1/m)")
+    ax.set_ylabel("Chamfer (mm)")
+    ax.set_title(f"SDF sharpness ({report['action']}, {1000 * report['subject_pixel_m']:.2f} mm per pixel)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def markdown(report: dict) -> str:
+    regions = sorted({name for r in report["rows"] for name in r["offset_median_mm"]})
+    lines = [f"# SDF sharpness ({report['action']})" + (" - quick run, not measurements" if report["quick"] else ""),
+             "", f"Pixel footprint at the subject {1000 * report['subject_pixel_m']:.2f} mm; the released masks are "
+             f"{report['mask_widening_px']:+.3f} px wider than the pixel-centre rays' (mean over the views).", "",
+             "| masks | inv_s_end | CPU s | Chamfer mm | F@1mm | normal consistency | "
+             + " | ".join(f"offset {name} mm" for name in regions) + " |",
+             "|---|---|---|---|---|---|" + "---|" * len(regions)]
+    for r in report["rows"]:
+        setting = f"{r['inv_s_end']:.0f}" + (" (default)" if r["inv_s_end_set"] is None else "")
+        lines.append(f"| {r['masks']} | {setting} | {r['cpu_s']:.0f} | {r['chamfer_mm']:.3f} | "
+                     f"{100 * r['fscore_1mm']:.1f}% | {r['normal_consistency']:.4f} | "
+                     + " | ".join(f"{r['offset_median_mm'].get(name, float('nan')):+.2f}" for name in regions) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
+    parser.add_argument("--capture", help="default runs/default/capture; with --quick the tiny run's")
+    parser.add_argument("--release", help="default runs/default/release; with --quick the tiny run's")
+    parser.add_argument("--action", default="A0000")
+    parser.add_argument("--inv-s", help="final sharpness values, comma-separated (default 800,1600,3200)")
+    parser.add_argument("--masks", default=",".join(MASKS), help="pipeline, centre or both (comma-separated)")
+    parser.add_argument("--workers", type=int, default=2, help="rows measured side by side (one thread each)")
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+    args = parser.parse_args()
+    if args.capture is None or args.release is None:
+        run = quick_run(Path(args.out)) if args.quick else ROOT / "runs" / "default"
+        args.capture = args.capture or str(run / "capture")
+        args.release = args.release or str(run / "release")
+    capture, release = Path(args.capture), Path(args.release)
+    if not (capture / "ground_truth" / args.action / "mesh.ply").exists() or not release.is_dir():
+        print(f"bench_sdf_sharpness: needs {capture} with ground truth and {release} (make dataset first); skipped")
+        return 0
+    masks = [m.strip() for m in args.masks.split(",") if m.strip()]
+    unknown = sorted(set(masks) - set(MASKS))
+    if unknown:
+        parser.error(f"--masks: unknown {unknown}; choose from {list(MASKS)}")
+    values = [float(x) for x in args.inv_s.split(",")] if args.inv_s else list(QUICK_INV_S if args.quick else INV_S)
+    views, truth_v, truth_f = _load(capture, release, args.action, args.quick)
+    from stages.numerics.sdf import subject_pixel_m
+
+    centre = centre_ray_masks(views, truth_v, truth_f)
+    widening = mask_widening_px([np.asarray(v.mask, bool) for v in views], centre)
+    box = np.stack([truth_v.min(axis=0), truth_v.max(axis=0)])
+    pixel_m = subject_pixel_m([(v.K, v.cam_from_world) for v in views], box.mean(axis=0))
+    jobs = [(str(capture), str(release), args.action, m, value, args.quick) for m in masks
+            for value in [None] + values]
+    with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
+        rows = list(pool.map(run_row, jobs))
+    report = {"action": args.action, "quick": args.quick, "subject_pixel_m": pixel_m, "mask_widening_px": widening,
+              "rows": rows}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_sdf_sharpness.json").write_text(json.dumps(report, indent=1))
+    (out / "bench_sdf_sharpness.md").write_text(markdown(report))
+    plot(out / "bench_sdf_sharpness.png", report)
+    print(markdown(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
