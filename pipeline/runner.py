@@ -315,6 +315,12 @@ def _plan_and_execute(capture: Capture, stages: Sequence[Stage], store: Artifact
                     window=execution.scopes_in_flight)
         finally:
             executor.close()
+    # every task of the run has ended and the run lock keeps other runs out: a pointer file left half-written is
+    # a killed worker's (of this run or an earlier one)
+    swept = store.sweep_pointer_temps((task.stage.name, task.scope_id) for task in plan.tasks)
+    if swept:
+        echo(f"removed {len(swept)} half-written pointer file(s) a killed worker left: "
+             + ", ".join(str(p.relative_to(store.root)) for p in swept))
     for task in plan.tasks:  # cached results carry the stats they were committed with
         if task.status == "cached":
             task.stats = store.success_record(task.stage.name, task.scope_id, task.key).get("stats", {})

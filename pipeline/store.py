@@ -14,7 +14,7 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 SUCCESS = "_SUCCESS.json"
 FAILURE = "failed.json"
@@ -140,6 +140,23 @@ class ArtifactStore:
         latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
         os.replace(latest_tmp, folder / "latest.json")
         (folder / FAILURE).unlink(missing_ok=True)
+
+    def sweep_pointer_temps(self, scopes: Iterable[tuple[str, str]]) -> list[Path]:
+        """Remove the ``.latest.<pid>.tmp`` and ``.failed.<pid>.tmp`` files of the (stage, scope) folders and
+        return them: a writer killed between writing one and renaming it (:meth:`note_committed`,
+        :meth:`record_failure`) leaves it behind, and no later writer renames another process's. Call it only
+        when nothing writes to those folders (the run that holds the work folder's lock, after its tasks): a
+        live writer renames its own a moment after writing it."""
+        removed = []
+        for stage, scope_id in sorted(set(scopes)):
+            folder = self.root / stage / scope_id
+            for path in sorted(folder.glob(".latest.*.tmp")) + sorted(folder.glob(".failed.*.tmp")):
+                try:
+                    path.unlink()
+                except FileNotFoundError:
+                    continue
+                removed.append(path)
+        return removed
 
     def committed_by(self, stage: str, scope_id: str, key: str, attempt: str) -> dict[str, Any] | None:
         """The success record of this key if the execution ``attempt`` committed it, else None.

@@ -514,10 +514,16 @@ def test_accuracy_against_ground_truth(evaluated):
 
 def test_second_run_is_all_cached_and_config_change_reruns_photometric_and_downstream(first_run, capture):
     out, _ = first_run
+    # a worker killed between writing the pointer to its result and renaming it left this behind
+    half_written = out / "work" / "artifacts" / "decode" / "A0000" / ".latest.424242.tmp"
+    half_written.write_text("{}")
     again, lines = _run(capture, out)
     assert set(_status(again).values()) == {"cached"}
     assert again.executor.startswith("none")
     assert any("release      A0000    cached" in line for line in lines)
+    assert not half_written.exists()
+    assert any("removed 1 half-written pointer file(s)" in line and "decode/A0000/.latest.424242.tmp" in line
+               for line in lines), lines
     import dataclasses
 
     from stages.numerics.photometric import PhotometricParams

@@ -42,3 +42,24 @@ def test_store_commit_is_all_or_nothing(tmp_path):
     assert store.is_complete("decode", "A0000", key) and (final / "out.txt").read_text() == "done"
     assert store.latest_record("decode", "A0000")["key"] == key
     assert not tmp.exists()
+
+
+def test_sweep_pointer_temps_removes_what_a_killed_writer_left_and_nothing_else(tmp_path):
+    store = ArtifactStore(tmp_path)
+    key = "cd" * 32
+    store.begin("decode", "A0000", key)
+    store.commit("decode", "A0000", key, {"r": 1}, {}, 0.1)
+    folder = tmp_path / "decode" / "A0000"
+    # a worker killed between writing its pointer and renaming it into place
+    stale = [folder / ".latest.424242.tmp", folder / ".failed.424242.tmp"]
+    for path in stale:
+        path.write_text("{}")
+    other = tmp_path / "decode" / "A0001"
+    other.mkdir()
+    (other / ".latest.7.tmp").write_text("{}")
+    removed = store.sweep_pointer_temps([("decode", "A0000"), ("decode", "A0000"), ("photometric", "A0000")])
+    assert removed == stale
+    assert not any(p.exists() for p in stale)
+    assert (other / ".latest.7.tmp").exists()  # a scope not named is left alone
+    assert store.latest_record("decode", "A0000")["key"] == key and store.is_complete("decode", "A0000", key)
+    assert store.sweep_pointer_temps([("decode", "A0000")]) == []
