@@ -18,6 +18,13 @@ from typing import Any, Iterable
 
 SUCCESS = "_SUCCESS.json"
 FAILURE = "failed.json"
+_POINTERS = ("latest", "failed")
+"""The pointer files of a (stage, scope) folder (``<name>.json``), each written as :func:`_pointer_tmp` then renamed."""
+
+
+def _pointer_tmp(folder: Path, name: str) -> Path:
+    """This process's temporary file for the pointer ``name`` (of :data:`_POINTERS`) in ``folder``."""
+    return folder / f".{name}.{os.getpid()}.tmp"
 
 
 def short(key: str) -> str:
@@ -136,26 +143,27 @@ class ArtifactStore:
     def note_committed(self, stage: str, scope_id: str, key: str, record: dict[str, Any]) -> None:
         """``latest.json`` names this key, and its last failure is forgotten (idempotent: the tail of a commit)."""
         folder = self.root / stage / scope_id
-        latest_tmp = folder / f".latest.{os.getpid()}.tmp"
+        latest_tmp = _pointer_tmp(folder, "latest")
         latest_tmp.write_text(json.dumps({"key": key, "record": record}, sort_keys=True))
         os.replace(latest_tmp, folder / "latest.json")
         (folder / FAILURE).unlink(missing_ok=True)
 
     def sweep_pointer_temps(self, scopes: Iterable[tuple[str, str]]) -> list[Path]:
-        """Remove the ``.latest.<pid>.tmp`` and ``.failed.<pid>.tmp`` files of the (stage, scope) folders and
-        return them: a writer killed between writing one and renaming it (:meth:`note_committed`,
-        :meth:`record_failure`) leaves it behind, and no later writer renames another process's. Call it only
-        when nothing writes to those folders (the run that holds the work folder's lock, after its tasks): a
-        live writer renames its own a moment after writing it."""
+        """Remove the temporary files of the pointers (:func:`_pointer_tmp`: ``.latest.<pid>.tmp``,
+        ``.failed.<pid>.tmp``) in the (stage, scope) folders and return them: a writer killed between writing one
+        and renaming it (:meth:`note_committed`, :meth:`record_failure`) leaves it behind, and no later writer
+        renames another process's. Call it only when nothing writes to those folders (the run that holds the work
+        folder's lock, after its tasks): a live writer renames its own a moment after writing it."""
         removed = []
         for stage, scope_id in sorted(set(scopes)):
             folder = self.root / stage / scope_id
-            for path in sorted(folder.glob(".latest.*.tmp")) + sorted(folder.glob(".failed.*.tmp")):
-                try:
-                    path.unlink()
-                except FileNotFoundError:
-                    continue
-                removed.append(path)
+            for name in _POINTERS:
+                for path in sorted(folder.glob(f".{name}.*.tmp")):
+                    try:
+                        path.unlink()
+                    except FileNotFoundError:
+                        continue
+                    removed.append(path)
         return removed
 
     def committed_by(self, stage: str, scope_id: str, key: str, attempt: str) -> dict[str, Any] | None:
@@ -173,7 +181,7 @@ class ArtifactStore:
     def record_failure(self, stage: str, scope_id: str, key: str, error: str) -> None:
         """Remember that this key's last run failed, and why (replaced by the next failure, removed by a commit)."""
         folder = self.root / stage / scope_id
-        tmp = folder / f".failed.{os.getpid()}.tmp"
+        tmp = _pointer_tmp(folder, "failed")
         try:
             folder.mkdir(parents=True, exist_ok=True)
             tmp.write_text(json.dumps({"key": key, "error": error, "failed_at": time.time()}, sort_keys=True))
