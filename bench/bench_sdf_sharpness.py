@@ -16,17 +16,18 @@ mesh) once per (masks, ``inv_s_end``):
 
 Per row: Chamfer, F-score at 1 mm and normal consistency (``stages.numerics.meshmetrics.mesh_metrics``), the
 median signed offset of the prediction outside the truth per region of the truth
-(:func:`evaluation.mesh_regions.region_errors`: negative is inside) and the CPU seconds (one thread, as ``make
-dataset`` runs the stage). Per action: the pixel footprint at the subject (:func:`stages.numerics.sdf.subject_pixel_m`)
-and how much wider the released masks are than the centre rays' (area difference over the centre mask's outline,
-pixels, mean over the views). A row's Chamfer moves by about 0.1-0.2 mm with the SDF's seed: compare rows of one
-run, and several actions before reading a difference under that as real.
+(:func:`evaluation.mesh_regions.region_errors`: negative is inside), the CPU seconds (one thread, as ``make
+dataset`` runs the stage) and the pixel footprint at the subject the training measured
+(:func:`stages.numerics.sdf.subject_pixel_m`). Per action: how much wider the released masks are than the centre
+rays' (area difference over the centre mask's outline, pixels, mean over the views). A row's Chamfer moves by
+about 0.1-0.2 mm with the SDF's seed: compare rows of one run, and several actions before reading a difference
+under that as real.
 
 ``python bench/bench_sdf_sharpness.py --out bench/out [--capture C --release R] [--action A0000] [--inv-s
 800,1600,3200] [--masks pipeline,centre] [--workers 2] [--quick]``: defaults are runs/default (``make dataset``);
 without them it prints why and exits 0. ``--quick`` (the tests' mode): the tiny run of ``bench/_quick.py`` with the
-schedule and meshes of ``bench_sdf_schedule``'s quick mode and one sharpness value beside the default; the numbers are not
-measurements.
+schedule and meshes of ``bench_sdf_schedule``'s quick mode and one sharpness value beside the default; the numbers
+are not measurements.
 """
 from __future__ import annotations
 
@@ -212,18 +213,15 @@ def main() -> int:
         parser.error(f"--masks: unknown {unknown}; choose from {list(MASKS)}")
     values = [float(x) for x in args.inv_s.split(",")] if args.inv_s else list(QUICK_INV_S if args.quick else INV_S)
     views, truth_v, truth_f = _load(capture, release, args.action, args.quick)
-    from stages.numerics.sdf import subject_pixel_m
-
     centre = centre_ray_masks(views, truth_v, truth_f)
     widening = mask_widening_px([np.asarray(v.mask, bool) for v in views], centre)
-    box = np.stack([truth_v.min(axis=0), truth_v.max(axis=0)])
-    pixel_m = subject_pixel_m([(v.K, v.cam_from_world) for v in views], box.mean(axis=0))
     jobs = [(str(capture), str(release), args.action, m, value, args.quick) for m in masks
             for value in [None] + values]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         rows = list(pool.map(run_row, jobs))
-    report = {"action": args.action, "quick": args.quick, "subject_pixel_m": pixel_m, "mask_widening_px": widening,
-              "rows": rows}
+    # the footprint the first row's training measured (the same views for every row of a mask kind)
+    report = {"action": args.action, "quick": args.quick, "subject_pixel_m": rows[0]["subject_pixel_m"],
+              "mask_widening_px": widening, "rows": rows}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_sdf_sharpness.json").write_text(json.dumps(report, indent=1))
