@@ -68,8 +68,11 @@ from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN  # noqa: E402
 
 COMPONENTS = ("geometry", "albedo", "material", "visibility", "lighting", "reprojection", "tone")
 """The components swapped for the simulator's truth, in the order of the cumulative rows."""
-EXTRA_ROWS = {"lighting: SG lobes integrated exactly": frozenset({"lighting_sg"})}
-"""Rows beyond one component at a time: label -> swaps (``lighting_sg``: the lobes' own map integrated exactly)."""
+EXTRA_ROWS = {"lighting: SG lobes integrated exactly": frozenset({"lighting_sg"}),
+              "geometry: shading normals only": frozenset({"normals"})}
+"""Rows beyond one component at a time: label -> swaps (``lighting_sg``: the lobes' own map integrated exactly;
+``normals``: the stage's G-buffer with only its shading normals replaced by the truth render's, on the pixels both
+silhouettes hold; its depth, outline, visibility and maps kept: the share of ``geometry`` the normals are)."""
 
 
 SHADING_OVERRIDES: dict[str, Any] = {}
@@ -444,6 +447,12 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
         gb = gbuffer(swaps)
         pix = gb["pix"]
         normals = gb[f"normal_{shading.normals}"].reshape(-1, 3)[pix]
+        if "normals" in swaps:
+            true_normals = np.asarray(true0["normals_world"], np.float64).reshape(-1, 3)[pix]
+            length = np.linalg.norm(true_normals, axis=1, keepdims=True)
+            inside = np.asarray(true0["mask"], bool).reshape(-1)[pix] & (length[:, 0] > 1e-6)
+            normals = np.where(inside[:, None], true_normals / np.maximum(length, 1e-12), normals).astype(np.float32)
+            gb = dict(gb, **{f"normal_{shading.normals}": scatter_pixels(pix, normals, h, w)})
         albedo = None
         if "albedo" in swaps or "reprojection" in swaps:  # the true diffuse albedo: shaded as is
             albedo = np.clip(gb["albedo"].reshape(-1, 3)[pix], 0.0, 1.0)

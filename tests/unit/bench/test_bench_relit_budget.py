@@ -64,6 +64,7 @@ def test_simulator_f0_is_skin_at_skin_roughness_and_cloth_elsewhere(budget):
 def test_budget_rows_swap_one_component_then_accumulate(budget):
     rows = budget.budget_rows()
     assert rows["only albedo"] == {"albedo"}
+    assert rows["geometry: shading normals only"] == {"normals"}
     assert rows[f"+ {budget.COMPONENTS[-1]}"] == set(budget.COMPONENTS)
     cumulative = [rows[f"+ {c}"] for c in budget.COMPONENTS]
     assert all(a < b for a, b in zip(cumulative, cumulative[1:]))
