@@ -10,11 +10,15 @@ mesh) once per (masks, ``inv_s_end``):
 - masks ``pipeline``: the released masks (the photometric stage's);
 - masks ``centre``: an oracle, each view's mask replaced by the pixels whose centre ray meets the truth mesh (traced
   with open3d from the view's calibrated camera) and the normals kept only there;
+- masks ``recomputed``: the photometric stage's :func:`stages.numerics.photometric.foreground_mask` run again on
+  the action's decoded white images and the session's clean plates (from the run's store, ``<release>.work``) with
+  the run's photometric parameters (its ``config.yaml``) and ``--mask-params`` changed (:class:`stages.numerics.photometric.PhotometricParams` fields, e.g.
+  ``close_radius=0,majority_radius=0``), the normals kept only there;
 - ``inv_s_end``: the final sharpness as given (``inv_s_end_per_pixel`` off), and a first row per mask kind with the
   stage default as it is (the rule of :func:`stages.numerics.sdf.sharpness_for_pixels`; its ``inv_s_end`` the one
   training used).
 
-Per row: Chamfer, F-score at 1 mm and normal consistency (``stages.numerics.meshmetrics.mesh_metrics``), the
+With ``--seeds`` every row is run once per SDF seed (``SDFConfig.seed``). Per row: Chamfer, F-score at 1 mm and normal consistency (``stages.numerics.meshmetrics.mesh_metrics``), the
 median signed offset of the prediction outside the truth per region of the truth
 (:func:`evaluation.mesh_regions.region_errors`: negative is inside), the CPU seconds (one thread, as ``make
 dataset`` runs the stage) and the pixel footprint at the subject the training measured
@@ -24,10 +28,11 @@ about 0.1-0.2 mm with the SDF's seed: compare rows of one run, and several actio
 under that as real.
 
 ``python bench/bench_sdf_sharpness.py --out bench/out [--capture C --release R] [--action A0000] [--inv-s
-800,1600,3200] [--masks pipeline,centre] [--workers 2] [--quick]``: defaults are runs/default (``make dataset``);
+800,1600,3200] [--masks pipeline,centre,recomputed] [--mask-params k=v,...] [--seeds 0,1] [--workers 2]
+[--quick]``: defaults are runs/default (``make dataset``);
 without them it prints why and exits 0. ``--quick`` (the tests' mode): the tiny run of ``bench/_quick.py`` with the
-schedule and meshes of ``bench_sdf_schedule``'s quick mode and one sharpness value beside the default; the numbers
-are not measurements.
+schedule and meshes of ``bench_sdf_schedule``'s quick mode, one sharpness value beside the default and all three mask
+kinds; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -50,7 +55,7 @@ from _quick import QUICK_HELP, quick_run  # noqa: E402
 
 INV_S = (800.0, 1600.0, 3200.0)
 QUICK_INV_S = (300.0,)
-MASKS = ("pipeline", "centre")
+MASKS = ("pipeline", "centre", "recomputed")
 
 
 def geometry_config(inv_s_end: float | None, quick: bool):
@@ -113,8 +118,60 @@ def _load(capture: Path, release: Path, action: str, quick: bool):
     return views, truth_v, truth_f
 
 
-def run_row(args: tuple[str, str, str, str, float | None, bool]) -> dict:
-    """One (masks, inv_s_end) row: the stage's passes on the action's views, the mesh measured."""
+def parse_mask_params(text: str) -> dict:
+    """``"name=value,..."`` -> PhotometricParams changes (values parsed as JSON, else kept as strings); unknown
+    fields are refused."""
+    from stages.numerics.photometric import PhotometricParams
+
+    fields = {f.name for f in dataclasses.fields(PhotometricParams)}
+    changes = {}
+    for item in (x.strip() for x in text.split(",") if x.strip()):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in fields:
+            raise ValueError(f"--mask-params: {item!r} is not name=value with a PhotometricParams field")
+        try:
+            changes[name] = json.loads(value)
+        except json.JSONDecodeError:
+            changes[name] = value.strip()
+    dataclasses.replace(PhotometricParams(), **changes)  # checks the values
+    return changes
+
+
+def recomputed_masks(release: Path, action: str, views: list, mask_params: dict) -> list[np.ndarray]:
+    """(H, W) bool per view: the photometric stage's foreground mask of the view's decoded white image against its
+    clean plate (the run's store beside ``release``), with ``mask_params`` changed."""
+    from bench_sdf_schedule import latest_artifact
+
+    from artifacts.facade import ActionArtifacts
+    from stages.geometry import load_sdf_views
+    from stages.numerics.photometric import PhotometricParams, foreground_mask
+
+    work = release.with_name(release.name + ".work")
+    import pyarrow.parquet as pq
+
+    actions = pq.read_table(release / "manifests" / "actions.parquet", columns=["action_id", "session_id"]).to_pylist()
+    sessions = [row["session_id"] for row in actions if row["action_id"] == action]
+    if not sessions:
+        raise ValueError(f"{action} is not in {release}'s actions manifest")
+    session = sessions[0]
+    art = ActionArtifacts({"decode": latest_artifact(work, "decode", action),
+                           "photometric": latest_artifact(work, "photometric", action),
+                           "plates": latest_artifact(work, "plates", session)})
+    ids, stored = load_sdf_views(art, 0.5)
+    if len(ids) != len(views) or any(not np.array_equal(a.K, b.K) for a, b in zip(stored, views)):
+        raise ValueError(f"the store under {work} does not hold the release's views of {action}")
+    import yaml
+
+    # the run's own photometric parameters (release/config.yaml), then the changes
+    stored = ((yaml.safe_load((release / "config.yaml").read_text()) or {}).get("photometric") or {}).get("params") or {}
+    fields = {f.name for f in dataclasses.fields(PhotometricParams)}
+    params = PhotometricParams(**{**{k: v for k, v in stored.items() if k in fields}, **mask_params})
+    return [foreground_mask(art.exr("full_on", camera=cam)[..., :3], art.plate(cam), params) for cam in ids]
+
+
+def run_row(args: tuple) -> dict:
+    """One (masks, inv_s_end, seed) row: the stage's passes on the action's views, the mesh measured."""
     os.environ.setdefault("ULTRASTAGE_NUMERIC_THREADS", "1")
     import torch
 
@@ -123,13 +180,16 @@ def run_row(args: tuple[str, str, str, str, float | None, bool]) -> dict:
     from stages.numerics.sdf_mesh import sdf_mesh
 
     torch.set_num_threads(1)
-    capture, release, action, masks, inv_s_end, quick = args
+    capture, release, action, masks, inv_s_end, quick, seed, mask_params = args
     capture, release = Path(capture), Path(release)
     views, truth_v, truth_f = _load(capture, release, action, quick)
-    if masks == "centre":
+    if masks in ("centre", "recomputed"):
+        replaced = (centre_ray_masks(views, truth_v, truth_f) if masks == "centre"
+                    else recomputed_masks(release, action, views, mask_params))
         views = [dataclasses.replace(v, mask=m, normal_valid=np.asarray(v.normal_valid, bool) & m)
-                 for v, m in zip(views, centre_ray_masks(views, truth_v, truth_f))]
+                 for v, m in zip(views, replaced)]
     cfg = geometry_config(inv_s_end, quick)
+    cfg = dataclasses.replace(cfg, sdf=dataclasses.replace(cfg.sdf, seed=int(seed)))
     cpu = time.process_time()
     fitted = sdf_mesh(views, cfg)
     cpu = time.process_time() - cpu
@@ -139,7 +199,8 @@ def run_row(args: tuple[str, str, str, str, float | None, bool]) -> dict:
     region, names = truth_face_regions(truth_v, truth_f, int(garment.get("triangles", 0)))
     regions = region_errors(fitted.vertices, fitted.faces, truth_v, truth_f, region, names,
                             20_000 if quick else 200_000)
-    return {"masks": masks, "inv_s_end_set": inv_s_end, "inv_s_end": float(fitted.result.stats["inv_s_end"]),
+    return {"masks": masks, "seed": int(seed), "inv_s_end_set": inv_s_end,
+            "inv_s_end": float(fitted.result.stats["inv_s_end"]),
             "subject_pixel_m": float(fitted.result.stats["subject_pixel_m"]), "cpu_s": cpu,
             "chamfer_mm": float(metrics["chamfer_mm"]), "fscore_1mm": float(metrics["fscore_1mm"]),
             "normal_consistency": float(metrics["normal_consistency"]),
@@ -153,8 +214,9 @@ def plot(path: Path, report: dict) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
-    for masks, colour in zip(MASKS, ("tab:blue", "tab:orange")):
-        rows = sorted((r for r in report["rows"] if r["masks"] == masks), key=lambda r: r["inv_s_end"])
+    for masks, colour in zip(MASKS, ("tab:blue", "tab:orange", "tab:green")):
+        rows = sorted((r for r in report["rows"] if r["masks"] == masks and r.get("seed", 0) == report["seeds"][0]),
+                      key=lambda r: r["inv_s_end"])
         if rows:
             ax.plot([r["inv_s_end"] for r in rows], [r["chamfer_mm"] for r in rows], "o-", color=colour,
                     label=f"{masks} masks")
@@ -176,13 +238,16 @@ def markdown(report: dict) -> str:
     regions = sorted({name for r in report["rows"] for name in r["offset_median_mm"]})
     lines = [f"# SDF sharpness ({report['action']})" + (" - quick run, not measurements" if report["quick"] else ""),
              "", f"Pixel footprint at the subject {1000 * report['subject_pixel_m']:.2f} mm; the released masks are "
-             f"{report['mask_widening_px']:+.3f} px wider than the pixel-centre rays' (mean over the views).", "",
-             "| masks | inv_s_end | CPU s | Chamfer mm | F@1mm | normal consistency | "
+             f"{report['mask_widening_px']:+.3f} px wider than the pixel-centre rays' (mean over the views)"
+             + (f"; the recomputed masks ({report['mask_params'] or 'the run parameters'}) "
+                f"{report['recomputed_widening_px']:+.3f} px" if report.get("recomputed_widening_px") is not None
+                else "") + ".", "",
+             "| masks | seed | inv_s_end | CPU s | Chamfer mm | F@1mm | normal consistency | "
              + " | ".join(f"offset {name} mm" for name in regions) + " |",
-             "|---|---|---|---|---|---|" + "---|" * len(regions)]
+             "|---|---|---|---|---|---|---|" + "---|" * len(regions)]
     for r in report["rows"]:
         setting = f"{r['inv_s_end']:.0f}" + (" (default)" if r["inv_s_end_set"] is None else "")
-        lines.append(f"| {r['masks']} | {setting} | {r['cpu_s']:.0f} | {r['chamfer_mm']:.3f} | "
+        lines.append(f"| {r['masks']} | {r.get('seed', 0)} | {setting} | {r['cpu_s']:.0f} | {r['chamfer_mm']:.3f} | "
                      f"{100 * r['fscore_1mm']:.1f}% | {r['normal_consistency']:.4f} | "
                      + " | ".join(f"{r['offset_median_mm'].get(name, float('nan')):+.2f}" for name in regions) + " |")
     return "\n".join(lines) + "\n"
@@ -195,7 +260,11 @@ def main() -> int:
     parser.add_argument("--release", help="default runs/default/release; with --quick the tiny run's")
     parser.add_argument("--action", default="A0000")
     parser.add_argument("--inv-s", help="final sharpness values, comma-separated (default 800,1600,3200)")
-    parser.add_argument("--masks", default=",".join(MASKS), help="pipeline, centre or both (comma-separated)")
+    parser.add_argument("--masks", help="pipeline, centre, recomputed (comma-separated; default pipeline,centre; "
+                                         "with --quick all three)")
+    parser.add_argument("--mask-params", default="",
+                        help="PhotometricParams changes of the recomputed masks, name=value,...")
+    parser.add_argument("--seeds", default="0", help="SDF seeds, comma-separated (default 0)")
     parser.add_argument("--workers", type=int, default=2, help="rows measured side by side (one thread each)")
     parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
     args = parser.parse_args()
@@ -207,21 +276,32 @@ def main() -> int:
     if not (capture / "ground_truth" / args.action / "mesh.ply").exists() or not release.is_dir():
         print(f"bench_sdf_sharpness: needs {capture} with ground truth and {release} (make dataset first); skipped")
         return 0
-    masks = [m.strip() for m in args.masks.split(",") if m.strip()]
+    masks = [m.strip() for m in (args.masks or ("pipeline,centre,recomputed" if args.quick else "pipeline,centre"))
+             .split(",") if m.strip()]
     unknown = sorted(set(masks) - set(MASKS))
     if unknown:
         parser.error(f"--masks: unknown {unknown}; choose from {list(MASKS)}")
+    try:
+        mask_params = parse_mask_params(args.mask_params)
+        seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+    except (ValueError, TypeError) as exc:
+        parser.error(str(exc))
+    if not seeds:
+        parser.error("--seeds: at least one seed")
     values = [float(x) for x in args.inv_s.split(",")] if args.inv_s else list(QUICK_INV_S if args.quick else INV_S)
     views, truth_v, truth_f = _load(capture, release, args.action, args.quick)
     centre = centre_ray_masks(views, truth_v, truth_f)
     widening = mask_widening_px([np.asarray(v.mask, bool) for v in views], centre)
-    jobs = [(str(capture), str(release), args.action, m, value, args.quick) for m in masks
-            for value in [None] + values]
+    recomputed = (mask_widening_px(recomputed_masks(release, args.action, views, mask_params), centre)
+                  if "recomputed" in masks else None)
+    jobs = [(str(capture), str(release), args.action, m, value, args.quick, seed, mask_params)
+            for seed in seeds for m in masks for value in [None] + values]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         rows = list(pool.map(run_row, jobs))
     # the footprint the first row's training measured (the same views for every row of a mask kind)
     report = {"action": args.action, "quick": args.quick, "subject_pixel_m": rows[0]["subject_pixel_m"],
-              "mask_widening_px": widening, "rows": rows}
+              "mask_widening_px": widening, "mask_params": args.mask_params, "recomputed_widening_px": recomputed,
+              "seeds": seeds, "rows": rows}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_sdf_sharpness.json").write_text(json.dumps(report, indent=1))

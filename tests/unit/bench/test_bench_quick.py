@@ -103,6 +103,21 @@ def test_hashgrid_quick_mode_kernel_rows_agree_with_the_torch_path(quick_run):
 
 
 @pytest.mark.slow
+def test_sdf_sharpness_quick_mode_recomputed_masks_reproduce_the_released_ones(quick_run):
+    """The ``recomputed`` masks, the photometric stage's mask run again with the run's own parameters and no change,
+    are the released masks: the same widening and, row for row, the same mesh as the ``pipeline`` rows."""
+    out, proc = quick_run
+    report = json.loads((out / "bench_sdf_sharpness.json").read_text())
+    assert report["quick"] is True and report["seeds"] == [0] and report["mask_params"] == ""
+    assert report["recomputed_widening_px"] == report["mask_widening_px"]
+    by_kind = {kind: sorted(((r["inv_s_end"], r["chamfer_mm"]) for r in report["rows"] if r["masks"] == kind))
+               for kind in ("pipeline", "centre", "recomputed")}
+    assert len(by_kind["pipeline"]) == 2 and len(by_kind["centre"]) == 2
+    assert by_kind["recomputed"] == by_kind["pipeline"]
+    assert by_kind["centre"] != by_kind["pipeline"]
+
+
+@pytest.mark.slow
 def test_scale_quick_mode_writes_finite_positive_per_task_figures(quick_run):
     """Two tiny captures through the real engine with stub stages: the report's structure, and per-task figures
     that are finite and positive (no timings are asserted)."""
