@@ -193,7 +193,8 @@ class ActionScene:
         gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
                                 depth_tolerance_m=CONFIG.shading.depth_tolerance_m,
                                 normal_fusion_m=CONFIG.shading.normal_fusion_m,
-                                rim_normal_px=CONFIG.shading.rim_normal_px)
+                                rim_normal_px=CONFIG.shading.rim_normal_px,
+                                mesh_normal_weight=CONFIG.shading.mesh_normal_weight)
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
             cam["K"], cam["cam_from_world"], h, w, CONFIG.shading.coverage_samples, self.asset.scene,
             centre_hit=gb["hit"]))
@@ -201,13 +202,14 @@ class ActionScene:
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
             self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
             depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m,
-            rim_normal_px=CONFIG.shading.rim_normal_px)
+            rim_normal_px=CONFIG.shading.rim_normal_px, mesh_normal_weight=CONFIG.shading.mesh_normal_weight)
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
         for width in FUSION_WIDTHS_M:  # as the stage's fused normals, rim fade included: only the split differs
             full[f"fused_{width:g}"] = shading_normals(
                 gb["normal_reprojected"], gb["normal_mesh"], gb["mask"],
-                gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m, CONFIG.shading.rim_normal_px)
+                gb["normal_fusion_px"] * width / CONFIG.shading.normal_fusion_m, CONFIG.shading.rim_normal_px,
+                CONFIG.shading.mesh_normal_weight)
         return {"mask": gb["mask"], "alpha": alpha, "edge_mask": edge_mask, "pix": pix, "points": gb["points"],
                 "view_dirs": gb["view_dirs"], "shape": (h, w),
                 "stage_seconds": stage_seconds,

@@ -398,7 +398,7 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
             else:
                 gb = timed("gbuffer", novel_view_gbuffer, ab.assets[key[:2]], K, pose, h, w, sources=shading.sources,
                            depth_tolerance_m=shading.depth_tolerance_m, normal_fusion_m=shading.normal_fusion_m,
-                           rim_normal_px=shading.rim_normal_px)
+                           rim_normal_px=shading.rim_normal_px, mesh_normal_weight=shading.mesh_normal_weight)
             gbuffers[key] = gb
         return gbuffers[key]
 

@@ -531,13 +531,15 @@ def fuse_normals(normal_detail: np.ndarray, normal_base: np.ndarray, mask: np.nd
     return np.where(mask[..., None], out, 0.0).astype(np.float32)
 
 
-def fade_rim_normals(normals: np.ndarray, normal_base: np.ndarray, mask: np.ndarray, rim_px: float) -> np.ndarray:
+def fade_rim_normals(normals: np.ndarray, normal_base: np.ndarray, mask: np.ndarray, rim_px: float,
+                     interior_weight: float = 0.0) -> np.ndarray:
     """Normals faded to ``normal_base`` over a rim of ``rim_px`` pixels inside the silhouette of ``mask``.
 
     Each mask pixel at distance ``d`` from the nearest pixel outside the mask (:func:`scipy.ndimage.
     distance_transform_edt`: 1 on the mask's outer ring; the image border is not a silhouette) takes
-    ``unit((1 - w) n + w b)`` with ``w = clip((rim_px + 1 - d) / rim_px, 0, 1)``: the base normal on the outer
-    ring, ``normals`` from ``rim_px + 1`` pixels in. A novel view's rim is seen at grazing angles by the nearby
+    ``unit((1 - w) n + w b)`` with ``w = max(clip((rim_px + 1 - d) / rim_px, 0, 1), interior_weight)``: the base
+    normal on the outer ring, ``normals`` blended with ``interior_weight`` of the base from ``rim_px + 1`` pixels
+    in. A novel view's rim is seen at grazing angles by the nearby
     captured views too, where their photometric normals are worst (default capture, A0000: 19.7 deg off the
     truth on their outer valid ring, 7.8 deg on the next, 3.6 deg from 8 px in), so there the mesh's
     normals are the better estimate.
@@ -546,7 +548,9 @@ def fade_rim_normals(normals: np.ndarray, normal_base: np.ndarray, mask: np.ndar
         normals: (H, W, 3) unit normals (e.g. :func:`fuse_normals`'s).
         normal_base: (H, W, 3) unit normals the rim fades to (e.g. the mesh's smooth normals).
         mask: (H, W) bool, the silhouette.
-        rim_px: >= 0, the rim's width in pixels (0: ``normals`` unchanged).
+        rim_px: >= 0, the rim's width in pixels (0: no rim).
+        interior_weight: in [0, 1], the base's share everywhere on the mask (0: ``normals`` unchanged inside the
+            rim).
 
     Returns:
         (H, W, 3) float32, unit inside the mask where either input is defined (``normals`` where the blend
@@ -563,9 +567,13 @@ def fade_rim_normals(normals: np.ndarray, normal_base: np.ndarray, mask: np.ndar
         raise ValueError(f"normal_base {b.shape} and mask {mask.shape} must match normals {n.shape}")
     if not (np.isfinite(rim_px) and rim_px >= 0):
         raise ValueError(f"rim_px must be finite and >= 0, got {rim_px}")
-    if rim_px == 0 or not mask.any():
+    if not (np.isfinite(interior_weight) and 0.0 <= interior_weight <= 1.0):
+        raise ValueError(f"interior_weight must be in [0, 1], got {interior_weight}")
+    if (rim_px == 0 and interior_weight == 0) or not mask.any():
         return np.where(mask[..., None], n, 0.0).astype(np.float32)
-    weight = np.clip((rim_px + 1.0 - distance_transform_edt(mask)) / rim_px, 0.0, 1.0)
+    weight = np.full(mask.shape, float(interior_weight))
+    if rim_px > 0:
+        weight = np.maximum(np.clip((rim_px + 1.0 - distance_transform_edt(mask)) / rim_px, 0.0, 1.0), weight)
     weight = np.where(np.linalg.norm(b, axis=-1) > 1e-6, weight, 0.0)[..., None]
     blend = (1.0 - weight) * n + weight * b
     norm = np.linalg.norm(blend, axis=-1, keepdims=True)
@@ -574,12 +582,13 @@ def fade_rim_normals(normals: np.ndarray, normal_base: np.ndarray, mask: np.ndar
 
 
 def shading_normals(normal_detail: np.ndarray, normal_base: np.ndarray, mask: np.ndarray, sigma_px: float,
-                    rim_px: float) -> np.ndarray:
+                    rim_px: float, base_weight: float = 0.0) -> np.ndarray:
     """A novel view's shading normals: :func:`fuse_normals` (``normal_detail``'s detail above ``sigma_px`` on
     ``normal_base``'s low frequencies), then :func:`fade_rim_normals` to ``normal_base`` over the silhouette's
-    ``rim_px`` pixels. Shapes and checks as those two: (H, W, 3) unit normals and an (H, W) bool mask in,
-    (H, W, 3) float32 out, unit inside the mask, 0 outside."""
-    return fade_rim_normals(fuse_normals(normal_detail, normal_base, mask, sigma_px), normal_base, mask, rim_px)
+    ``rim_px`` pixels and by ``base_weight`` inside them. Shapes and checks as those two: (H, W, 3) unit normals
+    and an (H, W) bool mask in, (H, W, 3) float32 out, unit inside the mask, 0 outside."""
+    return fade_rim_normals(fuse_normals(normal_detail, normal_base, mask, sigma_px), normal_base, mask, rim_px,
+                            base_weight)
 
 
 def interpolate_camera(K_a: np.ndarray, cam_from_world_a: np.ndarray, K_b: np.ndarray,

@@ -438,6 +438,28 @@ def test_fade_rim_normals_hand_case_square():
     assert np.allclose(fade_rim_normals(n, b, mask, 0.0)[mask], n[mask])
 
 
+def test_fade_rim_normals_interior_weight_blends_the_base_everywhere():
+    # the same square: an interior weight of 0.5 takes the base halfway inside, the rim's weight where larger
+    mask = np.zeros((10, 10), bool)
+    mask[2:8, 2:8] = True
+    n = np.zeros((10, 10, 3))
+    n[..., 0] = 1.0
+    b = np.zeros((10, 10, 3))
+    b[..., 2] = 1.0
+    half = [np.sqrt(0.5), 0, np.sqrt(0.5)]
+    out = fade_rim_normals(n, b, mask, rim_px=2.0, interior_weight=0.5)
+    assert np.allclose(out[2, 2:8], [0, 0, 1])                      # outer ring: rim weight 1
+    assert np.allclose(out[3, 3:7], half, atol=1e-6)                # rim weight 0.5 = interior weight
+    assert np.allclose(out[4:6, 4:6], half, atol=1e-6)              # centre: rim weight 0, interior 0.5
+    # weight 0.25 without a rim: unit(0.75 n + 0.25 b) = (3, 0, 1) / sqrt(10) on the whole mask
+    out = fade_rim_normals(n, b, mask, rim_px=0.0, interior_weight=0.25)
+    assert np.allclose(out[mask], np.array([3, 0, 1]) / np.sqrt(10), atol=1e-6)
+    assert np.all(out[~mask] == 0)
+    for weight in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="interior_weight"):
+            fade_rim_normals(n, b, mask, 2.0, weight)
+
+
 def test_fade_rim_normals_keeps_the_normals_where_the_base_is_undefined_and_checks_inputs():
     mask = np.ones((5, 5), bool)
     mask[0] = False
