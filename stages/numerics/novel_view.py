@@ -193,13 +193,15 @@ class ViewShading(Documented):
     :func:`stages.numerics.gbuffer.fade_rim_normals`'s ``interior_weight``). The photometric detail the fusion
     keeps is partly noise and the two estimates' errors are partly independent: on the default capture's novel
     views (both actions, 3 views) the mesh's normals are 4.01 deg off the truth's, the fused ones 4.06, their
-    even blend 3.85 (6 px and more inside the silhouette 3.37, 3.53 and 3.22). Relit (bench_relit_budget's stage
-    row, 3 environments) 25.76 dB at 0, 25.80 at 0.3, 25.81 at 0.5, 25.80 at 0.7; the relighting set's normals
-    4.07 -> 3.93 deg at 0.5."""
+    even blend 3.85 (6 px and more inside the silhouette: mesh 3.37, fused 3.53, blend 3.22). Relit
+    (bench_relit_budget's stage row, 3 environments) 25.76 dB at 0, 25.80 at 0.3, 25.81 at 0.5, 25.80 at 0.7; the
+    relighting set's normals 4.07 -> 3.93 deg at 0.5. Like the rim fade it pays where the mesh is good: on the
+    accuracy gate's coarse mesh relit 19.51 dB at 0, 19.48 at 0.5, and its normals 11.25 -> 11.69 deg."""
     normals: str = checked("fused", one_of=("fused", "reprojected", "mesh"))
     """Shading normals (:func:`novel_view_gbuffer`'s ``normal_<kind>``; the relight stage releases them as
     ``renders/<view>/normal.exr``): "fused" (the reprojected normals' detail on the mesh normals' low
-    frequencies, :func:`stages.numerics.gbuffer.fuse_normals`), "reprojected" (the G-buffer's, blended from the
+    frequencies, :func:`stages.numerics.gbuffer.fuse_normals`, blended with the mesh's by ``mesh_normal_weight``
+    and faded to them on the rim), "reprojected" (the G-buffer's, blended from the
     photometric maps, as the paper) or "mesh" (the mesh's smooth normals). On the default capture's novel views
     (bench/bench_relight.py, both actions, 3 views, 3 environments) the photometric normals carry smooth biases
     the mesh's do not (eq. 1's lean, specular residue) and the mesh lacks their detail: against the simulator's
