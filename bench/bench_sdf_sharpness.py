@@ -12,16 +12,18 @@ mesh) once per (masks, ``inv_s_end``):
   with open3d from the view's calibrated camera) and the normals kept only there;
 - masks ``recomputed``: the photometric stage's :func:`stages.numerics.photometric.foreground_mask` run again on
   the action's decoded white images and the session's clean plates (from the run's store, ``<release>.work``) with
-  the run's photometric parameters (its ``config.yaml``) and ``--mask-params`` changed (:class:`stages.numerics.photometric.PhotometricParams` fields, e.g.
-  ``close_radius=0,majority_radius=0``), the normals kept only there;
+  the run's photometric parameters (its ``config.yaml``) and ``--mask-params`` changed
+  (:class:`stages.numerics.photometric.PhotometricParams` fields, e.g. ``close_radius=0,majority_radius=0``), the
+  normals kept only there;
 - ``inv_s_end``: the final sharpness as given (``inv_s_end_per_pixel`` off), and a first row per mask kind with the
   stage default as it is (the rule of :func:`stages.numerics.sdf.sharpness_for_pixels`; its ``inv_s_end`` the one
   training used).
 
-With ``--seeds`` every row is run once per SDF seed (``SDFConfig.seed``). Per row: Chamfer, F-score at 1 mm and normal consistency (``stages.numerics.meshmetrics.mesh_metrics``), the
-median signed offset of the prediction outside the truth per region of the truth
-(:func:`evaluation.mesh_regions.region_errors`: negative is inside), the CPU seconds (one thread, as ``make
-dataset`` runs the stage) and the pixel footprint at the subject the training measured
+With ``--seeds`` every row is run once per SDF seed (``SDFConfig.seed``). Per row: Chamfer, F-score at 1 mm and
+normal consistency (``stages.numerics.meshmetrics.mesh_metrics``), the median signed offset of the prediction
+outside the truth per region of the truth (:func:`evaluation.mesh_regions.region_errors`: negative is inside), the
+CPU seconds (one thread, as ``make dataset`` runs the stage) and the pixel footprint at the subject the training
+measured
 (:func:`stages.numerics.sdf.subject_pixel_m`). Per action: how much wider the released masks are than the centre
 rays' (area difference over the centre mask's outline, pixels, mean over the views). A row's Chamfer moves by
 about 0.1-0.2 mm with the SDF's seed: compare rows of one run, and several actions before reading a difference
@@ -141,6 +143,8 @@ def parse_mask_params(text: str) -> dict:
 def recomputed_masks(release: Path, action: str, views: list, mask_params: dict) -> list[np.ndarray]:
     """(H, W) bool per view: the photometric stage's foreground mask of the view's decoded white image against its
     clean plate (the run's store beside ``release``), with ``mask_params`` changed."""
+    import pyarrow.parquet as pq
+    import yaml
     from bench_sdf_schedule import latest_artifact
 
     from artifacts.facade import ActionArtifacts
@@ -148,8 +152,6 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
     from stages.numerics.photometric import PhotometricParams, foreground_mask
 
     work = release.with_name(release.name + ".work")
-    import pyarrow.parquet as pq
-
     actions = pq.read_table(release / "manifests" / "actions.parquet", columns=["action_id", "session_id"]).to_pylist()
     sessions = [row["session_id"] for row in actions if row["action_id"] == action]
     if not sessions:
@@ -158,15 +160,14 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
     art = ActionArtifacts({"decode": latest_artifact(work, "decode", action),
                            "photometric": latest_artifact(work, "photometric", action),
                            "plates": latest_artifact(work, "plates", session)})
-    ids, stored = load_sdf_views(art, 0.5)
-    if len(ids) != len(views) or any(not np.array_equal(a.K, b.K) for a, b in zip(stored, views)):
+    ids, store_views = load_sdf_views(art, 0.5)
+    if len(ids) != len(views) or any(not np.array_equal(a.K, b.K) for a, b in zip(store_views, views)):
         raise ValueError(f"the store under {work} does not hold the release's views of {action}")
-    import yaml
-
     # the run's own photometric parameters (release/config.yaml), then the changes
-    stored = ((yaml.safe_load((release / "config.yaml").read_text()) or {}).get("photometric") or {}).get("params") or {}
+    run_config = yaml.safe_load((release / "config.yaml").read_text()) or {}
+    run_params = (run_config.get("photometric") or {}).get("params") or {}
     fields = {f.name for f in dataclasses.fields(PhotometricParams)}
-    params = PhotometricParams(**{**{k: v for k, v in stored.items() if k in fields}, **mask_params})
+    params = PhotometricParams(**{**{k: v for k, v in run_params.items() if k in fields}, **mask_params})
     return [foreground_mask(art.exr("full_on", camera=cam)[..., :3], art.plate(cam), params) for cam in ids]
 
 
