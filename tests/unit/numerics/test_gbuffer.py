@@ -419,14 +419,20 @@ def test_fuse_normals_input_checks():
 
 
 
-def test_fade_rim_normals_hand_case_square():
-    # a 6 x 6 square in a 10 x 10 image: distances to the outside 1 (outer ring), 2, 3 (the 2 x 2 centre)
+def _square_normals():
+    """A 6 x 6 square in a 10 x 10 image (distances to the outside 1 on its outer ring, 2, 3 at the 2 x 2 centre),
+    normals +x and base normals +z everywhere."""
     mask = np.zeros((10, 10), bool)
     mask[2:8, 2:8] = True
     n = np.zeros((10, 10, 3))
     n[..., 0] = 1.0
     b = np.zeros((10, 10, 3))
     b[..., 2] = 1.0
+    return mask, n, b
+
+
+def test_fade_rim_normals_hand_case_square():
+    mask, n, b = _square_normals()
     out = fade_rim_normals(n, b, mask, rim_px=2.0)
     assert out.shape == (10, 10, 3) and out.dtype == np.float32
     # w = (rim + 1 - d) / rim: 1 on the outer ring, 0.5 on the next, 0 at the centre
@@ -439,13 +445,8 @@ def test_fade_rim_normals_hand_case_square():
 
 
 def test_fade_rim_normals_interior_weight_blends_the_base_everywhere():
-    # the same square: an interior weight of 0.5 takes the base halfway inside, the rim's weight where larger
-    mask = np.zeros((10, 10), bool)
-    mask[2:8, 2:8] = True
-    n = np.zeros((10, 10, 3))
-    n[..., 0] = 1.0
-    b = np.zeros((10, 10, 3))
-    b[..., 2] = 1.0
+    # an interior weight of 0.5 takes the base halfway inside, the rim's weight where larger
+    mask, n, b = _square_normals()
     half = [np.sqrt(0.5), 0, np.sqrt(0.5)]
     out = fade_rim_normals(n, b, mask, rim_px=2.0, interior_weight=0.5)
     assert np.allclose(out[2, 2:8], [0, 0, 1])                      # outer ring: rim weight 1
