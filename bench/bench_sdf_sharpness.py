@@ -38,7 +38,6 @@ kinds; the numbers are not measurements.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import os
@@ -53,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _quick import QUICK_HELP, quick_run  # noqa: E402
+from _release import parse_release_args, release_parser  # noqa: E402
 
 INV_S = (800.0, 1600.0, 3200.0)
 QUICK_INV_S = (300.0,)
@@ -121,58 +120,57 @@ def _load(capture: Path, release: Path, action: str, quick: bool):
 
 
 def parse_mask_params(text: str) -> dict:
-    """``"name=value,..."`` -> PhotometricParams changes (values parsed as JSON, else kept as strings); unknown
-    fields are refused."""
+    """``"name=value,..."`` -> PhotometricParams changes, the values read as YAML (as ``bench_relit_budget``'s
+    ``--shading``); unknown fields and values that break the rules are refused by :func:`pipeline.config.merge`."""
+    import yaml
+
+    from pipeline.config import merge
     from stages.numerics.photometric import PhotometricParams
 
-    fields = {f.name for f in dataclasses.fields(PhotometricParams)}
     changes = {}
     for item in (x.strip() for x in text.split(",") if x.strip()):
         name, sep, value = item.partition("=")
-        name = name.strip()
-        if not sep or name not in fields:
-            raise ValueError(f"--mask-params: {item!r} is not name=value with a PhotometricParams field")
-        try:
-            changes[name] = json.loads(value)
-        except json.JSONDecodeError:
-            changes[name] = value.strip()
-    dataclasses.replace(PhotometricParams(), **changes)  # checks the values
+        if not sep or not name.strip():
+            raise ValueError(f"--mask-params: {item!r} is not name=value")
+        changes[name.strip()] = yaml.safe_load(value)
+    merge(PhotometricParams(), changes, "--mask-params")
     return changes
 
 
 def recomputed_masks(release: Path, action: str, views: list, mask_params: dict) -> list[np.ndarray]:
     """(H, W) bool per view: the photometric stage's foreground mask of the view's decoded white image against its
-    clean plate (the run's store beside ``release``), with ``mask_params`` changed."""
-    import pyarrow.parquet as pq
+    clean plate (the run's store beside ``release``), with the run's photometric parameters (its ``config.yaml``)
+    and ``mask_params`` changed."""
     import yaml
     from bench_sdf_schedule import latest_artifact
 
     from artifacts.facade import ActionArtifacts
+    from manifests import open_release
+    from pipeline.config import from_dict, merge
     from stages.geometry import load_sdf_views
-    from stages.numerics.photometric import PhotometricParams, foreground_mask
+    from stages.numerics.photometric import foreground_mask
+    from stages.photometric import PhotometricConfig
 
     work = release.with_name(release.name + ".work")
-    actions = pq.read_table(release / "manifests" / "actions.parquet", columns=["action_id", "session_id"]).to_pylist()
-    sessions = [row["session_id"] for row in actions if row["action_id"] == action]
-    if not sessions:
+    session = open_release(release).action(action).info.get("session_id")
+    if session is None:
         raise ValueError(f"{action} is not in {release}'s actions manifest")
-    session = sessions[0]
     art = ActionArtifacts({"decode": latest_artifact(work, "decode", action),
                            "photometric": latest_artifact(work, "photometric", action),
                            "plates": latest_artifact(work, "plates", session)})
     ids, store_views = load_sdf_views(art, 0.5)
     if len(ids) != len(views) or any(not np.array_equal(a.K, b.K) for a, b in zip(store_views, views)):
         raise ValueError(f"the store under {work} does not hold the release's views of {action}")
-    # the run's own photometric parameters (release/config.yaml), then the changes
-    run_config = yaml.safe_load((release / "config.yaml").read_text()) or {}
-    run_params = (run_config.get("photometric") or {}).get("params") or {}
-    fields = {f.name for f in dataclasses.fields(PhotometricParams)}
-    params = PhotometricParams(**{**{k: v for k, v in run_params.items() if k in fields}, **mask_params})
+    path = release / "config.yaml"
+    record = (yaml.safe_load(path.read_text()) or {}).get("photometric") or {}
+    params = merge(from_dict(PhotometricConfig, record, where=f"{path}: photometric").params, mask_params,
+                   "--mask-params")
     return [foreground_mask(art.exr("full_on", camera=cam)[..., :3], art.plate(cam), params) for cam in ids]
 
 
 def run_row(args: tuple) -> dict:
-    """One (masks, inv_s_end, seed) row: the stage's passes on the action's views, the mesh measured."""
+    """One (masks, inv_s_end, seed) row: the stage's passes on the action's views (their masks replaced by
+    ``replaced`` unless it is None), the mesh measured."""
     os.environ.setdefault("ULTRASTAGE_NUMERIC_THREADS", "1")
     import torch
 
@@ -181,12 +179,10 @@ def run_row(args: tuple) -> dict:
     from stages.numerics.sdf_mesh import sdf_mesh
 
     torch.set_num_threads(1)
-    capture, release, action, masks, inv_s_end, quick, seed, mask_params = args
+    capture, release, action, masks, replaced, inv_s_end, quick, seed = args
     capture, release = Path(capture), Path(release)
     views, truth_v, truth_f = _load(capture, release, action, quick)
-    if masks in ("centre", "recomputed"):
-        replaced = (centre_ray_masks(views, truth_v, truth_f) if masks == "centre"
-                    else recomputed_masks(release, action, views, mask_params))
+    if replaced is not None:
         views = [dataclasses.replace(v, mask=m, normal_valid=np.asarray(v.normal_valid, bool) & m)
                  for v, m in zip(views, replaced)]
     cfg = geometry_config(inv_s_end, quick)
@@ -255,10 +251,7 @@ def markdown(report: dict) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--capture", help="default runs/default/capture; with --quick the tiny run's")
-    parser.add_argument("--release", help="default runs/default/release; with --quick the tiny run's")
+    parser = release_parser(__doc__)
     parser.add_argument("--action", default="A0000")
     parser.add_argument("--inv-s", help="final sharpness values, comma-separated (default 800,1600,3200)")
     parser.add_argument("--masks", help="pipeline, centre, recomputed (comma-separated; default pipeline,centre; "
@@ -267,12 +260,7 @@ def main() -> int:
                         help="PhotometricParams changes of the recomputed masks, name=value,...")
     parser.add_argument("--seeds", default="0", help="SDF seeds, comma-separated (default 0)")
     parser.add_argument("--workers", type=int, default=2, help="rows measured side by side (one thread each)")
-    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
-    args = parser.parse_args()
-    if args.capture is None or args.release is None:
-        run = quick_run(Path(args.out)) if args.quick else ROOT / "runs" / "default"
-        args.capture = args.capture or str(run / "capture")
-        args.release = args.release or str(run / "release")
+    args = parse_release_args(parser)
     capture, release = Path(args.capture), Path(args.release)
     if not (capture / "ground_truth" / args.action / "mesh.ply").exists() or not release.is_dir():
         print(f"bench_sdf_sharpness: needs {capture} with ground truth and {release} (make dataset first); skipped")
@@ -293,9 +281,11 @@ def main() -> int:
     views, truth_v, truth_f = _load(capture, release, args.action, args.quick)
     centre = centre_ray_masks(views, truth_v, truth_f)
     widening = mask_widening_px([np.asarray(v.mask, bool) for v in views], centre)
-    recomputed = (mask_widening_px(recomputed_masks(release, args.action, views, mask_params), centre)
-                  if "recomputed" in masks else None)
-    jobs = [(str(capture), str(release), args.action, m, value, args.quick, seed, mask_params)
+    replacements = {"pipeline": None, "centre": centre}
+    if "recomputed" in masks:
+        replacements["recomputed"] = recomputed_masks(release, args.action, views, mask_params)
+    recomputed = mask_widening_px(replacements["recomputed"], centre) if "recomputed" in masks else None
+    jobs = [(str(capture), str(release), args.action, m, replacements[m], value, args.quick, seed)
             for seed in seeds for m in masks for value in [None] + values]
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         rows = list(pool.map(run_row, jobs))
