@@ -14,7 +14,7 @@ stage's time over the two passes' step counts.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ from artifacts.facade import ActionArtifacts
 from artifacts.layout import ArtifactWriter, released_files
 from stages.numerics import numeric_threads
 from stages.numerics.sdf_mesh import SDFMeshConfig
+from stages.numerics.silhouette import SilhouetteConfig
 
 
 RELEASED = ("mesh", "sdf_losses_preview", "mesh_normals_preview")
@@ -45,6 +46,9 @@ class GeometryConfig(SDFMeshConfig):
     """Fail the action when fewer cameras have maps: the hull and the SDF are not constrained enough."""
     previews: bool = True
     """Write a loss-curve plot and rendered normals of the mesh beside the photometric ones."""
+    silhouette: SilhouetteConfig = field(default_factory=SilhouetteConfig)
+    """The mesh's outer contours moved to the sub-pixel outline the white images measure against the clean
+    plates (:mod:`stages.numerics.silhouette`)."""
 
 
 def load_sdf_views(artifacts: ActionArtifacts, min_alpha: float) -> tuple[list[str], list[Any]]:
@@ -57,6 +61,43 @@ def load_sdf_views(artifacts: ActionArtifacts, min_alpha: float) -> tuple[list[s
                              mask=mask, K=cam.K, cam_from_world=cam.cam_from_world))
         ids.append(cam_id)
     return ids, views
+
+
+def outline_views(artifacts: ActionArtifacts, ids: list[str], views: list[Any]) -> list[Any] | None:
+    """The views' measured pixel coverage on their outline (:func:`stages.numerics.photometric.edge_coverage` of the
+    decoded white image against the session's clean plate, around the view's mask) as
+    :class:`stages.numerics.silhouette.OutlineView` records; None when a camera has no clean plate."""
+    from stages.numerics.photometric import edge_coverage
+    from stages.numerics.silhouette import OutlineView
+
+    out = []
+    for cam_id, view in zip(ids, views):
+        plate = artifacts.plate(cam_id)
+        if plate is None:
+            return None
+        full_on = artifacts.exr("full_on", camera=cam_id)[..., :3]
+        out.append(OutlineView(K=view.K, cam_from_world=view.cam_from_world,
+                               coverage=edge_coverage(view.mask, full_on, plate)))
+    return out
+
+
+def refined_mesh(artifacts: ActionArtifacts, ids: list[str], views: list[Any], vertices: np.ndarray,
+                 faces: np.ndarray, cfg: SilhouetteConfig, ctx: StageContext) -> tuple[np.ndarray, dict[str, Any]]:
+    """The SDF's mesh with its outer contours moved to the views' measured outline
+    (:func:`stages.numerics.silhouette.refine_silhouettes`), and the step's record; the mesh as it is when
+    ``cfg`` turns the step off or the session has no clean plates (said in the log)."""
+    from stages.numerics.silhouette import refine_silhouettes
+
+    if not cfg.enabled or cfg.iterations == 0:
+        return vertices, {"enabled": False}
+    outlines = outline_views(artifacts, ids, views)
+    if outlines is None:
+        ctx.log.info(f"{ctx.scope_id}: silhouette refinement skipped: the session has no clean plates")
+        return vertices, {"enabled": False, "skipped": "no clean plates"}
+    refined, stats = refine_silhouettes(vertices, faces, outlines, cfg)
+    ctx.log.info(f"{ctx.scope_id}: silhouette refinement moved {stats['moved_vertices']} vertices, mean "
+                 f"{stats['mean_move_all_mm']:.2f} mm, most {stats['max_move_mm']:.2f} mm ({stats['seconds']:.1f} s)")
+    return refined, {"enabled": True} | stats
 
 
 def _loss_plot(path: Path, history: dict[str, list[float]]) -> None:
@@ -103,9 +144,10 @@ class GeometryStage(Stage):
     """Trains the SDF of one action from its normal maps and masks, then meshes it."""
 
     name = "geometry"
-    version = "3"
+    # 4: the mesh's outer contours refined to the views' measured outline (silhouette)
+    version = "4"
     scope = "action"
-    requires = ("decode", "photometric")
+    requires = ("decode", "photometric", "plates")
     outputs = ("mesh", "sdf", "previews")
     resources = {"GPU": 1}
 
@@ -127,6 +169,9 @@ class GeometryStage(Stage):
         result, vertices, faces, mesh_stats = fitted.result, fitted.vertices, fitted.faces, fitted.mesh_stats
         out = ctx.out_dir
         (out / "sdf").mkdir(parents=True, exist_ok=True)
+        # the SDF's own mesh stays in the work store: what the silhouette step started from (bench_silhouette)
+        write_ply(out / "sdf" / "mesh.ply", vertices, faces)
+        vertices, silhouette = refined_mesh(upstream, ids, views, vertices, faces, cfg.silhouette, ctx)
         torch.save(result.field.to_state(), out / "sdf" / "sdf.pt")
         (out / "sdf" / "training.json").write_text(json.dumps(
             {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
@@ -140,7 +185,7 @@ class GeometryStage(Stage):
         return {"cameras": len(views), "train_seconds": fitted.train_seconds, "passes": fitted.passes,
                 "faces_extracted": int(mesh_stats["faces_extracted"]), "mesh_faces": int(len(faces)),
                 "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
-                "deocclusion": fitted.deocclusion,
+                "deocclusion": fitted.deocclusion, "silhouette": silhouette,
                 "sdf": {k: v for k, v in result.stats.items() if isinstance(v, (int, float, str))},
                 "mesh": {k: v for k, v in mesh_stats.items() if isinstance(v, (int, float, str))}}
 

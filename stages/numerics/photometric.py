@@ -40,6 +40,7 @@ __all__ = [
     "normal_alpha",
     "albedo_from_white",
     "foreground_mask",
+    "edge_coverage",
     "photometric_maps",
     "facing_away_fraction",
     "normals_with_alpha",
@@ -584,22 +585,20 @@ def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
 _EDGE_R = 2  # half-side of the window (pixels) the edge refinement takes subject/background colours from
 
 
-def _refine_edges(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None) -> np.ndarray:
-    """Keep the pixels of the band ``dilate(fg, 1) & ~erode(fg, 1)`` whose coverage is at least one half.
+def _band_colours(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None, band_px: int = 1) -> tuple[np.ndarray, ...]:
+    """The colours that decide the coverage of the band ``dilate(fg, band_px) & ~erode(fg, band_px)``.
 
-    Coverage of a band pixel: ``sum_c |f - b| / sum_c |s - b|`` where ``s`` is the mean colour of interior
-    pixels (``erode(fg, 1)``) in the surrounding (2R+1) window and ``b`` the plate, or the mean of exterior
-    pixels (``~dilate(fg, 1)``) in the window when there is no plate. Pixels without interior (or, without a
-    plate, exterior) neighbours, or with no contrast, keep their state. Only band pixels are visited.
+    Per band pixel (rows ``ys``, cols ``xs``, (N,)): its own colour ``here``, the background ``bgc`` (the plate
+    ``b``, or without a plate the mean of exterior pixels ``~dilate(fg, 1)`` in the surrounding (2R+1) window)
+    and the subject ``subj`` (the mean of interior pixels ``erode(fg, 1)`` in the window: the nearest ones,
+    as the rim's colour differs from the body's further in), each (N, 3) float64,
+    and ``known`` (N,) bool: the window holds interior (and, without a plate, exterior) pixels. Empty arrays
+    when ``fg`` has no band.
     """
-    if not fg.any():
-        return fg
     inner = _erode(fg, 1) & fg
     outer = ~_dilate(fg, 1)
-    band = ~inner & ~outer
+    band = _dilate(fg, band_px) & ~(_erode(fg, band_px) & fg)
     ys, xs = np.nonzero(band)
-    if ys.size == 0:
-        return fg
     h, w = fg.shape
     s_sum = np.zeros((ys.size, 3), np.float64)
     s_cnt = np.zeros(ys.size, np.float64)
@@ -625,11 +624,65 @@ def _refine_edges(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None) -> np.nda
         bgc = np.nan_to_num(b[ys, xs].astype(np.float64))
         known = s_cnt > 0
     subj = s_sum / np.maximum(s_cnt, 1)[:, None]
+    return ys, xs, here, bgc, subj, known
+
+
+def _refine_edges(fg: np.ndarray, f: np.ndarray, b: np.ndarray | None) -> np.ndarray:
+    """Keep the pixels of the band ``dilate(fg, 1) & ~erode(fg, 1)`` whose coverage is at least one half.
+
+    Coverage of a band pixel: ``sum_c |f - b| / sum_c |s - b|`` with the colours of :func:`_band_colours` (``s``
+    the subject's, ``b`` the background's). Pixels without interior (or, without a plate, exterior) neighbours,
+    or with no contrast, keep their state. Only band pixels are visited.
+    """
+    if not fg.any():
+        return fg
+    ys, xs, here, bgc, subj, known = _band_colours(fg, f, b)
+    if ys.size == 0:
+        return fg
     num = np.abs(here - bgc).sum(axis=1)
     den = np.abs(subj - bgc).sum(axis=1)
     known &= den > 1e-6
     out = fg.copy()
     out[ys[known], xs[known]] = num[known] >= 0.5 * den[known]
+    return out
+
+
+def edge_coverage(mask: np.ndarray, full_on: np.ndarray, background: np.ndarray, band_px: int = 2,
+                  min_contrast: float = 1e-3) -> np.ndarray:
+    """The share of each pixel the subject covers, measured on the outline of its mask against a clean plate.
+
+    1 inside the mask, 0 outside, and on the band ``dilate(mask, band_px) & ~erode(mask, band_px)`` the white image's
+    colour projected on the segment from the plate's colour to the subject's (:func:`_band_colours`):
+    ``c = (f - b) . (s - b) / |s - b|^2``, clipped to ``[0, 1]``. The signed projection, unlike the mask's
+    ``sum |f - b| / sum |s - b|``, does not lift the noise of a background pixel above 0. Band pixels without
+    interior neighbours (``erode(mask, 1)`` within 2 pixels) or with less than ``min_contrast`` between subject
+    and plate keep the mask's 0 or 1. A band of 2 pixels also measures the pixels just inside the mask, which
+    the mask's own threshold of one half on ``sum |f - b|`` can take in when they are mostly background.
+
+    Args:
+        mask: (H, W) bool foreground mask (:func:`foreground_mask`).
+        full_on: (H, W, 3) decoded linear white image. background: (H, W, 3) the clean plate.
+        band_px: half-width (pixels, >= 1) of the band measured around the mask's outline.
+        min_contrast: the least ``|s - b|`` (linear units) a band pixel is measured at.
+
+    Returns:
+        (H, W) float32 in [0, 1].
+    """
+    mask = np.asarray(mask, bool)
+    full_on = _as_rgb("full_on", full_on)
+    if mask.shape != full_on.shape[:2]:
+        raise ValueError(f"mask {mask.shape} and full_on {full_on.shape[:2]} differ in size")
+    background = _as_rgb("background", background, mask.shape)
+    if int(band_px) < 1:
+        raise ValueError(f"band_px must be >= 1, got {band_px}")
+    out = mask.astype(np.float32)
+    if not mask.any():
+        return out
+    ys, xs, here, bgc, subj, known = _band_colours(mask, full_on, background, int(band_px))
+    contrast = ((subj - bgc) ** 2).sum(axis=1)
+    known &= np.sqrt(contrast) >= min_contrast
+    share = ((here - bgc) * (subj - bgc)).sum(axis=1) / np.maximum(contrast, 1e-24)
+    out[ys[known], xs[known]] = np.clip(share[known], 0.0, 1.0)
     return out
 
 
