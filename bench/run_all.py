@@ -83,6 +83,7 @@ SPEED_BASELINES: dict[str, str | None] = {
     "scale": "the same number of stub tasks through the executor alone (`x_bare`), and as one `client.map` on dask",
     "sdf_schedule": "the 1800+1800 schedule (`vs 1800+1800`)",
     "sdf_sharpness": "no speed figure (accuracy per sharpness and mask kind; CPU seconds per row)",
+    "silhouette": "the SDF's mesh as it is, no refinement (its row; the step's seconds per row)",
     "sg": "the map's order-2 SH projection (`x_sh_projection`)",
     "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",
     "specular_normals": "eq. 1's ratio (the `eq1` row)",
