@@ -118,12 +118,21 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
             + image[y1, x0] * (1 - fx) * fy + image[y1, x1] * fx * fy)
 
 
-def _project(points: np.ndarray, K: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (N, 2) and camera depth (N,) of world points (N, 3)."""
-    cam = points @ P[:, :3].T + P[:, 3]
-    z = cam[:, 2]
-    uvw = cam @ K.T
-    return uvw[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None], z
+def _image_motion(points: np.ndarray, normals: np.ndarray, K: np.ndarray,
+                  P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) and camera depth (N,) of world points (N, 3), and the motion of their projection
+    (N, 2), pixels per metre, as each moves along its normal (N, 3) (a finite difference of 0.1 mm)."""
+    from artifacts.camera import pixel_coordinates
+
+    def project(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cam = x @ P[:, :3].T + P[:, 3]
+        z = cam[:, 2]
+        return np.stack(pixel_coordinates(K, cam, np.where(np.abs(z) > 1e-12, z, 1e-12)), axis=-1), z
+
+    eps = 1e-4
+    uv, z = project(points)
+    uv_moved, _ = project(points + eps * normals)
+    return uv, z, (uv_moved - uv) / eps
 
 
 def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, contour: np.ndarray, K: np.ndarray,
@@ -153,10 +162,7 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
         return np.zeros(0), np.zeros(0, bool)
     pts = np.asarray(vertices, np.float64)[contour]
     nrm = np.asarray(normals, np.float64)[contour]
-    uv, z = _project(pts, K, P)
-    eps = 1e-4  # metres: the image motion of a move along the normal, by a finite difference
-    uv_moved, _ = _project(pts + eps * nrm, K, P)
-    duv = (uv_moved - uv) / eps
+    uv, z, duv = _image_motion(pts, nrm, K, P)
     speed = np.linalg.norm(duv, axis=1)  # pixels per metre of move
     direction = duv / np.maximum(speed, 1e-12)[:, None]
     # the midpoints of equal cells over [-PROFILE_PX, PROFILE_PX]: no sample falls on the contour vertex itself,
@@ -298,9 +304,8 @@ def outline_disagreement(vertices: np.ndarray, faces: np.ndarray, views: Sequenc
         move_ref, used_ref = outline_offsets(scene, v, normals, contour, ref.K, ref.cam_from_world, ref.coverage,
                                              unbiased)
         P = np.asarray(view.cam_from_world, np.float64)[:3, :4]
-        uv, _ = _project(v[contour], np.asarray(view.K, np.float64), P)
-        uv_moved, _ = _project(v[contour] + 1e-4 * normals[contour], np.asarray(view.K, np.float64), P)
-        speed = np.linalg.norm(uv_moved - uv, axis=1) / 1e-4  # pixels per metre of move
+        speed = np.linalg.norm(_image_motion(v[contour], normals[contour], np.asarray(view.K, np.float64), P)[2],
+                               axis=1)  # pixels per metre of move
         both = used & used_ref
         out.append((move - move_ref)[both] * speed[both])
     return np.concatenate(out) if out else np.zeros(0)
