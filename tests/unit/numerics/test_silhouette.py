@@ -172,3 +172,33 @@ def test_outline_disagreement_is_the_offset_between_two_coverages_in_pixels():
     assert np.median(wider) == pytest.approx(1.5 / pixel_mm, abs=0.03)
     with pytest.raises(ValueError, match="reference"):
         outline_disagreement(v, f, views, views[:1])
+
+
+def test_the_geometry_stage_measures_every_camera_or_none():
+    """stages.geometry.outline_views: the coverage of each camera's white image against its plate around its mask,
+    or None when a camera has no clean plate (the step is then skipped)."""
+    from types import SimpleNamespace
+
+    from stages.geometry import outline_views
+
+    truth = np.zeros((12, 12), np.float32)
+    truth[3:9, 3:9] = 1.0
+    truth[3:9, 9] = 0.4
+    plate = np.broadcast_to(PLATE, (12, 12, 3)).astype(np.float32)
+
+    class Store:
+        def __init__(self, plates):
+            self.plates = plates
+
+        def plate(self, camera):
+            return plate if camera in self.plates else None
+
+        def exr(self, kind, camera):
+            assert kind == "full_on"
+            return np.concatenate([_composite(truth), np.ones((12, 12, 1), np.float32)], axis=-1)  # RGBA as read
+
+    views = [SimpleNamespace(K=np.eye(3), cam_from_world=np.eye(4)[:3], mask=truth > 0.5) for _ in range(2)]
+    out = outline_views(Store({"a", "b"}), ["a", "b"], views)
+    assert [type(o).__name__ for o in out] == ["OutlineView", "OutlineView"]
+    np.testing.assert_allclose(out[1].coverage, truth, atol=1e-5)
+    assert outline_views(Store({"a"}), ["a", "b"], views) is None
