@@ -114,8 +114,11 @@ def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     y0 = np.floor(v).astype(np.int64)
     fx, fy = u - x0, v - y0
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    return (image[y0, x0] * (1 - fx) * (1 - fy) + image[y0, x1] * fx * (1 - fy)
-            + image[y1, x0] * (1 - fx) * fy + image[y1, x1] * fx * fy)
+    def at(y: np.ndarray, x: np.ndarray) -> np.ndarray:  # float64 samples, without a float64 copy of the frame
+        return image[y, x].astype(np.float64)
+
+    return (at(y0, x0) * (1 - fx) * (1 - fy) + at(y0, x1) * fx * (1 - fy)
+            + at(y1, x0) * (1 - fx) * fy + at(y1, x1) * fx * fy)
 
 
 def _image_motion(points: np.ndarray, normals: np.ndarray, K: np.ndarray,
@@ -175,7 +178,7 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
     origins = np.broadcast_to(camera_centre(P), dirs.shape)
     rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=-1), dtype=np.float32)
     hits = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).reshape(m, -1)
-    measured = _bilinear(np.asarray(coverage, np.float64), u, v)
+    measured = _bilinear(np.asarray(coverage), u, v)
     inside_px, outside_px = t <= -PROFILE_PX + 1.0, t >= PROFILE_PX - 1.0
     level_inside = measured[:, inside_px].mean(axis=1)
     # the rim can read brighter than the body further in: the outline's own level is the brightest just inside
