@@ -10,6 +10,11 @@ first pass gives a mesh whose visibility of the sphere divides that lean out of 
 (:func:`stages.numerics.shadowing.deocclude_view`) and shows where it misses them; the second training, on the
 de-occluded normals, gives the published mesh. bench/bench_sdf_schedule.py measures Chamfer against the
 stage's time over the two passes' step counts.
+
+The SDF's mesh is then refined at its outline (``silhouette``, :mod:`stages.numerics.silhouette`): its outer
+contours move to the sub-pixel outline each white image measures against the session's clean plate. The published
+``mesh`` is the refined one; the SDF's own stays in the store beside ``sdf.pt`` (``sdf/mesh.ply``;
+bench/bench_silhouette.py compares the two).
 """
 from __future__ import annotations
 
