@@ -202,3 +202,14 @@ def test_the_geometry_stage_measures_every_camera_or_none():
     assert [type(o).__name__ for o in out] == ["OutlineView", "OutlineView"]
     np.testing.assert_allclose(out[1].coverage, truth, atol=1e-5)
     assert outline_views(Store({"a"}), ["a", "b"], views) is None
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_refine_silhouettes_leaves_the_mesh_where_a_frame_measures_nothing(value):
+    """A black (or saturated, all-subject) coverage holds no outline: every profile is skipped, nothing moves."""
+    v, f = _sphere(0.2, 40)
+    blank = [OutlineView(K=view.K, cam_from_world=view.cam_from_world, coverage=np.full((SIZE, SIZE), value))
+             for view in _outline_views(0.2)[:3]]
+    refined, stats = refine_silhouettes(v, f, blank, EXACT)
+    np.testing.assert_array_equal(refined, v.astype(np.float32))
+    assert stats["samples_used"] == [0, 0, 0] and stats["moved_vertices"] == 0
