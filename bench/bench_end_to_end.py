@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import shutil
 import sys
 import time
@@ -35,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _report import write_report  # noqa: E402
 from _quick import QUICK_HELP, quick_run, quick_sim_changes  # noqa: E402
 
 PRESET = "fast"
@@ -261,10 +261,7 @@ def main() -> int:
     else:
         print(f"bench_end_to_end: no release at {args.release} (make dataset): no stage split", flush=True)
     report["scaling"] = scaling(out, args.quick)
-    (out / "bench_end_to_end.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_end_to_end.md").write_text(markdown(report))
-    plot(out / "bench_end_to_end.png", report)
-    print(markdown(report))
+    write_report(out, "bench_end_to_end", report, markdown(report), lambda path: plot(path, report))
     return 0
 
 

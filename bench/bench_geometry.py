@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -50,6 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _report import write_report  # noqa: E402
 from _quick import QUICK_HELP  # noqa: E402
 from _release import parse_release_args  # noqa: E402
 
@@ -442,10 +442,7 @@ def main() -> int:
     report["gradient_ms"] = gradient_timing(config, bounds, gradient_points, gradient_repeats)
     report["gradient_points"] = gradient_points
 
-    (out / "bench_geometry.json").write_text(json.dumps(report, indent=1, default=float))
-    plot(out / "bench_geometry.png", report)
-    (out / "bench_geometry.md").write_text(markdown(report))
-    print(markdown(report))
+    write_report(out, "bench_geometry", report, markdown(report), lambda path: plot(path, report), json_default=float)
     return 0
 
 

@@ -42,6 +42,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _report import write_report  # noqa: E402
+
 from evaluation.heldout import DEFAULT_HELDOUT as HELDOUT  # noqa: E402  (the held-out cameras evaluate uses)
 KEYS = ("heldout_albedo_psnr_db", "heldout_albedo_ssim", "heldout_albedo_rmse", "heldout_normal_mean_deg",
         "heldout_normal_under5_pct", "heldout_normal_under25_pct")
@@ -337,9 +339,7 @@ def main() -> int:
             "metrics": {k: round(float(np.mean([e["metrics"][k] for e in entries if k in e["metrics"]])), 4)
                         for k in sorted(keys)}}
     report["mean_over_actions"] = means
-    (out / "bench_heldout_field.json").write_text(json.dumps(report, indent=1, default=float))
-    (out / "bench_heldout_field.md").write_text(markdown(report))
-    print(markdown(report))
+    write_report(out, "bench_heldout_field", report, markdown(report), json_default=float)
     print(f"wrote {out / 'bench_heldout_field.json'}, .md and .png")
     return 0
 

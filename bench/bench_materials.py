@@ -48,6 +48,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _report import write_report  # noqa: E402
+
 from stages.materials import MaterialsConfig  # noqa: E402
 
 # One change at a time from the stage's defaults; the sweeps' values besides the defaults (which every sweep
@@ -442,10 +444,7 @@ def main() -> int:
         entry["albedo"] = albedo_section(data, probe, base, args.threads, lambda m: print(m, flush=True))
         report["actions"][action] = entry
     report["total_s"] = round(time.perf_counter() - started, 1)
-    (out / "bench_materials.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_materials.md").write_text(markdown(report))
-    figure(report, out / "bench_materials.png")
-    print(markdown(report))
+    write_report(out, "bench_materials", report, markdown(report), lambda path: figure(report, path))
     print(f"total {report['total_s']} s; wrote {out / 'bench_materials.json'}, .md and .png")
     return 0
 

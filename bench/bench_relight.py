@@ -55,6 +55,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _report import write_report  # noqa: E402
+
 from stages.numerics.novel_view import HALF_MAX, scatter_pixels  # noqa: E402
 from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN  # noqa: E402
 from stages.relight import RelightConfig  # noqa: E402
@@ -535,10 +537,8 @@ def main() -> int:
                                      "released_shading": shading, "views": views}
     report["summary"] = summarise(report, plan)
     report["total_s"] = round(time.perf_counter() - started, 1)
-    (out / "bench_relight.json").write_text(json.dumps(report, indent=1, default=_json_default))
-    (out / "bench_relight.md").write_text(markdown(report))
-    figure(report, out / "bench_relight.png")
-    print(markdown(report))
+    write_report(out, "bench_relight", report, markdown(report), lambda path: figure(report, path),
+                 json_default=_json_default)
     print(f"total {report['total_s']} s; wrote {out / 'bench_relight.json'}, .md and .png")
     return 0
 

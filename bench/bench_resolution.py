@@ -60,6 +60,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _report import write_report  # noqa: E402
 from _quick import QUICK_HELP, quick_sim_changes  # noqa: E402
 
 WIDTHS = (192, 384, 768)
@@ -519,10 +520,7 @@ def main() -> int:
     report = {"quick": args.quick, "preset": preset, "cameras": cameras, "widths": [r["width"] for r in rows],
               "production": production_note(), "rows": rows}
     report["growth"] = growth(rows)
-    (out / "bench_resolution.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_resolution.md").write_text(markdown(report))
-    plot(out / "bench_resolution.png", report)
-    print(markdown(report))
+    write_report(out, "bench_resolution", report, markdown(report), lambda path: plot(path, report))
     return 0
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import tempfile
 import time
@@ -32,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _report import write_report  # noqa: E402
 from _quick import QUICK_HELP, quick_run  # noqa: E402
 
 # (first pass steps, second pass steps); the stage default is inserted first.
@@ -192,12 +192,7 @@ def main() -> int:
     for i, row in enumerate(rows):
         row["default"] = i == 0
     report = {"action": args.action, "quick": args.quick, "rows": rows}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_sdf_schedule.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_sdf_schedule.md").write_text(markdown(report))
-    plot(out / "bench_sdf_schedule.png", rows)
-    print(markdown(report))
+    write_report(args.out, "bench_sdf_schedule", report, markdown(report), lambda path: plot(path, rows))
     return 0
 
 

@@ -52,6 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _report import write_report  # noqa: E402
 from _release import parse_release_args, release_parser  # noqa: E402
 
 INV_S = (800.0, 1600.0, 3200.0)
@@ -293,12 +294,7 @@ def main() -> int:
     report = {"action": args.action, "quick": args.quick, "subject_pixel_m": rows[0]["subject_pixel_m"],
               "mask_widening_px": widening, "mask_params": args.mask_params, "recomputed_widening_px": recomputed,
               "seeds": seeds, "rows": rows}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_sdf_sharpness.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_sdf_sharpness.md").write_text(markdown(report))
-    plot(out / "bench_sdf_sharpness.png", report)
-    print(markdown(report))
+    write_report(args.out, "bench_sdf_sharpness", report, markdown(report), lambda path: plot(path, report))
     return 0
 
 

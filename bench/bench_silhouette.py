@@ -22,7 +22,6 @@ smoothing; the numbers are not measurements.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from _report import write_report  # noqa: E402
 from _release import check_inputs, parse_release_args, release_parser  # noqa: E402
 
 COVERAGE_RAYS = 8  # per pixel side, for the truth's and the meshes' coverage
@@ -192,12 +192,7 @@ def main() -> int:
     novel = 2 if args.quick else args.novel
     report = {"quick": args.quick, "biases": biases, "smoothing": smoothing,
               "actions": [measure_action(capture, release, a, biases, smoothing, novel) for a in actions]}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_silhouette.json").write_text(json.dumps(report, indent=1))
-    (out / "bench_silhouette.md").write_text(markdown(report))
-    plot(out / "bench_silhouette.png", report)
-    print(markdown(report))
+    write_report(args.out, "bench_silhouette", report, markdown(report), lambda path: plot(path, report))
     return 0
 
 
