@@ -90,7 +90,7 @@ class OutlineView:
     cam_from_world: np.ndarray
     """(3, 4) ``[R | t]``."""
     coverage: np.ndarray
-    """(H, W) measured share of each pixel the subject covers, in [0, 1]
+    """(H, W) measured share of each pixel the subject covers, in [0, 1], any float type
     (:func:`stages.numerics.photometric.edge_coverage`)."""
 
 
