@@ -651,8 +651,8 @@ def edge_coverage(mask: np.ndarray, full_on: np.ndarray, background: np.ndarray,
                   min_contrast: float = 1e-3) -> np.ndarray:
     """The share of each pixel the subject covers, measured on the outline of its mask against a clean plate.
 
-    1 inside the mask, 0 outside, and on the band ``dilate(mask, band_px) & ~erode(mask, band_px)`` the white image's
-    colour projected on the segment from the plate's colour to the subject's (:func:`_band_colours`):
+    1 inside the mask, 0 outside, and on the band ``dilate(mask, band_px) & ~erode(mask, band_px)`` the white
+    image's colour projected on the segment from the plate's colour to the subject's (:func:`_band_colours`):
     ``c = (f - b) . (s - b) / |s - b|^2``, clipped to ``[0, 1]``. The signed projection, unlike the mask's
     ``sum |f - b| / sum |s - b|``, does not lift the noise of a background pixel above 0. Band pixels without
     interior neighbours (``erode(mask, 1)`` within 2 pixels) or with less than ``min_contrast`` between subject
