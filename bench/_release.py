@@ -1,4 +1,5 @@
-"""Command line and input checks shared by the benches that measure an existing release (`make dataset`)."""
+"""Command line, input checks and the run's store, shared by the benches that measure an existing release (`make
+dataset`)."""
 from __future__ import annotations
 
 import argparse
@@ -53,3 +54,31 @@ def check_inputs(name: str, release: Path, capture: Path, need_truth: bool) -> t
         return False, None
     print(f"{name}: no ground truth under {capture}: truth metrics skipped")
     return True, None
+
+
+def latest_artifact(work: Path, stage: str, scope: str) -> Path:
+    """The newest committed artifact folder of ``stage`` for ``scope`` (an action or a session id) in the run's store
+    ``work`` (``<release>.work``)."""
+    from pipeline.store import ArtifactStore
+
+    path = ArtifactStore(work / "artifacts").latest_dir(stage, scope)
+    if path is None:
+        raise FileNotFoundError(f"no committed {stage} artifact for {scope} under {work}")
+    return path
+
+
+def store_artifacts(release: Path, action: str, action_stages: tuple[str, ...], session_stages: tuple[str, ...] = ()):
+    """An :class:`artifacts.facade.ActionArtifacts` over the newest store entries (``<release>.work``) of
+    ``action_stages`` for ``action`` and of ``session_stages`` for the action's session (from the release's actions
+    manifest)."""
+    from artifacts.facade import ActionArtifacts
+    from manifests import open_release
+
+    work = release.with_name(release.name + ".work")
+    upstream = {stage: latest_artifact(work, stage, action) for stage in action_stages}
+    if session_stages:
+        session = open_release(release).action(action).info.get("session_id")
+        if session is None:
+            raise ValueError(f"{action} is not in {release}'s actions manifest")
+        upstream |= {stage: latest_artifact(work, stage, session) for stage in session_stages}
+    return ActionArtifacts(upstream)

@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import write_report  # noqa: E402
 from _quick import QUICK_HELP, quick_run  # noqa: E402
+from _release import latest_artifact  # noqa: E402
 
 # (first pass steps, second pass steps); the stage default is inserted first.
 SCHEDULES = ((1800, 1800), (600, 1500), (600, 1200), (400, 1200))
@@ -79,16 +80,6 @@ def parse_schedules(text: str) -> list[tuple[int, int]]:
             raise ValueError(f"--schedules: {item!r} is not FIRST+SECOND steps")
         pairs.append((int(first), int(second)))
     return pairs
-
-
-def latest_artifact(work: Path, stage: str, action: str) -> Path:
-    from pipeline.store import ArtifactStore
-
-    store = ArtifactStore(work / "artifacts")
-    path = store.latest_dir(stage, action)
-    if path is None:
-        raise FileNotFoundError(f"no committed {stage} artifact for {action} under {work}")
-    return path
 
 
 def run_schedule(args: tuple[str, str, str, int, int, bool]) -> dict:

@@ -53,7 +53,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import write_report  # noqa: E402
-from _release import parse_release_args, release_parser  # noqa: E402
+from _release import parse_release_args, release_parser, store_artifacts  # noqa: E402
 
 INV_S = (800.0, 1600.0, 3200.0)
 QUICK_INV_S = (300.0,)
@@ -143,25 +143,16 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
     clean plate (the run's store beside ``release``), with the run's photometric parameters (its ``config.yaml``)
     and ``mask_params`` changed."""
     import yaml
-    from bench_sdf_schedule import latest_artifact
 
-    from artifacts.facade import ActionArtifacts
-    from manifests import open_release
     from pipeline.config import from_dict, merge
     from stages.geometry import load_sdf_views
     from stages.numerics.photometric import foreground_mask
     from stages.photometric import PhotometricConfig
 
-    work = release.with_name(release.name + ".work")
-    session = open_release(release).action(action).info.get("session_id")
-    if session is None:
-        raise ValueError(f"{action} is not in {release}'s actions manifest")
-    art = ActionArtifacts({"decode": latest_artifact(work, "decode", action),
-                           "photometric": latest_artifact(work, "photometric", action),
-                           "plates": latest_artifact(work, "plates", session)})
+    art = store_artifacts(release, action, ("decode", "photometric"), ("plates",))
     ids, store_views = load_sdf_views(art, 0.5)
     if len(ids) != len(views) or any(not np.array_equal(a.K, b.K) for a, b in zip(store_views, views)):
-        raise ValueError(f"the store under {work} does not hold the release's views of {action}")
+        raise ValueError(f"the store beside {release} does not hold the release's views of {action}")
     path = release / "config.yaml"
     record = (yaml.safe_load(path.read_text()) or {}).get("photometric") or {}
     params = merge(from_dict(PhotometricConfig, record, where=f"{path}: photometric").params, mask_params,

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import write_report  # noqa: E402
-from _release import check_inputs, parse_release_args, release_parser  # noqa: E402
+from _release import check_inputs, parse_release_args, release_parser, store_artifacts  # noqa: E402
 
 COVERAGE_RAYS = 8  # per pixel side, for the truth's and the meshes' coverage
 
@@ -55,27 +55,22 @@ def outline_rms(truth_scene, mesh_scene_, cameras: list) -> float:
 def measure_action(capture: Path, release: Path, action: str, biases: list[float], smoothing: list[int],
                    novel_count: int) -> dict:
     """Every row of one action (module docstring)."""
-    from bench_geometry import load_release_views, read_mesh
-    from bench_sdf_schedule import latest_artifact
+    from bench_geometry import read_mesh
 
-    from artifacts.facade import ActionArtifacts
     from evaluation.heldout import spread_heldout
-    from manifests import open_release, release_artifacts
-    from stages.geometry import GeometryConfig, outline_views
+    from manifests import release_artifacts
+    from stages.geometry import GeometryConfig, load_sdf_views, outline_views
     from stages.numerics.gbuffer import interpolate_camera, novel_camera_pairs
     from stages.numerics.meshmetrics import mesh_metrics
     from stages.numerics.raycast import mesh_scene, pixel_coverage
     from stages.numerics.silhouette import OutlineView, outline_disagreement, refine_silhouettes
 
-    work = release.with_name(release.name + ".work")
-    session = open_release(release).action(action).info.get("session_id")
-    store = ActionArtifacts({"decode": latest_artifact(work, "decode", action),
-                             "plates": latest_artifact(work, "plates", session)})
-    sdf_v, sdf_f = read_mesh(latest_artifact(work, "geometry", action) / "sdf" / "mesh.ply")
+    store = store_artifacts(release, action, ("decode", "geometry"), ("plates",))
+    sdf_v, sdf_f = read_mesh(store.upstream["geometry"] / "sdf" / "mesh.ply")
     truth_v, truth_f = read_mesh(capture / "ground_truth" / action / "mesh.ply")
-    cameras = release_artifacts(release, action).cameras()
-    ids = sorted(cameras)
-    views = load_release_views(release, action, GeometryConfig())
+    released = release_artifacts(release, action)
+    cameras = released.cameras()
+    ids, views = load_sdf_views(released, GeometryConfig().min_alpha)  # the cameras with maps, as the stage reads them
     heldout = set(spread_heldout(cameras, 2))
     keep = [i for i, c in enumerate(ids) if c not in heldout]
     measured_all = outline_views(store, ids, views)
@@ -87,11 +82,12 @@ def measure_action(capture: Path, release: Path, action: str, biases: list[float
                           coverage=pixel_coverage(v.K, v.cam_from_world, *np.asarray(v.mask).shape, COVERAGE_RAYS,
                                                   truth_scene)) for v in (views[i] for i in keep)]
     h, w = np.asarray(views[0].mask).shape
-    poses = [cameras[c].cam_from_world for c in ids]
+    rig = sorted(cameras)  # the novel cameras sit between the rig's neighbours, as the relight stage places them
+    poses = [cameras[c].cam_from_world for c in rig]
     novel = []
     for a, b in novel_camera_pairs(poses, novel_count):
-        K, P = interpolate_camera(cameras[ids[a]].K, poses[a], cameras[ids[b]].K, poses[b], 0.5)
-        novel.append((K, P, cameras[ids[a]].height, cameras[ids[a]].width))
+        K, P = interpolate_camera(cameras[rig[a]].K, poses[a], cameras[rig[b]].K, poses[b], 0.5)
+        novel.append((K, P, cameras[rig[a]].height, cameras[rig[a]].width))
     held = [(cameras[c].K, cameras[c].cam_from_world, cameras[c].height, cameras[c].width) for c in sorted(heldout)]
 
     def row(name: str, vertices: np.ndarray, seconds: float, **settings) -> dict:

@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _quick import QUICK_HELP, quick_run  # noqa: E402
+from _release import latest_artifact  # noqa: E402
 
 FACE_BUDGETS = (5_000, 10_000, 20_000, 40_000, 100_000)
 """Atlas face budgets measured besides the stage's default and the production preset's."""
@@ -58,15 +59,6 @@ def budgets(quick: bool) -> list[int]:
     default = default_config().atlas_faces
     extra = QUICK_FACE_BUDGETS if quick else FACE_BUDGETS + (production_config().atlas_faces,)
     return [default] + sorted({b for b in extra if b != default})
-
-
-def latest_artifact(work: Path, stage: str, action: str) -> Path:
-    from pipeline.store import ArtifactStore
-
-    path = ArtifactStore(work / "artifacts").latest_dir(stage, action)
-    if path is None:
-        raise FileNotFoundError(f"no committed {stage} artifact for {action} under {work}")
-    return path
 
 
 class AlbedoProbe:
