@@ -156,7 +156,7 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
     """
     import open3d as o3d
 
-    from artifacts.camera import camera_centre, pixel_rays
+    from stages.numerics.raycast import camera_rays
 
     K = np.asarray(K, np.float64)
     P = np.asarray(cam_from_world, np.float64)[:3, :4]
@@ -174,11 +174,11 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
     t = -PROFILE_PX + dt * (np.arange(PROFILE_CELLS) + 0.5)
     u = uv[:, :1] + t[None] * direction[:, :1]
     v = uv[:, 1:] + t[None] * direction[:, 1:]
-    dirs = pixel_rays(K, P, u.ravel(), v.ravel())[0]
-    origins = np.broadcast_to(camera_centre(P), dirs.shape)
+    coverage = np.asarray(coverage)
+    origins, dirs, _ = camera_rays(K, P, *coverage.shape, pixels=np.stack([u.ravel(), v.ravel()], axis=-1))
     rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=-1), dtype=np.float32)
     hits = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).reshape(m, -1)
-    measured = _bilinear(np.asarray(coverage), u, v)
+    measured = _bilinear(coverage, u, v)
     inside_px, outside_px = t <= -PROFILE_PX + 1.0, t >= PROFILE_PX - 1.0
     level_inside = measured[:, inside_px].mean(axis=1)
     # the rim can read brighter than the body further in: the outline's own level is the brightest just inside
