@@ -380,7 +380,8 @@ class TruthRelighter:
         return lighting
 
     def render(self, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
-               env: np.ndarray, specular: bool | None = None) -> dict[str, np.ndarray]:
+               env: np.ndarray, specular: bool | None = None, supersample: int | None = None
+               ) -> dict[str, np.ndarray]:
         """Render the subject from a pinhole camera under an environment map.
 
         Args:
@@ -389,6 +390,9 @@ class TruthRelighter:
             height, width: image size in pixels.
             env: (He, We, 3) equirect linear radiance (module docstring), finite and >= 0.
             specular: add the GGX lobe; None = as the capture was rendered (SimConfig.specular).
+            supersample: rays per pixel side, each pixel their mean; None = the capture's camera
+                (SimConfig.supersample). A finer grid than the capture's approaches the pixel's exact area
+                integral (bench/bench_relit_budget.py measures how far the capture's grid is from it).
 
         Returns:
             dict of float32 images (row 0 at the top): ``radiance`` (H, W, 3) linear, in the map's units,
@@ -411,9 +415,11 @@ class TruthRelighter:
         if int(height) != height or int(width) != width or height < 1 or width < 1:
             raise ValueError(f"image size must be positive integers, got {height} x {width}")
         height, width = int(height), int(width)
+        if supersample is not None and (int(supersample) != supersample or supersample < 1):
+            raise ValueError(f"supersample must be a positive integer or None, got {supersample!r}")
         lighting = self.lighting(env)
-        # the capture's pixels average s x s rays (SimConfig.supersample): so do these
-        s = self.config.supersample
+        # the capture's pixels average s x s rays (SimConfig.supersample): so do these, unless told otherwise
+        s = self.config.supersample if supersample is None else int(supersample)
         camera = shading.supersampled_camera(Camera("relight", width, height, K, cam_from_world, 0.0, 0.0), s)
         with limit_blas_threads(1):
             hits = shading.cast_primary_rays(self.scene, camera, self.subject.triangles)

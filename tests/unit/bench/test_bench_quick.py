@@ -167,3 +167,20 @@ def test_panel_set_quick_mode_trains_both_networks_on_both_sets_against_one_test
         assert by_set["panel"]["overall"][trivial[network]] == by_set["one_body"]["overall"][trivial[network]]
     table = (out / "bench_panel_set.md").read_text()
     assert "quick: not measurements" in table and "albedonet on one_body" in table and "worst subject" in table
+
+
+@pytest.mark.slow
+def test_relit_budget_quick_mode_scores_the_capture_grid_truth_against_a_finer_one(quick_run):
+    """The ceiling table: the capture-grid truth against the 8 x 8 one differs (silhouette pixels move) but stays
+    close, its worst image is no better than its mean, and the stage's render is scored against both truths."""
+    out, proc = quick_run
+    if not (out / "bench_relit_budget.json").exists():
+        pytest.skip("bench_relit_budget wrote nothing here (no HDR maps)")
+    report = json.loads((out / "bench_relit_budget.json").read_text())
+    ceiling = report["ceiling"]
+    assert ceiling["supersample"] == 8 and ceiling["n"] >= 1
+    assert 15.0 < ceiling["truth_worst_db"] <= ceiling["truth_mean_db"] < 80.0, ceiling
+    assert set(ceiling["rows"]) >= {"stage"}
+    stage = ceiling["rows"]["stage"]
+    assert stage["capture_grid_db"] == pytest.approx(report["summary"]["stage"]["psnr_db"], abs=1e-9)
+    assert "The metric's ceiling" in (out / "bench_relit_budget.md").read_text()

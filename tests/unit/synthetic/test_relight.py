@@ -192,6 +192,29 @@ def test_rendering_is_deterministic_and_cached(relighter, capture, cameras):
     assert not np.array_equal(other["radiance"], first["radiance"])
 
 
+def test_a_finer_pixel_grid_averages_the_renders_of_a_finer_camera(relighter, cameras):
+    env = np.random.default_rng(8).gamma(0.5, 1.0, size=(32, 64, 3)).astype(np.float32)
+    camera = cameras[0]
+    default = render(relighter, camera, env)
+    np.testing.assert_array_equal(render(relighter, camera, env, supersample=1)["radiance"], default["radiance"])
+    grid = render(relighter, camera, env, supersample=3)
+    # pixel (i, j) at 3 x 3 rays: the mean of the 3 x 3 block of pixels of a camera with 3 times finer pixels
+    # (centres at i - 1/3, i, i + 1/3)
+    K = np.array(camera["K"], np.float64)
+    K[:2, :2] *= 3
+    K[:2, 2] = (K[:2, 2] + 0.5) * 3 - 0.5
+    h, w = camera["height"], camera["width"]
+    fine = relighter.render(K, np.array(camera["cam_from_world"]), 3 * h, 3 * w, env)
+    block_mean = fine["radiance"].reshape(h, 3, w, 3, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(grid["radiance"], block_mean, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(grid["mask"], fine["mask"].reshape(h, 3, w, 3).sum(axis=(1, 3)) >= 4.5)
+    # silhouette pixels change with the grid, so the two renders are not the same image
+    assert not np.array_equal(grid["radiance"], default["radiance"])
+    for bad in (0, 1.5, -2):
+        with pytest.raises(ValueError, match="supersample"):
+            render(relighter, camera, env, supersample=bad)
+
+
 def test_visibility_kept_on_disk_renders_the_same(relighter, capture, cameras, tmp_path):
     env = np.random.default_rng(6).gamma(0.5, 1.0, size=(32, 64, 3)).astype(np.float32)
     want = render(relighter, cameras[0], env)
