@@ -243,18 +243,15 @@ SDF_PRESETS: dict[str, SDFConfig] = {
     # trains on the other core. The geometry stage runs this schedule as its second pass, after a shorter first
     # one (geometry.first_pass_iterations); bench/bench_sdf_schedule.py measures Chamfer against time over both
     # passes' steps, bench/bench_geometry.py the pass's curve over iterations. Pixel-exact calibrated silhouettes
-    # earn the mask loss a weight of 0.25: at 0.5 it spans the few pixels a mask gets wrong where two parts of
-    # the body nearly meet (the geometry stage alone, both passes, Chamfer at 0.5 -> 0.25: procedural subject
-    # 1.55 -> 1.26 mm, default capture 1.065 -> 1.031 mm over its two actions; 0.1 on the same captures with
-    # masks that filled the procedural subject's arm gaps: 1.39 and 1.11 mm). A 2^18 table, normals down to 3 deg
-    # from grazing and 2% outliers keep the finger and contour pixels the second pass's importance-drawn rays are
-    # for. An eikonal weight of 0.05 lets the surface settle closer to the normals than 0.1 does (Chamfer 0.08 mm
-    # lower on average over seven paired runs of two captures and three seeds, lower in six).
+    # earn the mask loss a weight of 0.5; a 2^18 table, normals down to 3 deg from grazing and 2% outliers
+    # keep the finger and contour pixels the second pass's importance-drawn rays are for. An eikonal weight of
+    # 0.05 lets the surface settle closer to the normals than 0.1 does (Chamfer 0.08 mm lower on average over
+    # seven paired runs of two captures and three seeds, lower in six).
     "cpu": SDFConfig(
         encoding=HashGridConfig(levels=12, features_per_level=2, log2_table_size=18,
                                 base_resolution=16, finest_resolution=512),
         hidden_width=64, hidden_layers=2, iterations=1800, rays_per_batch=512, samples_per_ray=8,
-        hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.25, weight_eikonal=0.05,
+        hull_resolution=96, hull_init_steps=200, hull_init_points=2048, weight_mask=0.5, weight_eikonal=0.05,
         grazing_cos_min=0.05, outlier_fraction=0.02, inv_s_end_per_pixel=3.2,
     ),
     # Full-resolution captures on a GPU.
