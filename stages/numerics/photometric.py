@@ -104,13 +104,9 @@ class PhotometricParams(Documented):
     edge are kept where ``|f - b| >= 0.5 |s - b|`` (L1 over channels), with ``s`` the mean of nearby interior
     pixels and ``b`` the plate (or the mean of nearby exterior pixels without one). Without it, a sensitive
     plate difference also takes the half-covered and demosaic-blurred rim."""
-    max_hole: float = checked(0.001, ge=0.0)
-    """Background holes enclosed by the foreground and smaller than this fraction of the foreground's area are
-    filled (a pupil, a nostril, a dark pattern that reads as the plate); larger enclosed regions stay background:
-    the gap between an arm and the body, whose size the subject's own scales, not the frame's. On the procedural
-    subject at 384 px the gaps between its arms and torso are 0.5-1.3% of its silhouette; filled, as a limit of 0.2%
-    of the image (1% of the silhouette) did, they were foreground in most views, and the SDF's mask loss spanned
-    them with a web of surface (its Chamfer 1.92 mm, 1.55 with them kept)."""
+    max_hole: float = checked(0.002, ge=0.0)
+    """Background holes enclosed by the foreground and smaller than this fraction of the image are filled
+    (dark eyes, nostrils); larger enclosed regions (gaps between arm and body) stay background."""
     min_component: float = checked(0.0002, ge=0.0)
     """Foreground components smaller than this fraction of the image (or than 1% of the largest component)
     are dropped."""
@@ -568,7 +564,7 @@ def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
         if n:
             sizes = np.bincount(holes.ravel())
             border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
-            fill = sizes <= params.max_hole * np.count_nonzero(sub)
+            fill = sizes <= params.max_hole * area
             fill[0] = False
             fill[border] = False
             if fill.any():
