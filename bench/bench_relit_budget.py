@@ -42,7 +42,8 @@ mesh's (:func:`outline_offset_px`: mean offset outwards and RMS coverage differe
 
 A third table is the metric's own ceiling: the truth is rendered as the capture's camera renders (the simulator's
 ``supersample`` x ``supersample`` rays per pixel, 2 x 2 on the default capture), a coarse estimate of each pixel's
-area integral at silhouettes, occlusion edges and glints. The same truth at ``--ceiling-supersample`` rays per side
+area integral wherever the image changes within a pixel (on the default capture 1% of the pixels hold 65-89% of its
+error, about two thirds of them within 2 px of the silhouette). The same truth at ``--ceiling-supersample`` rays per side
 (default 8) stands for the exact integral: the capture-grid truth's PSNR against it is the most any render can be
 sure to score (mean and worst image), beside the stage's render and the all-truth row (``+ reprojection``: every
 input true) scored against both.
