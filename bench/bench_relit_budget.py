@@ -60,7 +60,6 @@ numbers are not measurements.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -676,6 +675,7 @@ def figure(report: dict, path: Path) -> None:
 
 def main() -> int:
     from _release import check_inputs, parse_release_args, release_parser
+    from _report import write_report
 
     parser = release_parser(__doc__, actions="", threads=2)
     parser.add_argument("--shading", default="", help="ViewShading changes every row renders with, "
@@ -743,12 +743,8 @@ def main() -> int:
                 seconds.setdefault(k, []).append(v)
     report["seconds_per_view"] = {k: float(np.mean(v)) for k, v in seconds.items()}
     report["total_s"] = time.perf_counter() - started
-    out.mkdir(parents=True, exist_ok=True)
     name = f"bench_relit_budget{args.tag}"
-    (out / f"{name}.json").write_text(json.dumps(report, indent=1, default=_json_default))
-    (out / f"{name}.md").write_text(markdown(report))
-    figure(report, out / f"{name}.png")
-    print(markdown(report))
+    write_report(out, name, report, markdown(report), lambda path: figure(report, path), json_default=_json_default)
     print(f"total {report['total_s']:.0f} s; wrote {out / name}.json, .md and .png")
     return 0
 
