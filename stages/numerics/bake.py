@@ -236,8 +236,16 @@ def texture_in_camera(scene, uv_faces: np.ndarray, uvs: np.ndarray, texture: np.
     return np.where(hit_b, values, 0.0).astype(np.float32), hit
 
 
-def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear image lookup at pixel coordinates already clamped to [0, W-1] x [0, H-1]."""
+def sample_pixels(image: np.ndarray, x: np.ndarray, y: np.ndarray, dtype: type = np.float32) -> np.ndarray:
+    """``image`` (H, W) or (H, W, C) read bilinearly at pixel coordinates ``x``, ``y`` (...,) (pixel centres at
+    integers; outside the frame clamped to its edge pixels): (...,) or (..., C), interpolated in ``dtype``."""
+    h, w = np.asarray(image).shape[:2]
+    return _bilinear(np.asarray(image), np.clip(np.asarray(x, np.float64), 0.0, w - 1.0),
+                     np.clip(np.asarray(y, np.float64), 0.0, h - 1.0), dtype)
+
+
+def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, dtype: type = np.float32) -> np.ndarray:
+    """Bilinear image lookup at pixel coordinates already clamped to [0, W-1] x [0, H-1], in ``dtype``."""
     h, w = image.shape[:2]
     x0 = np.minimum(np.floor(x).astype(np.int64), w - 2) if w > 1 else np.zeros(x.shape, np.int64)
     y0 = np.minimum(np.floor(y).astype(np.int64), h - 2) if h > 1 else np.zeros(y.shape, np.int64)
@@ -245,10 +253,10 @@ def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     fx, fy = x - x0, y - y0
     if image.ndim == 3:
         fx, fy = fx[..., None], fy[..., None]
-    img = image.astype(np.float32, copy=False)
+    img = image.astype(dtype, copy=False)
     top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
     bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+    return (top * (1 - fy) + bottom * fy).astype(dtype)
 
 
 # ------------------------------------------------------------------------------------------- dilation

@@ -105,22 +105,6 @@ def _edges_with_faces(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return key[twin], fid[twin], fid[twin + 1]
 
 
-def _bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``image`` (H, W) read at pixel coordinates ``u``, ``v`` (pixel centres at integers; clamped to the frame)."""
-    h, w = image.shape
-    u = np.clip(u, 0.0, w - 1.000001)
-    v = np.clip(v, 0.0, h - 1.000001)
-    x0 = np.floor(u).astype(np.int64)
-    y0 = np.floor(v).astype(np.int64)
-    fx, fy = u - x0, v - y0
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    def at(y: np.ndarray, x: np.ndarray) -> np.ndarray:  # float64 samples, without a float64 copy of the frame
-        return image[y, x].astype(np.float64)
-
-    return (at(y0, x0) * (1 - fx) * (1 - fy) + at(y0, x1) * fx * (1 - fy)
-            + at(y1, x0) * (1 - fx) * fy + at(y1, x1) * fx * fy)
-
-
 def _image_motion(points: np.ndarray, normals: np.ndarray, K: np.ndarray,
                   P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel coordinates (N, 2) and camera depth (N,) of world points (N, 3), and the motion of their projection
@@ -156,6 +140,7 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
     """
     import open3d as o3d
 
+    from stages.numerics.bake import sample_pixels
     from stages.numerics.raycast import camera_rays
 
     K = np.asarray(K, np.float64)
@@ -178,7 +163,7 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
     origins, dirs, _ = camera_rays(K, P, *coverage.shape, pixels=np.stack([u.ravel(), v.ravel()], axis=-1))
     rays = np.ascontiguousarray(np.concatenate([origins, dirs], axis=-1), dtype=np.float32)
     hits = np.isfinite(scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).reshape(m, -1)
-    measured = _bilinear(coverage, u, v)
+    measured = sample_pixels(coverage, u, v, np.float64)
     inside_px, outside_px = t <= -PROFILE_PX + 1.0, t >= PROFILE_PX - 1.0
     level_inside = measured[:, inside_px].mean(axis=1)
     # the rim can read brighter than the body further in: the outline's own level is the brightest just inside

@@ -12,6 +12,7 @@ from stages.numerics.bake import (
     bake_textures,
     dilate_texture,
     rasterize_atlas,
+    sample_pixels,
     sample_texture,
 )
 from artifacts.atlas import Atlas
@@ -314,3 +315,13 @@ def test_texture_in_camera_hand_computed_on_a_quad():
     assert rgb.shape == (100, 100, 3) and np.allclose(rgb[..., 1], values)
     with pytest.raises(ValueError, match="texture"):
         texture_in_camera(mesh_scene(vertices, faces), faces, uvs, np.zeros(4), K, pose, 100, 100)
+
+
+def test_sample_pixels_interpolates_between_pixel_centres_and_clamps_outside():
+    image = np.array([[0.0, 1.0], [2.0, 3.0]], np.float16)  # float16, as the silhouette step's coverage maps
+    values = sample_pixels(image, np.array([0.0, 1.0, 0.5, 0.25, -3.0, 7.0]), np.array([0.0, 1.0, 0.5, 1.0, 0.0, 9.0]))
+    np.testing.assert_allclose(values, [0.0, 3.0, 1.5, 2.25, 0.0, 3.0], atol=1e-6)
+    assert values.dtype == np.float32
+    assert sample_pixels(image, np.array([0.25]), np.array([0.0]), np.float64).dtype == np.float64
+    rgb = np.stack([image, 2 * image, 3 * image], axis=-1).astype(np.float32)
+    np.testing.assert_allclose(sample_pixels(rgb, np.array([0.5]), np.array([0.5])), [[1.5, 3.0, 4.5]], atol=1e-6)
