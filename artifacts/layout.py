@@ -60,6 +60,7 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     "normal_alpha": ("photometric", "normal_alpha/{camera}.exr"),
     "albedo": ("photometric", "albedo/{camera}.exr"),
     "mask": ("photometric", "mask/{camera}.png"),
+    "filled_holes": ("photometric", "filled_holes/{camera}.png"),  # work store only: the holes the mask filled
     "normal_preview": ("photometric", "previews/normal_{camera}.png"),
     "albedo_preview": ("photometric", "previews/albedo_{camera}.png"),
     "normals_sheet": ("photometric", "previews/normals_sheet.png"),

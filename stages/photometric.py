@@ -5,14 +5,15 @@ specular reflection fitted out are the ``diffuse_normals`` stage's (:mod:`stages
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.codecs.exr import write_exr
-from pipeline.codecs.image import preview_linear, preview_normals, write_png
+from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.image import mask_from_png, preview_linear, preview_normals, read_png, write_png
 from pipeline.config import Documented, checked
 from pipeline.errors import InputError
 from pipeline.stage import Stage, StageContext
@@ -21,8 +22,11 @@ from artifacts.layout import ArtifactWriter, released_files
 from artifacts.camera import Camera
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.exr_headers import EXR_HEADERS
+from stages.numerics.gaps import GapConfig, see_through_holes
+from stages.numerics.hull import default_stage_box, subject_box
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
-                                         normals_with_alpha, photometric_maps)
+                                         foreground_mask_and_holes, normals_with_alpha, open_holes,
+                                         photometric_maps)
 from stages.numerics.specular_normals import view_directions
 from stages.previews import write_normal_sheet
 
@@ -45,6 +49,10 @@ class PhotometricConfig(Documented):
     as they are)."""
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Edge-preserving denoising of the albedo maps (and of ``normal_alpha`` when asked)."""
+    gaps: GapConfig = field(default_factory=GapConfig)
+    """The holes the masks filled, decided across the views: those the cameras see through (between an arm and
+    the torso) go back to background in the mask and the maps; dark patches stay filled
+    (:mod:`stages.numerics.gaps`)."""
 
 
 SWAPPED_FACING_AWAY = 0.5
@@ -88,13 +96,64 @@ def shipped_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
                            "images of different sizes")
 
 
+def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Decide the views' filled holes across the views (:func:`stages.numerics.gaps.see_through_holes`) and
+    put the gaps back to background in the stage's maps of the views that have them: mask, ``normal_alpha``
+    (normals and alpha 0), albedo and the previews. ``view_stats`` gets each view's new mask fraction and its
+    opened pixels. Returns the decision's record (holes, gaps, pixels, seconds), said in one log line."""
+    if not config.gaps.enabled:
+        return {"enabled": False}
+    out = ArtifactWriter("photometric", ctx.out_dir)
+    cameras = ActionArtifacts(ctx.upstream).calibrated_cameras()
+    views = [v for v in sorted(view_stats) if v in cameras and "mask_fraction" in view_stats[v]]
+    holes = {v: (mask_from_png(read_png(out.path("filled_holes", v))) if out.path("filled_holes", v).exists()
+                 else None) for v in views}
+    if not any(h is not None for h in holes.values()):
+        return {"enabled": True, "holes": 0, "gaps": 0, "opened_pixels": 0}
+    start = time.perf_counter()
+    masks = {v: mask_from_png(read_png(out.path("mask", v))) for v in views}
+    # the mask as the mask step filled it: a finalize run again after a lost worker decides the same
+    filled = [masks[v] | (holes[v] if holes[v] is not None else False) for v in views]
+    hole_maps = [holes[v] if holes[v] is not None else np.zeros_like(masks[v]) for v in views]
+    Ks = [cameras[v].K for v in views]
+    Ts = [cameras[v].cam_from_world for v in views]
+    try:
+        box = subject_box(filled, Ks, Ts, default_stage_box(list(zip(Ks, Ts))))
+    except ValueError as exc:  # no hull: the masks disagree; the geometry stage says so, the holes stay filled
+        ctx.log.warning(f"{ctx.scope_id}: filled holes left as they are: {exc}")
+        return {"enabled": True, "skipped": str(exc)}
+    decision = see_through_holes(filled, hole_maps, Ks, Ts, box, config.gaps)
+    opened = 0
+    for v, mask, gap in zip(views, filled, decision.gaps):
+        if not gap.any() and np.array_equal(mask, masks[v]):
+            continue
+        normal_alpha, albedo, mask = open_holes(read_exr(out.path("normal_alpha", v)), read_exr(out.path("albedo", v)),
+                                                mask, gap, config.params)
+        write_exr(out.path("normal_alpha", v), normal_alpha, header=EXR_HEADERS["normal_alpha"])
+        write_exr(out.path("albedo", v), albedo, header=EXR_HEADERS["albedo"])
+        write_png(out.path("mask", v), mask)
+        if config.previews:
+            write_png(out.path("normal_preview", v), preview_normals(normal_alpha[..., :3], normal_alpha[..., 3]))
+            write_png(out.path("albedo_preview", v), preview_linear(albedo, exposure=1.0))
+        view_stats[v]["mask_fraction"] = float(mask.mean())
+        view_stats[v]["valid_fraction"] = float(((normal_alpha[..., 3] > 0.5) & mask).sum() / max(int(mask.sum()), 1))
+        view_stats[v]["gap_pixels"] = int(gap.sum())
+        opened += int(gap.sum())
+    records = [r for per_view in decision.holes for r in per_view]
+    record = {"enabled": True, "holes": len(records), "gaps": sum(r["gap"] for r in records),
+              "opened_pixels": opened, "seconds": round(time.perf_counter() - start, 2)}
+    ctx.log.info(f"{ctx.scope_id}: {record['gaps']} of {record['holes']} filled holes are gaps the cameras see "
+                 f"through: {opened} pixels back to background ({record['seconds']:.1f} s)")
+    return record
+
+
 class PhotometricStage(Stage):
     name = "photometric"
     # 7: the normal sheet's tiles are labelled with their camera ids
     version = "7"
     scope = "action"
     requires = ("decode", "plates", "lights")
-    outputs = ("normal_alpha", "albedo", "mask", "previews")
+    outputs = ("normal_alpha", "albedo", "mask", "filled_holes", "previews")
     per_view = True
 
     def raw_inputs(self, capture: Any, scope_id: str) -> dict[str, Path]:
@@ -112,7 +171,10 @@ class PhotometricStage(Stage):
         clipped = upstream.png("clipped", view) > 0
         background = upstream.plate(view) if self.config.use_clean_plate else None
         shipped = ctx.raw_inputs.get(f"mask/{view}")
-        given = shipped_mask(shipped, full_on.shape[:2]) if shipped is not None else None
+        if shipped is not None:  # the capture's own mask: its holes are the capture's decision
+            given, holes = shipped_mask(shipped, full_on.shape[:2]), None
+        else:
+            given, holes = foreground_mask_and_holes(full_on, background, self.config.params)
         maps = photometric_maps(full_on, pos, neg, clipped, np.asarray(cam.record["white_reference"], np.float32),
                                 background=background, params=self.config.params, mask=given)
         facing_away = check_gradients_not_swapped(ctx, view, cam, maps)
@@ -134,19 +196,22 @@ class PhotometricStage(Stage):
                   header=EXR_HEADERS["normal_alpha"])
         write_exr(out.path("albedo", view), albedo, header=EXR_HEADERS["albedo"])
         write_png(out.path("mask", view), maps.mask)
+        if holes is not None and holes.any():
+            write_png(out.path("filled_holes", view), holes)
         if self.config.previews:
             write_png(out.path("normal_preview", view), preview_normals(normals, maps.alpha))
             write_png(out.path("albedo_preview", view), preview_linear(albedo, exposure=1.0))
         return {"mask_fraction": float(mask.mean()), "facing_away_fraction": facing_away,
                 "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
                 "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,
-                "plate": background is not None}
+                "plate": background is not None, "filled_hole_pixels": int(holes.sum()) if holes is not None else 0}
 
     def finalize(self, ctx: StageContext, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        gaps = open_gaps(ctx, self.config, view_stats)
         if self.config.previews:
             write_normal_sheet(ArtifactWriter(self.name, ctx.out_dir), "normal_preview", "normals_sheet", view_stats)
         fractions = [s["valid_fraction"] for s in view_stats.values() if "valid_fraction" in s]
-        return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0}
+        return {"views": view_stats, "valid_fraction": float(np.mean(fractions)) if fractions else 0.0, "gaps": gaps}
 
     def release_files(self, artifact: Path) -> list[tuple[Path, str, str, str | None]]:
         return released_files(self.name, artifact, RELEASED, optional=("normals_sheet",))

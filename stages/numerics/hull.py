@@ -22,9 +22,9 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from artifacts.camera import pixel_coordinates
+from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays
 
-__all__ = ["HullGrid", "visual_hull", "check_camera"]
+__all__ = ["HullGrid", "visual_hull", "check_camera", "default_stage_box", "subject_box"]
 
 
 def check_camera(K: np.ndarray, cam_from_world: np.ndarray, where: str = "camera") -> tuple[np.ndarray, np.ndarray]:
@@ -278,3 +278,40 @@ def _well_seen_components(occupancy: np.ndarray, views_inside: np.ndarray, share
     best = ndimage.maximum(views_inside, labels, index=np.arange(1, count + 1))
     keep = np.concatenate([[False], np.asarray(best) >= share * float(np.max(best))])
     return keep[labels]
+
+
+def default_stage_box(cams: Sequence[tuple[np.ndarray, np.ndarray]], size_m: float = 2.5) -> np.ndarray:
+    """A generous cube where the cameras look: centred on the point closest (least squares) to all optical
+    axes, edge ``size_m`` but no larger than 1.6x the nearest camera's distance to that point."""
+    A = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    centres = []
+    for K, T in cams:
+        c = camera_centre(T)
+        d = pixel_rays(K, T, K[0, 2], K[1, 2])[0]  # the optical axis
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        rhs += P @ c
+        centres.append(c)
+    try:
+        point = np.linalg.solve(A, rhs) if np.linalg.cond(A) < 1e8 else np.zeros(3)
+    except np.linalg.LinAlgError:
+        point = np.zeros(3)
+    nearest = min(float(np.linalg.norm(c - point)) for c in centres)
+    half = min(size_m / 2, 0.8 * nearest)
+    return np.stack([point - half, point + half])
+
+
+def subject_box(masks: Sequence[np.ndarray], Ks: Sequence[np.ndarray], cam_from_worlds: Sequence[np.ndarray],
+                stage_box: np.ndarray, resolution: int = 64, max_misses: int = 1, dilate_px: float = 2.0,
+                component_views: float = 0.5) -> np.ndarray:
+    """(2, 3) box (metres) of the subject: the occupied voxels of a coarse conservative hull over ``stage_box``
+    (e.g. :func:`default_stage_box`), grown by one of its voxels. 64^3 over a 2.5 m box (4 cm voxels) only has
+    to find the subject, not to shape it. The other arguments are :func:`visual_hull`'s.
+
+    Raises:
+        ValueError: the coarse hull is empty (no voxel inside the masks of the views that see it).
+    """
+    coarse = visual_hull(masks, Ks, cam_from_worlds, stage_box, resolution, max_misses, dilate_px,
+                         component_views=component_views)
+    return coarse.tight_bounds(margin_m=float(coarse.voxel_size.max()))

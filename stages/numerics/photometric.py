@@ -40,6 +40,8 @@ __all__ = [
     "normal_alpha",
     "albedo_from_white",
     "foreground_mask",
+    "foreground_mask_and_holes",
+    "open_holes",
     "edge_coverage",
     "photometric_maps",
     "facing_away_fraction",
@@ -543,9 +545,9 @@ def _bbox(x: np.ndarray, margin: int) -> tuple[slice, slice] | None:
             slice(max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)))
 
 
-def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
+def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> tuple[np.ndarray, np.ndarray]:
     """Majority filter, closing, small-hole filling and small-component removal (the last three on the
-    foreground's bounding box)."""
+    foreground's bounding box); the cleaned mask and the hole pixels it filled, both (H, W) bool."""
     shape = fg.shape
     area = fg.size
     r_major, r_close = _radius(params.majority_radius, shape), _radius(params.close_radius, shape)
@@ -553,8 +555,9 @@ def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
         fg = _majority(fg, r_major)
     box = _bbox(fg, r_close + 1)
     out = np.zeros(shape, dtype=bool)
+    filled = np.zeros(shape, dtype=bool)
     if box is None:
-        return out
+        return out, filled
     sub = fg[box]
     if r_close:
         sub = _erode(_dilate(sub, r_close), r_close)
@@ -568,7 +571,8 @@ def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
             fill[0] = False
             fill[border] = False
             if fill.any():
-                sub = sub | fill[holes]
+                filled[box] = fill[holes]
+                sub = sub | filled[box]
     # drop small components
     labels, n = ndimage.label(sub)
     if n > 1 or params.min_component > 0:
@@ -579,7 +583,7 @@ def _clean_mask(fg: np.ndarray, params: PhotometricParams) -> np.ndarray:
         if not keep[1:].all():
             sub = keep[labels]
     out[box] = sub
-    return out
+    return out, filled & out
 
 
 _EDGE_R = 2  # half-side of the window (pixels) the edge refinement takes subject/background colours from
@@ -708,7 +712,16 @@ def foreground_mask(
     background: np.ndarray | None = None,
     params: PhotometricParams = PhotometricParams(),
 ) -> np.ndarray:
-    """Foreground (subject) mask of the white image.
+    """Foreground (subject) mask of the white image: :func:`foreground_mask_and_holes`'s mask."""
+    return foreground_mask_and_holes(full_on, background, params)[0]
+
+
+def foreground_mask_and_holes(
+    full_on: np.ndarray,
+    background: np.ndarray | None = None,
+    params: PhotometricParams = PhotometricParams(),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Foreground (subject) mask of the white image, and the enclosed background it filled.
 
     With a clean plate (``background``, the empty stage under full_on): a pixel is foreground where any
     channel ``c`` satisfies ``f_c > b_c (1 + plate_brighter) + t_c`` or ``f_c < b_c (1 - plate_darker) - t_c``
@@ -726,7 +739,9 @@ def foreground_mask(
             ``max_hole``, ``min_component``).
 
     Returns:
-        bool (H, W).
+        ``(mask, holes)``, both bool (H, W): ``holes`` are the pixels of the enclosed holes the mask filled (inside
+        ``mask``); a gap between limbs and a dark patch in shade both look like this from one view
+        (:mod:`stages.numerics.gaps` tells them apart across views).
     """
     full_on = _as_rgb("full_on", full_on)
     shape = full_on.shape[:2]
@@ -753,12 +768,12 @@ def foreground_mask(
         step = max(1, int(np.sqrt(lum.size / 250_000)))
         ref = float(np.percentile(lum[::step, ::step], 99.5))
         if ref <= 0:
-            return np.zeros(shape, dtype=bool)
+            return np.zeros(shape, dtype=bool), np.zeros(shape, dtype=bool)
         fg = lum > np.float32(params.no_plate_threshold * ref)
-    fg = _clean_mask(np.asarray(fg, dtype=bool), params)
+    fg, holes = _clean_mask(np.asarray(fg, dtype=bool), params)
     if params.refine_edges:
         fg = _refine_edges(fg, full_on, background)
-    return fg
+    return fg, holes & fg
 
 
 # ---------------------------------------------------------------------------------------------- driver
@@ -815,6 +830,36 @@ def photometric_maps(
         edge = mask & ~_erode(mask, int(params.edge_px))
         np.minimum(alpha, np.where(edge, np.float32(params.edge_alpha), np.float32(1.0)), out=alpha)
     return PhotometricMaps(normals=normals, alpha=alpha, albedo=albedo, mask=mask, ratio_norm=ratio)
+
+
+def open_holes(normal_alpha: np.ndarray, albedo: np.ndarray, mask: np.ndarray, gaps: np.ndarray,
+               params: PhotometricParams = PhotometricParams()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The maps of one view with ``gaps`` (pixels inside the mask decided as background) put back to background.
+
+    Args:
+        normal_alpha: (H, W, 4) float32 normals and alpha (:func:`normals_with_alpha`).
+        albedo: (H, W, 3) float32.
+        mask: (H, W) bool foreground.
+        gaps: (H, W) bool, the pixels to open.
+        params: ``edge_px`` and ``edge_alpha``: the gaps' new rim is a mask edge like any other, its alpha capped.
+
+    Returns:
+        ``(normal_alpha, albedo, mask)``, new arrays: zero outside the new mask.
+    """
+    if normal_alpha.ndim != 3 or normal_alpha.shape[2] != 4:
+        raise ValueError(f"normal_alpha must be (H, W, 4), got {normal_alpha.shape}")
+    shape = normal_alpha.shape[:2]
+    for name, a in (("albedo", albedo[..., 0] if albedo.ndim == 3 else None), ("mask", mask), ("gaps", gaps)):
+        if a is None or a.shape != shape:
+            raise ValueError(f"{name} must be {shape} like normal_alpha, got {np.shape(albedo if a is None else a)}")
+    mask = np.asarray(mask, bool) & ~np.asarray(gaps, bool)
+    normal_alpha = np.where(mask[..., None], normal_alpha, np.float32(0.0)).astype(np.float32)
+    albedo = np.where(mask[..., None], albedo, np.float32(0.0)).astype(np.float32)
+    if params.edge_px > 0:
+        rim = mask & ~_erode(mask, int(params.edge_px)) & _dilate(np.asarray(gaps, bool), int(params.edge_px))
+        normal_alpha[..., 3] = np.where(rim, np.minimum(normal_alpha[..., 3], np.float32(params.edge_alpha)),
+                                        normal_alpha[..., 3])
+    return normal_alpha, albedo, mask
 
 
 def facing_away_fraction(normals: np.ndarray, views: np.ndarray, valid: np.ndarray) -> tuple[float, int]:

@@ -55,7 +55,7 @@ import torch.nn.functional as F
 from pipeline.config import Documented, checked, to_dict
 from stages.numerics import torch_threads
 from stages.numerics import hashgrid_kernel
-from stages.numerics.hull import HullGrid, check_camera, visual_hull
+from stages.numerics.hull import HullGrid, check_camera, default_stage_box, subject_box, visual_hull
 from stages.numerics.neural_fields import (HashEncoding, HashGridConfig, check_bounds, check_view_list, check_view_map,
                                            instant_ngp_adam, lr_factor, neus_composite, neus_opacity_before, ray_box,
                                            resolve_device)
@@ -579,28 +579,6 @@ def sharpness_for_pixels(config: SDFConfig, pixel_m: float) -> SDFConfig:
     return dataclasses.replace(config, inv_s_start=start, inv_s_end=end)
 
 
-def default_stage_box(cams: Sequence[tuple[np.ndarray, np.ndarray]], size_m: float = 2.5) -> np.ndarray:
-    """A generous cube where the cameras look: centred on the point closest (least squares) to all optical
-    axes, edge ``size_m`` but no larger than 1.6x the nearest camera's distance to that point."""
-    A = np.zeros((3, 3))
-    rhs = np.zeros(3)
-    centres = []
-    for K, T in cams:
-        c = camera_centre(T)
-        d = pixel_rays(K, T, K[0, 2], K[1, 2])[0]  # the optical axis
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        rhs += P @ c
-        centres.append(c)
-    try:
-        point = np.linalg.solve(A, rhs) if np.linalg.cond(A) < 1e8 else np.zeros(3)
-    except np.linalg.LinAlgError:
-        point = np.zeros(3)
-    nearest = min(float(np.linalg.norm(c - point)) for c in centres)
-    half = min(size_m / 2, 0.8 * nearest)
-    return np.stack([point - half, point + half])
-
-
 # ------------------------------------------------------------------------------------------------ rays
 
 
@@ -1036,10 +1014,8 @@ def _hull_and_bounds(masks, Ks, Ts, cams, config: SDFConfig, bounds: np.ndarray 
         bounds = np.asarray(init.bounds, np.float64)
     if bounds is None:
         stage_box = default_stage_box(cams)
-        # 64^3 over the generous box (4 cm voxels) only has to find the subject's box.
-        coarse = visual_hull(masks, Ks, Ts, stage_box, min(64, config.hull_resolution), config.hull_max_misses,
-                             config.hull_dilate_px, component_views=config.hull_component_views)
-        box = coarse.tight_bounds(margin_m=float(coarse.voxel_size.max()))
+        box = subject_box(masks, Ks, Ts, stage_box, min(64, config.hull_resolution), config.hull_max_misses,
+                          config.hull_dilate_px, config.hull_component_views)
     else:
         box = check_bounds(bounds)
         stage_box = box

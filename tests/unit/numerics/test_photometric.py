@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from stages.numerics.photometric import (
     IDEAL_RATIO_NORM,
@@ -10,8 +11,10 @@ from stages.numerics.photometric import (
     PhotometricParams,
     albedo_from_white,
     foreground_mask,
+    foreground_mask_and_holes,
     gradient_normals,
     normal_alpha,
+    open_holes,
     photometric_maps,
 )
 
@@ -234,6 +237,46 @@ def test_mask_with_clean_plate():
     assert not mask[5, 5]  # speck removed
     assert mask[100, 80]  # small dark hole inside the subject filled
     assert not mask[130, 90]  # the large enclosed gap stays background
+
+
+def test_mask_and_holes_names_the_filled_hole_and_nothing_else():
+    img, plate, subject, _ = _scene()
+    yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    patch = (yy - 175) ** 2 + (xx - 100) ** 2 <= 16  # 49 px that look like the backdrop, under max_hole's 86
+    img[patch] = plate[patch]
+    mask, holes = foreground_mask_and_holes(img, plate)
+    np.testing.assert_array_equal(mask, foreground_mask(img, plate))
+    assert holes.dtype == bool and holes.shape == mask.shape and not (holes & ~mask).any()
+    assert mask[175, 100] and holes[175, 100]  # filled, and named as filled
+    assert not holes[130, 90]  # the large gap was not filled, so it is no filled hole
+    assert not holes[100, 80]  # the 2 px eye is gone in the majority filter, before any hole is filled
+    lab, n = ndimage.label(holes)
+    assert n == 1 and 30 <= holes.sum() <= 49  # the patch (its rim may close), no other pixel
+    assert not foreground_mask_and_holes(img, plate, PhotometricParams(max_hole=0.0))[1].any()
+    empty_mask, empty_holes = foreground_mask_and_holes(np.zeros((40, 30, 3), np.float32))
+    assert not empty_mask.any() and not empty_holes.any() and empty_holes.shape == (40, 30)
+
+
+def test_open_holes_clears_the_gap_and_caps_its_new_rim():
+    h, w = 12, 12
+    normal_alpha = np.zeros((h, w, 4), np.float32)
+    normal_alpha[..., 2] = 1.0
+    normal_alpha[..., 3] = 0.9
+    albedo = np.full((h, w, 3), 0.5, np.float32)
+    mask = np.ones((h, w), bool)
+    gaps = np.zeros((h, w), bool)
+    gaps[5:7, 5:7] = True
+    na, alb, m = open_holes(normal_alpha, albedo, mask, gaps, PhotometricParams(edge_px=1, edge_alpha=0.25))
+    assert not m[5:7, 5:7].any() and m.sum() == h * w - 4
+    assert (na[5:7, 5:7] == 0).all() and (alb[5:7, 5:7] == 0).all()
+    ring = np.zeros((h, w), bool)
+    ring[4:8, 4:8] = True
+    ring[5:7, 5:7] = False  # the 12 pixels around the opened 2 x 2 (8-connected)
+    np.testing.assert_array_equal(na[..., 3] == np.float32(0.25), ring)
+    assert (na[~ring & m, 3] == np.float32(0.9)).all() and (alb[m] == 0.5).all()
+    assert (normal_alpha[5:7, 5:7, 3] == 0.9).all()  # the inputs are not changed
+    with pytest.raises(ValueError, match="gaps"):
+        open_holes(normal_alpha, albedo, mask, gaps[:5])
 
 
 def test_mask_without_plate_thresholds_luminance():

@@ -1,0 +1,110 @@
+"""Filled holes decided across views: a frame the cameras see through against dark patches on a solid block."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from stages.numerics.gaps import GapConfig, see_through_holes
+from tests.unit.numerics.test_hull import look_at
+
+SIZE = 64
+BOUNDS = np.array([[-0.45, -0.45, -0.45], [0.45, 0.45, 0.45]])
+# A square frame in the x-y plane (its opening 0.3 m wide, 0.15 m deep along z) as four bars (min, max corners).
+FRAME = [np.array(b, float) for b in (
+    [[-0.3, 0.15, -0.075], [0.3, 0.3, 0.075]], [[-0.3, -0.3, -0.075], [0.3, -0.15, 0.075]],
+    [[-0.3, -0.15, -0.075], [-0.15, 0.15, 0.075]], [[0.15, -0.15, -0.075], [0.3, 0.15, 0.075]])]
+BLOCK = [np.array([[-0.2, -0.2, -0.2], [0.2, 0.2, 0.2]])]
+
+
+def ring_cameras(n=12, dist=2.0):
+    """n cameras on a ring around the y axis, slightly above the middle, 64 px, the scene filling half the frame."""
+    f = 0.5 * SIZE / 2 / np.tan(np.arcsin(0.45 / dist))
+    K = np.array([[f, 0, (SIZE - 1) / 2], [0, f, (SIZE - 1) / 2], [0, 0, 1.0]])
+    return [(K, look_at(dist * np.array([np.cos(a), 0.1, np.sin(a)])))
+            for a in 2 * np.pi * (np.arange(n) + 0.5) / n]
+
+
+def box_mask(K, T, boxes):
+    """(SIZE, SIZE) bool: the pixels whose ray hits one of the axis-aligned boxes (slab test)."""
+    R, t = T[:, :3], T[:, 3]
+    origin = -R.T @ t
+    rows, cols = np.mgrid[0:SIZE, 0:SIZE]
+    pix = np.stack([cols.ravel(), rows.ravel(), np.ones(SIZE * SIZE)], 1)
+    d = np.linalg.solve(K, pix.T).T @ R
+    d = np.where(np.abs(d) < 1e-12, 1e-12, d)
+    hit = np.zeros(SIZE * SIZE, bool)
+    for lo, hi in boxes:
+        t0, t1 = (lo - origin) / d, (hi - origin) / d
+        hit |= np.minimum(t0, t1).max(1) <= np.maximum(t0, t1).min(1)
+    return hit.reshape(SIZE, SIZE)
+
+
+def filled(mask):
+    """The mask with its enclosed holes filled, and those holes."""
+    full = ndimage.binary_fill_holes(mask)
+    return full, full & ~mask
+
+
+def decide(boxes, holes_of=None, config=GapConfig()):
+    cams = ring_cameras()
+    masks, holes = [], []
+    for v, (K, T) in enumerate(cams):
+        full, hole = filled(box_mask(K, T, boxes))
+        if holes_of is not None:
+            hole = holes_of(v, K, T, full)
+        masks.append(full)
+        holes.append(hole)
+    decision = see_through_holes(masks, holes, [K for K, _ in cams], [T for _, T in cams], BOUNDS, config)
+    return decision, masks, holes
+
+
+def test_a_frame_the_cameras_see_through_has_its_holes_opened():
+    decision, masks, holes = decide(FRAME)
+    seen_through = [v for v, h in enumerate(holes) if h.sum() >= 20]
+    assert len(seen_through) >= 4  # the views facing the opening from either side
+    for v in seen_through:
+        assert all(r["gap"] for r in decision.holes[v]), decision.holes[v]
+        assert decision.gaps[v].sum() == holes[v].sum()
+    for gap, mask in zip(decision.gaps, masks):
+        assert gap.shape == mask.shape and gap.dtype == bool and not (gap & ~mask).any()
+
+
+def test_dark_patches_on_a_solid_block_stay_filled():
+    front = np.array([0.0, 0.0, 0.2])  # the centre of the block's face towards +z
+
+    def patch(v, K, T, full):  # a dark patch around the face's centre, in the views that see that face
+        x = T[:, :3] @ front + T[:, 3]
+        if (T[:, :3] @ np.array([0.0, 0.0, 1.0]))[2] > -0.2:  # the face turns away from this camera
+            return np.zeros_like(full)
+        u, w = (K @ (x / x[2]))[:2]
+        rows, cols = np.mgrid[0:SIZE, 0:SIZE]
+        return ((cols - u) ** 2 + (rows - w) ** 2 <= 4) & full  # 11 cm across, a quarter of the face
+
+    decision, masks, holes = decide(BLOCK, patch)
+    patched = [v for v, h in enumerate(holes) if h.any()]
+    assert len(patched) >= 3  # the patch is in several views, so the space just behind it gets the votes
+    for v in patched:
+        assert decision.holes[v] and not any(r["gap"] for r in decision.holes[v]), decision.holes[v]
+        assert all(r["blocked"] > 0.9 for r in decision.holes[v])
+    assert not any(g.any() for g in decision.gaps)
+
+
+def test_votes_of_more_views_than_see_the_opening_open_nothing():
+    decision, _, holes = decide(FRAME, config=GapConfig(min_votes=13))
+    assert not any(g.any() for g in decision.gaps)
+    assert sum(len(r) for r in decision.holes) > 0 and all(rec["blocked"] > 0.5 for r in decision.holes for rec in r)
+
+
+def test_no_holes_and_bad_inputs():
+    cams = ring_cameras(4)
+    masks = [box_mask(K, T, BLOCK) for K, T in cams]
+    Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
+    none = see_through_holes(masks, [np.zeros_like(m) for m in masks], Ks, Ts, BOUNDS)
+    assert not any(g.any() for g in none.gaps) and none.holes == [[]] * 4
+    with pytest.raises(ValueError, match="same length"):
+        see_through_holes(masks, masks[:2], Ks, Ts, BOUNDS)
+    with pytest.raises(ValueError, match="view 1"):
+        see_through_holes(masks, [m if v != 1 else m[:10] for v, m in enumerate(masks)], Ks, Ts, BOUNDS)
+    with pytest.raises(ValueError, match="rotation"):
+        see_through_holes(masks, masks, Ks, [np.hstack([2 * np.eye(3), np.zeros((3, 1))])] * 4, BOUNDS)
