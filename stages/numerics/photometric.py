@@ -849,9 +849,11 @@ def open_holes(normal_alpha: np.ndarray, albedo: np.ndarray, mask: np.ndarray, g
     if normal_alpha.ndim != 3 or normal_alpha.shape[2] != 4:
         raise ValueError(f"normal_alpha must be (H, W, 4), got {normal_alpha.shape}")
     shape = normal_alpha.shape[:2]
-    for name, a in (("albedo", albedo[..., 0] if albedo.ndim == 3 else None), ("mask", mask), ("gaps", gaps)):
-        if a is None or a.shape != shape:
-            raise ValueError(f"{name} must be {shape} like normal_alpha, got {np.shape(albedo if a is None else a)}")
+    if albedo.shape != shape + (3,):
+        raise ValueError(f"albedo must be {shape + (3,)} like normal_alpha, got {albedo.shape}")
+    for name, a in (("mask", mask), ("gaps", gaps)):
+        if np.shape(a) != shape:
+            raise ValueError(f"{name} must be {shape} like normal_alpha, got {np.shape(a)}")
     mask = np.asarray(mask, bool) & ~np.asarray(gaps, bool)
     normal_alpha = np.where(mask[..., None], normal_alpha, np.float32(0.0)).astype(np.float32)
     albedo = np.where(mask[..., None], albedo, np.float32(0.0)).astype(np.float32)

@@ -277,6 +277,8 @@ def test_open_holes_clears_the_gap_and_caps_its_new_rim():
     assert (normal_alpha[5:7, 5:7, 3] == 0.9).all()  # the inputs are not changed
     with pytest.raises(ValueError, match="gaps"):
         open_holes(normal_alpha, albedo, mask, gaps[:5])
+    with pytest.raises(ValueError, match="albedo"):
+        open_holes(normal_alpha, albedo[..., 0], mask, gaps)
 
 
 def test_mask_without_plate_thresholds_luminance():

@@ -1,0 +1,77 @@
+"""The photometric stage's finalize opens the filled holes the views see through, in every map it wrote."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from artifacts.layout import ArtifactWriter
+from pipeline.codecs.exr import read_exr, write_exr
+from pipeline.codecs.image import mask_from_png, read_png, write_png
+from pipeline.stage import StageContext
+from stages.numerics.gaps import GapConfig
+from stages.photometric import PhotometricConfig, open_gaps
+from tests.unit.numerics.test_gaps import BLOCK, FRAME, SIZE, box_mask, filled, ring_cameras
+
+
+def _stage_folder(tmp_path, boxes):
+    """A photometric task's folder after its views ran (filled masks, their holes, flat maps) and its decode
+    upstream (the cameras), for the 12 ring cameras looking at ``boxes``."""
+    cams = ring_cameras()
+    ids = [f"{i:05d}" for i in range(len(cams))]
+    decode = tmp_path / "decode"
+    decode.mkdir(parents=True)
+    (decode / "cameras.json").write_text(json.dumps({"cameras": [
+        {"camera_id": cid, "K": K.tolist(), "cam_from_world": T.tolist(), "width": SIZE, "height": SIZE}
+        for cid, (K, T) in zip(ids, cams)]}))
+    out = ArtifactWriter("photometric", tmp_path / "out")
+    holes, stats = {}, {}
+    for cid, (K, T) in zip(ids, cams):
+        mask, hole = filled(box_mask(K, T, boxes))
+        for product in ("normal_alpha", "albedo", "mask", "filled_holes", "normal_preview"):
+            out.path(product, cid).parent.mkdir(parents=True, exist_ok=True)
+        normal_alpha = np.zeros((SIZE, SIZE, 4), np.float32)
+        normal_alpha[mask] = [0.0, 0.0, 1.0, 0.9]
+        write_exr(out.path("normal_alpha", cid), normal_alpha)
+        write_exr(out.path("albedo", cid), np.where(mask[..., None], np.full(3, 0.5, np.float32), np.float32(0.0)))
+        write_png(out.path("mask", cid), mask)
+        if hole.any():
+            write_png(out.path("filled_holes", cid), hole)
+        holes[cid] = hole
+        stats[cid] = {"mask_fraction": float(mask.mean()), "valid_fraction": 1.0}
+    ctx = StageContext(stage="photometric", scope_id="A0000", session_id="S000", action_id="A0000",
+                       out_dir=tmp_path / "out", upstream={"decode": decode}, raw_inputs={}, rig={},
+                       capture_root=tmp_path)
+    return ctx, out, holes, stats
+
+
+def test_finalize_opens_the_frame_in_mask_normals_albedo_and_stats(tmp_path):
+    ctx, out, holes, stats = _stage_folder(tmp_path, FRAME)
+    record = open_gaps(ctx, PhotometricConfig(), stats)
+    seen_through = [cid for cid, h in holes.items() if h.sum() >= 20]
+    assert record["gaps"] >= len(seen_through) >= 4 and record["opened_pixels"] >= sum(
+        int(holes[c].sum()) for c in seen_through)
+    for cid in seen_through:
+        mask = mask_from_png(read_png(out.path("mask", cid)))
+        normal_alpha = read_exr(out.path("normal_alpha", cid))
+        albedo = read_exr(out.path("albedo", cid))
+        assert not mask[holes[cid]].any()
+        assert (normal_alpha[holes[cid]] == 0).all() and (albedo[holes[cid]] == 0).all()
+        assert (normal_alpha[mask, 3] <= 0.9).all() and (normal_alpha[mask, 3] == 0.25).any()  # the new rim
+        assert stats[cid]["gap_pixels"] == holes[cid].sum() and stats[cid]["valid_fraction"] < 1.0
+        assert out.path("normal_preview", cid).is_file()
+    # a finalize run again (a lost worker) finds the masks opened and decides the same
+    again = open_gaps(ctx, PhotometricConfig(), stats)
+    assert {k: again[k] for k in ("holes", "gaps", "opened_pixels")} == {
+        k: record[k] for k in ("holes", "gaps", "opened_pixels")}
+
+
+def test_finalize_leaves_a_block_without_holes_and_can_be_turned_off(tmp_path):
+    ctx, out, holes, stats = _stage_folder(tmp_path / "block", BLOCK)
+    assert not any(h.any() for h in holes.values())
+    assert open_gaps(ctx, PhotometricConfig(), stats) == {"enabled": True, "holes": 0, "gaps": 0, "opened_pixels": 0}
+    ctx, out, holes, stats = _stage_folder(tmp_path / "frame", FRAME)
+    before = {cid: read_png(out.path("mask", cid)) for cid in holes}
+    off = PhotometricConfig(gaps=GapConfig(enabled=False))
+    assert open_gaps(ctx, off, stats) == {"enabled": False}
+    assert all(np.array_equal(read_png(out.path("mask", cid)), before[cid]) for cid in holes)
