@@ -59,6 +59,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "end_to_end": "the smallest capture for the growth with width and actions (`x smallest`), the cold run for a "
                   "rerun and a new action (share of its task seconds skipped)",
     "executor": "the same SDF steps in the bench's own process (`worker / in_process`)",
+    "gaps": "the single-view rules on the same holes, every hole filled and every hole opened (accuracy; the "
+            "decision's seconds per action)",
     "gbuffer": "bilinear source lookup for the cubic one (`cubic_time_ratio`)",
     "gpu": "the same production field step on one CPU thread (`speedup_over_cpu_thread`)",
     "gpu_production": "the default preset's run of the same capture on the same machine, beside the production "

@@ -174,6 +174,9 @@ def _blocked_rays(K: np.ndarray, T: np.ndarray, rows: np.ndarray, cols: np.ndarr
             r, c, seen = _project(points, Kw, Tw, mask.shape)
             outside += seen & ~mask[r, c]
             votes += seen & hole[r, c]
-        solid = (outside < 2) & (votes < config.min_votes)
-        blocked |= np.bincount(ray[solid], minlength=rows.size).astype(bool)
+            # a point found empty needs no more views: most of a ray's points are outside the body
+            undecided = (outside < 2) & (votes < config.min_votes)
+            if not undecided.all():
+                points, ray, outside, votes = points[undecided], ray[undecided], outside[undecided], votes[undecided]
+        blocked |= np.bincount(ray, minlength=rows.size).astype(bool)
     return blocked

@@ -184,3 +184,19 @@ def test_relit_budget_quick_mode_scores_the_capture_grid_truth_against_a_finer_o
     stage = ceiling["rows"]["stage"]
     assert stage["capture_grid_db"] == pytest.approx(report["summary"]["stage"]["psnr_db"], abs=1e-9)
     assert "The metric's ceiling" in (out / "bench_relit_budget.md").read_text()
+
+
+def test_gaps_quick_mode_scores_each_rule_on_the_same_holes(quick_run):
+    """Every rule scores the same hole pixels; the two single-view rules are each other's opposite."""
+    out, _ = quick_run
+    report = json.loads((out / "bench_gaps.json").read_text())
+    summary = report["summary"]
+    assert list(summary)[:3] == ["fill every hole", "open every hole", "across views (stage)"]
+    fill, open_ = summary["fill every hole"], summary["open every hole"]
+    assert fill["gap_opened_px"] == fill["surface_opened_px"] == 0
+    assert open_["gap_left_px"] == open_["surface_kept_px"] == 0
+    assert fill["gap_left_px"] == open_["gap_opened_px"] and fill["surface_kept_px"] == open_["surface_opened_px"]
+    for row in summary.values():
+        assert row["gap_opened_px"] + row["gap_left_px"] == fill["gap_left_px"]
+        assert row["surface_opened_px"] + row["surface_kept_px"] == fill["surface_kept_px"]
+    assert "Filled holes decided across views" in (out / "bench_gaps.md").read_text()
