@@ -46,10 +46,9 @@ USER_KNOBS: dict[str, str] = {
     **{f"PhotometricParams.{name}": "validity or mask threshold set to a real capture's noise and background"
        for name in ("signal_softness", "ratio_max", "ratio_softness", "plate_brighter", "plate_darker",
                     "plate_noise_sigmas", "plate_min_diff", "no_plate_threshold", "min_component")},
-    "GapConfig.voxel_m": "the narrowest gap between limbs the masks open: finer for a slim subject, coarser "
-                         "for speed on full-resolution captures",
-    "GapConfig.max_blocked": "how much of a hole the subject may hide for it to open: lower where dark clothing "
-                             "opens",
+    "GapConfig.step_m": "the narrowest gap between limbs the masks open: finer for a slim subject, coarser for "
+                        "speed on full-resolution captures",
+    "GapConfig.max_rays": "the decision's cost against its sampling of a hole, on full-resolution captures",
     "PhotometricConfig.use_clean_plate": "turns a step off: segment by threshold where a session's plate is bad",
     "DiffuseNormalsConfig.use_materials_roughness": "turns an input off: the roughness prior instead of the "
                                                     "materials' roughness (an ablation a user compares)",
