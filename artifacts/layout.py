@@ -64,6 +64,7 @@ PRODUCTS: dict[str, tuple[str, str]] = {
     "normal_preview": ("photometric", "previews/normal_{camera}.png"),
     "albedo_preview": ("photometric", "previews/albedo_{camera}.png"),
     "normals_sheet": ("photometric", "previews/normals_sheet.png"),
+    "gaps_sheet": ("photometric", "previews/gaps_sheet.png"),  # work store only: the filled holes' decision
     "normal_diffuse": ("diffuse_normals", "normal_diffuse/{camera}.exr"),
     "albedo_diffuse": ("diffuse_normals", "albedo_diffuse/{camera}.exr"),
     "normal_diffuse_preview": ("diffuse_normals", "previews/normal_diffuse_{camera}.png"),

@@ -28,7 +28,7 @@ from stages.numerics.photometric import (PhotometricParams, corrected_normals, f
                                          foreground_mask_and_holes, normals_with_alpha, open_holes,
                                          photometric_maps)
 from stages.numerics.specular_normals import view_directions
-from stages.previews import write_normal_sheet
+from stages.previews import contact_sheet, write_normal_sheet
 
 
 RELEASED = ("normal_alpha", "albedo", "mask", "normals_sheet")
@@ -96,6 +96,22 @@ def shipped_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
                            "images of different sizes")
 
 
+def write_gaps_sheet(out: ArtifactWriter, views: list[str], holes: list[np.ndarray], gaps: list[np.ndarray]) -> None:
+    """The product ``gaps_sheet`` (work store): each view with filled holes, its albedo preview with the holes
+    opened as gaps in red and those kept filled in blue, labelled with the camera and the pixel counts."""
+    tiles, labels = [], []
+    for v, hole, gap in zip(views, holes, gaps):
+        if not hole.any() or not out.path("albedo_preview", v).exists():
+            continue
+        tile = read_png(out.path("albedo_preview", v))[..., :3].astype(np.float32)
+        for where, colour in ((gap, (255, 40, 40)), (hole & ~gap, (60, 110, 255))):
+            tile[where] = 0.3 * tile[where] + 0.7 * np.asarray(colour, np.float32)
+        tiles.append(tile.astype(np.uint8))
+        labels.append(f"cam {v}: {int(gap.sum())} px opened (red), {int((hole & ~gap).sum())} kept (blue)")
+    if tiles:
+        write_png(out.path("gaps_sheet"), contact_sheet(tiles, columns=4, labels=labels))
+
+
 def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Decide the views' filled holes across the views (:func:`stages.numerics.gaps.see_through_holes`) and
     put the gaps back to background in the stage's maps of the views that have them: mask, ``normal_alpha``
@@ -139,6 +155,8 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
         view_stats[v]["valid_fraction"] = float(((normal_alpha[..., 3] > 0.5) & mask).sum() / max(int(mask.sum()), 1))
         view_stats[v]["gap_pixels"] = int(gap.sum())
         opened += int(gap.sum())
+    if config.previews:
+        write_gaps_sheet(out, views, hole_maps, decision.gaps)
     records = [r for per_view in decision.holes for r in per_view]
     record = {"enabled": True, "holes": len(records), "gaps": sum(r["gap"] for r in records),
               "opened_pixels": opened, "seconds": round(time.perf_counter() - start, 2)}

@@ -10,7 +10,7 @@ from pipeline.codecs.exr import read_exr, write_exr
 from pipeline.codecs.image import mask_from_png, read_png, write_png
 from pipeline.stage import StageContext
 from stages.numerics.gaps import GapConfig
-from stages.photometric import PhotometricConfig, open_gaps
+from stages.photometric import PhotometricConfig, open_gaps, write_gaps_sheet
 from tests.unit.numerics.test_gaps import BLOCK, FRAME, SIZE, box_mask, filled, ring_cameras
 
 
@@ -35,6 +35,7 @@ def _stage_folder(tmp_path, boxes):
         write_exr(out.path("normal_alpha", cid), normal_alpha)
         write_exr(out.path("albedo", cid), np.where(mask[..., None], np.full(3, 0.5, np.float32), np.float32(0.0)))
         write_png(out.path("mask", cid), mask)
+        write_png(out.path("albedo_preview", cid), np.full((SIZE, SIZE, 3), 128, np.uint8))
         if hole.any():
             write_png(out.path("filled_holes", cid), hole)
         holes[cid] = hole
@@ -60,6 +61,8 @@ def test_finalize_opens_the_frame_in_mask_normals_albedo_and_stats(tmp_path):
         assert (normal_alpha[mask, 3] <= 0.9).all() and (normal_alpha[mask, 3] == 0.25).any()  # the new rim
         assert stats[cid]["gap_pixels"] == holes[cid].sum() and stats[cid]["valid_fraction"] < 1.0
         assert out.path("normal_preview", cid).is_file()
+    sheet = read_png(out.path("gaps_sheet"))  # a tile per view with holes, four to a row
+    assert sheet.shape == (-(-record["holes"] // 4) * SIZE, 4 * SIZE, 3)
     # a finalize run again (a lost worker) finds the masks opened and decides the same
     again = open_gaps(ctx, PhotometricConfig(), stats)
     assert {k: again[k] for k in ("holes", "gaps", "opened_pixels")} == {
@@ -75,3 +78,20 @@ def test_finalize_leaves_a_block_without_holes_and_can_be_turned_off(tmp_path):
     off = PhotometricConfig(gaps=GapConfig(enabled=False))
     assert open_gaps(ctx, off, stats) == {"enabled": False}
     assert all(np.array_equal(read_png(out.path("mask", cid)), before[cid]) for cid in holes)
+
+
+def test_gaps_sheet_paints_opened_holes_red_and_kept_ones_blue(tmp_path):
+    out = ArtifactWriter("photometric", tmp_path)
+    out.path("albedo_preview", "00000").parent.mkdir(parents=True)
+    for cid in ("00000", "00001"):
+        write_png(out.path("albedo_preview", cid), np.full((200, 200, 3), 100, np.uint8))
+    hole = np.zeros((200, 200), bool)
+    hole[150:170, 100:130] = True  # 600 px, clear of the label in the top-left corner
+    none = np.zeros_like(hole)
+    write_gaps_sheet(out, ["00000", "00001", "00002"], [hole, hole, none], [hole, none, none])
+    sheet = read_png(out.path("gaps_sheet"))
+    assert sheet.shape == (200, 800, 3)  # two views with holes, a row of four tiles
+    red = (sheet[..., 0] > 150) & (sheet[..., 1] < 100) & (sheet[..., 2] < 100)
+    blue = (sheet[..., 2] > 150) & (sheet[..., 0] < 100)
+    assert red[:, :200].sum() == 600 and not red[:, 200:].any()
+    assert blue[:, 200:400].sum() == 600 and not blue[:, :200].any()
