@@ -1,7 +1,9 @@
-"""Action stage ``photometric``: normals by eq. 1, validity alpha, albedo and mask, one task per camera.
+"""Action stage ``photometric``: normals by eq. 1, validity alpha, albedo and mask, one task per camera; then, once
+every camera is done, the holes the masks' cleanup filled decided across the views (:func:`open_gaps`).
 
-Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps`. The normals with the
-specular reflection fitted out are the ``diffuse_normals`` stage's (:mod:`stages.diffuse_normals`).
+Wiring only: the numerics are :func:`stages.numerics.photometric.photometric_maps` and
+:func:`stages.numerics.gaps.see_through_holes`. The normals with the specular reflection fitted out are the
+``diffuse_normals`` stage's (:mod:`stages.diffuse_normals`).
 """
 from __future__ import annotations
 
