@@ -157,17 +157,20 @@ def _blocked_rays(K: np.ndarray, T: np.ndarray, rows: np.ndarray, cols: np.ndarr
                   holes: list[np.ndarray], cams: list[tuple[np.ndarray, np.ndarray]], box: np.ndarray,
                   config: GapConfig, chunk: int = 1 << 18) -> np.ndarray:
     """(N,) bool: the ray through pixel (rows, cols) of camera (K, T) meets a point inside ``box`` that is not empty
-    space (:func:`see_through_holes`)."""
+    space (:func:`see_through_holes`). The points go through in batches of about ``chunk`` (whole rays), so memory
+    stays bounded however many holes a full-size frame has."""
     dirs, _ = pixel_rays(K, T, cols.astype(np.float64), rows.astype(np.float64))
+    dirs = dirs.reshape(-1, 3)
     origin = camera_centre(T)
-    t_in, t_out = _ray_box(origin, dirs.reshape(-1, 3), box)
+    t_in, t_out = _ray_box(origin, dirs, box)
     steps = np.maximum(np.floor((t_out - t_in) / config.step_m).astype(np.int64) + 1, 0)
-    ray_of = np.repeat(np.arange(rows.size), steps)
-    offsets = np.arange(ray_of.size) - np.repeat(np.cumsum(steps) - steps, steps)
     blocked = np.zeros(rows.size, bool)
-    for s in range(0, ray_of.size, chunk):
-        ray = ray_of[s:s + chunk]
-        points = origin + dirs.reshape(-1, 3)[ray] * (t_in[ray] + offsets[s:s + chunk] * config.step_m)[:, None]
+    per_batch = max(1, chunk // max(int(steps.max(initial=1)), 1))
+    for first in range(0, rows.size, per_batch):
+        rays = np.arange(first, min(first + per_batch, rows.size))
+        ray = np.repeat(rays, steps[rays])
+        offsets = np.arange(ray.size) - np.repeat(np.cumsum(steps[rays]) - steps[rays], steps[rays])
+        points = origin + dirs[ray] * (t_in[ray] + offsets * config.step_m)[:, None]
         outside = np.zeros(ray.size, np.int16)
         votes = np.zeros(ray.size, np.int16)
         for (Kw, Tw), mask, hole in zip(cams, masks, holes):

@@ -108,3 +108,18 @@ def test_no_holes_and_bad_inputs():
         see_through_holes(masks, [m if v != 1 else m[:10] for v, m in enumerate(masks)], Ks, Ts, BOUNDS)
     with pytest.raises(ValueError, match="rotation"):
         see_through_holes(masks, masks, Ks, [np.hstack([2 * np.eye(3), np.zeros((3, 1))])] * 4, BOUNDS)
+
+
+def test_ray_batches_of_any_size_give_the_same_answer():
+    from stages.numerics.gaps import _blocked_rays
+    from stages.numerics.hull import check_camera
+
+    cams = [check_camera(K, T) for K, T in ring_cameras()]
+    masks, holes = zip(*(filled(box_mask(K, T, FRAME)) for K, T in cams))
+    v = max(range(len(holes)), key=lambda i: holes[i].sum())
+    rows, cols = np.nonzero(masks[v])  # rays through the frame's bars and its opening
+    args = (cams[v][0], cams[v][1], rows, cols, list(masks), list(holes), cams, BOUNDS, GapConfig())
+    whole = _blocked_rays(*args)
+    assert whole.any() and not whole.all()  # the bars block, the opening does not
+    np.testing.assert_array_equal(_blocked_rays(*args, chunk=1), whole)
+    np.testing.assert_array_equal(_blocked_rays(*args, chunk=1000), whole)
