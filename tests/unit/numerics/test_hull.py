@@ -199,3 +199,20 @@ def test_well_seen_components_hand_case():
     single = np.zeros_like(occ)
     single[2, 2, 2] = True
     np.testing.assert_array_equal(_well_seen_components(single, views, 1.0), single)
+
+
+def test_subject_box_holds_the_sphere_within_a_coarse_voxel():
+    from stages.numerics.hull import default_stage_box, subject_box
+
+    cams = sphere_cameras()
+    masks = [sphere_mask(K, T) for K, T in cams]
+    Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
+    stage = default_stage_box(cams)
+    np.testing.assert_allclose(stage.mean(0), 0.0, atol=1e-9)  # every optical axis meets at the origin
+    box = subject_box(masks, Ks, Ts, stage)
+    assert (box[0] <= -RADIUS).all() and (box[1] >= RADIUS).all()  # a superset of the sphere
+    assert (box[0] >= stage[0]).all() and (box[1] <= stage[1]).all()
+    # found, not shaped: 8 cameras and 4 cm voxels leave it loose, but well inside the 2.5 m stage box
+    assert np.prod(box[1] - box[0]) < 0.25 * np.prod(stage[1] - stage[0])
+    with pytest.raises(ValueError, match="empty"):
+        subject_box([np.zeros_like(m) for m in masks], Ks, Ts, stage)
