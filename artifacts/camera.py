@@ -68,6 +68,19 @@ def pixel_coordinates(K: np.ndarray, points_cam: np.ndarray, z: np.ndarray | Non
     return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
 
 
+def ray_box(origins: np.ndarray, dirs: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Slab test: (near, far) of each ray in the box; far <= near where it misses.
+
+    origins (..., 3) or broadcastable, dirs (..., 3), bounds (2, 3) [min, max]; near and far (...,)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / np.where(np.abs(dirs) < 1e-12, 1e-12, dirs)
+        t0 = (bounds[0] - origins) * inv
+        t1 = (bounds[1] - origins) * inv
+    near = np.maximum(np.minimum(t0, t1).max(axis=-1), 0.0)
+    far = np.maximum(t0, t1).min(axis=-1)
+    return near, far
+
+
 def pixel_rays(K: np.ndarray, cam_from_world: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray,
                                                                                                   np.ndarray]:
     """Unit world directions (..., 3) float64 of the rays through pixel coordinates ``u``, ``v`` (...,) of the

@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays
+from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays, ray_box
 from pipeline.config import Documented, checked
 from stages.numerics.hull import check_camera
 
@@ -72,15 +72,6 @@ def _project(points: np.ndarray, K: np.ndarray, T: np.ndarray, shape: tuple[int,
     h, w = shape
     seen = front & (col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1)
     return np.clip(row, 0, h - 1).astype(np.int64), np.clip(col, 0, w - 1).astype(np.int64), seen
-
-
-def _ray_box(origin: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Entry and exit distances (N,) of rays from ``origin`` (3,) along unit ``dirs`` (N, 3) through ``box``
-    (2, 3); exit < entry where a ray misses it."""
-    safe = np.where(np.abs(dirs) < 1e-12, 1e-12, dirs)
-    t0 = (box[0] - origin) / safe
-    t1 = (box[1] - origin) / safe
-    return np.maximum(np.minimum(t0, t1).max(1), 0.0), np.maximum(t0, t1).min(1)
 
 
 def see_through_holes(
@@ -162,7 +153,7 @@ def _blocked_rays(K: np.ndarray, T: np.ndarray, rows: np.ndarray, cols: np.ndarr
     dirs, _ = pixel_rays(K, T, cols.astype(np.float64), rows.astype(np.float64))
     dirs = dirs.reshape(-1, 3)
     origin = camera_centre(T)
-    t_in, t_out = _ray_box(origin, dirs, box)
+    t_in, t_out = ray_box(origin, dirs, box)
     steps = np.maximum(np.floor((t_out - t_in) / config.step_m).astype(np.int64) + 1, 0)
     blocked = np.zeros(rows.size, bool)
     per_batch = max(1, chunk // max(int(steps.max(initial=1)), 1))

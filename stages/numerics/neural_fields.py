@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from artifacts.camera import ray_box  # noqa: F401  (re-exported: the SDF and the appearance field take it from here)
 from pipeline.config import Documented, checked
 from stages.numerics import hashgrid_kernel
 
@@ -258,19 +259,6 @@ def check_view_map(values: Any, shape: tuple[int, ...], where: str, valid: np.nd
 
 
 # ------------------------------------------------------------------------------------------------ rendering and training
-
-
-def ray_box(origins: np.ndarray, dirs: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Slab test: (near, far) of each ray in the box; far <= near where it misses.
-
-    origins (..., 3) or broadcastable, dirs (..., 3), bounds (2, 3) [min, max]; near and far (...,)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / np.where(np.abs(dirs) < 1e-12, 1e-12, dirs)
-        t0 = (bounds[0] - origins) * inv
-        t1 = (bounds[1] - origins) * inv
-    near = np.maximum(np.minimum(t0, t1).max(axis=-1), 0.0)
-    far = np.maximum(t0, t1).min(axis=-1)
-    return near, far
 
 
 def neus_composite(sdf: torch.Tensor, grad: torch.Tensor, dirs: torch.Tensor, delta: torch.Tensor,
