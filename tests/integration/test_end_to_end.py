@@ -448,29 +448,30 @@ def test_outputs_are_finite_and_normals_unit(first_run):
 
 @pytest.fixture(scope="module")
 def evaluated(first_run, capture):
-    """The first run's release evaluated against the truth (once; later tests change the release)."""
+    """The first run's release evaluated against the truth (once; later tests change the release), its relit parts
+    measured action by action in two worker processes."""
     from evaluation.release import evaluate_release
 
     out, _ = first_run
-    return evaluate_release(out / "release", capture / "ground_truth")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "2")
+        return evaluate_release(out / "release", capture / "ground_truth")
 
 
 def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
-    """The relit parts measured action by action in worker processes give the numbers and the metrics rows
-    (in the same order) of an all-in-one-process run."""
+    """The relit parts measured action by action in worker processes (the fixture's evaluation) give the numbers
+    and the metrics rows (in the same order) of an all-in-one-process run."""
     from evaluation.release import evaluate_release, evaluate_workers
-    from pipeline.runner import new_run_id
 
     out, _ = first_run
-    run_id = new_run_id()
-    monkeypatch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "2")
-    split = evaluate_release(out / "release", capture / "ground_truth", run_id=run_id)
+    run_ids = {row["run_id"] for row in evaluated.rows}
+    assert len(run_ids) == 1
     monkeypatch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "1")
     assert evaluate_workers() == 1
-    serial = evaluate_release(out / "release", capture / "ground_truth", run_id=run_id)
-    assert "relit_psnr_db" in split.overall and split.overall == serial.overall
-    assert split.per_action == serial.per_action
-    assert split.rows == serial.rows and any(row["metric"] == "relightset_image_psnr_db" for row in split.rows)
+    serial = evaluate_release(out / "release", capture / "ground_truth", run_id=run_ids.pop())
+    assert "relit_psnr_db" in evaluated.overall and evaluated.overall == serial.overall
+    assert evaluated.per_action == serial.per_action
+    assert evaluated.rows == serial.rows and any(row["metric"] == "relightset_image_psnr_db" for row in serial.rows)
 
 
 def test_accuracy_against_ground_truth(evaluated):
