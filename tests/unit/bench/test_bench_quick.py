@@ -1,8 +1,8 @@
 """Every bench runs in its quick mode (`make bench-quick`: bench/run_all.py --quick), so that none can rot: each
 writes its results, marked quick, with finite numbers, and the benches whose quick output has a structure of its
 own (the subject panel, the hash-grid kernel, the engine at scale) are checked on that same run's files, so no
-quick mode runs twice in the suite. Nothing is timed; the run takes about 3 minutes on an idle 2-core machine (the
-tiny simulated run the release benches share included)."""
+quick mode runs twice in the suite. Nothing is timed; the run takes about 3 minutes on an idle 2-core machine, 8 on
+a slower one (the tiny simulated run the release benches share included)."""
 from __future__ import annotations
 
 import json
