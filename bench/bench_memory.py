@@ -295,7 +295,8 @@ def table(report: dict[str, Any]) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out"))
-    parser.add_argument("--quick", action="store_true", help="1/8-size frames, one SDF run on 1/16-size views (checks the bench only)")
+    parser.add_argument("--quick", action="store_true",
+                        help="1/8-size frames, one SDF run on 1/16-size views (checks the bench only)")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--variant", help=argparse.SUPPRESS)
     parser.add_argument("--folder", help=argparse.SUPPRESS)
