@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Camera", "camera_centre", "as_pose", "lift_points", "pixel_rays", "pixel_coordinates"]
+__all__ = ["Camera", "camera_centre", "as_pose", "lift_points", "pixel_rays", "pixel_coordinates", "check_bounds",
+           "ray_box"]
 
 
 def camera_centre(cam_from_world: np.ndarray) -> np.ndarray:
@@ -66,6 +67,14 @@ def pixel_coordinates(K: np.ndarray, points_cam: np.ndarray, z: np.ndarray | Non
     z = points_cam[:, 2] if z is None else z
     x, y = points_cam[:, 0] / z, points_cam[:, 1] / z
     return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
+
+
+def check_bounds(bounds: Any) -> np.ndarray:
+    """``bounds`` as a float64 (2, 3) [min, max] box; ValueError unless finite with max > min on every axis."""
+    b = np.asarray(bounds, np.float64)
+    if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
+        raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
+    return b
 
 
 def ray_box(origins: np.ndarray, dirs: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -19,9 +19,9 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays, ray_box
+from artifacts.camera import camera_centre, check_bounds, pixel_coordinates, pixel_rays, ray_box
 from pipeline.config import Documented, checked
-from stages.numerics.hull import _check_bounds, check_camera
+from stages.numerics.hull import check_camera
 
 __all__ = ["GapConfig", "GapDecision", "see_through_holes"]
 
@@ -113,7 +113,7 @@ def see_through_holes(
         if m.ndim != 2 or h.shape != m.shape:
             raise ValueError(f"view {v}: holes {h.shape} must be an (H, W) map like its mask {m.shape}")
     cams = [check_camera(K, T, f"view {v}") for v, (K, T) in enumerate(zip(Ks, cam_from_worlds))]
-    box = _check_bounds(bounds)
+    box = check_bounds(bounds)
     gaps = [np.zeros(m.shape, bool) for m in masks]
     records: list[list[dict]] = [[] for _ in masks]
     for v, ((K, T), h) in enumerate(zip(cams, holes)):

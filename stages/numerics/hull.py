@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from artifacts.camera import camera_centre, pixel_coordinates, pixel_rays
+from artifacts.camera import camera_centre, check_bounds, pixel_coordinates, pixel_rays
 
 __all__ = ["HullGrid", "visual_hull", "check_camera", "default_stage_box", "subject_box"]
 
@@ -47,13 +47,6 @@ def check_camera(K: np.ndarray, cam_from_world: np.ndarray, where: str = "camera
     return K, T
 
 
-def _check_bounds(bounds: np.ndarray) -> np.ndarray:
-    b = np.asarray(bounds, np.float64)
-    if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
-        raise ValueError(f"bounds must be finite (2, 3) [min corner, max corner] with max > min, got {bounds!r}")
-    return b
-
-
 @dataclass
 class HullGrid:
     """A voxel occupancy grid over an axis-aligned box.
@@ -71,7 +64,7 @@ class HullGrid:
         self.occupancy = np.asarray(self.occupancy, bool)
         if self.occupancy.ndim != 3 or min(self.occupancy.shape) < 1:
             raise ValueError(f"occupancy must be a non-empty (Rx, Ry, Rz) bool grid, got {self.occupancy.shape}")
-        self.bounds = _check_bounds(self.bounds)
+        self.bounds = check_bounds(self.bounds)
 
     @property
     def resolution(self) -> tuple[int, int, int]:
@@ -209,7 +202,7 @@ def visual_hull(
     if not (len(masks) == len(Ks) == len(cam_from_worlds)) or len(masks) == 0:
         raise ValueError(f"masks, Ks and cam_from_worlds must be non-empty lists of the same length, got "
                          f"{len(masks)}, {len(Ks)}, {len(cam_from_worlds)}")
-    b = _check_bounds(bounds)
+    b = check_bounds(bounds)
     res = np.broadcast_to(np.asarray(resolution, np.int64), (3,))
     if (res < 1).any() or res.max() > 1024:
         raise ValueError(f"resolution must be in 1..1024 per axis, got {resolution!r}")

@@ -17,7 +17,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from artifacts.camera import ray_box  # noqa: F401  (re-exported: the SDF and the appearance field take it from here)
+# re-exported: the SDF and the appearance field take them from here
+from artifacts.camera import check_bounds, ray_box  # noqa: F401
 from pipeline.config import Documented, checked
 from stages.numerics import hashgrid_kernel
 
@@ -227,14 +228,6 @@ class HashEncoding(torch.nn.Module):
 
 
 # ------------------------------------------------------------------------------------------------ input checks
-
-
-def check_bounds(bounds: Any) -> np.ndarray:
-    """``bounds`` as a float64 (2, 3) [min, max] box; ValueError unless finite with max > min on every axis."""
-    b = np.asarray(bounds, np.float64)
-    if b.shape != (2, 3) or not np.isfinite(b).all() or not (b[1] > b[0]).all():
-        raise ValueError(f"bounds must be finite (2, 3) [min, max] with max > min, got {bounds!r}")
-    return b
 
 
 def check_view_list(views: Any, view_type: type) -> None:
