@@ -157,8 +157,9 @@ def _blocked_rays(K: np.ndarray, T: np.ndarray, rows: np.ndarray, cols: np.ndarr
     per_batch = max(1, chunk // max(int(steps.max(initial=1)), 1))
     for first in range(0, rows.size, per_batch):
         rays = np.arange(first, min(first + per_batch, rows.size))
-        ray = np.repeat(rays, steps[rays])
-        offsets = np.arange(ray.size) - np.repeat(np.cumsum(steps[rays]) - steps[rays], steps[rays])
+        counts = steps[rays]
+        ray = np.repeat(rays, counts)
+        offsets = np.arange(ray.size) - np.repeat(np.cumsum(counts) - counts, counts)
         points = origin + dirs[ray] * (t_in[ray] + offsets * config.step_m)[:, None]
         outside = np.zeros(ray.size, np.int16)
         votes = np.zeros(ray.size, np.int16)
