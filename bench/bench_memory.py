@@ -20,8 +20,8 @@ peak resident set of that one child (``resource.getrusage(RUSAGE_CHILDREN).ru_ma
   linearly in pixels from k = 4 and 2, a check of the k = 1 row).
 
 Writes bench_memory.json and bench_memory.md. ``python bench/bench_memory.py --out bench/out [--quick]``
-(``--quick``: a 1/8-size camera and one SDF run on 1/16-size views, seconds; for checking the bench, not for the
-figures).
+(``--quick``: a 1/8-size camera and one SDF run on 1/16-size views with smaller batches, seconds; for checking the
+bench, not for the figures).
 """
 from __future__ import annotations
 
@@ -49,6 +49,10 @@ CAMERA = "00000"
 RADII = np.array([0.30, 0.90, 0.25])
 """Semi-axes of the synthetic subject (metres): a body-sized ellipsoid."""
 LIMIT_GIB = 24.0
+QUICK_SDF_K = 16
+"""The quick mode's SDF views are 1/16 of the production maps per axis; a run at that size also trains with an
+eighth of the production batches and a coarser hull and proposal grid (it checks the code, its figures are not
+the production's)."""
 WATCHER = ("import json, resource, subprocess, sys; rc = subprocess.call(sys.argv[2:]); "
            "json.dump({'rc': rc, 'maxrss_kib': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}, "
            "open(sys.argv[1], 'w'))")
@@ -214,6 +218,9 @@ def child_sdf(folder: Path, variant: str) -> dict[str, Any]:
     steps = 4
     config = dataclasses.replace(SDF_PRESETS["production"], iterations=steps, hull_init_steps=2, warmup_iterations=1,
                                  proposal_update_every=2, log_every=1, device="cpu", threads=2)
+    if k == QUICK_SDF_K:  # the quick mode's check of the code: production's hash table, an eighth of its batches
+        config = dataclasses.replace(config, rays_per_batch=512, eikonal_points=256, hull_init_points=2048,
+                                     hull_resolution=64, proposal_voxel_m=0.032)
     start = time.perf_counter()
     result = train_sdf(views, config)
     encoding = config.encoding
@@ -310,7 +317,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     scale = 8 if args.quick else 1
     width, height = SENSOR[0] // scale, SENSOR[1] // scale
-    sdf_ks = [16] if args.quick else [4, 2, 1]
+    sdf_ks = [QUICK_SDF_K] if args.quick else [4, 2, 1]
     runs: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:
         folder = Path(tmp)
