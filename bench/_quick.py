@@ -27,6 +27,11 @@ QUICK_CAMERAS = 8  # the geometry stage's default min_views; 2 held-out cameras 
 QUICK_WIDTH = 96
 QUICK_LEDS = 128
 QUICK_PRESET = "test"  # the preset of the tests' tiny captures: every stage runs, in seconds
+QUICK_RUN_LOCK = "quick_run.lock"
+"""File under ``--out`` that a process using the shared tiny run holds locked until it exits."""
+QUICK_RUN_USERS = "quick_run.users"
+"""File under ``--out``: one line per process that used the shared tiny run, its script's name."""
+_held_lock = None
 
 
 def quick_sim_changes() -> dict:
@@ -50,8 +55,22 @@ def quick_run(out: Path) -> Path:
     plan when nothing changed, and the stages the code changed run again.
 
     It runs in a child process whose OpenMP threads sleep while they wait (``OMP_WAIT_POLICY=PASSIVE``, unless
-    set): on a 2-core machine shared with other work, spinning threads made this run 100-120 s instead of 13-16 s."""
+    set): on a 2-core machine shared with other work, spinning threads made this run 100-120 s instead of 13-16 s.
+
+    The calling process holds ``OUT/quick_run.lock`` from here until it exits, so that benches run side by side
+    (``run_all.py --quick --lanes 2``) take the shared run one at a time: a second pipeline run on the same folder
+    would be refused by its run lock, and a rerun may rewrite files another bench reads. It adds its script's name
+    to ``OUT/quick_run.users``."""
+    global _held_lock
     root = Path(out) / QUICK_RUN
+    if _held_lock is None:
+        import fcntl
+
+        root.parent.mkdir(parents=True, exist_ok=True)
+        _held_lock = open(root.parent / QUICK_RUN_LOCK, "a")
+        fcntl.flock(_held_lock, fcntl.LOCK_EX)  # released by the OS when this process ends
+        with open(root.parent / QUICK_RUN_USERS, "a") as users:
+            users.write(Path(sys.argv[0]).stem + "\n")
     env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
     subprocess.run([sys.executable, str(Path(__file__).resolve()), str(root)], check=True, env=env)
     return root

@@ -6,13 +6,15 @@ process; they are never timed tests.
 ``--quick`` (``make bench-quick``, and tests/unit/bench/test_bench_quick.py) runs every bench in its quick mode:
 the same code on the smallest inputs that run it (the benches that read a release share a tiny simulated run
 made once under ``--out``, see bench/_quick.py), so that the benches cannot rot; its numbers are not
-measurements. Without it (``make bench``) the slowest benches run smaller (:data:`MAKE_BENCH_ARGS`); ``--full``
+measurements. ``--quick --lanes 2`` (the tests) runs them in two lanes side by side (:data:`SHARED_RUN_LANE`).
+Without ``--quick`` (``make bench``) the slowest benches run smaller (:data:`MAKE_BENCH_ARGS`); ``--full``
 (``make bench-full``) runs every bench with its own defaults. Each bench's wall and CPU seconds go into the report and
 ``bench_times.json``.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -142,12 +144,67 @@ def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
     return MAKE_BENCH_ARGS[name]
 
 
-def _children_cpu_seconds() -> float:
-    """User + system CPU seconds of this process's finished children (and theirs, once waited for)."""
-    import resource
+SHARED_RUN_LANE = frozenset({
+    "bench_diffuse_normals", "bench_end_to_end", "bench_gaps", "bench_gbuffer", "bench_geometry",
+    "bench_gpu_production", "bench_heldout_field", "bench_materials", "bench_panel_set", "bench_projection",
+    "bench_relight", "bench_relightset", "bench_relit_budget", "bench_sdf_schedule", "bench_sdf_sharpness",
+    "bench_silhouette", "bench_textures"})
+"""The benches whose quick mode reads the shared tiny run (bench/_quick.py's ``quick_run``): with ``--lanes 2`` they
+run one after another in one lane and every other bench in the other. ``quick_run`` holds a lock for the life of
+the process that uses it, so a bench missing here still takes the run in turn, only later; the quick run's
+``quick_run.users`` lists the benches that did use it (tests/unit/bench/test_bench_quick.py compares the two)."""
 
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+
+def run_one(script: Path, extra: list[str], out: Path, env: dict | None, log: Path | None) -> tuple[int, float, float]:
+    """Run one bench in its own process: (exit status, wall seconds, CPU seconds of it and its waited-for
+    children). Its output goes to this process's, or with ``log`` to that file."""
+    start = time.perf_counter()
+    with open(log, "w") if log else contextlib.nullcontext() as sink:
+        proc = subprocess.Popen([sys.executable, str(script), "--out", str(out)] + extra, cwd=HERE.parent, env=env,
+                                stdout=sink, stderr=subprocess.STDOUT if log else None)
+        _, status, usage = os.wait4(proc.pid, 0)  # this child's own resource use, whatever else runs beside it
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, time.perf_counter() - start, usage.ru_utime + usage.ru_stime
+
+
+def run_benches(plan: list[tuple[Path, list[str]]], out: Path, env: dict | None,
+                lanes: int) -> dict[str, tuple[int, float, float]]:
+    """Run ``plan``'s benches, each as :func:`run_one`; per bench name (exit status, wall s, CPU s). With one lane
+    in order, their output streamed. With two, :data:`SHARED_RUN_LANE`'s benches in one lane and the others in the
+    other, side by side, each bench's output printed whole when it ends; the benches that read other benches'
+    results run after both lanes."""
+    results: dict[str, tuple[int, float, float]] = {}
+
+    def lane(scripts: list[tuple[Path, list[str]]], logs: Path | None) -> None:
+        for script, extra in scripts:
+            if logs is None:
+                print(f"== {script.name} {' '.join(extra)}".rstrip(), flush=True)
+            results[script.stem] = run_one(script, extra, out, env, logs / f"{script.stem}.log" if logs else None)
+            code, seconds, cpu = results[script.stem]
+            if logs is not None:  # one print call: the other lane's lines do not fall inside this block
+                text = (logs / f"{script.stem}.log").read_text(errors="replace")
+                print(f"== {script.name} {' '.join(extra)}".rstrip() + "\n" + text + ("" if text.endswith("\n") or
+                      not text else "\n") + f"== {script.name}: exit {code}, {seconds:.1f} s ({cpu:.1f} s CPU)",
+                      flush=True)
+            else:
+                print(f"== {script.name}: exit {code}, {seconds:.1f} s ({cpu:.1f} s CPU)", flush=True)
+
+    last = [(s, e) for s, e in plan if s.stem in READS_OTHER_BENCHES]
+    first = [(s, e) for s, e in plan if s.stem not in READS_OTHER_BENCHES]
+    if lanes == 1:
+        lane(first + last, None)
+        return results
+    from concurrent.futures import ThreadPoolExecutor
+
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    shared = [(s, e) for s, e in first if s.stem in SHARED_RUN_LANE]
+    others = [(s, e) for s, e in first if s.stem not in SHARED_RUN_LANE]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for future in [pool.submit(lane, shared, logs), pool.submit(lane, others, logs)]:
+            future.result()
+    lane(last, logs)
+    return results
 
 
 def baseline_section(names: list[str]) -> list[str]:
@@ -185,7 +242,12 @@ def main() -> int:
                       help="every bench in its quick mode (the tests' mode): checks they run; not measurements")
     mode.add_argument("--full", action="store_true",
                       help="every bench with its own (largest) defaults; without: MAKE_BENCH_ARGS's smaller runs")
+    parser.add_argument("--lanes", type=int, choices=(1, 2), default=1,
+                        help="with --quick: 2 runs the benches that read the shared tiny run in one lane and the "
+                             "others beside them (the tests' mode; a measuring run keeps one bench at a time)")
     args = parser.parse_args()
+    if args.lanes != 1 and not args.quick:
+        parser.error("--lanes 2 is for --quick only: benches that measure time run one at a time")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     # the benches that read others' results (the projection reads bench_resolution.json, bench_gpu.json) run last
@@ -207,21 +269,22 @@ def main() -> int:
                    "(`MAKE_BENCH_ARGS`); `make bench-full` (`--full`) runs them all at full size.", ""]
     report += ["## Machine", "", *machine_lines(), ""]
     started = time.perf_counter()
+    plan = []
     for script in scripts:
         extra = bench_arguments(script.stem.removeprefix("bench_"), args.quick, args.full)
         if extra is None:
             print(f"== {script.name}: left to the full run (make bench-full)", flush=True)
+        plan.append((script, extra))
+    results = run_benches([(s, e) for s, e in plan if e is not None], out, env, args.lanes)
+    for script, extra in plan:
+        if extra is None:
             report += [f"## {script.stem}", "", "not run: left to `make bench-full` (see MAKE_BENCH_ARGS)", ""]
             continue
-        print(f"== {script.name} {' '.join(extra)}".rstrip(), flush=True)
-        start, cpu_start = time.perf_counter(), _children_cpu_seconds()
-        proc = subprocess.run([sys.executable, str(script), "--out", str(out)] + extra, cwd=HERE.parent, env=env)
-        seconds, cpu = time.perf_counter() - start, _children_cpu_seconds() - cpu_start
+        returncode, seconds, cpu = results[script.stem]
         times[script.stem], cpu_times[script.stem] = seconds, cpu
-        print(f"== {script.name}: exit {proc.returncode}, {seconds:.1f} s ({cpu:.1f} s CPU)", flush=True)
-        if proc.returncode:
+        if returncode:
             failures.append(script.name)
-        report += [f"## {script.stem}", "", f"exit {proc.returncode}, {seconds:.1f}s wall, {cpu:.1f}s CPU"
+        report += [f"## {script.stem}", "", f"exit {returncode}, {seconds:.1f}s wall, {cpu:.1f}s CPU"
                    + (f" (`{' '.join(extra)}`)" if extra and not args.quick else ""), ""]
         result = out / f"{script.stem}.json"
         table = out / f"{script.stem}.md"

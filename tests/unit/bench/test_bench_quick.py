@@ -1,10 +1,11 @@
 """Every bench runs in its quick mode (`make bench-quick`: bench/run_all.py --quick), so that none can rot: each
 writes its results, marked quick, with finite numbers, and the benches whose quick output has a structure of its
 own (the subject panel, the hash-grid kernel, the engine at scale) are checked on that same run's files, so no
-quick mode runs twice in the suite. Nothing is timed; the run takes about 3 minutes on an idle 2-core machine, 8 on
-a slower one (the tiny simulated run the release benches share included)."""
+quick mode runs twice in the suite. The benches run in run_all's two lanes (``--lanes 2``): the ones that read the
+shared tiny run in one, the others beside them. Nothing is timed; the run takes about 10 CPU minutes."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import subprocess
@@ -19,8 +20,9 @@ BENCHES = sorted(p.stem for p in (ROOT / "bench").glob("bench_*.py"))
 
 
 def _printed(stdout: str, name: str) -> str:
-    """What run_all printed while it ran bench ``name``."""
-    return stdout.partition(f"== {name}.py\n")[2].partition(f"== {name}.py: exit")[0]
+    """What run_all printed while it ran bench ``name`` (between its ``== NAME.py ARGS`` and ``== NAME.py: exit``
+    lines)."""
+    return stdout.partition(f"== {name}.py ")[2].partition("\n")[2].partition(f"== {name}.py: exit")[0]
 
 
 def _numbers(value, where: str):
@@ -40,7 +42,8 @@ def _numbers(value, where: str):
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     out = tmp_path_factory.mktemp("bench_quick")
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run_all.py"), "--quick", "--out", str(out)],
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run_all.py"), "--quick", "--lanes", "2", "--out",
+                           str(out)],
                           cwd=ROOT, capture_output=True, text=True, timeout=1800)
     return out, proc
 
@@ -69,6 +72,23 @@ def test_every_bench_writes_quick_results_with_finite_numbers(quick_run, name):
     assert data.get("quick") is True, f"{result.name} is not marked quick"
     bad = [where for where, x in _numbers(data, name) if not math.isfinite(x)]
     assert not bad, f"{result.name}: non-finite numbers at {bad[:10]}"
+
+
+@pytest.mark.slow
+def test_the_shared_run_lane_holds_the_benches_that_used_the_shared_run(quick_run):
+    """run_all's lane of the shared tiny run names exactly the benches that took it: a bench missing from it would
+    wait for the run while the other lane is busy (correct, but slower), a name left there after its bench stopped
+    using the run keeps that lane longer than it needs. Each bench's output is printed as one block."""
+    out, proc = quick_run
+    spec = importlib.util.spec_from_file_location("run_all_under_test", ROOT / "bench" / "run_all.py")
+    run_all = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run_all)  # its top level imports the standard library only
+    users = set((out / "quick_run.users").read_text().split())
+    assert users == run_all.SHARED_RUN_LANE, (sorted(users - run_all.SHARED_RUN_LANE),
+                                              sorted(run_all.SHARED_RUN_LANE - users))
+    for name in BENCHES:
+        assert f"== {name}.py: exit 0" in proc.stdout, name
+        assert "== bench_" not in _printed(proc.stdout, name), f"another bench's lines inside {name}'s block"
 
 
 @pytest.mark.slow
