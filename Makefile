@@ -56,9 +56,10 @@ panel: setup
 	nice -n 10 $(PY) bench/bench_subjects.py --out bench/out
 	nice -n 10 $(PY) bench/bench_panel_set.py --out bench/out
 
-# Every bench on the smallest inputs that run its code (the tests run it too): checks, not measurements.
+# Every bench on the smallest inputs that run its code (the tests run it too): checks, not measurements. Two lanes:
+# the benches that read the shared tiny run one after another, the others beside them.
 bench-quick: setup
-	$(PY) bench/run_all.py --quick --out bench/out-quick
+	$(PY) bench/run_all.py --quick --lanes 2 --out bench/out-quick
 
 # Other tools' own loaders on a release (nerfstudio's dataparsers, COLMAP's reader), in their own environment
 # .venv-compat (never the main one). torch 2.13.0 goes in first from the CPU build the machine's pip finds
