@@ -6,7 +6,8 @@ process; they are never timed tests.
 ``--quick`` (``make bench-quick``, and tests/unit/bench/test_bench_quick.py) runs every bench in its quick mode:
 the same code on the smallest inputs that run it (the benches that read a release share a tiny simulated run
 made once under ``--out``, see bench/_quick.py), so that the benches cannot rot; its numbers are not
-measurements. ``--quick --lanes 2`` (the tests) runs them in two lanes side by side (:data:`SHARED_RUN_LANE`).
+measurements. A quick run forks every bench from itself after importing the common libraries once
+(:data:`PRELOAD`); ``--quick --lanes 2`` (the tests) runs them in two lanes side by side (:data:`SHARED_RUN_LANE`).
 Without ``--quick`` (``make bench``) the slowest benches run smaller (:data:`MAKE_BENCH_ARGS`); ``--full``
 (``make bench-full``) runs every bench with its own defaults. Each bench's wall and CPU seconds go into the report and
 ``bench_times.json``.
@@ -155,55 +156,129 @@ the process that uses it, so a bench missing here still takes the run in turn, o
 ``quick_run.users`` lists the benches that did use it (tests/unit/bench/test_bench_quick.py compares the two)."""
 
 
-def run_one(script: Path, extra: list[str], out: Path, env: dict | None, log: Path | None) -> tuple[int, float, float]:
-    """Run one bench in its own process: (exit status, wall seconds, CPU seconds of it and its waited-for
-    children). Its output goes to this process's, or with ``log`` to that file."""
-    start = time.perf_counter()
+PRELOAD = ("numpy", "scipy.ndimage", "torch", "matplotlib.pyplot", "pyarrow.parquet", "stages.registry",
+           "evaluation.release", "synthetic")
+"""What ``run_all.py --quick`` imports once before it forks every bench from itself: about 4 CPU seconds a bench
+process would spend on these imports (the benches' own subprocesses still import for themselves)."""
+
+
+def preload(env: dict[str, str]) -> None:
+    """Import :data:`PRELOAD` into this process, with ``env`` set first (the OpenMP wait policy is read when the
+    OpenMP runtime loads, with torch) and matplotlib on its file backend."""
+    os.environ.update(env)
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    if str(HERE.parent) not in sys.path:
+        sys.path.insert(0, str(HERE.parent))
+    import importlib
+
+    for name in PRELOAD:
+        importlib.import_module(name)
+
+
+def _forked_bench(script: Path, extra: list[str], out: Path, log: Path | None) -> None:
+    """In a child forked from run_all: run ``script`` as ``__main__`` with its command line, output to ``log``
+    (else inherited), and end the process with the bench's exit status. Never returns."""
+    code = 1
+    try:
+        if log is not None:
+            fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            os.dup2(fd, 1)
+            os.dup2(fd, 2)
+            os.close(fd)
+        os.chdir(HERE.parent)
+        sys.argv = [str(script), "--out", str(out), *extra]
+        sys.path.insert(0, str(script.parent))  # as when the script is run: its siblings import by name
+        import runpy
+
+        try:
+            runpy.run_path(str(script), run_name="__main__")
+            code = 0
+        except SystemExit as exc:
+            if exc.code is None or isinstance(exc.code, int):
+                code = exc.code or 0
+            else:
+                print(exc.code, file=sys.stderr)
+    except BaseException:  # noqa: BLE001 - whatever the bench raised is its failure, reported like Python's own
+        import traceback
+
+        traceback.print_exc()
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+
+def start_bench(script: Path, extra: list[str], out: Path, env: dict | None, log: Path | None,
+                fork: bool) -> tuple[int, subprocess.Popen | None]:
+    """Start one bench in a process of its own: ``python SCRIPT --out OUT EXTRA``, or with ``fork`` a child of this
+    process that runs it (:func:`_forked_bench`; :func:`preload` first). Its output goes to this process's, or
+    with ``log`` to that file. Returns (pid, the Popen object or None)."""
+    if fork:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:
+            _forked_bench(script, extra, out, log)
+        return pid, None
     with open(log, "w") if log else contextlib.nullcontext() as sink:
         proc = subprocess.Popen([sys.executable, str(script), "--out", str(out)] + extra, cwd=HERE.parent, env=env,
                                 stdout=sink, stderr=subprocess.STDOUT if log else None)
-        _, status, usage = os.wait4(proc.pid, 0)  # this child's own resource use, whatever else runs beside it
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, time.perf_counter() - start, usage.ru_utime + usage.ru_stime
+    return proc.pid, proc
 
 
-def run_benches(plan: list[tuple[Path, list[str]]], out: Path, env: dict | None,
-                lanes: int) -> dict[str, tuple[int, float, float]]:
-    """Run ``plan``'s benches, each as :func:`run_one`; per bench name (exit status, wall s, CPU s). With one lane
-    in order, their output streamed. With two, :data:`SHARED_RUN_LANE`'s benches in one lane and the others in the
-    other, side by side, each bench's output printed whole when it ends; the benches that read other benches'
-    results run after both lanes."""
+def run_benches(plan: list[tuple[Path, list[str]]], out: Path, env: dict | None, lanes: int,
+                fork: bool = False) -> dict[str, tuple[int, float, float]]:
+    """Run ``plan``'s benches, each in its own process (:func:`start_bench`); per bench name (exit status, wall s,
+    CPU s of it and its waited-for children). With one lane in order, their output streamed. With two,
+    :data:`SHARED_RUN_LANE`'s benches in one lane and the others in the other, side by side, each bench's output
+    printed whole when it ends. The benches that read other benches' results run after the lanes."""
     results: dict[str, tuple[int, float, float]] = {}
+    logs = out / "logs" if lanes > 1 else None
+    if logs is not None:
+        logs.mkdir(parents=True, exist_ok=True)
 
-    def lane(scripts: list[tuple[Path, list[str]]], logs: Path | None) -> None:
-        for script, extra in scripts:
+    def run_lanes(queues: list[list[tuple[Path, list[str]]]]) -> None:
+        running: dict[int, tuple[int, Path, list[str], float, subprocess.Popen | None]] = {}
+
+        def launch(lane: int) -> None:
+            if not queues[lane]:
+                return
+            script, extra = queues[lane].pop(0)
             if logs is None:
                 print(f"== {script.name} {' '.join(extra)}".rstrip(), flush=True)
-            results[script.stem] = run_one(script, extra, out, env, logs / f"{script.stem}.log" if logs else None)
-            code, seconds, cpu = results[script.stem]
+            log = logs / f"{script.stem}.log" if logs is not None else None
+            pid, proc = start_bench(script, extra, out, env, log, fork)
+            running[pid] = (lane, script, extra, time.perf_counter(), proc)
+
+        for lane in range(len(queues)):
+            launch(lane)
+        while running:
+            pid, status, usage = os.wait4(-1, 0)  # that child's own resource use, whatever else runs beside it
+            if pid not in running:
+                continue
+            lane, script, extra, started, proc = running.pop(pid)
+            code = os.waitstatus_to_exitcode(status)
+            if proc is not None:
+                proc.returncode = code
+            seconds, cpu = time.perf_counter() - started, usage.ru_utime + usage.ru_stime
+            results[script.stem] = code, seconds, cpu
+            ended = f"== {script.name}: exit {code}, {seconds:.1f} s ({cpu:.1f} s CPU)"
             if logs is not None:  # one print call: the other lane's lines do not fall inside this block
                 text = (logs / f"{script.stem}.log").read_text(errors="replace")
-                print(f"== {script.name} {' '.join(extra)}".rstrip() + "\n" + text + ("" if text.endswith("\n") or
-                      not text else "\n") + f"== {script.name}: exit {code}, {seconds:.1f} s ({cpu:.1f} s CPU)",
-                      flush=True)
+                print(f"== {script.name} {' '.join(extra)}".rstrip() + "\n" + text
+                      + ("\n" if text and not text.endswith("\n") else "") + ended, flush=True)
             else:
-                print(f"== {script.name}: exit {code}, {seconds:.1f} s ({cpu:.1f} s CPU)", flush=True)
+                print(ended, flush=True)
+            launch(lane)
 
     last = [(s, e) for s, e in plan if s.stem in READS_OTHER_BENCHES]
     first = [(s, e) for s, e in plan if s.stem not in READS_OTHER_BENCHES]
     if lanes == 1:
-        lane(first + last, None)
-        return results
-    from concurrent.futures import ThreadPoolExecutor
-
-    logs = out / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    shared = [(s, e) for s, e in first if s.stem in SHARED_RUN_LANE]
-    others = [(s, e) for s, e in first if s.stem not in SHARED_RUN_LANE]
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        for future in [pool.submit(lane, shared, logs), pool.submit(lane, others, logs)]:
-            future.result()
-    lane(last, logs)
+        run_lanes([first + last])
+    else:
+        run_lanes([[(s, e) for s, e in first if s.stem in SHARED_RUN_LANE],
+                   [(s, e) for s, e in first if s.stem not in SHARED_RUN_LANE]])
+        run_lanes([last])
     return results
 
 
@@ -264,6 +339,9 @@ def main() -> int:
                    ""]
         # numeric threads that sleep rather than spin while they wait: the tests run this beside other work
         env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+        # the benches are forked from this process with the common imports done once (before torch is imported
+        # for the machine's lines below, so that its OpenMP runtime reads the wait policy)
+        preload(env)
     elif not args.full:
         report += ["`make bench` (`run_all.py`): the slowest benches run smaller than their own defaults "
                    "(`MAKE_BENCH_ARGS`); `make bench-full` (`--full`) runs them all at full size.", ""]
@@ -275,7 +353,7 @@ def main() -> int:
         if extra is None:
             print(f"== {script.name}: left to the full run (make bench-full)", flush=True)
         plan.append((script, extra))
-    results = run_benches([(s, e) for s, e in plan if e is not None], out, env, args.lanes)
+    results = run_benches([(s, e) for s, e in plan if e is not None], out, env, args.lanes, fork=args.quick)
     for script, extra in plan:
         if extra is None:
             report += [f"## {script.stem}", "", "not run: left to `make bench-full` (see MAKE_BENCH_ARGS)", ""]
