@@ -449,18 +449,20 @@ def test_outputs_are_finite_and_normals_unit(first_run):
 @pytest.fixture(scope="module")
 def evaluated(first_run, capture):
     """The first run's release evaluated against the truth (once; later tests change the release), its relit parts
-    measured action by action in two worker processes."""
+    measured action by action in two worker processes, the simulator's renders they compare with kept in
+    ``OUT/relit_truth``."""
     from evaluation.release import evaluate_release
 
     out, _ = first_run
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "2")
-        return evaluate_release(out / "release", capture / "ground_truth")
+        return evaluate_release(out / "release", capture / "ground_truth", relit_cache=out / "relit_truth")
 
 
 def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, capture, monkeypatch):
-    """The relit parts measured action by action in worker processes (the fixture's evaluation) give the numbers
-    and the metrics rows (in the same order) of an all-in-one-process run."""
+    """The relit parts measured action by action in worker processes (the fixture's evaluation, which rendered
+    the truth) give the numbers and the metrics rows (in the same order) of an all-in-one-process run that reads
+    the truth renders the workers kept."""
     from evaluation.release import evaluate_release, evaluate_workers
 
     out, _ = first_run
@@ -468,7 +470,9 @@ def test_evaluation_in_one_process_equals_the_split_one(evaluated, first_run, ca
     assert len(run_ids) == 1
     monkeypatch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "1")
     assert evaluate_workers() == 1
-    serial = evaluate_release(out / "release", capture / "ground_truth", run_id=run_ids.pop())
+    serial = evaluate_release(out / "release", capture / "ground_truth", run_id=run_ids.pop(),
+                              relit_cache=out / "relit_truth")
+    assert any((out / "relit_truth").rglob("*")), "the workers kept no truth render"
     assert "relit_psnr_db" in evaluated.overall and evaluated.overall == serial.overall
     assert evaluated.per_action == serial.per_action
     assert evaluated.rows == serial.rows and any(row["metric"] == "relightset_image_psnr_db" for row in serial.rows)
