@@ -40,8 +40,8 @@ instead of measuring that width again, when its settings are the same).
     python bench/bench_resolution.py --out bench/out [--widths 192,384,768] [--reuse] [--quick]
 
 ``--quick`` (the tests' mode): the ``test`` preset on 8 cameras (128 LEDs, the subject unsubdivided), widths 48 and
-64 (32 px is too small for the colour chart), the stages through ``photometric`` in two runs (through ``plates``,
-then ``photometric``) and the evaluation of that partial release; the numbers are not measurements.
+64 (32 px is too small for the colour chart), the stages through ``photometric`` in one run and the evaluation of
+that partial release; the numbers are not measurements.
 """
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ PRESET = "default"
 SENSOR = (6016, 4016)
 """The production sensor (width, height): what the fits are extrapolated to."""
 QUICK_WIDTHS, QUICK_CAMERAS, QUICK_PRESET = (48, 64), 8, "test"
-QUICK_STEPS = ("plates", "photometric")
+QUICK_STEPS = ("photometric",)
 """The quick mode's runs: through each named stage (None: the whole DAG)."""
 IMPORTS = "imports"
 """The row of the floor every step's process pays: the command line's imports and the preset's stages built."""

@@ -338,7 +338,11 @@ def main() -> int:
                    "run its code, to check that it runs. **Its numbers are not measurements**; `make bench` measures.",
                    ""]
         # numeric threads that sleep rather than spin while they wait: the tests run this beside other work
-        env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+        from _quick import QUICK_RUN_SESSION_ENV
+
+        env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
+                            # the shared tiny run is brought up to date once per invocation, by its first user
+                            QUICK_RUN_SESSION_ENV: f"{os.getpid()}-{time.time_ns()}"}
         # the benches are forked from this process with the common imports done once (before torch is imported
         # for the machine's lines below, so that its OpenMP runtime reads the wait policy)
         preload(env)
