@@ -79,7 +79,8 @@ def test_every_bench_writes_quick_results_with_finite_numbers(quick_run, name):
 def test_the_shared_run_lane_holds_the_benches_that_used_the_shared_run(quick_run):
     """run_all's lane of the shared tiny run names exactly the benches that took it: a bench missing from it would
     wait for the run while the other lane is busy (correct, but slower), a name left there after its bench stopped
-    using the run keeps that lane longer than it needs. Each bench's output is printed as one block."""
+    using the run keeps that lane longer than it needs. Each bench's output is printed as one block, and only the
+first user brings the run up to date."""
     out, proc = quick_run
     spec = importlib.util.spec_from_file_location("run_all_under_test", ROOT / "bench" / "run_all.py")
     run_all = importlib.util.module_from_spec(spec)
@@ -90,6 +91,10 @@ def test_the_shared_run_lane_holds_the_benches_that_used_the_shared_run(quick_ru
     for name in BENCHES:
         assert f"== {name}.py: exit 0" in proc.stdout, name
         assert "== bench_" not in _printed(proc.stdout, name), f"another bench's lines inside {name}'s block"
+    # the run is brought up to date by its first user; the others find it unchanged (no bench writes into it)
+    brought = [name for name in BENCHES if "quick run: tiny capture and release" in _printed(proc.stdout, name)]
+    found = [name for name in BENCHES if "not run again" in _printed(proc.stdout, name)]
+    assert len(brought) == 1 and sorted(brought + found) == sorted(users), (brought, found)
 
 
 @pytest.mark.slow
