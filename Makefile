@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml requirements.lock
 	  else echo "setup: chromium is missing; the release page test skips without it (sudo apt-get install chromium)" >&2; fi; fi
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	@# pip compiles the packages' bytecode one file after another; compileall does it on every core (22 s less of a
+	@# pip compiles the packages' bytecode one file after another; compileall does it on every core (22 s less of an
 	@# 80 s install on 2 cores). The bytecode is needed: this environment sets PYTHONDONTWRITEBYTECODE, so a module
 	@# without it is compiled again at every import. torch ships one test file in Python 3.12 syntax.
 	$(PY) -m pip install -q --no-compile -r requirements.lock

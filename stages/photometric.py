@@ -64,6 +64,12 @@ SWAPPED_MIN_PIXELS = 50
 """Fewer valid pixels than this are too little evidence to call a pair swapped."""
 
 
+def valid_fraction(alpha: np.ndarray, mask: np.ndarray) -> float:
+    """The share of a view's mask (H, W) whose normals are valid (``alpha`` (H, W) > 0.5): the stage's per-view
+    ``valid_fraction``."""
+    return float(((alpha > 0.5) & mask).sum() / max(int(mask.sum()), 1))
+
+
 def check_gradients_not_swapped(ctx: StageContext, view: str, cam: Camera, maps: Any) -> float:
     """The fraction of valid pixels whose eq. 1 normal faces away from the camera; raises InputError naming the
     camera's raw g+ and g- files when that says the two were swapped (over :data:`SWAPPED_FACING_AWAY`)."""
@@ -154,7 +160,7 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
             write_png(out.path("normal_preview", v), preview_normals(normal_alpha[..., :3], normal_alpha[..., 3]))
             write_png(out.path("albedo_preview", v), preview_linear(albedo, exposure=1.0))
         view_stats[v]["mask_fraction"] = float(mask.mean())
-        view_stats[v]["valid_fraction"] = float(((normal_alpha[..., 3] > 0.5) & mask).sum() / max(int(mask.sum()), 1))
+        view_stats[v]["valid_fraction"] = valid_fraction(normal_alpha[..., 3], mask)
         view_stats[v]["gap_pixels"] = int(gap.sum())
         opened += int(gap.sum())
     if config.previews:
@@ -222,7 +228,7 @@ class PhotometricStage(Stage):
             write_png(out.path("normal_preview", view), preview_normals(normals, maps.alpha))
             write_png(out.path("albedo_preview", view), preview_linear(albedo, exposure=1.0))
         return {"mask_fraction": float(mask.mean()), "facing_away_fraction": facing_away,
-                "valid_fraction": float(valid.sum() / max(int(mask.sum()), 1)),
+                "valid_fraction": valid_fraction(maps.alpha, mask),
                 "ratio_norm_median": float(np.median(maps.ratio_norm[valid])) if valid.any() else 0.0,
                 "plate": background is not None, "filled_hole_pixels": int(holes.sum()) if holes is not None else 0}
 

@@ -26,6 +26,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from artifacts.atlas import Atlas
+from artifacts.camera import check_bounds
 
 __all__ = [
     "extract_mesh",
@@ -177,12 +178,7 @@ def extract_mesh(sdf_fn: Callable[[np.ndarray], np.ndarray], bounds: np.ndarray,
 
 def _check_extract_args(bounds, resolution, coarse_factor, lipschitz, chunk) -> np.ndarray:
     """:func:`extract_mesh`'s argument checks; returns the bounds as a float64 (2, 3) array."""
-    bounds = np.asarray(bounds, dtype=np.float64)
-    if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)):
-        raise ValueError(f"bounds must be a finite (2, 3) array of min and max corners, got {bounds.shape}")
-    extent = bounds[1] - bounds[0]
-    if np.any(extent <= 0):
-        raise ValueError(f"bounds max must exceed min on every axis, got {bounds.tolist()}")
+    bounds = check_bounds(bounds)
     if int(resolution) < 2:
         raise ValueError(f"resolution must be >= 2, got {resolution}")
     if int(coarse_factor) < 1:
