@@ -333,13 +333,16 @@ def unpremultiplied(image: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 def silhouette_split(image: np.ndarray, alpha: np.ndarray, mask: np.ndarray, true: dict, true_alpha: np.ndarray,
-                     true_alpha_camera: np.ndarray) -> dict[str, Any]:
+                     true_alpha_camera: np.ndarray, fine_colour: np.ndarray | None = None) -> dict[str, Any]:
     """What a relit view's silhouette band costs (:func:`pixel_classes`, band of :data:`SILHOUETTE_BAND_PX`): the
     shares of the squared error (the PSNR's, :func:`score`'s exposure) per class, and the PSNR with the band's (its
     pixels and the one-mask ones) alpha and colour swapped for the truth's: ``outline`` (the true mesh's coverage
     ``true_alpha`` (H, W), on the stage's ray grid, our colour), ``colour`` (the truth's colour, the truth's
     radiance over its coverage, our alpha), ``both`` and ``both_camera_grid`` (the truth's colour at the coverage of
-    the truth camera's own rays, ``true_alpha_camera``); masks are alpha >= 0.5 as the stage's."""
+    the truth camera's own rays, ``true_alpha_camera``); with ``fine_colour`` (H, W, 3), the colour of a finer
+    truth (the ceiling's render over its coverage), also ``colour_fine_truth``: that colour, our alpha, what exact
+    shading of the band could recover, the rest of ``colour`` being the capture grid's own sampling of the rim.
+    Masks are alpha >= 0.5 as the stage's."""
     from stages.numerics.metrics import relit_psnr
 
     radiance, true_mask = np.asarray(true["radiance"], np.float64), np.asarray(true["mask"], bool)
@@ -358,11 +361,12 @@ def silhouette_split(image: np.ndarray, alpha: np.ndarray, mask: np.ndarray, tru
         a = np.where(band, a, alpha)
         return relit_psnr(c * a[..., None], a >= 0.5, radiance, true_mask)["psnr_db"]
 
+    swaps = {"outline": swapped(colour, true_alpha), "colour": swapped(true_colour, alpha),
+             "both": swapped(true_colour, true_alpha), "both_camera_grid": swapped(true_colour, true_alpha_camera)}
+    if fine_colour is not None:
+        swaps["colour_fine_truth"] = swapped(np.asarray(fine_colour, np.float64), alpha)
     return {"psnr_db": result["psnr_db"], "shares": {k: float(sq[v].sum() / total) for k, v in classes.items()},
-            "pixels": {k: int(v.sum()) for k, v in classes.items()},
-            "swaps": {"outline": swapped(colour, true_alpha), "colour": swapped(true_colour, alpha),
-                      "both": swapped(true_colour, true_alpha),
-                      "both_camera_grid": swapped(true_colour, true_alpha_camera)}}
+            "pixels": {k: int(v.sum()) for k, v in classes.items()}, "swaps": swaps}
 
 
 def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict[str, frozenset],
@@ -514,12 +518,14 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
         except (KeyError, FileNotFoundError):
             pass
     results["released"] = released
-    ceiling = {}
+    ceiling, fine_colours = {}, {}
     if ab.ceiling_supersample:
         ceiling_rows = {"stage": frozenset()} | ({"+ reprojection": rows["+ reprojection"]}
                                                   if "+ reprojection" in rows else {})
+        fine_coverage = timed("silhouette", pixel_coverage, K, pose, h, w, ab.ceiling_supersample, ab.true_scene)
         for label, env in env_maps.items():
             fine = timed("ceiling_render", ab.truth.render, K, pose, h, w, env, supersample=ab.ceiling_supersample)
+            fine_colours[label] = unpremultiplied(fine["radiance"], fine_coverage)
             ceiling[label] = {"truth": score(truths[label]["radiance"], truths[label]["mask"], fine)}
             for row, swaps in ceiling_rows.items():
                 image, mask = images[swaps][label]
@@ -529,7 +535,8 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
     true_alpha = timed("silhouette", pixel_coverage, K, pose, h, w, shading.coverage_samples, ab.true_scene)
     camera_grid = timed("silhouette", pixel_coverage, K, pose, h, w, ab.truth.config.supersample, ab.true_scene,
                         edges_only=False)
-    split = {label: silhouette_split(image, alpha, mask, truths[label], true_alpha, camera_grid)
+    split = {label: silhouette_split(image, alpha, mask, truths[label], true_alpha, camera_grid,
+                                     fine_colours.get(label))
              for label, (image, _) in images[frozenset()].items()}
     ours = timed("silhouette", pixel_coverage, K, pose, h, w, 8, ab.asset.scene)
     outline = outline_offset_px(ours, pixel_coverage(K, pose, h, w, 8, ab.true_scene))
@@ -634,6 +641,10 @@ def markdown(report: dict) -> str:
     lines += ["", "| the band's ... swapped for the truth's | PSNR dB | dB recovered |", "|---|---:|---:|",
               f"| nothing (the stage's render) | {sil['psnr_db']:.2f} | |"]
     lines += [f"| {k} | {sil['swaps'][k]:.2f} | {sil['recovered_db'][k]:+.2f} |" for k in sil["swaps"]]
+    if "colour_fine_truth" in sil["swaps"]:
+        lines += ["", "`colour_fine_truth`: the band's colour from the ceiling's finer truth (below), what exact "
+                  "shading of the band could recover; the rest of `colour` is the capture-grid truth's own sampling "
+                  "of the rim, which no render can match."]
     lines += ["", f"Our mesh's outline against the true mesh's (8 x 8 rays per pixel): {sil['offset_px']:+.3f} px "
               f"({sil['offset_mm']:+.2f} mm) outside on average, RMS coverage difference {sil['edge_rms']:.3f} on the "
               "pixels either outline crosses."]
@@ -704,6 +715,10 @@ def main() -> int:
     shading, cfg = stage_shading(release)
     if cfg.learned_blend.enabled:
         print("bench_relit_budget: the stage's default blend is learned; this bench renders the heuristic weights")
+        return 1
+    if shading.supersample != 1:
+        print(f"bench_relit_budget: shading.supersample = {shading.supersample}; this bench renders one sample per "
+              "pixel (relight_view renders the supersampled images)")
         return 1
     rel = open_release(release)
     actions = [a for a in (args.actions.split(",") if args.actions else rel.action_ids)

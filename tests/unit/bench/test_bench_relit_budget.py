@@ -111,3 +111,24 @@ def test_unpremultiplied_divides_by_alpha_and_fills_the_rest_from_the_nearest_pi
     assert np.allclose(colour[0, 0], [0.2, 0.4, 0.6]) and np.allclose(colour[0, 1], [0.2, 0.2, 0.2])
     assert np.allclose(colour[0, 2], colour[0, 1])
     assert np.all(budget.unpremultiplied(image, np.zeros((1, 3))) == 0)
+
+
+def test_silhouette_split_swaps_the_bands_colour_for_a_finer_truths(budget):
+    """A disc rendered with a rim darker than its inside: swapping the band's colour for the truth's own recovers
+    the most, for the colour of a finer truth that matches ours only what differs from it, and ``colour_fine_truth``
+    is absent without one."""
+    h = w = 24
+    yy, xx = np.mgrid[:h, :w]
+    radius = np.hypot(yy - 11.5, xx - 11.5)
+    alpha = np.clip(8.5 - radius, 0.0, 1.0)               # the coverage of a disc of radius 8 px
+    true_colour = np.where((radius > 6.5)[..., None], [0.2, 0.2, 0.2], [0.8, 0.6, 0.4])
+    ours = np.full((h, w, 3), [0.8, 0.6, 0.4])            # right inside, too bright on the rim
+    true = {"radiance": (true_colour * alpha[..., None]).astype(np.float32), "mask": alpha >= 0.5}
+    image = ours * alpha[..., None]
+    split = budget.silhouette_split(image, alpha, alpha >= 0.5, true, alpha, alpha)
+    assert "colour_fine_truth" not in split["swaps"]
+    assert split["swaps"]["colour"] > split["psnr_db"] + 10  # the rim's colour is all the error
+    same = budget.silhouette_split(image, alpha, alpha >= 0.5, true, alpha, alpha, fine_colour=ours)
+    assert same["swaps"]["colour_fine_truth"] == pytest.approx(same["psnr_db"])
+    exact = budget.silhouette_split(image, alpha, alpha >= 0.5, true, alpha, alpha, fine_colour=true_colour)
+    assert exact["swaps"]["colour_fine_truth"] == pytest.approx(exact["swaps"]["colour"])
