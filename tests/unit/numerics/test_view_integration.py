@@ -79,3 +79,57 @@ def test_without_shadows_every_direction_above_the_horizon_lights(view):
     assert np.all(shadowed <= lit + 1e-6)
     # the sphere shadows the floor and the floor the sphere's underside: measured 0.942 of the light, bound 0.97
     assert shadowed.sum() < 0.97 * lit.sum()
+
+
+def test_supersampled_intrinsics_put_a_pixels_samples_inside_its_square():
+    from stages.numerics.novel_view import supersampled_intrinsics
+
+    K = np.array([[100.0, 0.5, 10.0], [0.0, 90.0, 8.0], [0.0, 0.0, 1.0]])
+    fine = supersampled_intrinsics(K, 2)
+    np.testing.assert_allclose(fine, [[200.0, 1.0, 20.5], [0.0, 180.0, 16.5], [0.0, 0.0, 1.0]])
+    # a point on pixel (3, 5)'s centre lies between fine pixels 6-7 and 10-11: on their shared corner
+    ray = np.linalg.solve(K, [3.0, 5.0, 1.0])
+    u, v, z = fine @ ray
+    assert (u / z, v / z) == pytest.approx((6.5, 10.5))
+    np.testing.assert_allclose(supersampled_intrinsics(K, 1), K)
+    u, v, z = supersampled_intrinsics(K, 3) @ ray  # 3 x 3: the middle sample sits on the pixel's centre
+    assert (u / z, v / z) == pytest.approx((10.0, 16.0))
+
+
+def test_box_mean_by_hand_and_its_checks():
+    from stages.numerics.novel_view import box_mean
+
+    image = np.arange(4 * 6, dtype=np.float32).reshape(4, 6, 1)
+    out = box_mean(image, 2)
+    assert out.shape == (2, 3, 1) and out.dtype == np.float32
+    assert out[0, 0, 0] == pytest.approx((0 + 1 + 6 + 7) / 4) and out[1, 2, 0] == pytest.approx((16 + 17 + 22 + 23) / 4)
+    with pytest.raises(ValueError, match="2 x 2 blocks"):
+        box_mean(image[:3], 2)
+
+
+def test_supersampled_shading_of_the_sphere_agrees_with_the_pixel_centres_away_from_edges(view):
+    """The sphere on its floor shaded on a 2 x 2 finer grid and box-filtered against one sample per pixel: within
+    a few percent where a pixel and its neighbours are all inside (measured 0.70% mean relative difference, bound
+    1.5%), and the supersampled alpha (2 x 2 rays per sample) equal to the 4 x 4 rays' of the pixel-centre one."""
+    from stages.numerics.novel_view import box_mean, supersampled_intrinsics
+    from scipy.ndimage import binary_erosion
+
+    scene, gb, K, pose, lobes = view
+    h, w = gb["mask"].shape
+    fine_K = supersampled_intrinsics(K, 2)
+    fine_gb = gbuffer(scene, fine_K, pose, 2 * h, 2 * w)
+    coarse = shade_gbuffer(gb, scene, K, pose, [lobes], ViewShading(coverage_samples=4))
+    fine = shade_gbuffer(fine_gb, scene, fine_K, pose, [lobes], ViewShading(coverage_samples=2))
+    image = box_mean(fine["images"][0], 2)
+    assert image.shape == (h, w, 3) and np.all(np.isfinite(image))
+    inside = binary_erosion(gb["mask"], iterations=2)
+    reference = coarse["images"][0][inside]
+    assert np.abs(image[inside] - reference).mean() / reference.mean() < 0.015
+    np.testing.assert_allclose(box_mean(fine["alpha"][..., None], 2)[..., 0], coarse["alpha"], atol=1e-6)
+
+
+def test_relight_view_refuses_supersampling_with_a_learned_blend():
+    from stages.numerics.novel_view import relight_view
+
+    with pytest.raises(ValueError, match="supersample = 2 needs the heuristic blend"):
+        relight_view(None, np.eye(3), np.eye(3, 4), 4, 4, [], ViewShading(supersample=2), blend=object())
