@@ -25,7 +25,8 @@ rendering of the true subject (common exposure from the truth's 99th percentile,
    (mesh depth, reprojection, atlas lookups; the sources' depth is rendered when the asset is loaded), the
    visibility and the shading under the 3 environments; ``x_baseline`` is that time over the simplest
    variant's (no shadows, photometric albedo) in the same process. The ``released`` row scores the
-   release's own relit images (equal to the default row when the release used the defaults).
+   release's own relit images (equal to the default row when the release used the defaults with
+   ``shading.supersample`` 1: the rows shade one sample at each pixel's centre).
 2. **Decomposition** on the pixels both the truth and our mask cover, at the true surface points with the
    true mesh's visibility (the stage's visibility directions), its lobe count and F0 (the simulator's skin has
    0.028, cloth 0.04):

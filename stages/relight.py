@@ -49,7 +49,7 @@ import numpy as np
 from pipeline.codecs.exr import write_exr
 from pipeline.codecs.image import label_picture, preview_linear, preview_normals, write_png
 from stages.exr_headers import EXR_HEADERS
-from pipeline.config import Documented, checked
+from pipeline.config import Documented, broken, checked
 from pipeline.stage import Stage, StageContext
 from artifacts.facade import ActionArtifacts
 from stages.relightable import load_relightable_asset
@@ -108,7 +108,14 @@ class RelightConfig(Documented):
     """With ``enabled: true``, blend the sources with weights learned leave one out on the action's captured
     views (the paper's blending network, :mod:`stages.numerics.learned_blend`) instead of the heuristic
     weights. Off by default: on the default capture the relit novel views came no closer to the simulator's
-    with it (:class:`stages.numerics.learned_blend.LearnedBlendConfig`)."""
+    with it (:class:`stages.numerics.learned_blend.LearnedBlendConfig`). It needs ``shading.supersample: 1``: the
+    network weighs the sources by their density per target pixel."""
+
+    def _checks(self) -> list[str]:
+        if self.learned_blend.enabled and self.shading.supersample != 1:
+            return [broken(self, "shading", "supersample must be 1 with learned_blend.enabled (the network weighs "
+                                            "the sources by their density per target pixel)")]
+        return []
 
 
 def novel_cameras(cameras: dict[str, Camera], count: int) -> list[Camera]:

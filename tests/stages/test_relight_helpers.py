@@ -114,6 +114,13 @@ def test_config_checks():
         RelightConfig(sg_lobes=0)
     with pytest.raises(ValueError, match="coverage_samples"):
         ViewShading(coverage_samples=0)
+    with pytest.raises(ValueError, match="supersample"):
+        ViewShading(supersample=0)
+    with pytest.raises(ValueError, match="supersample must be 1 with learned_blend"):
+        merge(RelightConfig(), {"learned_blend": {"enabled": True}}, where="RelightConfig")
+    blended = merge(RelightConfig(), {"learned_blend": {"enabled": True}, "shading": {"supersample": 1}},
+                    where="RelightConfig")
+    assert blended.learned_blend.enabled and blended.shading.supersample == 1
 
 
 def test_shading_knobs_have_one_spelling_in_both_stages():
