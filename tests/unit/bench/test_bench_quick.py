@@ -3,7 +3,7 @@ writes its results, marked quick, with finite numbers, and the benches whose qui
 own (the subject panel, the hash-grid kernel, the engine at scale) are checked on that same run's files, so no
 quick mode runs twice in the suite. The benches run in run_all's two lanes (``--lanes 2``): the ones that read the
 shared tiny run in one, the others beside them, each forked from run_all after the common imports. Nothing is
-timed; the run takes about 7.5 CPU minutes (4 minutes alone on an idle 2-core machine)."""
+timed; the run takes about 6.8 CPU minutes (3 min 41 s alone on an idle 2-core machine)."""
 from __future__ import annotations
 
 import importlib.util
@@ -80,7 +80,7 @@ def test_the_shared_run_lane_holds_the_benches_that_used_the_shared_run(quick_ru
     """run_all's lane of the shared tiny run names exactly the benches that took it: a bench missing from it would
     wait for the run while the other lane is busy (correct, but slower), a name left there after its bench stopped
     using the run keeps that lane longer than it needs. Each bench's output is printed as one block, and only the
-first user brings the run up to date."""
+    first user brings the run up to date."""
     out, proc = quick_run
     spec = importlib.util.spec_from_file_location("run_all_under_test", ROOT / "bench" / "run_all.py")
     run_all = importlib.util.module_from_spec(spec)
