@@ -81,15 +81,14 @@ def quick_run(out: Path) -> Path:
         with open(root.parent / QUICK_RUN_USERS, "a") as users:
             users.write(Path(sys.argv[0]).stem + "\n")
     session = os.environ.get(QUICK_RUN_SESSION_ENV)
-    checked = root / QUICK_RUN_CHECKED
-    if session and _checked_in(checked, session, root):
+    if session and _checked_in(root, session):
         print(f"quick run: {root} brought up to date earlier in this run_all session and unchanged since; "
               "not run again", flush=True)
         return root
     env = os.environ | {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
     subprocess.run([sys.executable, str(Path(__file__).resolve()), str(root)], check=True, env=env)
     if session:
-        checked.write_text(json.dumps({"session": session, "files": _fingerprint(root)}))
+        (root / QUICK_RUN_CHECKED).write_text(json.dumps({"session": session, "files": _fingerprint(root)}))
     return root
 
 
@@ -108,11 +107,11 @@ def _fingerprint(root: Path) -> str:
     return digest.hexdigest()
 
 
-def _checked_in(checked: Path, session: str, root: Path) -> bool:
-    """Whether ``checked`` says this session brought the run up to date and no file under ``root`` changed since:
-    the code cannot have changed within one run_all invocation, so the pipeline would only plan."""
+def _checked_in(root: Path, session: str) -> bool:
+    """Whether the run's :data:`QUICK_RUN_CHECKED` says this session brought it up to date and no file under ``root``
+    changed since: the code cannot have changed within one run_all invocation, so the pipeline would only plan."""
     try:
-        record = json.loads(checked.read_text())
+        record = json.loads((root / QUICK_RUN_CHECKED).read_text())
     except (OSError, ValueError):
         return False
     return record.get("session") == session and record.get("files") == _fingerprint(root)

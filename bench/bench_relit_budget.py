@@ -401,6 +401,15 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
     truths = {label: timed("truth_render", ab.truth.render, K, pose, h, w, env) for label, env in env_maps.items()}
     true0 = next(iter(truths.values()))
 
+    coverages: dict[int, np.ndarray] = {}
+
+    def true_coverage(samples: int) -> np.ndarray:
+        """The true mesh's pixel coverage on ``samples`` x ``samples`` rays, traced once per count (the ceiling's
+        colour and the outline share the 8 x 8 one)."""
+        if samples not in coverages:
+            coverages[samples] = timed("silhouette", pixel_coverage, K, pose, h, w, samples, ab.true_scene)
+        return coverages[samples]
+
     def gbuffer(swaps: frozenset) -> dict:
         key = ("geometry" in swaps or "reprojection" in swaps, "albedo" in swaps or "reprojection" in swaps,
                "reprojection" in swaps)
@@ -522,7 +531,7 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
     if ab.ceiling_supersample:
         ceiling_rows = {"stage": frozenset()} | ({"+ reprojection": rows["+ reprojection"]}
                                                   if "+ reprojection" in rows else {})
-        fine_coverage = timed("silhouette", pixel_coverage, K, pose, h, w, ab.ceiling_supersample, ab.true_scene)
+        fine_coverage = true_coverage(ab.ceiling_supersample)
         for label, env in env_maps.items():
             fine = timed("ceiling_render", ab.truth.render, K, pose, h, w, env, supersample=ab.ceiling_supersample)
             fine_colours[label] = unpremultiplied(fine["radiance"], fine_coverage)
@@ -532,14 +541,14 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
                 ceiling[label][row] = score(image, mask, fine)
     # the stage's render against the true mesh's outline (silhouette_split)
     gb, (alpha, mask) = gbuffer(frozenset()), silhouette(frozenset())
-    true_alpha = timed("silhouette", pixel_coverage, K, pose, h, w, shading.coverage_samples, ab.true_scene)
+    true_alpha = true_coverage(shading.coverage_samples)
     camera_grid = timed("silhouette", pixel_coverage, K, pose, h, w, ab.truth.config.supersample, ab.true_scene,
                         edges_only=False)
     split = {label: silhouette_split(image, alpha, mask, truths[label], true_alpha, camera_grid,
                                      fine_colours.get(label))
              for label, (image, _) in images[frozenset()].items()}
     ours = timed("silhouette", pixel_coverage, K, pose, h, w, 8, ab.asset.scene)
-    outline = outline_offset_px(ours, pixel_coverage(K, pose, h, w, 8, ab.true_scene))
+    outline = outline_offset_px(ours, true_coverage(8))
     outline["mm_per_px"] = float(np.median(gb["depth_m"][gb["mask"]]) / K[0, 0] * 1e3) if gb["mask"].any() else 0.0
     progress(f"  {cam['camera_id']}: " + "; ".join(
         f"{label} " + ", ".join(f"{v['psnr_db']:.2f}" for v in envs.values()) for label, envs in results.items())

@@ -20,30 +20,29 @@ def _checked(tmp_path):
 
 def test_the_session_that_checked_the_run_finds_it_unchanged_another_does_not(tmp_path):
     quick, root = _checked(tmp_path)
-    checked = root / quick.QUICK_RUN_CHECKED
-    assert quick._checked_in(checked, "s1", root)
-    assert not quick._checked_in(checked, "s2", root)
-    assert not quick._checked_in(root / "absent.json", "s1", root)
+    assert quick._checked_in(root, "s1")
+    assert not quick._checked_in(root, "s2")
+    (root / quick.QUICK_RUN_CHECKED).unlink()
+    assert not quick._checked_in(root, "s1")
 
 
 def test_a_file_changed_added_or_removed_under_the_run_makes_it_run_again(tmp_path):
     quick, root = _checked(tmp_path)
-    checked = root / quick.QUICK_RUN_CHECKED
     run_json = root / "release" / "run.json"
     stat = run_json.stat()
     run_json.write_text("{} ")  # another size
-    assert not quick._checked_in(checked, "s1", root)
+    assert not quick._checked_in(root, "s1")
     run_json.write_text("{}")
     os.utime(run_json, ns=(stat.st_atime_ns, stat.st_mtime_ns))
-    assert quick._checked_in(checked, "s1", root)  # the same size and time again
+    assert quick._checked_in(root, "s1")  # the same size and time again
     os.utime(run_json, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1000))
-    assert not quick._checked_in(checked, "s1", root)
+    assert not quick._checked_in(root, "s1")
     os.utime(run_json, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     (root / "release" / "new.exr").write_bytes(b"x")
-    assert not quick._checked_in(checked, "s1", root)
+    assert not quick._checked_in(root, "s1")
     (root / "release" / "new.exr").unlink()
     (root / "quick.json").unlink()
-    assert not quick._checked_in(checked, "s1", root)
+    assert not quick._checked_in(root, "s1")
 
 
 def test_the_fingerprint_leaves_out_its_own_record(tmp_path):
