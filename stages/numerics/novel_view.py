@@ -258,7 +258,7 @@ class ViewShading(Documented):
 
 def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
                  environments: Sequence[Any], shading: ViewShading = ViewShading(), blend: Any = None,
-                 directions: np.ndarray | None = None) -> dict[str, Any]:
+                 directions: np.ndarray | None = None, crop: bool = True) -> dict[str, Any]:
     """One novel view of ``asset`` shaded under each of ``environments`` (a sequence of
     :class:`stages.numerics.sg.SGLobes`, world frame).
 
@@ -267,6 +267,9 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
         blend: a trained :class:`stages.numerics.learned_blend.LearnedBlend` or None (heuristic weights).
         directions: (D, 3) visibility directions (default: ``shading.visibility_directions`` on a Fibonacci
             sphere); pass them to share one set between views.
+        crop: render only :func:`subject_window` (the pixels the mesh can cover, with a margin; the view's
+            neighbourhood steps see only zeros beyond it, so the result is the whole frame's) and put it into the
+            frame; False renders every pixel of the frame. Needs ``asset.vertices`` (else the whole frame).
 
     Returns:
         ``maps``: ``normal`` (H, W, 3) world-frame shading normals, unit on the mask, ``albedo`` (H, W, 3) the
@@ -284,6 +287,29 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
     if factor > 1 and blend is not None:
         raise ValueError(f"shading.supersample = {factor} needs the heuristic blend: a learned blend weighs the "
                          "sources by their density per target pixel (set supersample: 1 with learned_blend)")
+    window = (0, h, 0, w)
+    if crop and asset.vertices is not None:
+        window = subject_window(asset.vertices, K, cam_from_world, h, w)
+    if window == (0, h, 0, w):
+        return _relight_frame(asset, K, cam_from_world, h, w, environments, shading, blend, directions)
+    row0, row1, col0, col1 = window
+    part = _relight_frame(asset, crop_intrinsics(K, row0, col0), cam_from_world, row1 - row0, col1 - col0,
+                          environments, shading, blend, directions)
+
+    def framed(image: np.ndarray) -> np.ndarray:
+        out = np.zeros((h, w) + image.shape[2:], image.dtype)
+        out[row0:row1, col0:col1] = image
+        return out
+
+    return {**part, "maps": {k: framed(v) for k, v in part["maps"].items()}, "mask": framed(part["mask"]),
+            "alpha": framed(part["alpha"]), "images": [framed(image) for image in part["images"]]}
+
+
+def _relight_frame(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, h: int, w: int,
+                   environments: Sequence[Any], shading: ViewShading, blend: Any,
+                   directions: np.ndarray | None) -> dict[str, Any]:
+    """:func:`relight_view` on every pixel of an ``h x w`` frame."""
+    factor = int(shading.supersample)
     gb = novel_view_gbuffer(asset, K, cam_from_world, h, w, sources=shading.sources,
                             depth_tolerance_m=shading.depth_tolerance_m, blend=blend,
                             normal_fusion_m=shading.normal_fusion_m, rim_normal_px=shading.rim_normal_px,
@@ -302,6 +328,44 @@ def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, 
                              directions=directions)
         view["images"] = [box_mean(image, factor) for image in fine["images"]]
     return view
+
+
+def subject_window(vertices: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
+                   margin_px: int = 3) -> tuple[int, int, int, int]:
+    """``(row0, row1, col0, col1)``: the rows and columns of a ``height x width`` view (K (3, 3), cam_from_world
+    (3, 4); pixel centres at integer coordinates) that a mesh with ``vertices`` (V, 3) can cover: its projected
+    vertices' bounding box (which holds the projection of every face), each pixel whose square meets it, and
+    ``margin_px`` more on every side, clipped to the frame. The whole frame when a vertex lies at or behind the
+    camera's plane (its faces' projections are unbounded) or the box misses the frame."""
+    vertices = np.asarray(vertices, np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices must be (V, 3), got {vertices.shape}")
+    if margin_px < 0:
+        raise ValueError(f"margin_px must be >= 0, got {margin_px}")
+    h, w = int(height), int(width)
+    whole = (0, h, 0, w)
+    if not len(vertices):
+        return whole
+    uv, depth = Camera(K, cam_from_world, w, h).project(vertices)
+    if not np.all(depth > 1e-9) or not np.all(np.isfinite(uv)):
+        return whole
+    low, high = uv.min(axis=0), uv.max(axis=0)
+    # pixel j's square is [j - 1/2, j + 1/2]: it meets the box when j >= low - 1/2 and j <= high + 1/2
+    col0, row0 = (int(np.ceil(c - 0.5)) - margin_px for c in low)
+    col1, row1 = (int(np.floor(c + 0.5)) + 1 + margin_px for c in high)
+    row0, col0, row1, col1 = max(row0, 0), max(col0, 0), min(row1, h), min(col1, w)
+    if row0 >= row1 or col0 >= col1:
+        return whole
+    return row0, row1, col0, col1
+
+
+def crop_intrinsics(K: np.ndarray, row0: int, col0: int) -> np.ndarray:
+    """The (3, 3) intrinsics of the image cut from ``K``'s at row ``row0`` and column ``col0`` (its pixel (0, 0) is
+    ``K``'s pixel (row0, col0))."""
+    cropped = np.array(K, np.float64)
+    cropped[0, 2] -= col0
+    cropped[1, 2] -= row0
+    return cropped
 
 
 def supersampled_intrinsics(K: np.ndarray, factor: int) -> np.ndarray:

@@ -133,3 +133,91 @@ def test_relight_view_refuses_supersampling_with_a_learned_blend():
 
     with pytest.raises(ValueError, match="supersample = 2 needs the heuristic blend"):
         relight_view(None, np.eye(3), np.eye(3, 4), 4, 4, [], ViewShading(supersample=2), blend=object())
+
+
+def test_subject_window_by_hand():
+    from stages.numerics.novel_view import crop_intrinsics, subject_window
+
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
+    pose = np.eye(3, 4)
+    # projected to u in [40, 60.5], v in [30, 35]: pixels whose squares meet them, then 3 more on each side
+    vertices = np.array([[-0.1, -0.1, 1.0], [0.105, -0.05, 1.0], [0.0, -0.05, 1.0]])
+    # (rows 30-35 and columns 40-61: pixel 61's square [60.5, 61.5] meets u = 60.5, pixel 39's [38.5, 39.5] not 40)
+    assert subject_window(vertices, K, pose, 80, 100, margin_px=0) == (30, 36, 40, 62)
+    assert subject_window(vertices, K, pose, 80, 100) == (30 - 3, 36 + 3, 40 - 3, 62 + 3)
+    assert subject_window(vertices, K, pose, 33, 100, margin_px=0) == (30, 33, 40, 62)  # clipped to the frame
+    behind = np.vstack([vertices, [[0.0, 0.0, -1.0]]])
+    assert subject_window(behind, K, pose, 80, 100) == (0, 80, 0, 100)
+    assert subject_window(vertices + [5.0, 0.0, 0.0], K, pose, 80, 100) == (0, 80, 0, 100)  # off the frame
+    with pytest.raises(ValueError, match="vertices must be"):
+        subject_window(vertices[:, :2], K, pose, 80, 100)
+    # the cut's pixel (0, 0) is the frame's (row0, col0)
+    cut = crop_intrinsics(K, 26, 36)
+    u, v, z = cut @ np.array([0.1, -0.05, 1.0])
+    assert (u / z, v / z) == pytest.approx((60.0 - 36, 35.0 - 26))
+
+
+class _Atlas:
+    def __init__(self, faces, uvs):
+        self.faces, self.uvs = faces, uvs
+
+
+def _look_at(eye, target, K, up=(0.0, 1.0, 0.0)):
+    forward = np.asarray(target, float) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    R = np.stack([right, down, forward])
+    return np.concatenate([R, (-R @ eye)[:, None]], axis=1)
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_relight_view_of_the_subjects_window_is_the_whole_frames(supersample):
+    """A sphere seen small in its frame (its window is 14% of the pixels), rendered from 4 source views with a
+    patterned albedo: the cropped render put into the frame equals the whole frame's render (the same mask and
+    alpha, the images and maps within 1e-5 of their scale; measured identical)."""
+    import open3d as o3d
+    from stages.numerics.gbuffer import SourceView
+    from stages.numerics.novel_view import ActionAsset, relight_view, subject_window
+    from stages.numerics.mesh import vertex_normals
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=0.3, resolution=20)
+    vertices = np.asarray(sphere.vertices, np.float64) + [0.0, 1.0, 0.0]
+    faces = np.asarray(sphere.triangles, np.int64)
+    scene = mesh_scene(vertices, faces)
+    h, w = 40, 60
+    K = np.array([[70.0, 0.0, w / 2 - 0.3], [0.0, 70.0, h / 2 + 0.2], [0.0, 0.0, 1.0]])
+    sources = []
+    for angle in np.radians([0.0, 60.0, 120.0, 200.0]):
+        eye = np.array([3.0 * np.sin(angle), 1.2, 3.0 * np.cos(angle)])
+        pose = _look_at(eye, [0.0, 1.0, 0.0], K)
+        seen = render_mesh(None, None, K, pose, h, w, scene=scene)
+        points = Camera(K, pose, w, h).lift_depth_map(np.where(seen["hit"], seen["depth_m"], 0.0))
+        albedo = (0.4 + 0.3 * np.sin(25.0 * points)).astype(np.float32) * seen["hit"][..., None]
+        sources.append(SourceView(normal=seen["normals_world"].astype(np.float32), albedo=albedo,
+                                  valid=seen["hit"], K=K, cam_from_world=pose,
+                                  depth_m=np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)))
+    uvs = np.stack([0.5 + 0.5 * np.arctan2(vertices[:, 0], vertices[:, 2]) / np.pi,
+                    (vertices[:, 1] - 0.7) / 0.6], axis=1)
+    texture = np.full((8, 8, 3), 0.5, np.float32)
+    asset = ActionAsset(scene=scene, faces=faces, smooth_normals=vertex_normals(vertices, faces), sources=sources,
+                        atlas_scene=scene, atlas=_Atlas(faces, uvs), albedo_tex=texture,
+                        roughness_tex=np.full((8, 8), 0.4, np.float32), occlusion_tex=np.ones((8, 8), np.float32),
+                        diffuse_ratio_tex=np.ones((8, 8, 3), np.float32), vertices=vertices)
+    pose = _look_at(np.array([2.6, 1.5, 2.0]), [0.0, 1.0, 0.0], K)
+    lobes = SGLobes(np.array([[0.0, 1.0, 0.0], [0.6, 0.6, 0.53]], np.float32), np.array([2.0, 40.0], np.float32),
+                    np.array([[1.0, 1.0, 1.0], [4.0, 3.0, 2.0]], np.float32))
+    row0, row1, col0, col1 = subject_window(vertices, K, pose, h, w)
+    assert (row1 - row0) * (col1 - col0) < 0.2 * h * w
+    shading = ViewShading(supersample=supersample, visibility_directions=64)
+    whole = relight_view(asset, K, pose, h, w, [lobes], shading, crop=False)
+    cut = relight_view(asset, K, pose, h, w, [lobes], shading)
+    assert whole["mask"].sum() > 100 and whole["pixels"] == cut["pixels"]
+    np.testing.assert_array_equal(cut["mask"], whole["mask"])
+    np.testing.assert_allclose(cut["alpha"], whole["alpha"], atol=1e-6)
+    scale = float(whole["images"][0].max())
+    np.testing.assert_allclose(cut["images"][0], whole["images"][0], rtol=0, atol=1e-5 * scale)
+    for name, image in whole["maps"].items():
+        np.testing.assert_allclose(cut["maps"][name], image, rtol=0, atol=1e-5)
+    assert cut["normal_fusion_px"] == pytest.approx(whole["normal_fusion_px"])
