@@ -37,6 +37,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "relight": ["--actions", "A0000"],
     "relit_budget": ["--actions", "A0000"],
     "relightset": ["--examples", "2"],
+    "relight_window": ["--scales", "1,2"],
     "resolution": None,
     "scale": ["--sizes", "20,100"],
     "sdf_schedule": ["--schedules", "400+1200,1800+1800"],
@@ -82,6 +83,7 @@ SPEED_BASELINES: dict[str, str | None] = {
     "projection": "no speed figure of its own (a projection from a run's stage seconds)",
     "relight": "the simplest variant (no shadows, photometric albedo; `x_baseline`)",
     "relightset": "the simulator's render of the same view (`x_truth`)",
+    "relight_window": "the same view rendered over the whole frame (`x_whole`, memory and CPU seconds)",
     "relit_budget": "no speed figure (accuracy per component swapped for the truth; seconds per piece of a view)",
     "resolution": "the smallest width (each stage's exponent k: seconds ~ pixels^k over it), and the imports alone "
                   "for each stage's process (`CPU s above the imports`)",
@@ -148,7 +150,7 @@ def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
 SHARED_RUN_LANE = frozenset({
     "bench_diffuse_normals", "bench_end_to_end", "bench_gaps", "bench_gbuffer", "bench_geometry",
     "bench_gpu_production", "bench_heldout_field", "bench_materials", "bench_panel_set", "bench_projection",
-    "bench_relight", "bench_relightset", "bench_relit_budget", "bench_sdf_schedule", "bench_sdf_sharpness",
+    "bench_relight", "bench_relight_window", "bench_relightset", "bench_relit_budget", "bench_sdf_schedule", "bench_sdf_sharpness",
     "bench_silhouette", "bench_textures"})
 """The benches whose quick mode reads the shared tiny run (bench/_quick.py's ``quick_run``): with ``--lanes 2`` they
 run one after another in one lane and every other bench in the other. ``quick_run`` holds a lock for the life of
