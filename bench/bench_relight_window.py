@@ -10,7 +10,7 @@ the pixels) under as many SG environments as the stage renders, each of the stag
 lobes: the cost does not depend on their values). Each render runs in a fresh process under a watcher that reads
 its peak resident set (``getrusage(RUSAGE_CHILDREN).ru_maxrss``); the child reports its own peak after loading the
 asset, so ``above the asset`` is what the view itself adds. Both renders' first image and alpha are compared: the
-window is exact when they agree.
+window is exact when they agree. The sources' share of their frames and their bytes are reported beside.
 
 ``python bench/bench_relight_window.py --out DIR [--release DIR --capture DIR --actions A0000 --scales 1,2,4
 --threads 2]`` writes DIR/bench_relight_window.json and .md. ``--quick`` (the tests' mode): the tiny run of
@@ -50,7 +50,7 @@ def child(release: Path, action: str, scale: int, mode: str, threads: int, out_n
 
     config = RelightConfig()
     artifacts = release_artifacts(release, action)
-    asset, _ = load_relightable_asset(artifacts, config.min_alpha, config.diffuse_normals, config.diffuse_albedo)
+    asset, cameras = load_relightable_asset(artifacts, config.min_alpha, config.diffuse_normals, config.diffuse_albedo)
     cam = artifacts.backend.view.render_cameras()[0]
     K = np.array(cam["K"], np.float64)
     K[:2] *= scale
@@ -71,7 +71,13 @@ def child(release: Path, action: str, scale: int, mode: str, threads: int, out_n
     cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
     row0, row1, col0, col1 = subject_window(asset.vertices, K, pose, h, w)
     np.savez(out_npz, image=view["images"][0], alpha=view["alpha"])
+    frames = sum(c.width * c.height for c in cameras.values())
+    source_bytes = sum(getattr(src, name).nbytes for src in asset.sources
+                       for name in ("normal", "albedo", "valid", "depth_m"))
     info.write_text(json.dumps({"size": [w, h], "pixels": view["pixels"], "window_share": (row1 - row0) * (col1 - col0) / (h * w),
+                                "sources": len(asset.sources), "source_mib": source_bytes / 2 ** 20,
+                                "source_share": sum(src.valid.size for src in asset.sources) / frames,
+                                "source_frame_bytes": source_bytes / sum(src.valid.size for src in asset.sources),
                                 "environments": len(environments), "loaded_mib": loaded_kib / 1024,
                                 "cpu_s": cpu, "wall_s": wall}))
 
@@ -121,6 +127,10 @@ def markdown(report: dict) -> str:
                      f"{win['peak_rss_mib']:.0f} / {whole['peak_rss_mib']:.0f} | {win['cpu_s']:.1f} / "
                      f"{whole['cpu_s']:.1f} | {mem:.2f}, {whole['cpu_s'] / max(win['cpu_s'], 1e-9):.2f} | "
                      f"{row['difference']['image_max_rel']:.1e}, {row['difference']['alpha_max_abs']:.1e} |")
+    first = report["rows"][0]["window"]
+    lines += ["", f"The asset's {first['sources']} sources (each cut to the part of its frame the mesh can cover, "
+                  f"`stages.relightable.windowed_source`) hold {first['source_share']:.0%} of their frames' pixels at "
+                  f"{first['source_frame_bytes']:.0f} bytes each: {first['source_mib']:.0f} MiB."]
     return "\n".join(lines) + "\n"
 
 

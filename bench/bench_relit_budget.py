@@ -197,8 +197,9 @@ class ActionBudget:
         t0 = time.perf_counter()
         rel = open_release(release)
         self.view = rel.action(action)
+        # whole frames: the true geometry's points can project outside the part of a frame the stage's mesh covers
         self.asset, self.cameras = load_relightable_asset(release_artifacts(rel, action), cfg.min_alpha,
-                                                          cfg.diffuse_normals, cfg.diffuse_albedo)
+                                                          cfg.diffuse_normals, cfg.diffuse_albedo, cut_sources=False)
         self.cams = self.view.render_cameras()
         self.environments = self.view.release.load(self.view.asset("render_environments", None))["environments"]
         truth_dir = Path(capture) / "ground_truth" / action
