@@ -259,7 +259,7 @@ def test_sources_cut_to_their_windows_relight_as_the_whole_frames(sphere_asset):
         kept += cut.valid.size
         for name in ("normal", "albedo", "valid", "depth_m"):
             np.testing.assert_array_equal(getattr(cut, name), getattr(source, name)[row0:row1, col0:col1], err_msg=name)
-        assert getattr(source, "valid")[row0:row1, col0:col1].sum() == source.valid.sum()  # nothing valid cut off
+        assert source.valid[row0:row1, col0:col1].sum() == source.valid.sum()  # nothing valid cut off
     assert kept < 0.5 * len(asset.sources) * h * w
     shading = ViewShading(supersample=1, visibility_directions=64)
     _assert_same_view(relight_view(cut_asset, K, pose, h, w, [lobes], shading),
