@@ -13,11 +13,12 @@ asset, so ``above the asset`` is what the view itself adds. Both renders' first 
 window is exact when they agree. The sources' share of their frames and their bytes are reported beside.
 
 ``python bench/bench_relight_window.py --out DIR [--release DIR --capture DIR --actions A0000 --scales 1,2,4
---threads 2]`` writes DIR/bench_relight_window.json and .md. ``--quick`` (the tests' mode): the tiny run of
+--threads 2 --supersample N]`` writes DIR/bench_relight_window.json and .md. ``--quick`` (the tests' mode): the tiny run of
 ``bench/_quick.py`` at scale 1 only; the numbers are not measurements.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import subprocess
@@ -36,7 +37,8 @@ WATCHER = ("import json, resource, subprocess, sys; rc = subprocess.call(sys.arg
 MODES = ("window", "whole")
 
 
-def child(release: Path, action: str, scale: int, mode: str, threads: int, out_npz: Path, info: Path) -> None:
+def child(release: Path, action: str, scale: int, mode: str, threads: int, out_npz: Path, info: Path,
+          supersample: int | None = None) -> None:
     """Render the scaled view in this process; write its first image and alpha to ``out_npz`` and the figures to
     ``info``."""
     from _threads import set_numeric_threads
@@ -49,6 +51,8 @@ def child(release: Path, action: str, scale: int, mode: str, threads: int, out_n
     from stages.relightable import load_relightable_asset
 
     config = RelightConfig()
+    if supersample is not None:
+        config = dataclasses.replace(config, shading=dataclasses.replace(config.shading, supersample=supersample))
     artifacts = release_artifacts(release, action)
     asset, cameras = load_relightable_asset(artifacts, config.min_alpha, config.diffuse_normals, config.diffuse_albedo)
     cam = artifacts.backend.view.render_cameras()[0]
@@ -88,7 +92,8 @@ def measure(args, action: str, scale: int, mode: str, folder: Path) -> dict:
     rss, info, npz = stem.with_suffix(".rss.json"), stem.with_suffix(".json"), stem.with_suffix(".npz")
     subprocess.run([sys.executable, "-c", WATCHER, str(rss), sys.executable, str(Path(__file__).resolve()), "--child",
                     "--release", str(args.release), "--actions", action, "--scale", str(scale), "--mode", mode,
-                    "--threads", str(args.threads), "--npz", str(npz), "--info", str(info)], check=True, cwd=ROOT)
+                    "--threads", str(args.threads), "--npz", str(npz), "--info", str(info),
+                    *(["--supersample", str(args.supersample)] if args.supersample else [])], check=True, cwd=ROOT)
     watched = json.loads(rss.read_text())
     if watched["rc"]:
         raise RuntimeError(f"bench_relight_window: {action} x{scale} {mode}: exit {watched['rc']}")
@@ -139,6 +144,8 @@ def main() -> int:
 
     parser = release_parser(__doc__, actions="A0000", threads=2)
     parser.add_argument("--scales", default="1,2,4", help="comma-separated integer scales of the view")
+    parser.add_argument("--supersample", type=int, default=None,
+                        help="the shading's supersample factor (default: the relight stage's)")
     parser.add_argument("--child", action="store_true", help=argparse_hidden())
     parser.add_argument("--scale", type=int, default=1, help=argparse_hidden())
     parser.add_argument("--mode", choices=MODES, default="window", help=argparse_hidden())
@@ -146,7 +153,8 @@ def main() -> int:
     parser.add_argument("--info", help=argparse_hidden())
     if "--child" in sys.argv:
         args = parser.parse_args()
-        child(Path(args.release), args.actions, args.scale, args.mode, args.threads, Path(args.npz), Path(args.info))
+        child(Path(args.release), args.actions, args.scale, args.mode, args.threads, Path(args.npz), Path(args.info),
+              args.supersample)
         return 0
     args = parse_release_args(parser)
     release, out = Path(args.release), Path(args.out)
@@ -162,11 +170,13 @@ def main() -> int:
     scales = [1] if args.quick else [int(s) for s in args.scales.split(",")]
     if any(s < 1 for s in scales):
         parser.error(f"--scales must be positive integers, got {args.scales}")
+    if args.supersample is not None and args.supersample < 1:
+        parser.error(f"--supersample must be >= 1, got {args.supersample}")
     folder = out / "bench_relight_window"
     folder.mkdir(parents=True, exist_ok=True)
     config = RelightConfig()
     report = {"action": action, "threads": args.threads, "quick": args.quick,
-              "supersample": config.shading.supersample,
+              "supersample": args.supersample or config.shading.supersample,
               "visibility_directions": config.shading.visibility_directions,
               "environments": len(config.environments), "rows": []}
     started = time.perf_counter()
