@@ -4,17 +4,17 @@
 (:func:`stages.numerics.novel_view.subject_window`: its projected vertices' box and 3 pixels) and puts them into the
 frame; ``crop=False`` renders every pixel of the frame, the baseline here. For one action of a release (default
 A0000) and its first novel camera (``renders/cameras.json``), the camera is scaled to 1, 2 and 4 times its size
-(intrinsics and image together; the asset's sources stay the release's) and the view is rendered with the stage's
-shading (:class:`stages.relight.RelightConfig`'s ``shading``: ``supersample`` 2, so the shading runs on a grid 4 x
-the pixels) under as many SG environments as the stage renders, each of the stage's lobe count (seeded random
+(``--scales``; intrinsics and image together; the asset's sources stay the release's) and the view is rendered
+with the stage's shading (:class:`stages.relight.RelightConfig`'s ``shading``: ``supersample`` 2, so the shading
+runs on a grid 4 x the pixels; ``--supersample`` sets another factor) under as many SG environments as the stage renders, each of the stage's lobe count (seeded random
 lobes: the cost does not depend on their values). Each render runs in a fresh process under a watcher that reads
 its peak resident set (``getrusage(RUSAGE_CHILDREN).ru_maxrss``); the child reports its own peak after loading the
 asset, so ``above the asset`` is what the view itself adds. Both renders' first image and alpha are compared: the
 window is exact when they agree. The sources' share of their frames and their bytes are reported beside.
 
 ``python bench/bench_relight_window.py --out DIR [--release DIR --capture DIR --actions A0000 --scales 1,2,4
---threads 2 --supersample N]`` writes DIR/bench_relight_window.json and .md. ``--quick`` (the tests' mode): the tiny run of
-``bench/_quick.py`` at scale 1 only; the numbers are not measurements.
+--threads 2 --supersample N]`` writes DIR/bench_relight_window.json and .md. ``--quick`` (the tests' mode): the tiny
+run of ``bench/_quick.py`` at scale 1 only; the numbers are not measurements.
 """
 from __future__ import annotations
 
