@@ -162,16 +162,6 @@ class _Atlas:
         self.faces, self.uvs = faces, uvs
 
 
-def _look_at(eye, target, K, up=(0.0, 1.0, 0.0)):
-    forward = np.asarray(target, float) - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    R = np.stack([right, down, forward])
-    return np.concatenate([R, (-R @ eye)[:, None]], axis=1)
-
-
 SPHERE_VIEW = (40, 60, np.array([[70.0, 0.0, 60 / 2 - 0.3], [0.0, 70.0, 40 / 2 + 0.2], [0.0, 0.0, 1.0]]))
 """(height, width, K) of the sphere asset's views: the sphere is small in the frame."""
 
@@ -186,6 +176,7 @@ def sphere_asset():
     from stages.numerics.mesh import vertex_normals
     from stages.numerics.novel_view import ActionAsset
     from stages.relightable import windowed_source
+    from synthetic.rig import look_at
 
     sphere = o3d.geometry.TriangleMesh.create_sphere(radius=0.3, resolution=20)
     vertices = np.asarray(sphere.vertices, np.float64) + [0.0, 1.0, 0.0]
@@ -195,7 +186,7 @@ def sphere_asset():
     sources, cut_sources = [], []
     for angle in np.radians([0.0, 60.0, 120.0, 200.0]):
         eye = np.array([3.0 * np.sin(angle), 1.2, 3.0 * np.cos(angle)])
-        pose = _look_at(eye, [0.0, 1.0, 0.0], K)
+        pose = look_at(eye, np.array([0.0, 1.0, 0.0]))
         seen = render_mesh(None, None, K, pose, h, w, scene=scene)
         points = Camera(K, pose, w, h).lift_depth_map(np.where(seen["hit"], seen["depth_m"], 0.0))
         albedo = (0.4 + 0.3 * np.sin(25.0 * points)).astype(np.float32) * seen["hit"][..., None]
@@ -210,7 +201,7 @@ def sphere_asset():
                         atlas_scene=scene, atlas=_Atlas(faces, uvs), albedo_tex=texture,
                         roughness_tex=np.full((8, 8), 0.4, np.float32), occlusion_tex=np.ones((8, 8), np.float32),
                         diffuse_ratio_tex=np.ones((8, 8, 3), np.float32), vertices=vertices)
-    pose = _look_at(np.array([2.6, 1.5, 2.0]), [0.0, 1.0, 0.0], K)
+    pose = look_at(np.array([2.6, 1.5, 2.0]), np.array([0.0, 1.0, 0.0]))
     lobes = SGLobes(np.array([[0.0, 1.0, 0.0], [0.6, 0.6, 0.53]], np.float32), np.array([2.0, 40.0], np.float32),
                     np.array([[1.0, 1.0, 1.0], [4.0, 3.0, 2.0]], np.float32))
     return asset, dataclasses.replace(asset, sources=cut_sources), pose, lobes
