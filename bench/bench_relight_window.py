@@ -6,8 +6,8 @@ frame; ``crop=False`` renders every pixel of the frame, the baseline here. For o
 A0000) and its first novel camera (``renders/cameras.json``), the camera is scaled to 1, 2 and 4 times its size
 (``--scales``; intrinsics and image together; the asset's sources stay the release's) and the view is rendered
 with the stage's shading (:class:`stages.relight.RelightConfig`'s ``shading``: ``supersample`` 2, so the shading
-runs on a grid 4 x the pixels; ``--supersample`` sets another factor) under as many SG environments as the stage renders, each of the stage's lobe count (seeded random
-lobes: the cost does not depend on their values). Each render runs in a fresh process under a watcher that reads
+runs on a grid 4 x the pixels; ``--supersample`` sets another factor) under as many SG environments as the stage
+renders, each of the stage's lobe count (seeded random lobes: the cost does not depend on their values). Each render runs in a fresh process under a watcher that reads
 its peak resident set (``getrusage(RUSAGE_CHILDREN).ru_maxrss``); the child reports its own peak after loading the
 asset, so ``above the asset`` is what the view itself adds. Both renders' first image and alpha are compared: the
 window is exact when they agree. The sources' share of their frames and their bytes are reported beside.
@@ -58,7 +58,8 @@ def child(release: Path, action: str, scale: int, mode: str, threads: int, out_n
     cam = artifacts.backend.view.render_cameras()[0]
     K = np.array(cam["K"], np.float64)
     K[:2] *= scale
-    K[:2, 2] += (scale - 1) / 2.0  # pixel centres at integer coordinates: pixel j of the coarse grid is scale j + (scale - 1) / 2
+    # pixel centres at integer coordinates: the coarse grid's pixel j is the scaled grid's scale j + (scale - 1) / 2
+    K[:2, 2] += (scale - 1) / 2.0
     h, w = int(cam["height"]) * scale, int(cam["width"]) * scale
     pose = np.array(cam["cam_from_world"], np.float64)
     rng = np.random.default_rng(0)
@@ -78,7 +79,8 @@ def child(release: Path, action: str, scale: int, mode: str, threads: int, out_n
     frames = sum(c.width * c.height for c in cameras.values())
     source_bytes = sum(getattr(src, name).nbytes for src in asset.sources
                        for name in ("normal", "albedo", "valid", "depth_m"))
-    info.write_text(json.dumps({"size": [w, h], "pixels": view["pixels"], "window_share": (row1 - row0) * (col1 - col0) / (h * w),
+    info.write_text(json.dumps({"size": [w, h], "pixels": view["pixels"],
+                                "window_share": (row1 - row0) * (col1 - col0) / (h * w),
                                 "sources": len(asset.sources), "source_mib": source_bytes / 2 ** 20,
                                 "source_share": sum(src.valid.size for src in asset.sources) / frames,
                                 "source_frame_bytes": source_bytes / sum(src.valid.size for src in asset.sources),
