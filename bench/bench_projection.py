@@ -18,12 +18,14 @@ Scaled to the production preset by stated rules (the table says which rule each 
 - ``maps``: per-pixel work on the production maps (half size, 3008 x 2008): x that / capture pixels;
 - ``texels``: texture-space work: x the production textures' texel count / the default's (textures 4096^2 vs 1024^2,
   materials 1024^2 and occlusion 2048^2 vs 256^2 and 512^2);
-- ``relight``: maps x novel views (6 vs 3) x SG lobes (64 vs 32);
+- ``relight``: maps x novel views (6 vs 3) x SG lobes (64 vs 32) x shading samples per pixel (``supersample``
+  squared: 1 vs 2 x 2; a view at 2 took 3.9 x the CPU of 1 on the default subject at 640 px, README);
 - ``geometry`` (the GPU stage, ``resources = {"GPU": 1}``): x the SDF's ray samples over both passes
   (production 2 x 20,000 steps of 4096 rays x 16 samples vs 600 + 1,800 steps of 512 x 8), divided by the
   speed-up of one GPU over one CPU core: ``--gpu-speedup``, else bench_gpu's measured field-step speed-up where it
   saw a GPU, else an ASSUMED :data:`ASSUMED_GPU_SPEEDUP`;
-- the relighting set: seconds per example x (512 / 256)^2 pixels x 2 SG lobes, for 1,500 examples.
+- the relighting set: seconds per example x (512 / 256)^2 pixels x 2 SG lobes x the shading samples per pixel
+  (2 x 2 in both presets), for 1,500 examples.
 
 With bench_resolution's exponents the CPU work is projected a second time with each per-pixel stage's pixel
 factor raised to its measured k: for a cost that is a fixed part plus a per-pixel part, the whole factor is an upper
@@ -91,7 +93,7 @@ def factors(capture_pixels: float) -> dict[str, tuple[str, float, float]]:
     mat = (production.materials.texture_size ** 2 + production.materials.occlusion_size ** 2) / (
         default.materials.texture_size ** 2 + default.materials.occlusion_size ** 2)
     relight = maps * production.relight.novel_views / default.relight.novel_views * \
-        production.relight.sg_lobes / default.relight.sg_lobes
+        production.relight.sg_lobes / default.relight.sg_lobes * shading_samples(production.relight, default.relight)
     geometry = sdf_samples(production.geometry) / sdf_samples(default.geometry)
     return {"cameras": ("sensor", sensor, sensor), "colour": ("sensor", sensor, sensor),
             "lights": ("sensor", sensor, sensor), "plates": ("sensor", sensor, sensor),
@@ -139,11 +141,17 @@ def resolution_seconds(report: dict[str, Any]) -> tuple[dict[str, float], dict[s
     return seconds, exponents, info
 
 
+def shading_samples(production: Any, default: Any) -> float:
+    """The ratio of shading samples per pixel (``shading.supersample`` squared) of two relight or relighting-set
+    configs."""
+    return (production.shading.supersample / default.shading.supersample) ** 2
+
+
 def relightset_factor() -> float:
     from stages.registry import PRESETS
 
     d, p = PRESETS["default"].relightset, PRESETS["production"].relightset
-    return (p.size / d.size) ** 2 * p.sg_lobes / d.sg_lobes
+    return (p.size / d.size) ** 2 * p.sg_lobes / d.sg_lobes * shading_samples(p, d)
 
 
 def measured_seconds(release: Path) -> tuple[dict[str, list[float]], dict[str, Any]]:

@@ -55,10 +55,13 @@ def test_one_width_gives_no_exponents_and_no_rows_is_an_error(projection):
 
 
 def test_measured_exponent_raises_only_the_pixel_part_of_the_factor(projection):
-    # relight's factor is maps x views x lobes; only the maps part (the pixels) takes the exponent
+    # relight's factor is maps x views x lobes x shading samples; only the maps part (the pixels) takes the exponent.
+    # Today's presets make the rest 2 x 2 x 1/4 = 1: the rule is given a part of 3 beside the pixels' here.
     rules = projection.factors(384 * 576)
     rule, factor, pixels = rules["relight"]
-    assert rule == "relight" and factor > pixels > 1.0
+    assert rule == "relight" and factor == pytest.approx(pixels) and pixels > 1.0
+    factor = 3.0 * pixels
+    rules["relight"] = (rule, factor, pixels)
     result = projection.project({"relight": 10.0, "geometry": 100.0}, set(), rules, 1.0, 100.0, 0.0, 0.0, 0.0, 32,
                                 {"relight": 0.5, "geometry": 0.05})
     row = result["stages"]["relight"]
@@ -84,3 +87,21 @@ def test_gpu_speedup_is_measured_given_or_assumed(projection, tmp_path):
     measured = projection.gpu_speedup(tmp_path, None)
     assert measured["source"] == "measured" and measured["speedup"] == pytest.approx(83.0)
     assert projection.gpu_speedup(tmp_path, 40.0)["source"] == "given"
+
+
+def test_relight_factors_count_the_shading_samples(projection, monkeypatch):
+    """The production preset shades its relit views once a pixel and the default 2 x 2 times: the relight factor
+    holds (1/2)^2, and shading the production views at 2 x 2 too multiplies it by 4; the relighting set's likewise."""
+    import dataclasses
+
+    from stages.numerics.novel_view import ViewShading
+    from stages.registry import PRESETS
+
+    production = PRESETS["production"]
+    assert production.relight.shading.supersample == 1 and PRESETS["default"].relight.shading.supersample == 2
+    once, set_once = projection.factors(1e6)["relight"][1], projection.relightset_factor()
+    monkeypatch.setitem(PRESETS, "production", dataclasses.replace(
+        production, relight=dataclasses.replace(production.relight, shading=ViewShading(supersample=2)),
+        relightset=dataclasses.replace(production.relightset, shading=ViewShading(supersample=1))))
+    assert projection.factors(1e6)["relight"][1] == pytest.approx(4 * once)
+    assert projection.relightset_factor() == pytest.approx(set_once / 4)
