@@ -31,9 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-WATCHER = ("import json, resource, subprocess, sys; rc = subprocess.call(sys.argv[2:]); "
-           "json.dump({'rc': rc, 'maxrss_kib': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}, "
-           "open(sys.argv[1], 'w'))")
+from bench_memory import WATCHER  # noqa: E402  (the watcher that reports one child's peak resident set)
+
 MODES = ("window", "whole")
 
 

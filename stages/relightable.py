@@ -49,12 +49,8 @@ def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, d
         normals = normal_alpha[..., :3]
         if diffuse_normals and artifacts.has("normal_diffuse", cam_id):
             normals = artifacts.map("normal_diffuse", cam_id)
-        if cut_sources:
-            sources.append(windowed_source(scene, vertices, cam.K, cam.cam_from_world, normals, albedo, valid))
-        else:
-            depth = render_mesh(None, None, cam.K, cam.cam_from_world, h, w, scene=scene)["depth_m"]
-            sources.append(SourceView(normal=np.ascontiguousarray(normals), albedo=albedo, valid=valid, K=cam.K,
-                                      cam_from_world=cam.cam_from_world, depth_m=depth))
+        window = subject_window(vertices, cam.K, cam.cam_from_world, h, w) if cut_sources else (0, h, 0, w)
+        sources.append(windowed_source(scene, cam.K, cam.cam_from_world, normals, albedo, valid, window))
         cameras[cam_id] = dataclasses.replace(cam, width=w, height=h)
     if len(sources) < 2:
         raise InputError(artifacts.where(), f"{len(sources)} camera(s) have maps; novel views need at least 2")
@@ -69,15 +65,15 @@ def load_relightable_asset(artifacts: ActionArtifacts, min_alpha: float = 0.5, d
     return asset, cameras
 
 
-def windowed_source(scene: Any, vertices: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, normals: np.ndarray,
-                    albedo: np.ndarray, valid: np.ndarray) -> SourceView:
-    """A captured view as a reprojection source, cut to the part of its frame the mesh with ``vertices`` (V, 3) can
-    cover (:func:`stages.numerics.novel_view.subject_window`), its mesh depth ray-cast against ``scene`` there.
+def windowed_source(scene: Any, K: np.ndarray, cam_from_world: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                    valid: np.ndarray, window: tuple[int, int, int, int]) -> SourceView:
+    """A captured view as a reprojection source over ``window`` ``(row0, row1, col0, col1)`` of its frame (the part
+    its mesh can cover: :func:`stages.numerics.novel_view.subject_window`; or the whole frame), its mesh depth
+    ray-cast against ``scene`` there.
 
     K, cam_from_world: the view's (3, 3) intrinsics and (3, 4) pose; normals, albedo (H, W, 3) and valid (H, W): its
     maps over the whole frame (copied: the frames are not kept alive by the cut)."""
-    h, w = valid.shape
-    row0, row1, col0, col1 = subject_window(vertices, K, cam_from_world, h, w)
+    row0, row1, col0, col1 = window
     cut_K = crop_intrinsics(K, row0, col0)
     depth = render_mesh(None, None, cut_K, cam_from_world, row1 - row0, col1 - col0, scene=scene)["depth_m"]
 

@@ -157,11 +157,6 @@ def test_subject_window_by_hand():
     assert (u / z, v / z) == pytest.approx((60.0 - 36, 35.0 - 26))
 
 
-class _Atlas:
-    def __init__(self, faces, uvs):
-        self.faces, self.uvs = faces, uvs
-
-
 SPHERE_VIEW = (40, 60, np.array([[70.0, 0.0, 60 / 2 - 0.3], [0.0, 70.0, 40 / 2 + 0.2], [0.0, 0.0, 1.0]]))
 """(height, width, K) of the sphere asset's views: the sphere is small in the frame."""
 
@@ -169,12 +164,13 @@ SPHERE_VIEW = (40, 60, np.array([[70.0, 0.0, 60 / 2 - 0.3], [0.0, 70.0, 40 / 2 +
 @pytest.fixture(scope="module")
 def sphere_asset():
     """A sphere's relightable asset from 4 source views of a patterned albedo (whole frames), the sources cut to
-    their windows by :func:`stages.relightable.windowed_source`, and a novel view and environment."""
+    their subject windows by :func:`stages.relightable.windowed_source`, and a novel view and environment."""
     import dataclasses
     import open3d as o3d
     from stages.numerics.gbuffer import SourceView
     from stages.numerics.mesh import vertex_normals
-    from stages.numerics.novel_view import ActionAsset
+    from artifacts.atlas import Atlas
+    from stages.numerics.novel_view import ActionAsset, subject_window
     from stages.relightable import windowed_source
     from synthetic.rig import look_at
 
@@ -193,12 +189,13 @@ def sphere_asset():
         normals = seen["normals_world"].astype(np.float32)
         sources.append(SourceView(normal=normals, albedo=albedo, valid=seen["hit"], K=K, cam_from_world=pose,
                                   depth_m=np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)))
-        cut_sources.append(windowed_source(scene, vertices, K, pose, normals, albedo, seen["hit"]))
+        cut_sources.append(windowed_source(scene, K, pose, normals, albedo, seen["hit"],
+                                           subject_window(vertices, K, pose, h, w)))
     uvs = np.stack([0.5 + 0.5 * np.arctan2(vertices[:, 0], vertices[:, 2]) / np.pi,
                     (vertices[:, 1] - 0.7) / 0.6], axis=1)
     texture = np.full((8, 8, 3), 0.5, np.float32)
     asset = ActionAsset(scene=scene, faces=faces, smooth_normals=vertex_normals(vertices, faces), sources=sources,
-                        atlas_scene=scene, atlas=_Atlas(faces, uvs), albedo_tex=texture,
+                        atlas_scene=scene, atlas=Atlas(np.arange(len(vertices)), faces, uvs, 8, 8, {}), albedo_tex=texture,
                         roughness_tex=np.full((8, 8), 0.4, np.float32), occlusion_tex=np.ones((8, 8), np.float32),
                         diffuse_ratio_tex=np.ones((8, 8, 3), np.float32), vertices=vertices)
     pose = look_at(np.array([2.6, 1.5, 2.0]), np.array([0.0, 1.0, 0.0]))
