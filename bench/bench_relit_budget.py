@@ -509,9 +509,11 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
                 image = premultiply_edges(scatter_pixels(pix, np.clip(rgb, 0, HALF_MAX), h, w), gb["mask"], alpha)
                 mask = out_mask
             else:
+                # the key lights' visibility traced as the directions' is (the same points and occluder)
                 view = shade_gbuffer(gb, ab.true_scene if geometry_key(swaps) != "ours" else ab.asset.scene, K, pose,
                                      [ab.lobes(record)], shading, directions=directions, visibility=vis,
-                                     albedo=albedo, f0=f0, shadowing=shadowing)
+                                     albedo=albedo, f0=f0, shadowing=shadowing,
+                                     key_visibility=lambda dirs, tag=f"key_{label}": visibility(swaps, dirs, tag))
                 image, mask = view["images"][0], view["mask"]
             times["shade"] = times.get("shade", 0.0) + time.perf_counter() - t0
             out[label] = (image, mask)

@@ -10,6 +10,10 @@ Lambertian + GGX over them with each direction's own visibility, as the simulato
   the direction's Voronoi cell on the sphere (nearest direction), for an environment given as SG lobes. Each lobe's
   exact energy (:func:`stages.numerics.sg.sg_integral`) is split between the cells in proportion to the lobe's
   values at ``samples`` Fibonacci points per direction (so no lobe's energy is lost, however sharp).
+* :func:`split_key_lights`: the environment's sharpest bright lobes (a studio's key light, a sun) taken out of the
+  cells as distant point lights at their own axes, each with its own traced visibility (a few rays per pixel). Put
+  on the cells, such a lobe lights and shadows from its cell's direction, up to half a cell (about 7 degrees at 256
+  directions) away from where it is: its shadows' edges and its highlights move by that much.
 * :func:`shade_directions`: ``albedo / pi sum_d V_d max(0, n.w_d) E_d`` and ``sum_d V_d f_s(w_d) max(0, n.w_d) E_d``
   with the GGX BRDF ``f_s = F D G / (4 n.l n.v)`` (Schlick Fresnel, alpha = roughness^2, the shadowing term
   "smith" (height-correlated, the simulator's) or "physg" (separable Schlick-GGX, k = (r + 1)^2 / 8), as
@@ -24,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from stages.numerics.sg import ROUGHNESS_MAX, ROUGHNESS_MIN, SGLobes, check_lobes, fibonacci_sphere, sg_integral
 
-__all__ = ["sg_direction_irradiance", "shade_directions", "SHADOWING_TERMS"]
+__all__ = ["sg_direction_irradiance", "sg_cell_lights", "split_key_lights", "shade_directions", "SHADOWING_TERMS"]
 
 SHADOWING_TERMS = ("physg", "smith")
 """The GGX shadowing-masking terms :func:`shade_directions` knows."""
@@ -49,10 +53,24 @@ def sg_direction_irradiance(lobes: SGLobes, directions, samples: int = 64) -> np
         directions: (D, 3) directions (normalised here), e.g. ``sg.fibonacci_sphere(D)``.
         samples: Fibonacci points per direction that split each lobe's energy between the cells (>= 1).
     """
+    return sg_cell_lights(lobes, directions, samples)[0]
+
+
+def sg_cell_lights(lobes: SGLobes, directions, samples: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Each direction's cell as one distant light: its irradiance (D, 3) float64 (:func:`sg_direction_irradiance`)
+    and the unit direction (D, 3) float64 its energy comes from on average (the cell's sample points weighted by the
+    lobes' energy there, RGB summed; the direction itself where the cell holds no energy). A light that fills a
+    cell unevenly (a lobe near the cell's edge) then lights from where its energy is, not from the cell's centre;
+    its visibility stays the cell direction's.
+
+    Args: as :func:`sg_direction_irradiance`.
+    """
     lobes = check_lobes(lobes).numpy()
     d = _unit_directions(directions)
     if int(samples) != samples or samples < 1:
         raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    if lobes.count == 0:  # every lobe taken out as a key light (split_key_lights)
+        return np.zeros((len(d), 3)), d
     points = fibonacci_sphere(int(samples) * len(d))
     _, cell = cKDTree(d).query(points)
     axis = np.asarray(lobes.axis, np.float64)
@@ -63,9 +81,52 @@ def sg_direction_irradiance(lobes: SGLobes, directions, samples: int = 64) -> np
     cos = points @ axis.T  # (S, L)
     value = np.exp(sharp[None] * (cos - cos.max(axis=0, keepdims=True)))
     per_cell = np.stack([np.bincount(cell, weights=value[:, k], minlength=len(d)) for k in range(len(sharp))], axis=1)
-    share = per_cell / np.maximum(per_cell.sum(axis=0, keepdims=True), 1e-300)  # (D, L), columns sum to 1
+    total = np.maximum(per_cell.sum(axis=0, keepdims=True), 1e-300)
+    share = per_cell / total  # (D, L), columns sum to 1
     energy = np.asarray(sg_integral(lobes), np.float64)  # (L, 3)
-    return np.nan_to_num(share @ energy, nan=0.0, posinf=0.0, neginf=0.0)
+    irradiance = np.nan_to_num(share @ energy, nan=0.0, posinf=0.0, neginf=0.0)
+    # each point's share of the energy (RGB summed) of every lobe, summed: the cells' energy-weighted mean points
+    point_energy = (value / total) @ np.maximum(energy.sum(axis=1), 0.0)  # (S,)
+    centroid = np.stack([np.bincount(cell, weights=point_energy * points[:, c], minlength=len(d))
+                         for c in range(3)], axis=1)
+    length = np.linalg.norm(centroid, axis=1, keepdims=True)
+    light_dirs = np.where(length > 0.0, centroid / np.where(length > 0.0, length, 1.0), d)
+    return irradiance, light_dirs
+
+
+def split_key_lights(lobes: SGLobes, count: int, min_sharpness: float) -> tuple[SGLobes, np.ndarray, np.ndarray]:
+    """The environment's key lights: of the lobes at least ``min_sharpness`` sharp, the ``count`` that carry the most
+    energy (their :func:`stages.numerics.sg.sg_integral` summed over RGB; lobes without energy are never taken),
+    each taken out of ``lobes`` as a distant point light at its axis carrying the lobe's whole energy.
+
+    A lobe of sharpness ``lambda`` spreads about ``1 / sqrt(lambda)`` radians about its axis (5.7 degrees at 100): far
+    narrower than a cell of 256 visibility directions (about 7 degrees to its edge), so it shades and shadows as a
+    point light at its axis.
+
+    Args:
+        lobes: SG lobes (numpy or torch; L lobes), world frame.
+        count: most key lights (>= 0; 0 takes none).
+        min_sharpness: > 0, the least sharpness of a key light.
+
+    Returns:
+        ``(rest, directions, irradiance)``: the other lobes (:class:`~stages.numerics.sg.SGLobes`, numpy, in their
+        order), the key lights' unit directions (M, 3) float64 and irradiance (M, 3) float64 (radiance x
+        steradians), M <= ``count``, brightest first.
+    """
+    lobes = check_lobes(lobes).numpy()
+    if int(count) != count or count < 0:
+        raise ValueError(f"count must be a non-negative integer, got {count!r}")
+    if not (np.isfinite(min_sharpness) and min_sharpness > 0):
+        raise ValueError(f"min_sharpness must be positive, got {min_sharpness!r}")
+    energy = np.asarray(sg_integral(lobes), np.float64)  # (L, 3)
+    total = energy.sum(axis=1)
+    candidates = np.flatnonzero((np.asarray(lobes.sharpness) >= min_sharpness) & (total > 0))
+    key = candidates[np.argsort(-total[candidates], kind="stable")][:int(count)]
+    rest = np.setdiff1d(np.arange(lobes.count), key)
+    axis = np.asarray(lobes.axis, np.float64)[key].reshape(-1, 3)
+    axis = axis / np.maximum(np.linalg.norm(axis, axis=1, keepdims=True), 1e-12)
+    others = SGLobes(lobes.axis[rest], lobes.sharpness[rest], lobes.amplitude[rest])
+    return others, axis, energy[key].reshape(-1, 3)
 
 
 def _ggx(nl: np.ndarray, nv: np.ndarray, vl: np.ndarray, rough: np.ndarray, f0: np.ndarray, shadowing: str
