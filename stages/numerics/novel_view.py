@@ -236,11 +236,16 @@ class ViewShading(Documented):
     its 2 px band. Sharing each pixel's traced visibility among its samples instead of tracing theirs gave
     27.08 dB. The whole default capture at 2: relit views 26.59 -> 26.77 dB, relighting set 26.98 -> 27.29 dB, the
     two stages' task seconds 33 -> 63."""
-    shadowing: str = checked("physg", one_of=("physg", "smith"))
-    """The GGX shadowing-masking term of the specular (:func:`stages.numerics.sg.ggx_sg_lobe`): "physg"
-    (separable Schlick-GGX) or "smith" (height-correlated Smith, the simulator's). Under the SG closed forms
-    "smith" relit the default capture's A0000 N000 0.6 dB further from the simulator's (25.15 vs 25.76 dB,
-    bench/bench_relit_budget.py --shading shadowing=smith)."""
+    shadowing: str = checked("smith", one_of=("physg", "smith"))
+    """The GGX shadowing-masking term of the specular (:func:`stages.numerics.sg.ggx_sg_lobe`): "smith"
+    (height-correlated Smith: the simulator's, and the one the materials stage fits the roughness under) or "physg"
+    (separable Schlick-GGX). Summed over the directions (the default ``integration``, with the key lights and cell
+    centroids) "smith" is the closer: the budget's stage row on the default capture (both actions x 3 views x
+    studio / dawn / forest maps, one sample per pixel) 26.41 / 26.95 / 26.92 dB with "physg", 26.41 / 27.30 / 27.12
+    with "smith" (worst image 24.68 -> 24.74 dB), and the whole default capture's release relit 26.95 -> 27.20 dB,
+    relighting set 27.46 -> 27.80 dB. Under the SG closed forms "smith" relit the default capture's A0000 N000 0.6 dB
+    further from the simulator's (25.15 vs 25.76 dB, bench/bench_relit_budget.py --shading
+    integration=closed_form,shadowing=smith): a ``closed_form`` config should set "physg"."""
     key_lights: int = checked(2, ge=0)
     """Lobes of each environment shaded as distant point lights at their own axes, each with its own visibility
     traced per pixel, instead of on the visibility directions' cells (:func:`stages.numerics.direction_lights.
