@@ -242,8 +242,8 @@ class ViewShading(Documented):
     (separable Schlick-GGX). Summed over the directions (the default ``integration``, with the key lights and cell
     centroids) "smith" is the closer: the budget's stage row on the default capture (both actions x 3 views x
     studio / dawn / forest maps, one sample per pixel) 26.41 / 26.95 / 26.92 dB with "physg", 26.41 / 27.30 / 27.12
-    with "smith" (worst image 24.68 -> 24.74 dB), and the whole default capture's release relit 26.95 -> 27.20 dB,
-    relighting set 27.46 -> 27.80 dB. Under the SG closed forms "smith" relit the default capture's A0000 N000 0.6 dB
+    with "smith" (worst image 24.68 / 24.74 dB); the whole default capture's release relit 26.95 / 27.20 dB, its
+    relighting set 27.46 / 27.80 dB. Under the SG closed forms "smith" relit the default capture's A0000 N000 0.6 dB
     further from the simulator's (25.15 vs 25.76 dB, bench/bench_relit_budget.py --shading
     integration=closed_form,shadowing=smith): a ``closed_form`` config should set "physg"."""
     key_lights: int = checked(2, ge=0)
@@ -479,11 +479,12 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
     maps["normal"] = np.divide(maps["normal"], length, out=np.zeros_like(maps["normal"]), where=length > 1e-6)
     maps = {k: np.where(out_mask.reshape(out_mask.shape + (1,) * (v.ndim - 2)), v, 0.0).astype(np.float32)
             for k, v in maps.items()}
-    if key_visibility is None:
-        def key_visibility(key_directions: np.ndarray) -> np.ndarray:
-            if not shading.shadows or not len(pix):
-                return normals @ key_directions.T > 0.0
-            return direction_visibility(gb["points"], normals, scene, key_directions)
+    def trace_key_lights(key_directions: np.ndarray) -> np.ndarray:
+        if not shading.shadows or not len(pix):  # every direction above the horizon is lit
+            return normals @ key_directions.T > 0.0
+        return direction_visibility(gb["points"], normals, scene, key_directions)
+
+    key_visibility = trace_key_lights if key_visibility is None else key_visibility
     images = []
     for lobes in environments:
         if shading.integration != "closed_form":
