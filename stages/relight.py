@@ -15,12 +15,14 @@ For each novel camera (placed between neighbouring captured cameras,
    (:func:`stages.numerics.gbuffer.fade_rim_normals`);
 2. each environment (equirectangular HDR/EXR, or a built-in procedural one) fitted with ``sg_lobes``
    spherical Gaussians (:func:`stages.numerics.sg.fit_sg_environment`);
-3. shading: Lambertian diffuse + GGX specular under the lobes (F0 ``shading.f0``, skin's 0.028), with the mesh's
-   self-occlusion when ``shading.shadows``: by default the lobes' energy is put on the ``shading.visibility_directions``
-   the occlusion is traced for and the BRDF summed over them, each direction occluded per pixel
-   (:mod:`stages.numerics.direction_lights`; ``shading.integration: closed_form``: the lobes' closed forms scaled
-   by their visible fractions, :func:`stages.numerics.shadowing.shade_sg_visible`). The sources' albedo is
-   ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view; with
+3. shading: Lambertian diffuse + GGX specular under the lobes (F0 ``shading.f0``, skin's 0.028; Smith shadowing,
+   ``shading.shadowing``), with the mesh's self-occlusion when ``shading.shadows``: by default the lobes' energy is
+   put on the ``shading.visibility_directions`` the occlusion is traced for (each cell lighting from its energy's
+   mean direction, ``shading.cell_centroids``) and the BRDF summed over them, each direction occluded per pixel,
+   the ``shading.key_lights`` brightest sharp lobes as point lights at their own axes with their own traced
+   occlusion (:mod:`stages.numerics.direction_lights`; ``shading.integration: closed_form``: the lobes' closed
+   forms scaled by their visible fractions, :func:`stages.numerics.shadowing.shade_sg_visible`). The sources'
+   albedo is ``albedo_diffuse`` (the white-light albedo less the specular light fitted per view; with
    ``diffuse_albedo`` off or without those maps, the white-light albedo times the materials stage's diffuse
    ratio); it still holds the stage's ambient occlusion, so with shadows it is divided by the occlusion
    (else occlusion would count twice).

@@ -287,7 +287,8 @@ def test_a_key_light_is_a_point_light_traced_from_its_own_axis(view):
     pix = gb["pix"]
     normals = gb["normal_fused"].reshape(-1, 3)[pix]
     visible = direction_visibility(gb["points"], normals, scene, sun[None])
-    point = shade_directions(normals, gb["view_dirs"], gb["albedo"].reshape(-1, 3)[pix], gb["roughness"].reshape(-1)[pix],
+    point = shade_directions(normals, gb["view_dirs"], gb["albedo"].reshape(-1, 3)[pix],
+                             gb["roughness"].reshape(-1)[pix],
                              np.asarray(sg_integral(sun_lobe), np.float64), visible, sun[None], f0=shading.f0,
                              shadowing=shading.shadowing)["rgb"]
     expected = sky_only.copy()
