@@ -132,11 +132,12 @@ def test_smith_specular_is_the_simulators_ggx():
 
 
 def test_key_lights_are_the_brightest_sharp_lobes_and_keep_the_energy():
-    """By hand: of four lobes, the two sharp ones (sharpness 500 and 2000) are the candidates at 100; the brighter
-    (by energy, not amplitude) comes first; a lobe without energy is never taken; the rest keeps its order."""
+    """By hand: of four lobes, three are sharper than 100 (500, 2000 and 800) and one of those has no energy, so the
+    candidates are the first and the third; the brighter by energy (``2 pi a / lambda``: 0.0126 against 0.0094, though
+    its amplitude is a third) comes first; the broad lobe and the rest keep their order."""
     axis = np.eye(3, dtype=np.float32)[[0, 1, 2, 0]] * np.array([[1], [1], [1], [-1]], np.float32)
     sharp = np.array([500.0, 2.0, 2000.0, 800.0], np.float32)
-    amp = np.array([[1.0] * 3, [1.0] * 3, [3.0] * 3, [0.0] * 3], np.float32)  # energies ~ 0.0126, ~2.5, 0.0094, 0
+    amp = np.array([[1.0] * 3, [1.0] * 3, [3.0] * 3, [0.0] * 3], np.float32)  # energies ~ 0.0126, 3.08, 0.0094, 0
     lobes = SGLobes(axis, sharp, amp)
     rest, dirs, irr = split_key_lights(lobes, 2, 100.0)
     np.testing.assert_allclose(dirs, [[1, 0, 0], [0, 0, 1]])
