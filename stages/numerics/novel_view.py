@@ -452,13 +452,18 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
     shadowing = shading.shadowing if shadowing is None else shadowing
     if not np.isscalar(f0) and np.shape(f0) != (len(pix),):
         raise ValueError(f"f0 must be a scalar or ({len(pix)},), got shape {np.shape(f0)}")
+    def trace(dirs: np.ndarray) -> np.ndarray:
+        """(P, len(dirs)) bool: which of the distant directions each mask pixel sees."""
+        if not shading.shadows:  # every direction above the horizon is lit
+            return normals @ np.asarray(dirs, np.float64).T > 0.0
+        if not len(pix):
+            return np.zeros((0, len(dirs)), bool)
+        return direction_visibility(gb["points"], normals, scene, dirs)
+
     if (shading.shadows or shading.integration != "closed_form") and len(environments):
         directions = fibonacci_sphere(shading.visibility_directions) if directions is None else directions
-        if not shading.shadows:  # every direction above the horizon is lit
-            visibility = normals @ np.asarray(directions, np.float64).T > 0.0
-        elif visibility is None:
-            visibility = direction_visibility(gb["points"], normals, scene, directions) if len(pix) else \
-                np.zeros((0, len(directions)), bool)
+        if not shading.shadows or visibility is None:
+            visibility = trace(directions)
         elif visibility.shape != (len(pix), len(directions)):
             raise ValueError(f"visibility must be ({len(pix)}, {len(directions)}), got {visibility.shape}")
     else:
@@ -479,12 +484,7 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
     maps["normal"] = np.divide(maps["normal"], length, out=np.zeros_like(maps["normal"]), where=length > 1e-6)
     maps = {k: np.where(out_mask.reshape(out_mask.shape + (1,) * (v.ndim - 2)), v, 0.0).astype(np.float32)
             for k, v in maps.items()}
-    def trace_key_lights(key_directions: np.ndarray) -> np.ndarray:
-        if not shading.shadows or not len(pix):  # every direction above the horizon is lit
-            return normals @ key_directions.T > 0.0
-        return direction_visibility(gb["points"], normals, scene, key_directions)
-
-    key_visibility = trace_key_lights if key_visibility is None else key_visibility
+    key_visibility = trace if key_visibility is None else key_visibility
     images = []
     for lobes in environments:
         if shading.integration != "closed_form":
