@@ -6,6 +6,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 RUN ?= runs/default
 ARGS ?=
+# Free disk (GiB) a fresh `make setup` asks for before it creates the environment.
+SETUP_FREE_GIB ?= 4
 
 .PHONY: setup dataset test bench bench-full bench-quick panel lint clean-runs compat
 
@@ -20,6 +22,11 @@ $(STAMP): pyproject.toml requirements.lock
 	@if ! command -v chromium >/dev/null 2>&1; then \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	  else echo "setup: chromium is missing; the release page test skips without it (sudo apt-get install chromium)" >&2; fi; fi
+	@# A fresh environment takes about 3 GB (torch, open3d); a full disk would stop pip halfway with an OSError.
+	@test -x $(PY) || $(PYTHON) -c 'import os, shutil, sys; need = float(sys.argv[1]); \
+	  free = shutil.disk_usage(".").free / 2**30; sys.exit(0 if free >= need else \
+	  f"setup: {free:.1f} GiB free on the disk of {os.getcwd()}, and the environment ($(VENV)) needs about {need:g} GiB: " \
+	  "free some space and run make again")' $(SETUP_FREE_GIB)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	@# pip compiles the packages' bytecode one file after another; compileall does it on every core (22 s less of an
