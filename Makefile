@@ -14,6 +14,11 @@ SETUP_FREE_GIB ?= 4
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml requirements.lock
+	@# A fresh environment takes about 3 GiB (torch, open3d); a full disk would stop apt or pip halfway with an OSError.
+	@test -x $(PY) || $(PYTHON) -c 'import os, shutil, sys; need = float(sys.argv[1]); \
+	  free = shutil.disk_usage(".").free / 2**30; sys.exit(0 if free >= need else \
+	  f"setup: {free:.1f} GiB free on the disk of {os.getcwd()}, and the environment ($(VENV)) needs about {need:g} GiB: " \
+	  "free some space and run make again")' $(SETUP_FREE_GIB)
 	@# open3d needs libusb-1.0 at import time (a Debian package).
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
@@ -22,11 +27,6 @@ $(STAMP): pyproject.toml requirements.lock
 	@if ! command -v chromium >/dev/null 2>&1; then \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	  else echo "setup: chromium is missing; the release page test skips without it (sudo apt-get install chromium)" >&2; fi; fi
-	@# A fresh environment takes about 3 GB (torch, open3d); a full disk would stop pip halfway with an OSError.
-	@test -x $(PY) || $(PYTHON) -c 'import os, shutil, sys; need = float(sys.argv[1]); \
-	  free = shutil.disk_usage(".").free / 2**30; sys.exit(0 if free >= need else \
-	  f"setup: {free:.1f} GiB free on the disk of {os.getcwd()}, and the environment ($(VENV)) needs about {need:g} GiB: " \
-	  "free some space and run make again")' $(SETUP_FREE_GIB)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	@# pip compiles the packages' bytecode one file after another; compileall does it on every core (22 s less of an
