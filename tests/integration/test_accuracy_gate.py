@@ -87,8 +87,8 @@ BOUNDS: tuple[Bound, ...] = (
     _share("photometric", "albedo_ssim", 0.784, 0.7300),
     _share("photometric", "mask_iou", 0.983, 0.9788),
     # diffuse_normals: the normals and albedo with the specular reflection fitted out
-    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.653, 9.566),
-    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.28, 21.28),
+    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.361, 9.201),
+    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.06, 21.06),
     # geometry: the neural SDF's mesh against the true mesh
     _error("geometry", "chamfer_mm", 4.618, 5.773),
     _fscore("geometry", "fscore_5mm", 0.7131, 0.5705),
@@ -103,13 +103,13 @@ BOUNDS: tuple[Bound, ...] = (
     _share("heldout", "heldout_coverage", 0.9768, 0.971),
     # textures and materials: the baked albedo, the fitted roughness, the de-occluded albedo, seen from every camera
     _psnr("textures", "albedo_texture_psnr_db", 24.17, 23.17),
-    _error("materials", "roughness_mae", 0.1317, 0.1646),
+    _error("materials", "roughness_mae", 0.1255, 0.1569),
     _psnr("materials", "albedo_deoccluded_psnr_db", 25.62, 24.62),
     # relight: the relit novel view against the true subject under the same environment, and its shading normals
-    _psnr("relight", "relit_psnr_db", 21.17, 20.17),
+    _psnr("relight", "relit_psnr_db", 21.39, 20.39),
     _error("relight", "relit_normal_mean_deg", 10.83, 13.54),
     # relightset: the single-image relighting set's examples against the true subject
-    _psnr("relightset", "relightset_image_psnr_db", 24.55, 23.55),
+    _psnr("relightset", "relightset_image_psnr_db", 25.14, 24.14),
     _error("relightset", "relightset_normal_mean_deg", 11.97, 14.96),
     _psnr("relightset", "relightset_albedo_psnr_db", 27.33, 26.33),
 )

@@ -284,7 +284,7 @@ def test_released_normal_diffuse_is_fitted_with_the_materials_roughness(first_ru
         assert 0.005 < np.median(taken) < 0.1
         assert np.array_equal(diffuse[~defined], np.clip(white, 0.0, 1.0)[~defined])
         for stat in stats["views"].values():
-            assert stat["albedo_f0"] == 0.02 and 0.0 < stat["specular_taken_mean"] < 0.2
+            assert stat["albedo_f0"] == PRESETS["test"].materials.f0 and 0.0 < stat["specular_taken_mean"] < 0.2
         relight = json.loads((artifact("relight", action) / "_SUCCESS.json").read_text())["stats"]
         assert relight["source_albedo"] == "albedo_diffuse"
         # the roughness median's voters: fitted texels the body does not shadow (some are, some are not)
