@@ -469,6 +469,13 @@ def portable_message(text: str | None, places: dict[Path, str]) -> str | None:
     return text
 
 
+def _materials_f0(config: Any) -> str:
+    """The F0 the release's roughness was fitted with, as the datasheet states it (``?`` for a config without a
+    materials stage)."""
+    f0 = getattr(getattr(config, "materials", None), "f0", None)
+    return f"{f0:g}" if isinstance(f0, (int, float)) else "?"
+
+
 def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
     _write_atomically(release / "CONVENTIONS.md", CONVENTIONS.read_bytes())
     _write_atomically(release / "config.yaml", dump_yaml(config))
@@ -494,8 +501,8 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "carve them; held-out and relit views show skin there); the white-light albedo still contains ambient "
              "occlusion (textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh "
              "smooths creases); albedo holds the white light's specular reflection (6-10% head-on, more at grazing "
-             "views on the simulator; albedo_diffuse takes the fitted one out); roughness assumes Fresnel F0 = 0.02 "
-             "everywhere; relit views have no "
+             "views on the simulator; albedo_diffuse takes the fitted one out); roughness assumes Fresnel F0 = "
+             f"{_materials_f0(config)} everywhere (skin's; cloth's is nearer 0.04); relit views have no "
              "interreflections; see metrics.parquet.",
              "- Manifests: manifests/*.parquet; load with `manifests.open_release(path)`.", ""]
     defaults = capture.meta.get("defaults")  # what the capture's layout lacks and what stands in for it

@@ -77,6 +77,9 @@ def test_a_run_on_the_layout_publishes_maps_close_to_the_truth(layout, tiny_capt
     assert record["capture_layout"]["ngp_scale_offset"]["A0000"]["offset"] == [0.5, 0.5, 0.5]
     datasheet = (release / "DATASHEET.md").read_text()
     assert "public release layout (RNHA)" in datasheet and "not measured" in datasheet
+    # the datasheet states the F0 the roughness is fitted with, the run's own
+    from stages.registry import PRESETS
+    assert f"F0 = {PRESETS['test'].materials.f0:g} everywhere" in datasheet
     rel = open_release(release)
     assert sorted(rel.actions["action_id"]) == ["A0000", "A0001"] and set(rel.actions["status"]) == {"ok"}
     frames = rel.frames
