@@ -38,12 +38,12 @@ class MaterialTexturesConfig(Documented):
     """Fresnel reflectance at normal incidence the roughness is fitted with, and that ``albedo_diffuse`` takes the
     specular light out with: skin's (refractive index 1.4), the F0 the relit views are shaded with
     (:class:`stages.numerics.novel_view.ViewShading`), so the fitted roughness is read under the Fresnel it was
-    fitted for. Against 0.02 (the paper's) on the default capture / the unseen one (``simulate --seed 3 --width
-    384``): relit views 27.20 -> 27.31 / 28.49 -> 28.70 dB, relighting set 27.80 -> 27.94 / 28.67 -> 28.84 dB,
-    the intrinsic albedo texture 32.46 -> 33.09 / 32.90 -> 33.59 dB; the roughness comes out rougher, MAE 0.060 ->
-    0.064 / 0.053 -> 0.058 (bias +0.029 -> +0.038 / +0.029 -> +0.037), and ``albedo_diffuse`` darker, 25.60 -> 25.42 /
-    25.58 -> 25.41 dB against the simulator's albedo. At 0.04 (cloth's) the relit views lose (27.15 dB) and the
-    roughness more (MAE 0.074)."""
+    fitted for. At 0.02 (the paper's) and 0.028, on the default capture / the unseen one (``simulate --seed 3
+    --width 384``): relit views 27.20 and 27.31 / 28.49 and 28.70 dB, relighting set 27.80 and 27.94 / 28.67 and
+    28.84 dB, the intrinsic albedo texture 32.46 and 33.09 / 32.90 and 33.59 dB; at 0.028 the roughness comes out
+    rougher, MAE 0.060 and 0.064 / 0.053 and 0.058 (bias +0.029 and +0.038 / +0.029 and +0.037), and
+    ``albedo_diffuse`` darker, 25.60 and 25.42 / 25.58 and 25.41 dB against the simulator's albedo. At 0.04 (cloth's)
+    the default capture's relit views score 27.15 dB and the roughness MAE 0.074."""
     fit_albedo: bool = True
     """Solve the diffuse albedo with the roughness (the white-light albedo still holds specular light)."""
     roughness_min: float = checked(0.05, gt=0.0, lt="roughness_max")
