@@ -489,8 +489,7 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
     for lobes in environments:
         if shading.integration != "closed_form":
             shaded = _shade_over_directions(normals, gb["view_dirs"], albedo, rough, lobes, visibility, directions,
-                                            f0, shadowing, shading.integration, shading.key_lights,
-                                            shading.key_light_sharpness, key_visibility, shading.cell_centroids)
+                                            f0, shadowing, shading, key_visibility)
         elif visibility is not None:
             shaded = shade_sg_visible(normals, gb["view_dirs"], albedo, rough, lobes, visibility, directions,
                                       f0=f0, shadowing=shadowing)
@@ -505,28 +504,27 @@ def shade_gbuffer(gb: dict[str, Any], scene: Any, K: np.ndarray, cam_from_world:
 
 def _shade_over_directions(normals: np.ndarray, view_dirs: np.ndarray, albedo: np.ndarray, rough: np.ndarray,
                            lobes: Any, visibility: np.ndarray, directions: np.ndarray, f0: Any, shadowing: str,
-                           integration: str, key_lights: int = 0, key_light_sharpness: float = 300.0,
-                           key_visibility: Any = None, cell_centroids: bool = False) -> dict[str, np.ndarray]:
+                           shading: ViewShading, key_visibility: Any) -> dict[str, np.ndarray]:
     """:func:`stages.numerics.direction_lights.shade_directions` of the lobes' energy on ``directions`` and of up to
-    ``key_lights`` key lights at their own directions (:func:`~stages.numerics.direction_lights.split_key_lights`,
-    their visibility from ``key_visibility(directions (M, 3)) -> (P, M) bool``); with ``integration``
-    "directions_diffuse" only its diffuse, the specular from every lobe's closed forms
-    (:func:`stages.numerics.shadowing.shade_sg_visible`). ``cell_centroids``: each cell lights from its energy's
-    mean direction (:func:`~stages.numerics.direction_lights.sg_cell_lights`)."""
+    ``shading.key_lights`` key lights at their own directions (:func:`~stages.numerics.direction_lights.
+    split_key_lights`, their visibility from ``key_visibility(directions (M, 3)) -> (P, M) bool``); with
+    ``shading.integration`` "directions_diffuse" only its diffuse, the specular from every lobe's closed forms
+    (:func:`stages.numerics.shadowing.shade_sg_visible`). ``shading.cell_centroids``: each cell lights from its
+    energy's mean direction (:func:`~stages.numerics.direction_lights.sg_cell_lights`)."""
     from stages.numerics.direction_lights import sg_cell_lights, shade_directions, split_key_lights
     from stages.numerics.shadowing import shade_sg_visible
 
     cells, key_dirs, key_irradiance = lobes, np.zeros((0, 3)), np.zeros((0, 3))
-    if key_lights > 0:
-        cells, key_dirs, key_irradiance = split_key_lights(lobes, key_lights, key_light_sharpness)
+    if shading.key_lights > 0:
+        cells, key_dirs, key_irradiance = split_key_lights(lobes, shading.key_lights, shading.key_light_sharpness)
     irradiance, cell_directions = sg_cell_lights(cells, directions)
-    all_directions = cell_directions if cell_centroids else np.asarray(directions, np.float64)
+    all_directions = cell_directions if shading.cell_centroids else np.asarray(directions, np.float64)
     all_visibility = visibility
     if len(key_dirs):
         irradiance = np.concatenate([irradiance, key_irradiance])
         all_directions = np.concatenate([all_directions, key_dirs])
         all_visibility = np.concatenate([visibility, np.asarray(key_visibility(key_dirs), bool)], axis=1)
-    if integration == "directions":
+    if shading.integration == "directions":
         return shade_directions(normals, view_dirs, albedo, rough, irradiance, all_visibility, all_directions, f0=f0,
                                 shadowing=shadowing)
     diffuse = shade_directions(normals, view_dirs, albedo, rough, irradiance, all_visibility, all_directions, f0=f0,
