@@ -341,9 +341,13 @@ def cmd_rerun(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from evaluation.release import evaluate_release, print_overall
+    from evaluation.release import RELIT_CACHE, evaluate_release, print_overall
 
-    summary = evaluate_release(Path(args.release), Path(args.truth))
+    release = Path(args.release)
+    work = _work_dir(args, release)
+    # the simulator's renders the relit views are compared with: those the run kept are read, not rendered again
+    relit_cache = work / RELIT_CACHE if work.is_dir() else None
+    summary = evaluate_release(release, Path(args.truth), relit_cache=relit_cache)
     print_overall(summary)
     if args.json:
         Path(args.json).write_text(json.dumps(summary.overall, indent=1, sort_keys=True))
@@ -527,6 +531,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--release", required=True, help="release folder to evaluate (manifests/ inside)")
     p.add_argument("--truth", required=True, help="the simulator's ground truth: CAPTURE/ground_truth")
     p.add_argument("--json", help="also write one flat JSON object of metric name to number")
+    p.add_argument("--work", help="the run's work folder (default: <release>.work beside the release, when there): "
+                                  "the simulator's renders the relit views are compared with are kept in its "
+                                  "cache and read back there")
     p.set_defaults(fn=cmd_evaluate)
 
     p = sub.add_parser("calibrate", help="calibrate the cameras of any folder of photos (pycolmap)")

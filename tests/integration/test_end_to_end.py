@@ -613,16 +613,30 @@ def test_empty_file_names_the_file_and_other_action_completes(first_run, capture
     assert list(zip(failed.action_id, failed.camera_id, failed.illumination)) == [("A0001", "00000", "full_on")]
 
 
-def test_cli_run_evaluate_verify(first_run, capture, tmp_path, capsys):
+def test_cli_run_evaluate_verify(first_run, capture, tmp_path, capsys, monkeypatch):
     release = tmp_path / "release"
     _seed_store(first_run, tmp_path / "release.work")  # the command's default work folder, beside the release
     assert cli(["run", "--capture", str(capture), "--release", str(release), "--preset", "test",
                 "--actions", "A0000"]) == 0
     printed = capsys.readouterr().out
     assert "accuracy against ground truth" in printed and "A0000" in printed
+    # evaluate reads the truth renders the run kept in its work folder (<release>.work): the simulator is not
+    # even set up (in this process: one evaluation worker)
+    import synthetic.relight
+
+    class NoRenders:
+        def __init__(self, *args, **kwargs):
+            raise AssertionError("the simulator was set up although the run kept every render")
+
+    assert any((tmp_path / "release.work" / "cache" / "relit_truth").rglob("*.npz")), "the run kept no render"
+    monkeypatch.setattr(synthetic.relight, "TruthRelighter", NoRenders)
+    monkeypatch.setenv("ULTRASTAGE_EVALUATE_WORKERS", "1")
     assert cli(["evaluate", "--release", str(release), "--truth", str(capture / "ground_truth"),
                 "--json", str(tmp_path / "m.json")]) == 0
+    monkeypatch.undo()
     metrics = json.loads((tmp_path / "m.json").read_text())
+    run_summary = json.loads((tmp_path / "release.work" / "evaluated.json").read_text())["overall"]
+    assert metrics["relit_psnr_db"] == run_summary["relit_psnr_db"]
     for name in ("normal_mean_deg", "normal_median_deg", "normal_under5_pct", "normal_under25_pct",
                  "normal_mean_deg_all", "valid_fraction", "albedo_psnr_db", "albedo_ssim", "actions_ok",
                  "actions_failed", "chamfer_mm", "normal_consistency", "fscore_1mm", "fscore_5mm", "mesh_faces",
