@@ -12,10 +12,13 @@ is hit) and compared with the simulator's roughness and albedo maps.
 1. **Roughness** (the stage's texture size): mean absolute error and bias against the truth for ``specular_model``
    sg, ``fit_albedo`` off, ``max_views`` 8 (the 8 best views are the first 8 of those gathered: same ranking),
    ``median_min_visibility`` 0/0.85 (which texels vote in the surface median: those whose ambient visibility on
-   the mesh reaches it) and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's defaults
+   the mesh reaches it), ``min_cos`` 0.2/0.6 (the most grazing view a fit takes; the observations are gathered
+   once at the lowest limit and each fit keeps the views within its own) and ``median_neighbours``
+   1/25/100/200, one change at a time from the stage's defaults
    (a change equal to the default is left out), with the fit time (``fit_roughness``, ``--threads`` torch
    threads; ``x_gather``: as a ratio to gathering the observations it fits, in the same process) and the
    smoothing time.
+   Per variant, the fitted mean at each true roughness (the simulator's materials).
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
    variation gives) and, as oracles, the truth's own mean and median over the compared pixels (the median
    is the constant with the least absolute error).
@@ -59,7 +62,9 @@ VARIANT_CHANGES = [("specular_model sg", {"specular_model": "sg"}),
                    ("max_views 8", {"max_views": 8}),
                    ("max_views 16", {"max_views": 16}),
                    ("median_min_visibility 0 (every fitted texel votes)", {"median_min_visibility": 0.0}),
-                   ("median_min_visibility 0.85", {"median_min_visibility": 0.85})]
+                   ("median_min_visibility 0.85", {"median_min_visibility": 0.85}),
+                   ("min_cos 0.2", {"min_cos": 0.2}),
+                   ("min_cos 0.6", {"min_cos": 0.6})]
 MEDIAN_NEIGHBOURS_SWEEP = (1, 25, 100, 200)
 OCCLUSION_RAYS_SWEEP = (16, 64, 128)
 MIN_OCCLUSION_SWEEP = (0.1, 0.2, 0.4)
@@ -172,6 +177,18 @@ class TruthProbe:
         diff = seen - self.roughness
         return {"mae": float(np.mean(np.abs(diff))), "bias": float(np.mean(diff))}
 
+    def by_level(self, texture: np.ndarray) -> list[dict[str, float]]:
+        """Per true roughness level (rounded to 0.01, those on more than 1% of the pixels): its share of the
+        pixels, the texture's mean there and its MAE there."""
+        from stages.numerics.bake import sample_texture
+
+        seen = sample_texture(texture, self.uv).astype(np.float64)
+        levels = np.round(self.roughness, 2)
+        return [{"true_roughness": float(v), "share": round(float(np.mean(levels == v)), 4),
+                 "pred_mean": round(float(seen[levels == v].mean()), 4),
+                 "mae": round(float(np.abs(seen[levels == v] - self.roughness[levels == v]).mean()), 4)}
+                for v in np.unique(levels) if np.mean(levels == v) > 0.01]
+
     def albedo_gain(self, texture: np.ndarray) -> float:
         """Median ratio of the texture's albedo (channel mean) to the truth's, where the truth is > 0.05."""
         from stages.numerics.bake import sample_texture
@@ -203,9 +220,11 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
 
     variants = variant_configs(base)
     max_k = max(cfg.max_views for _, cfg in variants)
+    # gathered once at the most grazing limit any variant has; each fit keeps the views within its own
+    lowest_cos = min(cfg.min_cos for _, cfg in variants)
     t0 = time.perf_counter()
     texels = texel_samples(data["vertices"], data["faces"], data["atlas"], data["released"]["albedo"], data["views"],
-                           dataclasses.replace(base, max_views=max_k))
+                           dataclasses.replace(base, max_views=max_k, min_cos=lowest_cos))
     covered, points, normals, albedo, obs = (texels[k] for k in ("covered", "points", "normals", "albedo", "obs"))
     gather_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -217,12 +236,14 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
            "mean_valid_views": round(float(obs["valid"].sum(axis=1).mean()), 2), "variants": [], "neighbours": []}
 
     def fit(cfg: MaterialsConfig, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
-        """The stage's fit of the texels ``rows`` on the first ``cfg.max_views`` gathered views (best first)."""
+        """The stage's fit of the texels ``rows`` on the first ``cfg.max_views`` gathered views (best first) whose
+        cosine to the texel reaches ``cfg.min_cos``."""
         k = cfg.max_views
         observed = obs["values"]["obs"][rows, :k]
         observed = observed.reshape(len(observed), -1, 3, 3)  # fewer than k when fewer cameras see the mesh
         white = data["white"][np.maximum(obs["view_index"][rows, :k], 0)]
-        rough, rms, _ = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], obs["valid"][rows, :k],
+        valid = obs["valid"][rows, :k] & (obs["cos"][rows, :k] >= max(cfg.min_cos, 1e-3))
+        rough, rms, _ = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], valid,
                                             normals[rows], albedo[rows], white, cfg)
         return rough, rms
 
@@ -240,14 +261,15 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
         median_s = time.perf_counter() - t0
         score = probe.roughness_errors(texel_texture(smooth, covered))
         raw = probe.roughness_errors(texel_texture(rough, covered))
-        settings = {name: getattr(cfg, name) for name in
-                    ("specular_model", "fit_albedo", "max_views", "median_neighbours", "median_min_visibility")}
+        settings = {name: getattr(cfg, name) for name in ("specular_model", "fit_albedo", "max_views",
+                                                          "median_neighbours", "median_min_visibility", "min_cos")}
         out["variants"].append({"variant": label, **settings, "fit_s": round(fit_s, 2),
                                 "x_gather": round(fit_s / max(gather_s, 1e-9), 2),
                                 "median_s": round(median_s, 2),
                                 "mae": round(score["mae"], 4), "bias": round(score["bias"], 4),
                                 "mae_unsmoothed": round(raw["mae"], 4),
-                                "fit_rms_median": round(float(np.median(rms[fitted])), 5) if fitted.any() else 0.0})
+                                "fit_rms_median": round(float(np.median(rms[fitted])), 5) if fitted.any() else 0.0,
+                                "by_true_level": probe.by_level(texel_texture(smooth, covered))})
         progress(f"  {label}: MAE {score['mae']:.4f} bias {score['bias']:+.4f} fit {fit_s:.1f} s")
         if cfg == base:
             default_fit = (rough, fitted)
@@ -268,14 +290,8 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
                                             ("constant_truth_mean_oracle", truth_mean),
                                             ("constant_truth_median_oracle", truth_median))}
     out["baselines"]["released_texture"] = _round(probe.roughness_errors(data["released"]["roughness"]))
-    levels = np.round(probe.roughness, 2)
-    smooth_default = texel_texture(published_roughness(points, rough, fitted, visibility, base)[0], covered)
-    seen = sample_texture(smooth_default, probe.uv)
-    out["default_by_true_level"] = [
-        {"true_roughness": float(v), "share": round(float(np.mean(levels == v)), 4),
-         "pred_mean": round(float(seen[levels == v].mean()), 4),
-         "mae": round(float(np.abs(seen[levels == v] - probe.roughness[levels == v]).mean()), 4)}
-        for v in np.unique(levels) if np.mean(levels == v) > 0.01]
+    out["default_by_true_level"] = probe.by_level(
+        texel_texture(published_roughness(points, rough, fitted, visibility, base)[0], covered))
     return out
 
 
@@ -347,6 +363,14 @@ def markdown(report: dict) -> str:
         lines += ["", "| true roughness | share of pixels | fitted mean | MAE |", "|---|---|---|---|"]
         lines += [f"| {x['true_roughness']:.2f} | {x['share']:.3f} | {x['pred_mean']:.3f} | {x['mae']:.3f} |"
                   for x in r["default_by_true_level"]]
+        true_levels = [x["true_roughness"] for x in r["default_by_true_level"]]
+        lines += ["", "The fitted mean per true roughness, per variant:", "",
+                  "| roughness variant | " + " | ".join(f"{v:.2f}" for v in true_levels) + " |",
+                  "|---|" + "---|" * len(true_levels)]
+        for v in r["variants"]:
+            means = {x["true_roughness"]: x["pred_mean"] for x in v.get("by_true_level", [])}
+            lines.append(f"| {v['variant']} | " + " | ".join(f"{means[t]:.3f}" if t in means else "-"
+                                                              for t in true_levels) + " |")
         a = entry["albedo"]
         floors = [float(f) for f in a["baked_over_truth_visibility_psnr_db"]]
         lines += ["", f"Albedo PSNR vs truth: baked (white-light) texture **{a['baked_psnr_db']:.2f} dB** (median "
