@@ -346,7 +346,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     release = Path(args.release)
     work = _work_dir(args, release)
     # the simulator's renders the relit views are compared with: those the run kept are read, not rendered again
-    relit_cache = work / RELIT_CACHE if work.is_dir() else None
+    # (a release without its work folder beside it, e.g. downloaded, gets none unless --work names one)
+    relit_cache = work / RELIT_CACHE if args.work or work.is_dir() else None
     summary = evaluate_release(release, Path(args.truth), relit_cache=relit_cache)
     print_overall(summary)
     if args.json:
@@ -532,8 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", required=True, help="the simulator's ground truth: CAPTURE/ground_truth")
     p.add_argument("--json", help="also write one flat JSON object of metric name to number")
     p.add_argument("--work", help="the run's work folder (default: <release>.work beside the release, when there): "
-                                  "the simulator's renders the relit views are compared with are kept in its "
-                                  "cache and read back there")
+                                  "the simulator's renders the relit views are compared with are read from its "
+                                  "cache and the missing ones kept there")
     p.set_defaults(fn=cmd_evaluate)
 
     p = sub.add_parser("calibrate", help="calibrate the cameras of any folder of photos (pycolmap)")

@@ -71,10 +71,10 @@ class MaterialTexturesConfig(Documented):
     """Cameras at more grazing angles to a texel than this cosine are not used. The fit reads grazing views
     rougher than frontal ones, on every material (on the default capture's A0000, the 8 best views of cosine
     0.2 / 0.4 / 0.6 and up: skin, true 0.45, 0.50 / 0.49 / 0.46; cloth, true 0.70, 0.66 / 0.66 / 0.62), so
-    the limit sets the balance. Roughness MAE on the default capture / the unseen one (``simulate --seed 3
-    --width 384``), the stage's ``ultrastage evaluate``: 0.064 / 0.058 at 0.2, 0.053 / 0.047 at 0.4 (bias
-    +0.007 / +0.008); relit views 27.31 and 27.28 / 28.70 and 28.71 dB, relighting set 27.94 and 27.92 /
-    28.84 and 28.85 dB (``python bench/bench_materials.py`` has the sweep)."""
+    the limit sets the balance. ``ultrastage evaluate`` on the default capture / the unseen one (``simulate
+    --seed 3 --width 384``) at 0.2 and 0.4: roughness MAE 0.064 and 0.053 / 0.058 and 0.047 (bias at 0.4 +0.007 /
+    +0.008), relit views 27.31 and 27.28 / 28.70 and 28.71 dB, relighting set 27.94 and 27.92 / 28.84 and
+    28.85 dB (``python bench/bench_materials.py`` has the sweep)."""
 
 
 def texel_uvs(covered: np.ndarray) -> np.ndarray:

@@ -110,3 +110,28 @@ def test_truth_prefetch_traces_the_visibility_beside_the_run(tmp_path):
     _stop(running)  # stopped mid-way: nothing half-written is left
     assert running.poll() is not None
     assert not list((tmp_path / "other").rglob("*.tmp"))
+
+
+def test_evaluate_reads_the_truth_renders_of_the_work_folder(tmp_path, monkeypatch, capsys):
+    """``evaluate`` passes <release>.work/cache/relit_truth as the cache of the simulator's renders when that work
+    folder is there, the ``--work`` folder's whenever one is named (created on the first render), none for a
+    release alone (e.g. downloaded): it writes nothing beside a release that has no work folder."""
+    import evaluation.release
+    from evaluation.release import RELIT_CACHE, EvaluationSummary
+    from ultrastage.cli import main
+
+    caches = []
+
+    def fake_evaluate(release, truth_dir, run_id=None, relit_cache=None):
+        caches.append(relit_cache)
+        return EvaluationSummary({"actions_ok": 1}, {})
+
+    monkeypatch.setattr(evaluation.release, "evaluate_release", fake_evaluate)
+    monkeypatch.setattr(evaluation.release, "print_overall", lambda summary: None)
+    release, truth = tmp_path / "release", tmp_path / "truth"
+    release.mkdir()
+    assert main(["evaluate", "--release", str(release), "--truth", str(truth)]) == 0
+    (tmp_path / "release.work").mkdir()
+    assert main(["evaluate", "--release", str(release), "--truth", str(truth)]) == 0
+    assert main(["evaluate", "--release", str(release), "--truth", str(truth), "--work", str(tmp_path / "w")]) == 0
+    assert caches == [None, tmp_path / "release.work" / RELIT_CACHE, tmp_path / "w" / RELIT_CACHE]
