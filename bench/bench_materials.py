@@ -210,10 +210,10 @@ class TruthProbe:
 
 def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, progress) -> dict:
     """Per-texel fits for every variant (:func:`variant_configs`), smoothed and scored; times of the gather,
-    fits and medians. Observations are gathered once, for the most views any variant uses."""
+    fits and medians. Observations are gathered once, for the most views and the most grazing limit any variant
+    uses."""
     from stages.numerics.material_textures import (fit_texel_roughness, published_roughness,
                                                    texel_samples, texel_texture)
-    from stages.numerics.bake import sample_texture
     from stages.numerics.materials import NO_VIEWS_RESIDUAL
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import ambient_occlusion
