@@ -45,6 +45,14 @@ class _ErrorPool:
             self.under5 += int(np.count_nonzero(errors <= 5.0))
             self.under25 += int(np.count_nonzero(errors <= 25.0))
 
+    def merge(self, other: "_ErrorPool") -> None:
+        """Pool what ``other`` pooled (as if its errors had been added here)."""
+        self.hist += other.hist
+        self.total += other.total
+        self.count += other.count
+        self.under5 += other.under5
+        self.under25 += other.under25
+
     def stats(self) -> dict[str, float]:
         """``mean``, ``median``, ``under5_pct``, ``under25_pct`` and ``count`` of what was pooled; {} when nothing
         was."""
@@ -190,32 +198,106 @@ def _evaluate_release(release: Path, truth_dir: Path, run_id: str | None, relit_
     rel = open_release(release)
     actions = rel.actions
     ok_ids = [a for a, s in zip(actions["action_id"], actions["status"]) if s == "ok"]
-    relit_pool, relit_futures = _start_relit_workers(release, truth_dir, ok_ids, run_id, relit_cache)
-    per_action: dict[str, dict[str, float]] = {}
-    rows: list[dict[str, Any]] = []
-    maps, diffuse = _maps_overall(rel, truth_dir, ok_ids, per_action, rows, run_id)
+    pool, futures = _start_action_workers(release, truth_dir, ok_ids, run_id, relit_cache)
+    cameras = _camera_overall(rel, truth_dir, ok_ids)
+    parts = _finish_actions(pool, futures, release, truth_dir, ok_ids, run_id, relit_cache)
+    maps, diffuse, per_action, rows = _maps_combine(ok_ids, [p.maps for p in parts])
     overall: dict[str, float] = maps | {"actions_ok": float(len(ok_ids)),
                                         "actions_failed": float(len(actions) - len(ok_ids))} | diffuse
     aggregation = {"albedo_ssim": "mean_over_views", "mask_iou": "mean_over_views", "actions_ok": "count",
                    "actions_failed": "count"}
-    cameras = _camera_overall(rel, truth_dir, ok_ids)
     aggregation |= dict.fromkeys(cameras, "mean_over_sessions")
     overall |= cameras
-    textured: dict[str, dict] = {}  # the held-out protocol's textured meshes, for the materials
-    parts = [_mesh_overall(rel, truth_dir, ok_ids, per_action, rows, run_id),
-             _heldout_overall(release, rel, truth_dir, ok_ids, per_action, rows, run_id, textured),
-             _materials_overall(rel, truth_dir, ok_ids, per_action, rows, run_id, textured)]
-    relit_actions = _finish_relit(relit_pool, relit_futures, release, truth_dir, ok_ids, run_id, relit_cache)
-    relit, relightset, relit_per_action, relit_rows = _relit_parts(ok_ids, relit_actions)
+    means = []
+    for name in ("mesh", "heldout", "materials"):
+        values, action_values, part_rows = _means_over_actions(ok_ids, [getattr(p, name) for p in parts])
+        means.append(values)
+        for action_id, action in action_values.items():
+            per_action.setdefault(action_id, {}).update(action)
+        rows.extend(part_rows)
+    relit, relightset, relit_per_action, relit_rows = _relit_parts(ok_ids, [p.relit for p in parts])
     for action_id, values in relit_per_action.items():
         per_action.setdefault(action_id, {}).update(values)
     rows.extend(relit_rows)
-    for part in parts + [relit, relightset]:
+    for part in means + [relit, relightset]:
         aggregation |= dict.fromkeys(part, "mean_over_actions")
         overall |= part
     overall = {k: v for k, v in overall.items() if np.isfinite(v)}
     _write_metrics(release, rows, overall, aggregation, len(ok_ids), run_id)
     return EvaluationSummary(overall, per_action, rows)
+
+
+_ActionPart = tuple[dict[str, float], dict[str, float], list[dict[str, Any]]]
+"""One part of one action's evaluation (its mesh, held-out views or textures): ``(what the part's function returns
+for the action alone, the action's values it records, its metrics rows)``; the first holds figures averaged over
+actions that are not recorded per action (``heldout_albedo_view_dependent``)."""
+
+
+@dataclass
+class _ActionEvaluation:
+    """Every figure of one action that :func:`evaluate_release` pools or averages over actions (plain values:
+    it comes back from a worker process)."""
+
+    maps: "_MapsAction"
+    mesh: _ActionPart
+    heldout: _ActionPart
+    materials: _ActionPart
+    relit: "_RelitAction"
+
+
+def _evaluate_action(release: Path, truth_dir: Path, action_id: str, run_id: str, relit_cache: Path | None
+                     ) -> _ActionEvaluation:
+    """The evaluation of one action: its maps, mesh, held-out views, textures, relit views and relighting set.
+    Runs in a worker process as well as in this one."""
+    from manifests import open_release
+    from synthetic.threads import limit_blas_threads
+
+    rel = open_release(release)
+    with limit_blas_threads(1):  # as in evaluate_release, also when this runs in a worker process
+        maps = _maps_action(rel, truth_dir, action_id, run_id)
+        parts: list[_ActionPart] = []
+        textured: dict[str, dict] = {}  # the held-out protocol's textured mesh, for the materials
+        for measure in (_mesh_overall, _heldout_overall, _materials_overall):
+            per_action: dict[str, dict[str, float]] = {}
+            rows: list[dict[str, Any]] = []
+            if measure is _heldout_overall:
+                means = measure(release, rel, truth_dir, [action_id], per_action, rows, run_id, textured)
+            elif measure is _materials_overall:
+                means = measure(rel, truth_dir, [action_id], per_action, rows, run_id, textured)
+            else:
+                means = measure(rel, truth_dir, [action_id], per_action, rows, run_id)
+            parts.append((means, per_action.get(action_id, {}), rows))
+    relit = _relit_action(release, truth_dir, action_id, run_id, relit_cache)
+    return _ActionEvaluation(maps, parts[0], parts[1], parts[2], relit)
+
+
+def _start_action_workers(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str,
+                          relit_cache: Path | None) -> tuple[Any, list[Any] | None]:
+    """Submit :func:`_evaluate_action` of every action to a pool of :func:`evaluate_workers` processes:
+    ``(pool, futures)``, or ``(None, None)`` when the evaluation runs in this process alone."""
+    workers = min(evaluate_workers(), len(ok_ids))
+    if workers <= 1:
+        return None, None
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    futures = [pool.submit(_evaluate_action, Path(release), Path(truth_dir), action_id, run_id, relit_cache)
+               for action_id in ok_ids]
+    return pool, futures
+
+
+def _finish_actions(pool: Any, futures: list[Any] | None, release: Path, truth_dir: Path, ok_ids: list[str],
+                    run_id: str, relit_cache: Path | None) -> list[_ActionEvaluation]:
+    """:func:`_evaluate_action` of every action in ``ok_ids`` order: the workers' results (the pool is shut
+    down), or computed here when :func:`_start_action_workers` started none."""
+    if futures is None:
+        return [_evaluate_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
+                for action_id in ok_ids]
+    try:
+        return [future.result() for future in futures]
+    finally:
+        pool.shutdown(cancel_futures=True)
 
 
 def _write_metrics(release: Path, rows: list[dict[str, Any]], overall: dict[str, float],
@@ -233,38 +315,6 @@ def _write_metrics(release: Path, rows: list[dict[str, Any]], overall: dict[str,
 
 _RelitAction = tuple[dict[str, float], list[dict[str, Any]], list[dict[str, Any]]]
 """What :func:`_relit_action` returns for one action."""
-
-
-def _start_relit_workers(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str,
-                         relit_cache: Path | None) -> tuple[Any, list[Any] | None]:
-    """Submit :func:`_relit_action` of every action to a pool of :func:`evaluate_workers` processes:
-    ``(pool, futures)``, or ``(None, None)`` when the evaluation runs in this process alone.
-
-    The relit views and the relighting set (the simulator's renders: the larger part of the time) are measured
-    action by action in worker processes while this one measures the rest."""
-    workers = min(evaluate_workers(), len(ok_ids))
-    if workers <= 1:
-        return None, None
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-    futures = [pool.submit(_relit_action, Path(release), Path(truth_dir), action_id, run_id, relit_cache)
-               for action_id in ok_ids]
-    return pool, futures
-
-
-def _finish_relit(pool: Any, futures: list[Any] | None, release: Path, truth_dir: Path, ok_ids: list[str],
-                  run_id: str, relit_cache: Path | None) -> list[_RelitAction]:
-    """:func:`_relit_action` of every action in ``ok_ids`` order: the workers' results (the pool is shut down),
-    or computed here when :func:`_start_relit_workers` started none."""
-    if futures is None:
-        return [_relit_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
-                for action_id in ok_ids]
-    try:
-        return [future.result() for future in futures]
-    finally:
-        pool.shutdown(cancel_futures=True)
 
 
 _MAP_REGIONS = ("valid", "all", "valid_unoccluded", "valid_occluded", "all_unoccluded", "all_occluded")
@@ -301,46 +351,99 @@ def _camera_results(view: Any, truth_dir: Path, action_id: str):
                                    diffuse_albedo=diffuse_albedo)
 
 
-def _maps_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict[str, dict[str, float]],
-                  rows: list[dict[str, Any]], run_id: str) -> tuple[dict[str, float], dict[str, float]]:
-    """Normal, albedo and mask errors of every published camera's maps against the truth: the per-camera
-    values go to ``rows``, the per-action ones to ``per_action``; returns the release-wide numbers of the
-    released maps and those of the specular-fitted ones (``normal_diffuse``, ``albedo_diffuse``), pooled over
-    every pixel of every camera (the albedo SSIM and mask IoU: means over views)."""
+@dataclass
+class _MapsAction:
+    """One action's maps against the truth (:func:`_maps_action`), in the form :func:`_maps_combine` pools."""
+
+    pools: dict[str, _ErrorPool]
+    """Normal errors of the released maps per region of :data:`_MAP_REGIONS`."""
+    diffuse_pool: _ErrorPool
+    """Normal errors of the specular-fitted maps (``normal_diffuse``) over the valid pixels."""
+    albedo: _AlbedoSums
+    ssims: list[float]
+    ious: list[float]
+    diffuse_sq: float
+    """Squared error of ``albedo_diffuse`` (the same pixels as the albedo's) and its value count."""
+    diffuse_count: int
+    values: dict[str, float]
+    """The action's figures (``per_action``)."""
+    rows: list[dict[str, Any]]
+    """The per-camera metrics rows."""
+
+
+def _maps_action(rel: Any, truth_dir: Path, action_id: str, run_id: str) -> _MapsAction:
+    """Normal, albedo and mask errors of the action's published cameras' maps against the truth."""
     pools = {region: _ErrorPool() for region in _MAP_REGIONS}
-    diffuse_pool = _ErrorPool()
-    total = _AlbedoSums()
+    diffuse_pool, action_pool, sums = _ErrorPool(), _ErrorPool(), _AlbedoSums()
     ssims: list[float] = []
     ious: list[float] = []
+    rows: list[dict[str, Any]] = []
+    dsq, dcount = 0.0, 0
+    for cam, res in _camera_results(rel.action(action_id), truth_dir, action_id):
+        if "albedo_diffuse_sq_sum" in res:  # the albedo with the fitted specular light out, same pixels
+            dsq += res["albedo_diffuse_sq_sum"]
+            dcount += res["albedo_sq_count"]
+        if "err_valid_diffuse" in res:  # the specular-fitted normals, over the same pixels
+            diffuse_pool.add(res["err_valid_diffuse"])
+        for region, pool in pools.items():
+            pool.add(res[f"err_{region}"])
+        action_pool.add(res["err_valid"])
+        sums.add(res)
+        if np.isfinite(res["albedo_ssim"]):
+            ssims.append(res["albedo_ssim"])
+        ious.append(res["mask_iou"])
+        rows.extend(_camera_rows(action_id, cam, res, run_id))
+    st = action_pool.stats()
+    values = {"normal_mean_deg": st.get("mean", float("nan")), "normal_under5_pct": st.get("under5_pct", float("nan")),
+              "valid_fraction": sums.valid_px / max(sums.fg_px, 1),
+              "albedo_psnr_db": _psnr_from_mse(sums.sq / max(sums.count, 1))}
+    if dcount:
+        values["albedo_psnr_db_diffuse"] = _psnr_from_mse(dsq / dcount)
+    return _MapsAction(pools, diffuse_pool, sums, ssims, ious, dsq, dcount, values, rows)
+
+
+def _maps_combine(ok_ids: list[str], actions: list[_MapsAction]
+                  ) -> tuple[dict[str, float], dict[str, float], dict[str, dict[str, float]], list[dict[str, Any]]]:
+    """The actions' maps (in ``ok_ids`` order) pooled over every pixel of every camera (the albedo SSIM and mask
+    IoU: means over views): ``(release-wide figures of the released maps, those of the specular-fitted ones
+    (normal_diffuse, albedo_diffuse), per-action figures, per-camera rows)``."""
+    pools = {region: _ErrorPool() for region in _MAP_REGIONS}
+    diffuse_pool, total = _ErrorPool(), _AlbedoSums()
+    ssims: list[float] = []
+    ious: list[float] = []
+    rows: list[dict[str, Any]] = []
+    per_action: dict[str, dict[str, float]] = {}
     diffuse_sq, diffuse_count = 0.0, 0
-    for action_id in ok_ids:
-        action_pool, action = _ErrorPool(), _AlbedoSums()
-        action_dsq, action_dcount = 0.0, 0
-        for cam, res in _camera_results(rel.action(action_id), truth_dir, action_id):
-            if "albedo_diffuse_sq_sum" in res:  # the albedo with the fitted specular light out, same pixels
-                action_dsq += res["albedo_diffuse_sq_sum"]
-                action_dcount += res["albedo_sq_count"]
-            if "err_valid_diffuse" in res:  # the specular-fitted normals, over the same pixels
-                diffuse_pool.add(res["err_valid_diffuse"])
-            for region, pool in pools.items():
-                pool.add(res[f"err_{region}"])
-            action_pool.add(res["err_valid"])
-            total.add(res)
-            action.add(res)
-            if np.isfinite(res["albedo_ssim"]):
-                ssims.append(res["albedo_ssim"])
-            ious.append(res["mask_iou"])
-            rows.extend(_camera_rows(action_id, cam, res, run_id))
-        st = action_pool.stats()
-        per_action[action_id] = {"normal_mean_deg": st.get("mean", float("nan")),
-                                 "normal_under5_pct": st.get("under5_pct", float("nan")),
-                                 "valid_fraction": action.valid_px / max(action.fg_px, 1),
-                                 "albedo_psnr_db": _psnr_from_mse(action.sq / max(action.count, 1))}
-        if action_dcount:
-            per_action[action_id]["albedo_psnr_db_diffuse"] = _psnr_from_mse(action_dsq / action_dcount)
-            diffuse_sq += action_dsq
-            diffuse_count += action_dcount
-    return _maps_summary(pools, total, ssims, ious), _diffuse_summary(diffuse_pool, diffuse_sq, diffuse_count)
+    for action_id, action in zip(ok_ids, actions):
+        for region, pool in pools.items():
+            pool.merge(action.pools[region])
+        diffuse_pool.merge(action.diffuse_pool)
+        for name in ("sq", "count", "valid_px", "fg_px"):
+            setattr(total, name, getattr(total, name) + getattr(action.albedo, name))
+        ssims += action.ssims
+        ious += action.ious
+        rows += action.rows
+        per_action[action_id] = dict(action.values)
+        diffuse_sq += action.diffuse_sq
+        diffuse_count += action.diffuse_count
+    return (_maps_summary(pools, total, ssims, ious), _diffuse_summary(diffuse_pool, diffuse_sq, diffuse_count),
+            per_action, rows)
+
+
+def _means_over_actions(ok_ids: list[str], parts: list[_ActionPart]
+                        ) -> tuple[dict[str, float], dict[str, dict[str, float]], list[dict[str, Any]]]:
+    """One part of every action (in ``ok_ids`` order) put together as its function gives it over all actions:
+    ``(each figure's mean over the actions that have it, per-action figures, rows action by action)``."""
+    values: dict[str, list[float]] = {}
+    per_action: dict[str, dict[str, float]] = {}
+    rows: list[dict[str, Any]] = []
+    for action_id, (means, recorded, part_rows) in zip(ok_ids, parts):
+        for key, value in means.items():
+            values.setdefault(key, []).append(value)
+        if recorded:
+            per_action[action_id] = recorded
+        rows += part_rows
+    return {k: float(np.mean(v)) for k, v in values.items() if v}, per_action, rows
 
 
 def _camera_rows(action_id: str, cam: str, res: dict[str, Any], run_id: str) -> list[dict[str, Any]]:
@@ -390,9 +493,9 @@ def _diffuse_summary(pool: _ErrorPool, albedo_sq: float, albedo_count: int) -> d
 
 
 def evaluate_workers() -> int:
-    """Worker processes :func:`evaluate_release` measures the relit views and the relighting set in, one
-    action at a time: ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in this process), else 2 where this
-    process may use two CPUs or more, else 1. Never more than the actions."""
+    """Worker processes :func:`evaluate_release` measures the actions in, one action at a time (every figure of
+    the action, :func:`_evaluate_action`): ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in this process),
+    else 2 where this process may use two CPUs or more, else 1. Never more than the actions."""
     import os
 
     env = os.environ.get("ULTRASTAGE_EVALUATE_WORKERS")

@@ -13,8 +13,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from evaluation.release import (RelitTruthCache, _ErrorPool, _mesh_overall, _psnr_from_mse, _relit_parts,
-                                camera_errors, evaluate_camera, relit_truth_lights, summary_rows)
+from evaluation.release import (RelitTruthCache, _AlbedoSums, _ErrorPool, _MapsAction, _maps_combine,
+                                _means_over_actions, _mesh_overall, _psnr_from_mse, _relit_parts, camera_errors,
+                                evaluate_camera, relit_truth_lights, summary_rows)
 from pipeline.codecs.mesh import write_ply
 from stages.numerics.meshmetrics import mesh_metrics
 from synthetic.rig import look_at
@@ -233,6 +234,60 @@ def test_relit_parts_are_means_over_actions_in_order():
     assert [(r["metric"], r["a"]) for r in rows] == [("relit_psnr_db", 0), ("relit_psnr_db", 1),
                                                      ("relightset_image_psnr_db", 0), ("relightset_image_psnr_db", 1),
                                                      ("relightset_albedo_psnr_db", 0)]
+
+
+def test_error_pools_merged_equal_one_pool():
+    """Errors pooled in two pools and merged give the figures of one pool that took them all (the actions'
+    pools of the evaluation's workers put together)."""
+    rng = np.random.default_rng(0)
+    errors = rng.uniform(0.0, 40.0, 1001)
+    whole, first, second = _ErrorPool(), _ErrorPool(), _ErrorPool()
+    whole.add(errors)
+    first.add(errors[:400])
+    second.add(errors[400:])
+    first.merge(second)
+    assert first.stats() == pytest.approx(whole.stats(), rel=1e-12)
+    assert first.count == 1001 and first.hist.sum() == 1001
+
+
+def _maps_action(errors: list[float], ssim: float, iou: float, sq: float, count: int, action: str) -> _MapsAction:
+    pools = {region: _ErrorPool() for region in ("valid", "all", "valid_unoccluded", "valid_occluded",
+                                                 "all_unoccluded", "all_occluded")}
+    for pool in pools.values():
+        pool.add(np.array(errors))
+    return _MapsAction(pools, _ErrorPool(), _AlbedoSums(sq=sq, count=count, valid_px=count / 2, fg_px=count),
+                       [ssim], [iou], 0.0, 0, {"normal_mean_deg": float(np.mean(errors))},
+                       [{"action_id": action}])
+
+
+def test_maps_combine_pools_pixels_not_action_means():
+    """Two actions' maps: the normal mean is over all pixels (1, 2, 3 and 10: 4.0, not the mean 6.0 of the two
+    actions' means 2.0 and 10.0), the albedo PSNR from the summed squared error (0.05 over 5 values: 20 dB), the
+    SSIM and IoU means over views, the rows action by action."""
+    a = _maps_action([1.0, 2.0, 3.0], 0.9, 0.8, 0.04, 4, "A0")
+    b = _maps_action([10.0], 0.7, 1.0, 0.01, 1, "A1")
+    maps, diffuse, per_action, rows = _maps_combine(["A0", "A1"], [a, b])
+    assert maps["normal_mean_deg"] == pytest.approx(4.0)
+    assert maps["normal_under5_pct"] == pytest.approx(75.0)
+    assert maps["albedo_psnr_db"] == pytest.approx(20.0)
+    assert maps["albedo_ssim"] == pytest.approx(0.8) and maps["mask_iou"] == pytest.approx(0.9)
+    assert maps["valid_fraction"] == pytest.approx(0.5)
+    assert diffuse == {}  # no specular-fitted maps
+    assert per_action == {"A0": {"normal_mean_deg": 2.0}, "A1": {"normal_mean_deg": 10.0}}
+    assert [r["action_id"] for r in rows] == ["A0", "A1"]
+
+
+def test_means_over_actions_only_over_actions_that_have_the_figure():
+    """A figure's mean is over the actions that have it; a figure an action returns without recording it per
+    action (``heldout_albedo_view_dependent``) is averaged too; rows keep the actions' order."""
+    a = ({"chamfer_mm": 1.0, "view_dependent": 1.0}, {"chamfer_mm": 1.0}, [{"a": 0}])
+    b = ({"chamfer_mm": 3.0, "fscore_1mm": 0.5, "view_dependent": 0.0}, {"chamfer_mm": 3.0, "fscore_1mm": 0.5},
+         [{"a": 1}, {"a": 1}])
+    empty = ({}, {}, [])
+    means, per_action, rows = _means_over_actions(["A0", "A1", "A2"], [a, b, empty])
+    assert means == {"chamfer_mm": 2.0, "view_dependent": 0.5, "fscore_1mm": 0.5}
+    assert per_action == {"A0": {"chamfer_mm": 1.0}, "A1": {"chamfer_mm": 3.0, "fscore_1mm": 0.5}}
+    assert [r["a"] for r in rows] == [0, 1, 1]
 
 
 def test_summary_rows_name_unit_and_aggregation():
