@@ -180,12 +180,20 @@ def outline_offsets(scene: Any, vertices: np.ndarray, normals: np.ndarray, conto
     return move, used
 
 
-def _contour_vertices(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray, face_a: np.ndarray,
-                      face_b: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Vertices on an edge between a face turned to the camera centre (3,) and one turned away."""
+def _face_frames(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's (unnormalised) normal, the cross product of its edges (F, 3), and its centroid (F, 3): what
+    :func:`_contour_vertices` tests every view against."""
     v0 = vertices[faces[:, 0]]
-    cross = np.cross(vertices[faces[:, 1]] - v0, vertices[faces[:, 2]] - v0)
-    front = np.einsum("ij,ij->i", cross, centre - vertices[faces].mean(axis=1)) > 0
+    return np.cross(vertices[faces[:, 1]] - v0, vertices[faces[:, 2]] - v0), vertices[faces].mean(axis=1)
+
+
+def _contour_vertices(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray, face_a: np.ndarray,
+                      face_b: np.ndarray, centre: np.ndarray,
+                      frames: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Vertices on an edge between a face turned to the camera centre (3,) and one turned away. ``frames``: the
+    mesh's :func:`_face_frames`, when the caller tests several views of the same vertices."""
+    cross, centroid = _face_frames(vertices, faces) if frames is None else frames
+    front = np.einsum("ij,ij->i", cross, centre - centroid) > 0
     return np.unique(edges[front[face_a] != front[face_b]])
 
 
@@ -237,8 +245,9 @@ def refine_silhouettes(vertices: np.ndarray, faces: np.ndarray, views: Sequence[
         scene = mesh_scene(current, f)
         total, count = np.zeros(n), np.zeros(n)
         used_all = skipped = 0
+        frames = _face_frames(current, f)
         for view, centre in zip(views, centres):
-            contour = _contour_vertices(current, f, edges, face_a, face_b, centre)
+            contour = _contour_vertices(current, f, edges, face_a, face_b, centre, frames)
             move, used = outline_offsets(scene, current, normals, contour, view.K, view.cam_from_world,
                                          view.coverage, cfg)
             np.add.at(total, contour[used], move[used])
@@ -286,8 +295,10 @@ def outline_disagreement(vertices: np.ndarray, faces: np.ndarray, views: Sequenc
     normals = vertex_normals(v, f).astype(np.float64)
     scene = mesh_scene(v, f)
     out = []
+    frames = _face_frames(v, f)
     for view, ref in zip(views, reference):
-        contour = _contour_vertices(v, f, edges, face_a, face_b, camera_centre(np.asarray(view.cam_from_world)[:3]))
+        contour = _contour_vertices(v, f, edges, face_a, face_b, camera_centre(np.asarray(view.cam_from_world)[:3]),
+                                    frames)
         move, used = outline_offsets(scene, v, normals, contour, view.K, view.cam_from_world, view.coverage, unbiased)
         move_ref, used_ref = outline_offsets(scene, v, normals, contour, ref.K, ref.cam_from_world, ref.coverage,
                                              unbiased)
