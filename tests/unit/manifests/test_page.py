@@ -92,3 +92,15 @@ def test_thumbnails_of_normals_are_black_where_alpha_is_zero():
     pic = thumbnail_picture("normal_alpha", data)
     assert pic.dtype == np.uint8 and pic.shape == (4, 6, 3)
     assert (pic[2:] == 0).all() and (pic[:2, :, 2] == 255).all()
+
+
+def test_thumbnails_of_linear_maps_average_in_linear_light():
+    """Columns of albedo 0 and 1 shrunk to half the width: each thumbnail pixel is their linear mean 0.5, sRGB
+    encoded (0.7354 -> 188), not the mean of the encoded values (0 and 255 -> 128); a radiance map keeps the
+    exposure of its whole map's 99th percentile (here 1.0 -> 0.9 -> sRGB 0.9546 -> 243 for a pixel of 1)."""
+    stripes = np.zeros((2, 4, 3), np.float32)
+    stripes[:, 1::2] = 1.0
+    pic = thumbnail_picture("albedo", stripes, width=2)
+    assert pic.shape == (1, 2, 3) and (pic == 188).all()
+    ones = np.ones((4, 8, 3), np.float32)
+    assert (thumbnail_picture("full_on", ones, width=4) == 243).all()
