@@ -81,10 +81,39 @@ def load_environment(name: str, path: Path | None, height: int = 256) -> tuple[n
     return procedural_environment("sky", height), f"FALLBACK: {name!r} not found, {FALLBACK_ENVIRONMENT} used"
 
 
-def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path | None) -> Any:
+CLAIM_STALE_S = 900.0
+"""A fit's claim file older than this is taken for the claim of a process that died (a fit takes seconds)."""
+
+
+def _claim_is_stale(claim: Path) -> bool:
+    """Whether a claim file's process is gone (its pid is not running here) or the claim is older than
+    :data:`CLAIM_STALE_S`."""
+    try:
+        pid = int(claim.read_text().strip() or "0")
+        age = time.time() - claim.stat().st_mtime
+    except (OSError, ValueError):
+        return False  # being written or just removed: look again
+    if age > CLAIM_STALE_S:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, OSError):
+        return False
+    return False
+
+
+def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path | None,
+                wait: bool = True) -> Any:
     """:func:`stages.numerics.sg.fit_sg_environment` of a map, kept in ``cache_dir/sg_fits/`` under the hash of
     the map's float32 bytes, the fit's settings and the fitting code, so a map is fitted once per work folder
-    (both actions and both stages of a session use the same maps). None: no memo."""
+    (both actions and both stages of a session use the same maps). None as ``cache_dir``: no memo.
+
+    A process fitting a map claims it (``<fit>.claim``, holding its pid, removed when the fit is stored): the
+    two actions' relight stages start together and ask for the same maps, and a map another process is
+    fitting is waited for instead of fitted twice (``wait`` False: None is returned at once, so the caller can
+    fit another map meanwhile). A claim whose process is gone is taken over."""
     import hashlib
 
     from stages.numerics import sg
@@ -96,17 +125,40 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
     digest.update(repr((env.shape, int(sg_lobes), int(fit_height))).encode())
     digest.update(Path(sg.__file__).read_bytes())
     path = Path(cache_dir) / "sg_fits" / f"{digest.hexdigest()[:32]}.json"
-    if path.is_file():
-        try:
-            return SGLobes.from_dict(json.loads(path.read_text()))
-        except (OSError, ValueError, KeyError):
-            pass  # unreadable: fit again
-    lobes = fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+    claim = path.with_suffix(".claim")
+
+    def stored() -> Any:
+        if path.is_file():
+            try:
+                return SGLobes.from_dict(json.loads(path.read_text()))
+            except (OSError, ValueError, KeyError):
+                pass  # unreadable: fit again
+        return None
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(lobes.numpy().to_dict()))
-    os.replace(tmp, path)
-    return SGLobes.from_dict(json.loads(path.read_text()))
+    while (lobes := stored()) is None:
+        try:
+            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            if _claim_is_stale(claim):
+                claim.unlink(missing_ok=True)
+            elif not wait:
+                return None
+            else:
+                time.sleep(0.1)
+            continue
+        try:
+            os.write(fd, str(os.getpid()).encode())
+            os.close(fd)
+            if (lobes := stored()) is not None:  # stored between the look and the claim
+                return lobes
+            lobes = fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            tmp.write_text(json.dumps(lobes.numpy().to_dict()))
+            os.replace(tmp, path)
+        finally:
+            claim.unlink(missing_ok=True)
+    return lobes
 
 
 def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Path], sg_lobes: int, fit_height: int,
@@ -117,6 +169,7 @@ def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Pat
     from stages.numerics.sg import sg_fit_errors
 
     environments: list[dict[str, Any]] = []
+    maps: list[np.ndarray] = []
     for requested in requested_names:
         name, label = requested, environment_label(requested)
         env, how = load_environment(name, raw_inputs.get(f"environment/{label}"))
@@ -128,11 +181,18 @@ def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Pat
                 continue
         elif any(e["label"] == label for e in environments):
             raise ValueError(f"relight.environments {requested_names} give the label {label!r} twice")
-        t0 = time.perf_counter()
-        lobes = fit_sg_memo(env, sg_lobes, fit_height, cache_dir)
-        errors = sg_fit_errors(env, lobes)
-        environments.append({"name": name, "requested": requested, "label": label, "source": how, "lobes": lobes,
-                             "fit_seconds": time.perf_counter() - t0,
-                             "fit_errors": {k: float(v) for k, v in errors.items()
-                                            if isinstance(v, (int, float, np.floating))}})
+        environments.append({"name": name, "requested": requested, "label": label, "source": how, "lobes": None,
+                             "fit_seconds": 0.0})
+        maps.append(env)
+    # The maps no other process is fitting first, then those it was (by then mostly stored): two stages that
+    # start together share the fits instead of both fitting every map.
+    for wait in (False, True):
+        for record, env in zip(environments, maps):
+            if record["lobes"] is None:
+                t0 = time.perf_counter()
+                record["lobes"] = fit_sg_memo(env, sg_lobes, fit_height, cache_dir, wait=wait)
+                record["fit_seconds"] += time.perf_counter() - t0
+    for record, env in zip(environments, maps):
+        errors = sg_fit_errors(env, record["lobes"])
+        record["fit_errors"] = {k: float(v) for k, v in errors.items() if isinstance(v, (int, float, np.floating))}
     return environments

@@ -157,3 +157,86 @@ def test_silhouette_alpha_and_premultiplied_edges_by_hand():
     image[0, 0], image[1, 1] = 2.0, 4.0
     out = premultiply_edges(image, shaded, np.full((2, 2), 0.5, np.float32))
     np.testing.assert_allclose(out[..., 1], [[1.0, 1.5], [1.5, 2.0]])
+
+
+def _claims(tmp_path):
+    return sorted((tmp_path / "sg_fits").glob("*.claim"))
+
+
+def test_sg_fit_memo_waits_for_the_process_fitting_the_map(tmp_path, monkeypatch):
+    """A map another live process has claimed is not fitted again: without ``wait`` the call returns None at
+    once, with it the call returns that process's stored fit when it lands (here a thread stands for the other
+    process); a claim whose process is gone is taken over; no claim file is left behind."""
+    import os
+    import threading
+
+    from stages import environments
+    from stages.environments import fit_environments, fit_sg_memo
+    from stages.numerics import sg
+
+    env, _ = load_environment("procedural:sky", None)  # as fit_environments loads it
+    fits = []
+    order: list[str] = []
+    real_fit = sg.fit_sg_environment
+
+    def counting_fit(*args, **kwargs):
+        fits.append(1)
+        order.append("fit")
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(sg, "fit_sg_environment", counting_fit)
+    reference = fit_sg_memo(env, 4, 16, None)
+    assert len(fits) == 1
+    # another live process (this one's pid) holds the claim: nothing is fitted
+    stored = tmp_path / "other"
+    first = fit_sg_memo(env, 4, 16, stored)  # find the memo's file names, then take the fit away
+    memo = next((stored / "sg_fits").glob("*.json"))
+    cache = tmp_path / "cache"
+    (cache / "sg_fits").mkdir(parents=True)
+    claim = cache / "sg_fits" / (memo.stem + ".claim")
+    claim.write_text(str(os.getpid()))
+    fits.clear()
+    assert fit_sg_memo(env, 4, 16, cache, wait=False) is None and not fits
+
+    def other_process_finishes():
+        (cache / "sg_fits" / memo.name).write_text(memo.read_text())
+        claim.unlink()
+
+    timer = threading.Timer(0.3, other_process_finishes)
+    timer.start()
+    waited = fit_sg_memo(env, 4, 16, cache)
+    timer.join()
+    assert not fits and np.array_equal(waited.numpy().axis, first.numpy().axis)
+    # a claim left by a process that is gone is taken over and fitted here
+    (cache / "sg_fits" / memo.name).unlink()
+    claim.write_text("999999999")
+    taken = fit_sg_memo(env, 4, 16, cache)
+    assert len(fits) == 1 and np.allclose(taken.numpy().axis, reference.numpy().axis) and not _claims(cache)
+    assert environments.CLAIM_STALE_S > 60  # a fit takes seconds; a live claim is never broken by its age alone
+
+    # fit_environments fits the unclaimed map first and the claimed one after it lands
+    fits.clear()
+    fresh = tmp_path / "fresh"
+    (fresh / "sg_fits").mkdir(parents=True)
+    claim = fresh / "sg_fits" / (memo.stem + ".claim")
+    claim.write_text(str(os.getpid()))
+    order.clear()
+
+    def landed():
+        order.append("other")
+        (fresh / "sg_fits" / memo.name).write_text(memo.read_text())
+        claim.unlink()
+
+    timer = threading.Timer(0.5, landed)
+    timer.start()
+
+    class Log:
+        def warning(self, *args):
+            pass
+
+    records = fit_environments(("procedural:sky", "procedural:studio"), {}, 4, 16, Log(), fresh)
+    timer.join()
+    assert [r["label"] for r in records] == ["procedural_sky", "procedural_studio"]
+    # only the studio map fitted here, at once, and the sky map taken from the other process when it landed
+    assert len(fits) == 1 and order == ["fit", "other"]
+    assert all(r["lobes"] is not None and "fit_errors" in r for r in records) and not _claims(fresh)
