@@ -12,9 +12,10 @@ is hit) and compared with the simulator's roughness and albedo maps.
 1. **Roughness** (the stage's texture size): mean absolute error and bias against the truth for ``specular_model``
    sg, ``fit_albedo`` off, ``max_views`` 8 (the 8 best views are the first 8 of those gathered: same ranking),
    ``median_min_visibility`` 0/0.85 (which texels vote in the surface median: those whose ambient visibility on
-   the mesh reaches it), ``min_cos`` 0.2/0.6 (the most grazing view a fit takes; the observations are gathered
-   once at the lowest limit and each fit keeps the views within its own) and ``median_neighbours``
-   1/25/100/200, one change at a time from the stage's defaults
+   the mesh reaches it), ``min_cos`` 0.2/0.4/0.6 (the most grazing view a fit takes; the observations are
+   gathered once at the lowest limit and each fit keeps the views within its own), ``specular_cone_deg`` 0 (no
+   mirror-cone test)/8/25 and the test off at ``min_cos`` 0.4 (each cone traced once, as the stage traces it)
+   and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's defaults
    (a change equal to the default is left out), with the fit time (``fit_roughness``, ``--threads`` torch
    threads; ``x_gather``: as a ratio to gathering the observations it fits, in the same process) and the
    smoothing time.
@@ -64,7 +65,12 @@ VARIANT_CHANGES = [("specular_model sg", {"specular_model": "sg"}),
                    ("median_min_visibility 0 (every fitted texel votes)", {"median_min_visibility": 0.0}),
                    ("median_min_visibility 0.85", {"median_min_visibility": 0.85}),
                    ("min_cos 0.2", {"min_cos": 0.2}),
-                   ("min_cos 0.6", {"min_cos": 0.6})]
+                   ("min_cos 0.4", {"min_cos": 0.4}),
+                   ("min_cos 0.6", {"min_cos": 0.6}),
+                   ("specular_cone_deg 0 (no mirror-cone test)", {"specular_cone_deg": 0.0}),
+                   ("specular_cone_deg 8", {"specular_cone_deg": 8.0}),
+                   ("specular_cone_deg 25", {"specular_cone_deg": 25.0}),
+                   ("no mirror-cone test, min_cos 0.4", {"specular_cone_deg": 0.0, "min_cos": 0.4})]
 MEDIAN_NEIGHBOURS_SWEEP = (1, 25, 100, 200)
 OCCLUSION_RAYS_SWEEP = (16, 64, 128)
 MIN_OCCLUSION_SWEEP = (0.1, 0.2, 0.4)
@@ -212,7 +218,7 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     """Per-texel fits for every variant (:func:`variant_configs`), smoothed and scored; times of the gather,
     fits and medians. Observations are gathered once, for the most views and the most grazing limit any variant
     uses."""
-    from stages.numerics.material_textures import (fit_texel_roughness, published_roughness,
+    from stages.numerics.material_textures import (fit_texel_roughness, mirror_cone_open, published_roughness,
                                                    texel_samples, texel_texture)
     from stages.numerics.materials import NO_VIEWS_RESIDUAL
     from stages.numerics.raycast import mesh_scene
@@ -235,14 +241,22 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
            "texel_visibility_s": round(visibility_s, 2),
            "mean_valid_views": round(float(obs["valid"].sum(axis=1).mean()), 2), "variants": [], "neighbours": []}
 
+    scene = mesh_scene(data["vertices"], data["faces"])
+    mirror_open: dict[float, np.ndarray] = {}  # cone half-angle -> (P, K) the stage's mirror-cone test
+
     def fit(cfg: MaterialsConfig, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
         """The stage's fit of the texels ``rows`` on the first ``cfg.max_views`` gathered views (best first) whose
-        cosine to the texel reaches ``cfg.min_cos``."""
+        cosine to the texel reaches ``cfg.min_cos`` and whose mirror cone is open (``cfg.specular_cone_deg``)."""
         k = cfg.max_views
         observed = obs["values"]["obs"][rows, :k]
         observed = observed.reshape(len(observed), -1, 3, 3)  # fewer than k when fewer cameras see the mesh
         white = data["white"][np.maximum(obs["view_index"][rows, :k], 0)]
         valid = obs["valid"][rows, :k] & (obs["cos"][rows, :k] >= max(cfg.min_cos, 1e-3))
+        if cfg.specular_cone_deg > 0:
+            if cfg.specular_cone_deg not in mirror_open:
+                mirror_open[cfg.specular_cone_deg] = mirror_cone_open(points, normals, obs["view_dirs"], obs["valid"],
+                                                                      scene, cfg.specular_cone_deg)
+            valid = valid & mirror_open[cfg.specular_cone_deg][rows, :k]
         rough, rms, _ = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], valid,
                                             normals[rows], albedo[rows], white, cfg)
         return rough, rms
@@ -262,7 +276,8 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
         score = probe.roughness_errors(texel_texture(smooth, covered))
         raw = probe.roughness_errors(texel_texture(rough, covered))
         settings = {name: getattr(cfg, name) for name in ("specular_model", "fit_albedo", "max_views",
-                                                          "median_neighbours", "median_min_visibility", "min_cos")}
+                                                          "median_neighbours", "median_min_visibility", "min_cos",
+                                                          "specular_cone_deg")}
         out["variants"].append({"variant": label, **settings, "fit_s": round(fit_s, 2),
                                 "x_gather": round(fit_s / max(gather_s, 1e-9), 2),
                                 "median_s": round(median_s, 2),

@@ -20,11 +20,16 @@ roughness seen from the 32 true cameras, A0000 / A0001, with the other steps at 
   the texture is the median over each texel's ``median_neighbours`` nearest texels *on the surface* (3D, so
   atlas charts do not matter): MAE 0.12 / 0.15 without it. A constant roughness (the fits' median) scores
   0.13 / 0.14.
-* The fit assumes every LED above a texel's horizon lights it. Where the body shadows part of the stage
-  (armpits, the belt under the hands, between the legs) the fits come out too rough, more so the deeper the
-  shadow, so only texels whose ambient visibility on the mesh reaches ``median_min_visibility`` vote in that
-  median (the others take their nearest voters'): a lower MAE on both actions than with every texel voting
-  (the bench's ``median_min_visibility`` 0 row).
+* The fit assumes every LED above a texel's horizon lights it. Where the body hides part of a view's
+  specular lobe the observation loses the lobe's far side and reads rougher; grazing views reflect towards
+  the horizon, where the body hides most. So an observation is used only where the view's mirror direction
+  and a cone of ``specular_cone_deg`` around it leave the mesh open
+  (:func:`stages.numerics.material_textures.mirror_cone_open`): MAE 0.041 / 0.051 with the test, 0.054 / 0.055
+  without (the bench's ``specular_cone_deg`` rows).
+* Where the body shadows part of the stage (armpits, the belt under the hands, between the legs) the fits come
+  out too rough, more so the deeper the shadow, so only texels whose ambient visibility on the mesh reaches
+  ``median_min_visibility`` vote in that median (the others take their nearest voters'): a lower MAE on both
+  actions than with every texel voting (the bench's ``median_min_visibility`` 0 row).
 * Ambient occlusion: the stage's white light is uniform over the sphere, so the white-light albedo is the
   true albedo times the cosine-weighted visible fraction of the sphere. ``albedo_deoccluded`` divides the
   baked albedo by that fraction computed on the mesh (floored at ``min_occlusion``): a higher PSNR against

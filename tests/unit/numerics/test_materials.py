@@ -243,3 +243,37 @@ def test_fit_roughness_input_checks():
         fit_roughness(observed, views, valid, normals, albedo, white_scale=0.0)
     with pytest.raises(ValueError, match="r_min"):
         fit_roughness(observed, views, valid, normals, albedo, r_min=0.5, r_max=0.4)
+
+
+def _floor_and_wall():
+    """A 2 m floor (z = 0) and a wall 1 m high at x = 0.1 (facing -x), as one mesh's ray-casting scene."""
+    from stages.numerics.raycast import mesh_scene
+
+    vertices = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0],
+                         [0.1, -1, 0], [0.1, 1, 0], [0.1, 1, 1], [0.1, -1, 1]], np.float64)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    return mesh_scene(vertices, faces)
+
+
+def test_mirror_cone_open_by_hand():
+    """A point on the floor at the origin, normal +z, a wall at x = 0.1. A camera up on the +x side mirrors
+    towards -x (open); one up on the -x side mirrors into the wall (shut); a camera 5 degrees above the +x
+    horizon mirrors 5 degrees above the -x horizon, away from the wall: open with the axis alone, shut with a
+    15-degree cone, which dips under the floor's horizon; views not valid are not traced (False)."""
+    from stages.numerics.material_textures import mirror_cone_open
+
+    scene = _floor_and_wall()
+    s, c = np.sin(np.radians(5.0)), np.cos(np.radians(5.0))
+    views = np.array([[[1, 0, 1], [-1, 0, 1], [c, 0, s], [1, 0, 1]]], np.float64)
+    views /= np.linalg.norm(views, axis=-1, keepdims=True)
+    points, normals = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    valid = np.array([[True, True, True, False]])
+    axis_only = mirror_cone_open(points, normals, views, valid, scene, 0.0)
+    cone = mirror_cone_open(points, normals, views, valid, scene, 15.0)
+    assert axis_only.shape == (1, 4) and axis_only.dtype == bool
+    assert axis_only.tolist() == [[True, False, True, False]]
+    assert cone.tolist() == [[True, False, False, False]]
+    with pytest.raises(ValueError, match="cone_deg"):
+        mirror_cone_open(points, normals, views, valid, scene, 90.0)
+    with pytest.raises(ValueError, match="view_dirs"):
+        mirror_cone_open(points, normals, views[:, :2], valid, scene, 15.0)
