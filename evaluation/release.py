@@ -198,9 +198,8 @@ def _evaluate_release(release: Path, truth_dir: Path, run_id: str | None, relit_
     rel = open_release(release)
     actions = rel.actions
     ok_ids = [a for a, s in zip(actions["action_id"], actions["status"]) if s == "ok"]
-    pool, futures = _start_action_workers(release, truth_dir, ok_ids, run_id, relit_cache)
     cameras = _camera_overall(rel, truth_dir, ok_ids)
-    parts = _finish_actions(pool, futures, release, truth_dir, ok_ids, run_id, relit_cache)
+    parts = _evaluate_actions(release, truth_dir, ok_ids, run_id, relit_cache)
     maps, diffuse, per_action, rows = _maps_combine(ok_ids, [p.maps for p in parts])
     overall: dict[str, float] = maps | {"actions_ok": float(len(ok_ids)),
                                         "actions_failed": float(len(actions) - len(ok_ids))} | diffuse
@@ -271,33 +270,28 @@ def _evaluate_action(release: Path, truth_dir: Path, action_id: str, run_id: str
     return _ActionEvaluation(maps, parts[0], parts[1], parts[2], relit)
 
 
-def _start_action_workers(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str,
-                          relit_cache: Path | None) -> tuple[Any, list[Any] | None]:
-    """Submit :func:`_evaluate_action` of every action to a pool of :func:`evaluate_workers` processes:
-    ``(pool, futures)``, or ``(None, None)`` when the evaluation runs in this process alone."""
+def _evaluate_actions(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str,
+                      relit_cache: Path | None) -> list[_ActionEvaluation]:
+    """:func:`_evaluate_action` of every action, in ``ok_ids`` order, on :func:`evaluate_workers` processes: this
+    one takes every ``workers``-th action and a pool of ``workers - 1`` spawned processes the others (the
+    actions take about the same time, and this process has its imports already)."""
     workers = min(evaluate_workers(), len(ok_ids))
+    here = list(range(0, len(ok_ids), max(workers, 1)))
     if workers <= 1:
-        return None, None
+        return [_evaluate_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
+                for action_id in ok_ids]
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-    futures = [pool.submit(_evaluate_action, Path(release), Path(truth_dir), action_id, run_id, relit_cache)
-               for action_id in ok_ids]
-    return pool, futures
-
-
-def _finish_actions(pool: Any, futures: list[Any] | None, release: Path, truth_dir: Path, ok_ids: list[str],
-                    run_id: str, relit_cache: Path | None) -> list[_ActionEvaluation]:
-    """:func:`_evaluate_action` of every action in ``ok_ids`` order: the workers' results (the pool is shut
-    down), or computed here when :func:`_start_action_workers` started none."""
-    if futures is None:
-        return [_evaluate_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
-                for action_id in ok_ids]
+    pool = ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))
     try:
-        return [future.result() for future in futures]
+        futures = {i: pool.submit(_evaluate_action, Path(release), Path(truth_dir), ok_ids[i], run_id, relit_cache)
+                   for i in range(len(ok_ids)) if i not in here}
+        results = {i: _evaluate_action(Path(release), Path(truth_dir), ok_ids[i], run_id, relit_cache) for i in here}
+        results |= {i: future.result() for i, future in futures.items()}
     finally:
         pool.shutdown(cancel_futures=True)
+    return [results[i] for i in range(len(ok_ids))]
 
 
 def _write_metrics(release: Path, rows: list[dict[str, Any]], overall: dict[str, float],
@@ -493,9 +487,9 @@ def _diffuse_summary(pool: _ErrorPool, albedo_sq: float, albedo_count: int) -> d
 
 
 def evaluate_workers() -> int:
-    """Worker processes :func:`evaluate_release` measures the actions in, one action at a time (every figure of
-    the action, :func:`_evaluate_action`): ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in this process),
-    else 2 where this process may use two CPUs or more, else 1. Never more than the actions."""
+    """Processes :func:`evaluate_release` measures the actions in, one action at a time (every figure of the
+    action, :func:`_evaluate_action`), this one included: ``ULTRASTAGE_EVALUATE_WORKERS`` when set (1: all in
+    this process), else 2 where this process may use two CPUs or more, else 1. Never more than the actions."""
     import os
 
     env = os.environ.get("ULTRASTAGE_EVALUATE_WORKERS")
