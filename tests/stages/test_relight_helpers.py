@@ -227,7 +227,7 @@ def test_sg_fit_memo_waits_for_the_process_fitting_the_map(tmp_path, monkeypatch
         (fresh / "sg_fits" / memo.name).write_text(memo.read_text())
         claim.unlink()
 
-    timer = threading.Timer(0.5, landed)
+    timer = threading.Timer(2.0, landed)  # well after fit_environments has loaded both maps (about 0.05 s)
     timer.start()
 
     class Log:
