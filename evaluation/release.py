@@ -10,6 +10,7 @@ show (``comparable_*``: truth that a camera sees, away from an open mesh's bound
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -252,22 +253,23 @@ def _evaluate_action(release: Path, truth_dir: Path, action_id: str, run_id: str
     from synthetic.threads import limit_blas_threads
 
     rel = open_release(release)
+    ids = [action_id]
+
+    def part(measure: Callable[[dict[str, dict[str, float]], list[dict[str, Any]]], dict[str, float]]
+             ) -> _ActionPart:
+        per_action: dict[str, dict[str, float]] = {}
+        rows: list[dict[str, Any]] = []
+        means = measure(per_action, rows)
+        return means, per_action.get(action_id, {}), rows
+
+    textured: dict[str, dict] = {}  # the held-out protocol's textured mesh, for the materials
     with limit_blas_threads(1):  # as in evaluate_release, also when this runs in a worker process
         maps = _maps_action(rel, truth_dir, action_id, run_id)
-        parts: list[_ActionPart] = []
-        textured: dict[str, dict] = {}  # the held-out protocol's textured mesh, for the materials
-        for measure in (_mesh_overall, _heldout_overall, _materials_overall):
-            per_action: dict[str, dict[str, float]] = {}
-            rows: list[dict[str, Any]] = []
-            if measure is _heldout_overall:
-                means = measure(release, rel, truth_dir, [action_id], per_action, rows, run_id, textured)
-            elif measure is _materials_overall:
-                means = measure(rel, truth_dir, [action_id], per_action, rows, run_id, textured)
-            else:
-                means = measure(rel, truth_dir, [action_id], per_action, rows, run_id)
-            parts.append((means, per_action.get(action_id, {}), rows))
+        mesh = part(lambda pa, rows: _mesh_overall(rel, truth_dir, ids, pa, rows, run_id))
+        heldout = part(lambda pa, rows: _heldout_overall(release, rel, truth_dir, ids, pa, rows, run_id, textured))
+        materials = part(lambda pa, rows: _materials_overall(rel, truth_dir, ids, pa, rows, run_id, textured))
     relit = _relit_action(release, truth_dir, action_id, run_id, relit_cache)
-    return _ActionEvaluation(maps, parts[0], parts[1], parts[2], relit)
+    return _ActionEvaluation(maps, mesh, heldout, materials, relit)
 
 
 def _evaluate_actions(release: Path, truth_dir: Path, ok_ids: list[str], run_id: str,
@@ -276,7 +278,6 @@ def _evaluate_actions(release: Path, truth_dir: Path, ok_ids: list[str], run_id:
     one takes every ``workers``-th action and a pool of ``workers - 1`` spawned processes the others (the
     actions take about the same time, and this process has its imports already)."""
     workers = min(evaluate_workers(), len(ok_ids))
-    here = list(range(0, len(ok_ids), max(workers, 1)))
     if workers <= 1:
         return [_evaluate_action(Path(release), Path(truth_dir), action_id, run_id, relit_cache)
                 for action_id in ok_ids]
@@ -286,8 +287,9 @@ def _evaluate_actions(release: Path, truth_dir: Path, ok_ids: list[str], run_id:
     pool = ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))
     try:
         futures = {i: pool.submit(_evaluate_action, Path(release), Path(truth_dir), ok_ids[i], run_id, relit_cache)
-                   for i in range(len(ok_ids)) if i not in here}
-        results = {i: _evaluate_action(Path(release), Path(truth_dir), ok_ids[i], run_id, relit_cache) for i in here}
+                   for i in range(len(ok_ids)) if i % workers}
+        results = {i: _evaluate_action(Path(release), Path(truth_dir), ok_ids[i], run_id, relit_cache)
+                   for i in range(0, len(ok_ids), workers)}
         results |= {i: future.result() for i, future in futures.items()}
     finally:
         pool.shutdown(cancel_futures=True)
@@ -322,6 +324,13 @@ class _AlbedoSums:
     count: int = 0  # its values
     valid_px: float = 0.0  # valid pixels (valid fraction x foreground pixels)
     fg_px: int = 0  # foreground pixels
+
+    def merge(self, other: "_AlbedoSums") -> None:
+        """Add another's sums (another action's cameras)."""
+        self.sq += other.sq
+        self.count += other.count
+        self.valid_px += other.valid_px
+        self.fg_px += other.fg_px
 
     def add(self, res: dict[str, Any]) -> None:
         self.sq += res["albedo_sq_sum"]
@@ -412,8 +421,7 @@ def _maps_combine(ok_ids: list[str], actions: list[_MapsAction]
         for region, pool in pools.items():
             pool.merge(action.pools[region])
         diffuse_pool.merge(action.diffuse_pool)
-        for name in ("sq", "count", "valid_px", "fg_px"):
-            setattr(total, name, getattr(total, name) + getattr(action.albedo, name))
+        total.merge(action.albedo)
         ssims += action.ssims
         ious += action.ious
         rows += action.rows
