@@ -4,15 +4,20 @@ fails here.
 
 The capture is ``conftest.GATE_SIM`` (128 x 192 px, the procedural subject, colour chart, diffuse sphere and marker
 frame), run with the ``gate`` preset (stages/registry.py) and scored by :func:`evaluation.release.evaluate_release`,
-the numbers of ``ultrastage evaluate --json``. Each bound sits beside the value measured when it was set and its
-margin: errors 1.25 x the measured one, PSNR 1 dB under it, a share that is 1 at best (SSIM, normal consistency,
-mask IoU, coverage, valid fraction) 1.25 x as far from 1, an F-score 1.25 x smaller, the registered cameras as many
-as measured. The run is deterministic: two runs, one with 2 numeric threads and one with 1 on a fresh simulation,
-gave the same 67 figures to the last bit, so the margins are for other machines' arithmetic, not for noise. They
-are tight enough that turning every photometric normal by 12 degrees fails the photometric, geometry, held-out
-and relighting-set bounds (with 1.5 x margins it failed only two held-out ones). The bounds are bounds on
-regressions, not targets: a change that improves a figure passes, and when it improves it a lot the bound is
-tightened by hand to the new measurement.
+the numbers of ``ultrastage evaluate --json``. The run is deterministic on one machine (two runs, one with 2 numeric
+threads and one with 1 on a fresh simulation, gave the same figures to the last bit), but another machine's
+arithmetic sends the SDF's training down another path, as another SDF seed does: seed 0 gave a held-out coverage
+of 0.9768 on one machine and 0.9702 on another, and on the second, seeds 0-7 spread it over 0.962-0.972, the
+roughness MAE over 0.126-0.152, the relit views over 20.6-22.0 dB and the relighting set over 22.2-25.7 dB. So
+each bound sits beside the worst of those eight seeds (``python tests/integration/gate_spread.py --out DIR``
+prints the spread and the bounds it gives) and its margin: errors 1.25 x the worst seed's, PSNR 1 dB under it, a
+share that is 1 at best (SSIM, normal consistency, mask IoU, coverage, valid fraction) 1.25 x as far from 1, an
+F-score 1.25 x smaller, the registered cameras as many as measured. The margins are for what eight seeds did not
+show. They still catch a plain regression: turning every photometric normal by 12 degrees (``gate_spread.py
+--rotate-normals-deg 12``, seeds 0 and 1) fails the photometric normals, the F-score at 1 mm, the held-out
+albedo PSNR and the held-out normals against the truth on both seeds (the held-out SSIM and the roughness on one). The bounds are bounds on regressions, not targets: a
+change that improves a figure passes, and when it improves it a lot the bounds are set again from the script's
+eight seeds.
 """
 from __future__ import annotations
 
@@ -40,9 +45,9 @@ class Bound:
     worst: float
     """The worst value that passes."""
     measured: float
-    """The value measured when the bound was set (gate preset, this capture)."""
+    """The worst value of the eight SDF seeds when the bound was set (gate preset, this capture; gate_spread.py)."""
     margin: str
-    """How ``worst`` was derived from ``measured``."""
+    """How ``worst`` was derived from ``measured`` (the margin)."""
     higher_is_better: bool = False
     """True for PSNR, SSIM, shares and counts (the figure must stay >= ``worst``), else it must stay <= ``worst``."""
 
@@ -52,66 +57,66 @@ class Bound:
 
 def _error(stage: str, metric: str, measured: float, worst: float) -> Bound:
     """An error (degrees, millimetres, percent, pixels, roughness): ``worst`` = 1.25 x ``measured``."""
-    return Bound(stage, metric, worst, measured, "1.25 x the measured error")
+    return Bound(stage, metric, worst, measured, "1.25 x the worst seed's error")
 
 
 def _psnr(stage: str, metric: str, measured: float, worst: float) -> Bound:
     """A PSNR: ``worst`` = ``measured`` - 1 dB."""
-    return Bound(stage, metric, worst, measured, "1 dB under the measured PSNR", higher_is_better=True)
+    return Bound(stage, metric, worst, measured, "1 dB under the worst seed's PSNR", higher_is_better=True)
 
 
 def _share(stage: str, metric: str, measured: float, worst: float) -> Bound:
     """A score that is 1 at best (SSIM, IoU, normal consistency, coverage, valid fraction): ``worst`` =
     1 - 1.25 x (1 - ``measured``)."""
-    return Bound(stage, metric, worst, measured, "1.25 x the measured shortfall from 1", higher_is_better=True)
+    return Bound(stage, metric, worst, measured, "1.25 x the worst seed's shortfall from 1", higher_is_better=True)
 
 
 def _fscore(stage: str, metric: str, measured: float, worst: float) -> Bound:
     """An F-score: ``worst`` = ``measured`` / 1.25."""
-    return Bound(stage, metric, worst, measured, "the measured F-score / 1.25", higher_is_better=True)
+    return Bound(stage, metric, worst, measured, "the worst seed's F-score / 1.25", higher_is_better=True)
 
 
 BOUNDS: tuple[Bound, ...] = (
     # cameras: the marker-frame calibration against the simulator's true poses
-    _error("cameras", "cam_rotation_err_deg", 0.0140, 0.0175),
-    _error("cameras", "cam_center_err_mm", 1.046, 1.31),
-    _error("cameras", "cam_focal_err_pct", 0.0421, 0.0526),
-    _error("cameras", "reprojection_err_px", 0.0975, 0.122),
+    _error("cameras", "cam_rotation_err_deg", 0.01401, 0.01752),
+    _error("cameras", "cam_center_err_mm", 1.046, 1.307),
+    _error("cameras", "cam_focal_err_pct", 0.04205, 0.05256),
+    _error("cameras", "reprojection_err_px", 0.09751, 0.1219),
     # 27 of the 32 cameras identify enough marker balls at 128 px to be calibrated (conftest.GATE_CALIBRATION)
     Bound("cameras", "cameras_registered", 27.0, 27.0, "the cameras measured", higher_is_better=True),
     # photometric: eq. 1's normals, the white-light albedo and the masks, every camera's pixels pooled
-    _error("photometric", "normal_mean_deg", 10.68, 13.3),
+    _error("photometric", "normal_mean_deg", 10.67, 13.33),
     _error("photometric", "normal_mean_deg_all", 12.48, 15.6),
-    _share("photometric", "valid_fraction", 0.876, 0.8450),
+    _share("photometric", "valid_fraction", 0.8758, 0.8448),
     _psnr("photometric", "albedo_psnr_db", 22.62, 21.62),
-    _share("photometric", "albedo_ssim", 0.784, 0.7300),
-    _share("photometric", "mask_iou", 0.983, 0.9788),
+    _share("photometric", "albedo_ssim", 0.7837, 0.7297),
+    _share("photometric", "mask_iou", 0.9831, 0.9789),
     # diffuse_normals: the normals and albedo with the specular reflection fitted out
-    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.361, 9.201),
-    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22.06, 21.06),
+    _error("diffuse_normals", "normal_mean_deg_diffuse", 7.451, 9.314),
+    _psnr("diffuse_normals", "albedo_psnr_db_diffuse", 22, 21),
     # geometry: the neural SDF's mesh against the true mesh
-    _error("geometry", "chamfer_mm", 4.618, 5.773),
-    _fscore("geometry", "fscore_5mm", 0.7131, 0.5705),
-    _fscore("geometry", "fscore_1mm", 0.2124, 0.1699),
-    _share("geometry", "normal_consistency", 0.9269, 0.9086),
+    _error("geometry", "chamfer_mm", 4.677, 5.846),
+    _fscore("geometry", "fscore_5mm", 0.6949, 0.5559),
+    _fscore("geometry", "fscore_1mm", 0.205, 0.164),
+    _share("geometry", "normal_consistency", 0.925, 0.9063),
     # held-out views (the paper's table 1): two cameras' maps synthesised from the other 25 through the mesh
-    _psnr("heldout", "heldout_albedo_psnr_db", 29.92, 28.92),
-    _share("heldout", "heldout_albedo_ssim", 0.9421, 0.9276),
-    _error("heldout", "heldout_normal_mean_deg", 6.081, 7.601),
-    _psnr("heldout", "heldout_albedo_psnr_db_truth", 26.07, 25.07),
-    _error("heldout", "heldout_normal_mean_deg_truth", 8.068, 10.09),
-    _share("heldout", "heldout_coverage", 0.9768, 0.971),
+    _psnr("heldout", "heldout_albedo_psnr_db", 29.34, 28.34),
+    _share("heldout", "heldout_albedo_ssim", 0.9355, 0.9194),
+    _error("heldout", "heldout_normal_mean_deg", 6.044, 7.555),
+    _psnr("heldout", "heldout_albedo_psnr_db_truth", 26.42, 25.42),
+    _error("heldout", "heldout_normal_mean_deg_truth", 8.259, 10.32),
+    _share("heldout", "heldout_coverage", 0.9622, 0.9528),
     # textures and materials: the baked albedo, the fitted roughness, the de-occluded albedo, seen from every camera
-    _psnr("textures", "albedo_texture_psnr_db", 24.17, 23.17),
-    _error("materials", "roughness_mae", 0.1162, 0.1453),
-    _psnr("materials", "albedo_deoccluded_psnr_db", 25.62, 24.62),
+    _psnr("textures", "albedo_texture_psnr_db", 24.15, 23.15),
+    _error("materials", "roughness_mae", 0.1519, 0.1898),
+    _psnr("materials", "albedo_deoccluded_psnr_db", 25.49, 24.49),
     # relight: the relit novel view against the true subject under the same environment, and its shading normals
-    _psnr("relight", "relit_psnr_db", 21.39, 20.39),
-    _error("relight", "relit_normal_mean_deg", 10.83, 13.54),
+    _psnr("relight", "relit_psnr_db", 20.55, 19.55),
+    _error("relight", "relit_normal_mean_deg", 10.72, 13.4),
     # relightset: the single-image relighting set's examples against the true subject
-    _psnr("relightset", "relightset_image_psnr_db", 25.08, 24.08),
-    _error("relightset", "relightset_normal_mean_deg", 11.97, 14.96),
-    _psnr("relightset", "relightset_albedo_psnr_db", 27.33, 26.33),
+    _psnr("relightset", "relightset_image_psnr_db", 22.18, 21.18),
+    _error("relightset", "relightset_normal_mean_deg", 12.03, 15.03),
+    _psnr("relightset", "relightset_albedo_psnr_db", 26.48, 25.48),
 )
 
 SYNC = ExecutionConfig(scheduler="sync")
@@ -137,13 +142,13 @@ def test_bounds_are_set_from_their_measurements_with_the_stated_margins():
     stage the evaluation measures has one."""
     for bound in BOUNDS:
         assert bound.passes(bound.measured), bound
-        if bound.margin == "1.25 x the measured error":
+        if bound.margin == "1.25 x the worst seed's error":
             expected = 1.25 * bound.measured
-        elif bound.margin == "1 dB under the measured PSNR":
+        elif bound.margin == "1 dB under the worst seed's PSNR":
             expected = bound.measured - 1.0
-        elif bound.margin == "1.25 x the measured shortfall from 1":
+        elif bound.margin == "1.25 x the worst seed's shortfall from 1":
             expected = 1 - 1.25 * (1 - bound.measured)
-        elif bound.margin == "the measured F-score / 1.25":
+        elif bound.margin == "the worst seed's F-score / 1.25":
             expected = bound.measured / 1.25
         else:
             expected = bound.measured
@@ -152,6 +157,25 @@ def test_bounds_are_set_from_their_measurements_with_the_stated_margins():
     evaluated = {"cameras", "photometric", "diffuse_normals", "geometry", "textures", "materials", "relight",
                  "relightset"}
     assert evaluated <= {b.stage for b in BOUNDS} and evaluated <= {cls.name for cls in STAGE_CLASSES}
+
+
+def test_the_spread_script_sets_each_bound_from_the_worst_run_with_its_margin():
+    """gate_spread.py's proposal on three made-up runs: the worst run's value through the bound's own margin."""
+    from tests.integration.gate_spread import MARGINS, spread_rows
+
+    assert {bound.margin for bound in BOUNDS} <= set(MARGINS)
+    chamfer = _error("geometry", "chamfer_mm", 4.0, 5.0)
+    relit = _psnr("relight", "relit_psnr_db", 21.0, 20.0)
+    coverage = _share("heldout", "heldout_coverage", 0.96, 0.95)
+    runs = {0: {"chamfer_mm": 4.0, "relit_psnr_db": 22.0, "heldout_coverage": 0.97},
+            1: {"chamfer_mm": 6.0, "relit_psnr_db": 19.0, "heldout_coverage": 0.94},
+            2: {"chamfer_mm": 5.0, "relit_psnr_db": 21.0, "heldout_coverage": 0.96}}
+    rows = {row["bound"].metric: row for row in spread_rows(runs, (chamfer, relit, coverage))}
+    assert (rows["chamfer_mm"]["worst"], rows["chamfer_mm"]["median"], rows["chamfer_mm"]["fails"]) == (6.0, 5.0, 1)
+    assert rows["chamfer_mm"]["proposed"] == pytest.approx(7.5)
+    assert (rows["relit_psnr_db"]["worst"], rows["relit_psnr_db"]["fails"]) == (19.0, 1)
+    assert rows["relit_psnr_db"]["proposed"] == pytest.approx(18.0)
+    assert rows["heldout_coverage"]["proposed"] == pytest.approx(1 - 1.25 * 0.06)
 
 
 def test_every_stage_ran_for_the_gate(gate_run):
