@@ -14,11 +14,13 @@ is hit) and compared with the simulator's roughness and albedo maps.
    ``median_min_visibility`` 0/0.85 (which texels vote in the surface median: those whose ambient visibility on
    the mesh reaches it), ``min_cos`` 0.2/0.4/0.6 (the most grazing view a fit takes; the observations are
    gathered once at the lowest limit and each fit keeps the views within its own), ``specular_cone_deg`` 0 (no
-   mirror-cone test)/8/25 and the test off at ``min_cos`` 0.4 (each cone traced once, as the stage traces it)
-   and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's defaults
-   (a change equal to the default is left out), with the fit time (``fit_roughness``, ``--threads`` torch
-   threads; ``x_gather``: as a ratio to gathering the observations it fits, in the same process) and the
-   smoothing time.
+   mirror-cone test)/8/25 and the test off at ``min_cos`` 0.4 (each cone traced once, as the stage traces it),
+   ``albedo_max_views`` 0/4/16 and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's
+   defaults (a change equal to the default is left out), with the fit time (``fit_roughness``, both fits with
+   ``albedo_max_views``, ``--threads`` torch threads; ``x_gather``: as a ratio to gathering the
+   observations it fits, in the same process) and the smoothing time. Per variant also the PSNR against the truth
+   of the intrinsic albedo texture its diffuse ratio gives (the baked albedo times the ratio, the released
+   occlusion texture divided out, as the stage).
    Per variant, the fitted mean at each true roughness (the simulator's materials).
    Baselines: a constant roughness equal to the median of the per-texel fits (what a fit that finds no
    variation gives) and, as oracles, the truth's own mean and median over the compared pixels (the median
@@ -70,7 +72,10 @@ VARIANT_CHANGES = [("specular_model sg", {"specular_model": "sg"}),
                    ("specular_cone_deg 0 (no mirror-cone test)", {"specular_cone_deg": 0.0}),
                    ("specular_cone_deg 8", {"specular_cone_deg": 8.0}),
                    ("specular_cone_deg 25", {"specular_cone_deg": 25.0}),
-                   ("no mirror-cone test, min_cos 0.4", {"specular_cone_deg": 0.0, "min_cos": 0.4})]
+                   ("no mirror-cone test, min_cos 0.4", {"specular_cone_deg": 0.0, "min_cos": 0.4}),
+                   ("albedo_max_views 0 (the albedo of the roughness fit)", {"albedo_max_views": 0}),
+                   ("albedo_max_views 4", {"albedo_max_views": 4}),
+                   ("albedo_max_views 16", {"albedo_max_views": 16})]
 MEDIAN_NEIGHBOURS_SWEEP = (1, 25, 100, 200)
 OCCLUSION_RAYS_SWEEP = (16, 64, 128)
 MIN_OCCLUSION_SWEEP = (0.1, 0.2, 0.4)
@@ -131,6 +136,8 @@ def load_action(release: Path, capture: Path, action: str, cfg: MaterialsConfig)
     for name in ("albedo_deoccluded", "albedo_intrinsic"):
         if artifacts.has(f"{name}_texture"):
             textures[name] = artifacts.texture(f"{name}_texture")
+    if artifacts.has("occlusion_texture"):
+        textures["occlusion"] = artifacts.texture("occlusion_texture", 1)
     return {"view": view, "vertices": vertices, "faces": faces, "atlas": atlas, "views": views,
             "white": np.stack([white[cam.camera_id] for cam in cameras]), "released": textures,
             "obj": artifacts.existing("textured_mesh"), "session": session}
@@ -218,8 +225,9 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     """Per-texel fits for every variant (:func:`variant_configs`), smoothed and scored; times of the gather,
     fits and medians. Observations are gathered once, for the most views and the most grazing limit any variant
     uses."""
-    from stages.numerics.material_textures import (fit_texel_roughness, mirror_cone_open, published_roughness,
-                                                   texel_samples, texel_texture)
+    from stages.numerics.material_textures import (albedo_without_occlusion, diffuse_ratio_of, fit_texel_roughness,
+                                                   mirror_cone_open, published_roughness, texel_samples,
+                                                   texel_texture)
     from stages.numerics.materials import NO_VIEWS_RESIDUAL
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import ambient_occlusion
@@ -244,22 +252,40 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     scene = mesh_scene(data["vertices"], data["faces"])
     mirror_open: dict[float, np.ndarray] = {}  # cone half-angle -> (P, K) the stage's mirror-cone test
 
-    def fit(cfg: MaterialsConfig, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    def fit(cfg: MaterialsConfig, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The stage's fit of the texels ``rows`` on the first ``cfg.max_views`` gathered views (best first) whose
-        cosine to the texel reaches ``cfg.min_cos`` and whose mirror cone is open (``cfg.specular_cone_deg``)."""
+        cosine to the texel reaches ``cfg.min_cos`` and whose mirror cone is open (``cfg.specular_cone_deg``):
+        roughness, residual and the diffuse ratio (from the second fit on the first ``cfg.albedo_max_views`` of those
+        views within ``cfg.min_cos``, as the stage)."""
         k = cfg.max_views
         observed = obs["values"]["obs"][rows, :k]
         observed = observed.reshape(len(observed), -1, 3, 3)  # fewer than k when fewer cameras see the mesh
         white = data["white"][np.maximum(obs["view_index"][rows, :k], 0)]
-        valid = obs["valid"][rows, :k] & (obs["cos"][rows, :k] >= max(cfg.min_cos, 1e-3))
+        within = obs["valid"][rows, :k] & (obs["cos"][rows, :k] >= max(cfg.min_cos, 1e-3))
+        valid = within
         if cfg.specular_cone_deg > 0:
             if cfg.specular_cone_deg not in mirror_open:
                 mirror_open[cfg.specular_cone_deg] = mirror_cone_open(points, normals, obs["view_dirs"], obs["valid"],
                                                                       scene, cfg.specular_cone_deg)
-            valid = valid & mirror_open[cfg.specular_cone_deg][rows, :k]
-        rough, rms, _ = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], valid,
-                                            normals[rows], albedo[rows], white, cfg)
-        return rough, rms
+            valid = within & mirror_open[cfg.specular_cone_deg][rows, :k]
+        rough, rms, diffuse = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], valid,
+                                                  normals[rows], albedo[rows], white, cfg)
+        solved = rms != NO_VIEWS_RESIDUAL
+        if cfg.albedo_max_views > 0 and cfg.fit_albedo:
+            a = min(cfg.albedo_max_views, observed.shape[1])
+            _, albedo_rms, diffuse = fit_texel_roughness(observed[:, :a], obs["view_dirs"][rows, :a], within[:, :a],
+                                                         normals[rows], albedo[rows], white[:, :a], cfg)
+            solved = albedo_rms != NO_VIEWS_RESIDUAL
+        return rough, rms, diffuse_ratio_of(diffuse, albedo[rows], solved)
+
+    def intrinsic_psnr(ratio: np.ndarray) -> float | None:
+        """PSNR of the intrinsic albedo texture the stage would write with this diffuse ratio (the released
+        occlusion texture divided out), or None without one."""
+        if "occlusion" not in data["released"]:
+            return None
+        intrinsic = albedo_without_occlusion(data["released"]["albedo"], data["released"]["occlusion"],
+                                             base.min_occlusion, texel_texture(ratio, covered, fill=1.0))
+        return round(probe.albedo_psnr(intrinsic), 3)
 
     # Warm up: the first fit of a process builds the specular moment tables (about a second); not timed.
     for _, cfg in variants:
@@ -267,7 +293,7 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     default_fit = None
     for label, cfg in variants:
         t0 = time.perf_counter()
-        rough, rms = fit(cfg)
+        rough, rms, ratio = fit(cfg)
         fit_s = time.perf_counter() - t0
         fitted = rms != NO_VIEWS_RESIDUAL
         t0 = time.perf_counter()
@@ -277,12 +303,13 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
         raw = probe.roughness_errors(texel_texture(rough, covered))
         settings = {name: getattr(cfg, name) for name in ("specular_model", "fit_albedo", "max_views",
                                                           "median_neighbours", "median_min_visibility", "min_cos",
-                                                          "specular_cone_deg")}
+                                                          "specular_cone_deg", "albedo_max_views")}
         out["variants"].append({"variant": label, **settings, "fit_s": round(fit_s, 2),
                                 "x_gather": round(fit_s / max(gather_s, 1e-9), 2),
                                 "median_s": round(median_s, 2),
                                 "mae": round(score["mae"], 4), "bias": round(score["bias"], 4),
                                 "mae_unsmoothed": round(raw["mae"], 4),
+                                "intrinsic_albedo_psnr_db": intrinsic_psnr(ratio),
                                 "fit_rms_median": round(float(np.median(rms[fitted])), 5) if fitted.any() else 0.0,
                                 "by_true_level": probe.by_level(texel_texture(smooth, covered))})
         progress(f"  {label}: MAE {score['mae']:.4f} bias {score['bias']:+.4f} fit {fit_s:.1f} s")
@@ -364,14 +391,17 @@ def markdown(report: dict) -> str:
         r = entry["roughness"]
         lines += [f"## {action} ({r['texels']} texels, {r['mean_valid_views']} valid views each of "
                   f"{r['gathered_views']}, gather {r['gather_s']} s, {entry['true_cameras']} true cameras)", "",
-                  "| roughness variant | MAE | bias | MAE per texel (no median) | fit s | x gather | median s |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| roughness variant | MAE | bias | MAE per texel (no median) | intrinsic albedo dB | fit s | "
+                  "x gather | median s |",
+                  "|---|---|---|---|---|---|---|---|"]
         for v in r["variants"]:
+            psnr = v.get("intrinsic_albedo_psnr_db")
             lines.append(f"| {v['variant']} | {v['mae']:.4f} | {v['bias']:+.4f} | {v['mae_unsmoothed']:.4f} | "
+                         f"{'-' if psnr is None else f'{psnr:.2f}'} | "
                          f"{v['fit_s']:.1f} | {v['x_gather']:.1f} | {v['median_s']:.2f} |")
         for n in r["neighbours"]:
             lines.append(f"| default, median_neighbours {n['median_neighbours']} | {n['mae']:.4f} | {n['bias']:+.4f} "
-                         f"| | | | {n['median_s']:.2f} |")
+                         f"| | | | | {n['median_s']:.2f} |")
         for name, b in r["baselines"].items():
             value = f" = {b['value']:.3f}" if "value" in b else ""
             lines.append(f"| baseline: {name}{value} | {b['mae']:.4f} | {b['bias']:+.4f} | | 0 | | |")

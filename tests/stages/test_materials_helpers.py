@@ -8,7 +8,7 @@ import pytest
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
 from artifacts.facade import fitted_f0, load_atlas_mesh
-from stages.numerics.material_textures import roughness_median, surface_median, texel_uvs
+from stages.numerics.material_textures import diffuse_ratio_of, roughness_median, surface_median, texel_uvs
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals
 
@@ -150,3 +150,16 @@ def test_roughness_median_leaves_shadowed_texels_out_of_the_vote():
     # no texel open enough: every fitted texel votes rather than none
     fallback, voters = roughness_median(points, roughness, fitted, visibility, 1.5, neighbours=3)
     assert voters.sum() == 9 and np.array_equal(fallback, everyone)
+
+
+def test_diffuse_ratio_hand_cases():
+    """diffuse / white-light albedo where solved and the albedo is above 0.02; 1 elsewhere; within [0.5, 1.5]."""
+    white = np.array([[0.5, 0.4, 0.2], [0.5, 0.5, 0.5], [0.01, 0.5, 0.5], [0.5, 0.5, 0.5]])
+    diffuse = np.array([[0.45, 0.4, 0.1], [0.4, 0.4, 0.4], [0.02, 0.9, 0.05], [np.nan, 0.4, 0.4]])
+    solved = np.array([True, False, True, True])
+    ratio = diffuse_ratio_of(diffuse, white, solved)
+    assert ratio.dtype == np.float32 and ratio.shape == (4, 3)
+    np.testing.assert_allclose(ratio[0], [0.9, 1.0, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(ratio[1], [1.0, 1.0, 1.0])  # not solved
+    np.testing.assert_allclose(ratio[2], [1.0, 1.5, 0.5], rtol=1e-6)  # a dark channel, then the clip
+    np.testing.assert_allclose(ratio[3], [1.0, 0.8, 0.8], rtol=1e-6)  # NaN reads as 1
