@@ -229,6 +229,11 @@ def identify_markers(predicted: np.ndarray, apparent_px: np.ndarray, usable: np.
     return out
 
 
+RANSAC_SEED = 0
+"""The seed COLMAP's random generator is set to before each camera's RANSAC (:func:`_fit_camera`), so a camera's
+calibration is a function of its own image alone, not of the fits that ran before it in the process."""
+
+
 def _fit_camera(uv: np.ndarray, xyz: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray | None,
                 size: tuple[int, int], config: MarkerCalibrationConfig, ransac: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Pose and focal length from 2D (N, 2) - 3D (N, 3) correspondences with pycolmap. The camera is
@@ -252,6 +257,9 @@ def _fit_camera(uv: np.ndarray, xyz: np.ndarray, K: np.ndarray, cam_from_world: 
         estimate = pycolmap.AbsolutePoseEstimationOptions()
         estimate.ransac.max_error = config.ransac_max_error_px
         estimate.ransac.min_inlier_ratio = 0.25
+        # COLMAP's RANSAC draws from a generator that lives as long as the process: unseeded, a camera's pose would
+        # depend on how many fits ran before it in this process (1e-12 apart, which the SDF's training grows)
+        pycolmap.set_random_seed(RANSAC_SEED)
         found = pycolmap.estimate_and_refine_absolute_pose(square, xyz, camera, estimate, refine)
         if found is None:
             return None

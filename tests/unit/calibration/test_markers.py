@@ -185,6 +185,26 @@ def test_calibrate_markers_beats_the_goal_on_rendered_frames(rendered):
     assert result.reconstruction.compute_mean_reprojection_error() == pytest.approx(result.reprojection_error_px, rel=0.05)
 
 
+def test_calibration_does_not_depend_on_what_ran_before_it(rendered):
+    """COLMAP's RANSAC generator lives as long as the process: the same frames calibrated again in this process,
+    after other fits, and with the cameras in another order give the same cameras to the bit."""
+    cameras, nominal, images, surveyed, radius = rendered
+
+    def calibrate(names):
+        result = calibrate_markers({c: images[c] for c in names}, {c: nominal[c][0] for c in names},
+                                   {c: nominal[c][1] for c in names}, surveyed, radius)
+        return {n: (c.K, c.cam_from_world) for n, c in result.cameras.items()}
+
+    names = sorted(images)
+    first = calibrate(names)
+    calibrate(names[:3])  # other fits in between move the generator along
+    for again in (calibrate(names), calibrate(names[::-1])):
+        assert sorted(again) == sorted(first)
+        for name, (K, pose) in first.items():
+            np.testing.assert_array_equal(again[name][0], K)
+            np.testing.assert_array_equal(again[name][1], pose)
+
+
 def test_calibrate_markers_names_the_camera_it_cannot_calibrate(rendered):
     cameras, nominal, images, surveyed, radius = rendered
     images = dict(images)
