@@ -107,7 +107,9 @@ class GeometricConfig(Documented):
     """RANSAC inlier threshold (units of ``known_centres``, metres on the stage) of the similarity
     alignment of reconstructed to known camera centres."""
     num_threads: int = -1
-    """Threads for extraction, matching and mapping (-1: all cores)."""
+    """Threads for extraction, matching and mapping (-1: all cores). Only 1 gives the same cameras on every run:
+    ``calibrate_rig`` run three times in one process on a simulated 12-camera stage at 256 px gave the same
+    poses to the bit with 1 thread, and pose entries up to 4e-3 apart with 2 (seeded either way)."""
     seed: int = 0
     """Random seed of COLMAP's RANSAC and mapper (results can still vary with thread scheduling)."""
     verbose: bool = False
