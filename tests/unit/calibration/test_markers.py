@@ -186,8 +186,8 @@ def test_calibrate_markers_beats_the_goal_on_rendered_frames(rendered):
 
 
 def test_calibration_does_not_depend_on_what_ran_before_it(rendered):
-    """COLMAP's RANSAC generator lives as long as the process: the same frames calibrated again in this process,
-    after other fits, and with the cameras in another order give the same cameras to the bit."""
+    """COLMAP's RANSAC generator lives as long as the process: the same frames calibrated again in this
+    process, after other fits, and with the cameras in another order give the same cameras to the bit."""
     cameras, nominal, images, surveyed, radius = rendered
 
     def calibrate(names):
