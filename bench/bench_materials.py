@@ -1,7 +1,7 @@
 """Materials stage: the roughness texture and the de-occluded albedo against the simulator, with their times.
 
 For each action of a release (default A0000 and A0001) this runs the materials stage's steps on the release's
-own files, calling the functions the stage calls (``stages.materials`` ``texel_samples``, ``fit_texel_roughness``,
+own files, calling the functions the stage calls (``stages.materials`` ``texel_samples``, ``fit_texel_materials``,
 ``published_roughness``, ``texel_texture``, ``albedo_without_occlusion``, and
 ``stages.numerics.shadowing.ambient_occlusion``) with configs derived from the stage's defaults
 (:func:`default_config`, one field changed per variant: :func:`variant_configs`), and scores every
@@ -225,9 +225,8 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     """Per-texel fits for every variant (:func:`variant_configs`), smoothed and scored; times of the gather,
     fits and medians. Observations are gathered once, for the most views and the most grazing limit any variant
     uses."""
-    from stages.numerics.material_textures import (albedo_without_occlusion, diffuse_ratio_of, fit_texel_roughness,
-                                                   mirror_cone_open, published_roughness, texel_samples,
-                                                   texel_texture)
+    from stages.numerics.material_textures import (albedo_without_occlusion, fit_texel_materials, mirror_cone_open,
+                                                   published_roughness, texel_samples, texel_texture)
     from stages.numerics.materials import NO_VIEWS_RESIDUAL
     from stages.numerics.raycast import mesh_scene
     from stages.numerics.shadowing import ambient_occlusion
@@ -255,8 +254,8 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     def fit(cfg: MaterialsConfig, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The stage's fit of the texels ``rows`` on the first ``cfg.max_views`` gathered views (best first) whose
         cosine to the texel reaches ``cfg.min_cos`` and whose mirror cone is open (``cfg.specular_cone_deg``):
-        roughness, residual and the diffuse ratio (from the second fit on the first ``cfg.albedo_max_views`` of those
-        views within ``cfg.min_cos``, as the stage)."""
+        roughness, residual and the diffuse ratio (:func:`fit_texel_materials`, as the stage: its second fit on the
+        first ``cfg.albedo_max_views`` of those views within ``cfg.min_cos``)."""
         k = cfg.max_views
         observed = obs["values"]["obs"][rows, :k]
         observed = observed.reshape(len(observed), -1, 3, 3)  # fewer than k when fewer cameras see the mesh
@@ -268,15 +267,9 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
                 mirror_open[cfg.specular_cone_deg] = mirror_cone_open(points, normals, obs["view_dirs"], obs["valid"],
                                                                       scene, cfg.specular_cone_deg)
             valid = within & mirror_open[cfg.specular_cone_deg][rows, :k]
-        rough, rms, diffuse = fit_texel_roughness(observed, obs["view_dirs"][rows, :k], valid,
-                                                  normals[rows], albedo[rows], white, cfg)
-        solved = rms != NO_VIEWS_RESIDUAL
-        if cfg.albedo_max_views > 0 and cfg.fit_albedo:
-            a = min(cfg.albedo_max_views, observed.shape[1])
-            _, albedo_rms, diffuse = fit_texel_roughness(observed[:, :a], obs["view_dirs"][rows, :a], within[:, :a],
-                                                         normals[rows], albedo[rows], white[:, :a], cfg)
-            solved = albedo_rms != NO_VIEWS_RESIDUAL
-        return rough, rms, diffuse_ratio_of(diffuse, albedo[rows], solved)
+        rough, rms, ratio, _ = fit_texel_materials(observed, obs["view_dirs"][rows, :k], within, valid,
+                                                   normals[rows], albedo[rows], white, cfg)
+        return rough, rms, ratio
 
     def intrinsic_psnr(ratio: np.ndarray) -> float | None:
         """PSNR of the intrinsic albedo texture the stage would write with this diffuse ratio (the released

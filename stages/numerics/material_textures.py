@@ -1,7 +1,7 @@
 """The materials stage's action: texel observations -> roughness, ambient occlusion and albedo textures.
 
 :func:`material_textures` runs the three steps over the action's UV atlas (:func:`texel_samples`,
-:func:`fit_texel_roughness`, :func:`published_roughness`), the ambient occlusion on the mesh and the albedos
+:func:`fit_texel_materials`, :func:`published_roughness`), the ambient occlusion on the mesh and the albedos
 divided by it; the stage module (stages/materials.py) says why each step is there and what it measured. Pure:
 arrays and dataclasses in, arrays out. ``cfg`` is a :class:`MaterialTexturesConfig` (the materials stage's config
 is one, with the stage's own fields added).
@@ -215,6 +215,29 @@ def fit_texel_roughness(observed: np.ndarray, view_dirs: np.ndarray, valid: np.n
                          specular_model=cfg.specular_model, fit_albedo=cfg.fit_albedo, return_albedo=True)
 
 
+def fit_texel_materials(observed: np.ndarray, view_dirs: np.ndarray, valid: np.ndarray, usable: np.ndarray,
+                        normals: np.ndarray, albedo: np.ndarray, white_scale: np.ndarray,
+                        cfg: MaterialTexturesConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 2 with its albedo: :func:`fit_texel_roughness` on the ``usable`` (P, V) observations (valid, mirror
+    cone open), and the diffuse ratio (:func:`diffuse_ratio_of`) of the albedo fitted with it or, with
+    ``cfg.albedo_max_views`` and ``cfg.fit_albedo``, of a second joint fit on the ``valid`` (P, V) observations
+    of the first ``cfg.albedo_max_views`` views. observed (P, V, 3, 3), view_dirs (P, V, 3), normals and albedo
+    (P, 3), white_scale (P, V, 3) as :func:`stages.numerics.materials.fit_roughness`. Returns the roughness (P,),
+    its fit's rms (P,; ``NO_VIEWS_RESIDUAL`` where no view was usable), the diffuse ratio (P, 3) float32 and
+    whether the albedo was solved (P,) bool."""
+    from stages.numerics.materials import NO_VIEWS_RESIDUAL
+
+    roughness, fit_rms, diffuse_albedo = fit_texel_roughness(observed, view_dirs, usable, normals, albedo,
+                                                             white_scale, cfg)
+    albedo_rms = fit_rms
+    if cfg.albedo_max_views > 0 and cfg.fit_albedo:
+        k = min(int(cfg.albedo_max_views), observed.shape[1])
+        _, albedo_rms, diffuse_albedo = fit_texel_roughness(observed[:, :k], view_dirs[:, :k], valid[:, :k],
+                                                            normals, albedo, white_scale[:, :k], cfg)
+    solved = albedo_rms != NO_VIEWS_RESIDUAL
+    return roughness, fit_rms, diffuse_ratio_of(diffuse_albedo, albedo, solved), solved
+
+
 def published_roughness(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
                         cfg: MaterialTexturesConfig) -> tuple[np.ndarray, np.ndarray]:
     """Step 3: :func:`roughness_median` with the config's voters and neighbours, within the config's bounds
@@ -317,19 +340,9 @@ def material_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albed
     usable = obs["valid"]
     if cfg.specular_cone_deg > 0:
         usable = usable & mirror_cone_open(points, normals, obs["view_dirs"], usable, mesh, cfg.specular_cone_deg)
-    roughness, fit_rms, diffuse_albedo = fit_texel_roughness(observed, obs["view_dirs"], usable, normals,
-                                                             albedo, white_per_obs, cfg)
+    roughness, fit_rms, diffuse_ratio, albedo_solved = fit_texel_materials(
+        observed, obs["view_dirs"], obs["valid"], usable, normals, albedo, white_per_obs, cfg)
     fitted = fit_rms != NO_VIEWS_RESIDUAL
-    albedo_solved = fitted
-    if cfg.albedo_max_views > 0 and cfg.fit_albedo:
-        t1 = time.perf_counter()
-        k = min(int(cfg.albedo_max_views), observed.shape[1])
-        _, albedo_rms, diffuse_albedo = fit_texel_roughness(observed[:, :k], obs["view_dirs"][:, :k],
-                                                            obs["valid"][:, :k], normals, albedo,
-                                                            white_per_obs[:, :k], cfg)
-        albedo_solved = albedo_rms != NO_VIEWS_RESIDUAL
-        timings["albedo_fit_s"] = time.perf_counter() - t1
-    diffuse_ratio = diffuse_ratio_of(diffuse_albedo, albedo, albedo_solved)
     # texels the body shadows from part of the stage fit too rough: they take their unshadowed neighbours'
     texel_visibility = ambient_occlusion(points, normals, mesh, rays=cfg.occlusion_rays)
     smooth, voters = published_roughness(points, roughness, fitted, texel_visibility, cfg)

@@ -8,7 +8,8 @@ import pytest
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
 from artifacts.facade import fitted_f0, load_atlas_mesh
-from stages.numerics.material_textures import diffuse_ratio_of, roughness_median, surface_median, texel_uvs
+from stages.numerics.material_textures import (MaterialTexturesConfig, diffuse_ratio_of, fit_texel_materials,
+                                               fit_texel_roughness, roughness_median, surface_median, texel_uvs)
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals
 
@@ -163,3 +164,40 @@ def test_diffuse_ratio_hand_cases():
     np.testing.assert_allclose(ratio[1], [1.0, 1.0, 1.0])  # not solved
     np.testing.assert_allclose(ratio[2], [1.0, 1.5, 0.5], rtol=1e-6)  # a dark channel, then the clip
     np.testing.assert_allclose(ratio[3], [1.0, 0.8, 0.8], rtol=1e-6)  # NaN reads as 1
+
+
+def test_fit_texel_materials_takes_the_albedo_from_its_own_views():
+    """The roughness comes from the usable observations alone; the diffuse ratio from a second fit on the valid
+    observations of the first ``albedo_max_views`` views (0: from the roughness fit itself)."""
+    from stages.numerics.materials import shade_stage_illuminations
+
+    rng = np.random.default_rng(1)
+    points, views = 6, 4
+    normals = np.tile([0.0, 0.0, 1.0], (points, 1))
+    view_dirs = rng.normal(size=(points, views, 3)) * [0.4, 0.4, 0.0] + [0.0, 0.0, 1.0]
+    view_dirs /= np.linalg.norm(view_dirs, axis=-1, keepdims=True)
+    albedo = np.full((points, 3), 0.5)
+    observed = np.stack([shade_stage_illuminations(normals, view_dirs[:, v], albedo, np.full(points, 0.4),
+                                                   f0=0.028, specular_model="ggx_table")
+                         for v in range(views)], axis=1) * rng.uniform(0.9, 1.1, (points, views, 1, 1))
+    white = np.ones((points, views, 3), np.float32)
+    valid = np.ones((points, views), bool)
+    usable = valid.copy()
+    usable[:, 0] = False
+    usable[0] = False  # a texel with no usable view
+    for k in (0, 2):
+        cfg = MaterialTexturesConfig(albedo_max_views=k)
+        rough, rms, ratio, solved = fit_texel_materials(observed, view_dirs, valid, usable, normals, albedo, white,
+                                                        cfg)
+        expect = fit_texel_roughness(observed, view_dirs, usable, normals, albedo, white, cfg)
+        np.testing.assert_array_equal(rough, expect[0])
+        np.testing.assert_array_equal(rms, expect[1])
+        if k:
+            second = fit_texel_roughness(observed[:, :k], view_dirs[:, :k], valid[:, :k], normals, albedo,
+                                         white[:, :k], cfg)
+            np.testing.assert_array_equal(ratio, diffuse_ratio_of(second[2], albedo, second[1] >= 0))
+            assert solved.all()  # the texel without usable views has valid ones
+        else:
+            np.testing.assert_array_equal(ratio, diffuse_ratio_of(expect[2], albedo, expect[1] >= 0))
+            assert solved.tolist() == [False] + [True] * (points - 1)
+            assert (ratio[0] == 1.0).all()
