@@ -215,13 +215,18 @@ def textures_tradeoffs(out: Path) -> list[Tradeoff]:
     if not data:
         return []
     base = data.get("baseline_undecimated")
-    points = tuple(TradeoffPoint(f"{r['atlas_faces']} faces", r["cpu_s"], r["albedo_psnr_db"],
-                                 presets=_presets_where(lambda c, r=r: c.textures.atlas_faces == r["atlas_faces"]),
+    points = tuple(TradeoffPoint(f"{r['atlas_faces']} faces" + (f", charts <= {r['max_chart_area_m2']:g} m^2"
+                                                                if r.get("max_chart_area_m2") else ""),
+                                 r["cpu_s"], r["albedo_psnr_db"],
+                                 presets=_presets_where(lambda c, r=r: c.textures.atlas_faces == r["atlas_faces"]
+                                                        and c.textures.atlas_max_chart_area_m2
+                                                        == r.get("max_chart_area_m2", 0.0)),
                                  baseline_seconds=base["cpu_s"] if base else None)
                    for r in data["rows"])
     baseline = (f" The baseline is the stage on the undecimated mesh ({base['faces']} faces)." if base else
                 " Run without its baseline (the undecimated mesh: `make bench-full`).")
-    return [Tradeoff("textures", "textures.atlas_faces", "stage CPU seconds", "albedo texture PSNR (dB)", points,
+    return [Tradeoff("textures", "textures.atlas_faces, atlas_max_chart_area_m2", "stage CPU seconds",
+                     "albedo texture PSNR (dB)", points,
                      "bench_textures", higher_is_better=True, notes=(
                          f"At the default texture size ({data['texture_size']}^2; production bakes "
                          f"4096^2).{baseline}",))]

@@ -1,10 +1,12 @@
-"""Textures stage: the atlas face budget against the baked albedo texture's error, with the stage's time.
+"""Textures stage: the atlas face budget and the atlas' largest chart against the baked albedo texture's error,
+with the stage's time.
 
 The textures stage decimates the SDF's mesh to ``atlas_faces`` faces, unwraps it (xatlas) and bakes the albedo and
 normal textures from the photometric maps. This bench runs :class:`stages.textures.TexturesStage` itself (its
 ``run``, configs ``dataclasses.replace(TexturesConfig(), atlas_faces=N)``) on one action of a run's work folder
 (``make dataset``: its geometry, photometric and decode artifacts) for :data:`FACE_BUDGETS` plus the stage's and the
-production preset's budgets, and scores each baked albedo texture as ``ultrastage evaluate`` does
+production preset's budgets, then at the stage's budget for :data:`CHART_AREAS` (``atlas_max_chart_area_m2``:
+xatlas grows and flattens a few large charts for most of its time), and scores each baked albedo texture as ``ultrastage evaluate`` does
 (:func:`evaluation.release.texture_in_camera`): seen through its own textured mesh from every true camera, on the
 pixels where the truth has the subject and the mesh is hit, PSNR against the simulator's albedo (peak 1). Time:
 the stage's CPU seconds (decimation, atlas, bake and writing; one process, numeric threads as the machine gives).
@@ -40,6 +42,9 @@ from _release import latest_artifact  # noqa: E402
 FACE_BUDGETS = (5_000, 10_000, 20_000, 40_000, 100_000)
 """Atlas face budgets measured besides the stage's default and the production preset's."""
 QUICK_FACE_BUDGETS = (1_000, 3_000)
+CHART_AREAS = (0.1, 0.05, 0.02, 0.01)
+"""Largest charts (square metres) measured at the stage's face budget besides the stage's own limit."""
+QUICK_CHART_AREAS = (0.02,)
 
 
 def default_config():
@@ -52,6 +57,13 @@ def production_config():
     from stages.registry import PRESETS
 
     return PRESETS["production"].textures
+
+
+def chart_areas(quick: bool) -> list[float]:
+    """The swept chart-area limits at the stage's face budget, the stage's own first (0: no limit)."""
+    default = default_config().atlas_max_chart_area_m2
+    extra = QUICK_CHART_AREAS if quick else CHART_AREAS
+    return [default] + sorted({a for a in extra if a != default}, reverse=True)
 
 
 def budgets(quick: bool) -> list[int]:
@@ -99,13 +111,17 @@ class AlbedoProbe:
         return float(10 * np.log10(1.0 / max(sq / max(count, 1), 1e-12))), covered / max(total, 1)
 
 
-def run_budget(work: Path, capture: Path, action: str, atlas_faces: int, probe: AlbedoProbe) -> dict:
-    """The textures stage with ``atlas_faces``, timed, its albedo texture scored."""
+def run_budget(work: Path, capture: Path, action: str, atlas_faces: int, probe: AlbedoProbe,
+               max_chart_area_m2: float | None = None) -> dict:
+    """The textures stage with ``atlas_faces`` (and ``max_chart_area_m2``, else the stage's), timed, its albedo
+    texture scored."""
     from pipeline.codecs.exr import read_exr
     from pipeline.stage import StageContext
     from stages.textures import TexturesStage
 
     config = dataclasses.replace(default_config(), atlas_faces=atlas_faces)
+    if max_chart_area_m2 is not None:
+        config = dataclasses.replace(config, atlas_max_chart_area_m2=float(max_chart_area_m2))
     stage = TexturesStage(config)
     with tempfile.TemporaryDirectory(prefix="bench_textures_") as tmp:
         ctx = StageContext(stage="textures", scope_id=action, session_id="", action_id=action, out_dir=Path(tmp),
@@ -119,23 +135,26 @@ def run_budget(work: Path, capture: Path, action: str, atlas_faces: int, probe: 
         psnr, coverage = probe.psnr_db(Path(tmp) / "mesh" / "textured.obj",
                                        read_exr(Path(tmp) / "textures" / "albedo.exr")[..., :3])
         score_s = time.perf_counter() - score_s
-    return {"atlas_faces": atlas_faces, "faces": int(stats["atlas_faces"]), "cpu_s": cpu, "wall_s": wall,
+    return {"atlas_faces": atlas_faces, "max_chart_area_m2": config.atlas_max_chart_area_m2,
+            "faces": int(stats["atlas_faces"]), "cpu_s": cpu, "wall_s": wall,
             "atlas_s": float(stats["atlas_seconds"]), "bake_s": float(stats["bake_seconds"]),
             "albedo_psnr_db": psnr, "truth_pixels_hit": coverage, "score_s": score_s}
 
 
 def markdown(report: dict) -> str:
     base = report.get("baseline_undecimated")
-    lines = [f"# Textures: atlas face budget ({report['action']}, texture {report['texture_size']}^2)", ""]
+    lines = [f"# Textures: atlas face budget and largest chart ({report['action']}, texture "
+             f"{report['texture_size']}^2)", ""]
     if base:
         lines += [f"Baseline, same process: the mesh not decimated ({base['faces']} faces), {base['cpu_s']:.2f} s "
                   f"CPU, albedo {base['albedo_psnr_db']:.2f} dB.", ""]
-    lines += ["| atlas_faces | faces | CPU s | x undecimated | atlas s | bake s | albedo PSNR dB | truth pixels hit |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += ["| atlas_faces | largest chart m^2 | faces | CPU s | x undecimated | atlas s | bake s | albedo PSNR dB "
+              "| truth pixels hit |", "|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         name = str(r["atlas_faces"]) + "".join(f" ({p})" for p in r["presets"])
         ratio = f"{r['cpu_s'] / base['cpu_s']:.2f}" if base else "-"
-        lines.append(f"| {name} | {r['faces']} | {r['cpu_s']:.2f} | {ratio} | "
+        area = r.get("max_chart_area_m2", 0.0)
+        lines.append(f"| {name} | {area:g}{' (no limit)' if area == 0 else ''} | {r['faces']} | {r['cpu_s']:.2f} | {ratio} | "
                      f"{r['atlas_s']:.2f} | {r['bake_s']:.2f} | {r['albedo_psnr_db']:.2f} | "
                      f"{100 * r['truth_pixels_hit']:.1f}% |")
     return "\n".join(lines) + "\n"
@@ -165,9 +184,16 @@ def main() -> int:
     for faces in budgets(args.quick):
         row = run_budget(work, capture, args.action, faces, probe)
         row["presets"] = [name for name, cfg in (("default", default_config()), ("production", production_config()))
-                          if cfg.atlas_faces == faces]
+                          if cfg.atlas_faces == faces and cfg.atlas_max_chart_area_m2 == row["max_chart_area_m2"]]
         rows.append(row)
         print(f"atlas_faces {faces}: {row['faces']} faces, {row['cpu_s']:.2f} s CPU, "
+              f"albedo {row['albedo_psnr_db']:.2f} dB", flush=True)
+    for area in chart_areas(args.quick)[1:]:
+        row = run_budget(work, capture, args.action, default_config().atlas_faces, probe, area)
+        row["presets"] = [name for name, cfg in (("default", default_config()), ("production", production_config()))
+                          if cfg.atlas_faces == row["atlas_faces"] and cfg.atlas_max_chart_area_m2 == area]
+        rows.append(row)
+        print(f"atlas_max_chart_area_m2 {area:g}: {row['faces']} faces, {row['cpu_s']:.2f} s CPU, "
               f"albedo {row['albedo_psnr_db']:.2f} dB", flush=True)
     _, mesh_faces = read_ply(latest_artifact(work, "geometry", args.action) / "mesh" / "mesh.ply")
     report = {"action": args.action, "quick": args.quick, "texture_size": default_config().texture_size,

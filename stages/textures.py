@@ -39,6 +39,8 @@ class TexturesConfig(Documented):
     (:func:`stages.numerics.mesh.uv_atlas`)."""
     atlas_padding: int = checked(2, ge=0)
     """Texels between charts in the atlas."""
+    atlas_max_chart_area_m2: float = checked(0.0, ge=0.0)
+    """Largest chart of the atlas in square metres (0: no limit; xatlas' ``max_chart_area``)."""
     max_views: int = checked(3, ge=1)
     """A texel blends at most this many of the cameras that see it (the most frontal)."""
     depth_tolerance_m: float = checked(0.01, gt=0.0)
@@ -71,7 +73,7 @@ class TexturesStage(Stage):
                           valid=valid, K=cam.K, cam_from_world=cam.cam_from_world)
                  for cam_id, cam, normal_alpha, _, valid in artifacts.camera_maps(cfg.min_alpha)]
         result = atlas_textures(vertices, faces, views, cfg.atlas_faces, cfg.texture_size, cfg.atlas_padding,
-                                cfg.max_views, cfg.depth_tolerance_m, cfg.min_cos)
+                                cfg.max_views, cfg.depth_tolerance_m, cfg.min_cos, cfg.atlas_max_chart_area_m2)
         _write_textures(ctx.out_dir, result, cfg.previews)
         return {"atlas_faces": int(len(result.faces)), "atlas_seconds": result.atlas_seconds,
                 "bake_seconds": result.bake_seconds, "cameras": len(views),

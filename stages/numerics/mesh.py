@@ -309,7 +309,8 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------------- atlas
 def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, padding: int = 2,
-             max_iterations: int = 1, brute_force: bool = False, seed_normals: bool = True) -> Atlas:
+             max_iterations: int = 1, brute_force: bool = False, seed_normals: bool = True,
+             max_chart_area: float = 0.0) -> Atlas:
     """Cut the mesh into charts, flatten and pack them (xatlas) into a ``resolution`` square texture.
 
     xatlas' time grows faster than linearly in the face count (about a minute at 100k faces): atlas a
@@ -322,6 +323,8 @@ def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, pa
         max_iterations: xatlas chart-growing iterations (more = fewer, rounder charts, slower).
         brute_force: xatlas' slower, tighter packing.
         seed_normals: pass area-weighted vertex normals to xatlas (charts follow the surface better).
+        max_chart_area: largest chart xatlas grows, in the vertices' units squared (0: no limit). Growing
+            and flattening the few large charts is most of xatlas' time on a body.
 
     Returns:
         :class:`Atlas`; face order is the input's.
@@ -335,6 +338,8 @@ def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, pa
         raise ValueError(f"resolution must be >= 8, got {resolution}")
     if int(padding) < 0:
         raise ValueError(f"padding must be >= 0, got {padding}")
+    if not float(max_chart_area) >= 0.0:
+        raise ValueError(f"max_chart_area must be >= 0, got {max_chart_area}")
     t0 = time.perf_counter()
     normals = vertex_normals(v, f) if seed_normals else None
 
@@ -343,6 +348,7 @@ def uv_atlas(vertices: np.ndarray, faces: np.ndarray, resolution: int = 1024, pa
         atlas.add_mesh(np.ascontiguousarray(v, np.float32), np.ascontiguousarray(f, np.uint32), normals)
         chart_options = xatlas.ChartOptions()
         chart_options.max_iterations = int(max_iterations)
+        chart_options.max_chart_area = float(max_chart_area)
         pack_options = xatlas.PackOptions()
         pack_options.resolution = int(resolution)
         pack_options.padding = int(padding)

@@ -143,3 +143,6 @@ def test_textures_budgets_hold_the_stage_and_production_budgets():
     assert full[0] == quick[0] == TexturesConfig().atlas_faces
     assert PRESETS["production"].textures.atlas_faces in full
     assert len(set(full)) == len(full) and len(set(quick)) == len(quick)
+    areas, quick_areas = bench.chart_areas(False), bench.chart_areas(True)
+    assert areas[0] == quick_areas[0] == TexturesConfig().atlas_max_chart_area_m2
+    assert len(set(areas)) == len(areas) > 2 and len(set(quick_areas)) == len(quick_areas) == 2

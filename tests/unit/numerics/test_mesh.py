@@ -157,6 +157,31 @@ def test_uv_atlas_charts_cover_the_mesh_without_overlap():
     assert np.percentile(ratio, 95) / np.percentile(ratio, 5) < 2.0
 
 
+def test_uv_atlas_max_chart_area_bounds_every_chart():
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=RADIUS, resolution=20)
+    v = np.asarray(mesh.vertices, np.float32)
+    f = np.asarray(mesh.triangles, np.int32)
+    sphere_m2 = 4 * np.pi * RADIUS ** 2
+    free = uv_atlas(v, f, resolution=256, padding=2)
+    limit = sphere_m2 / 10
+    bounded = uv_atlas(v, f, resolution=256, padding=2, max_chart_area=limit)
+    assert np.array_equal(v[bounded.vmapping][bounded.faces], v[f])  # the same faces in the same order
+    assert bounded.stats["charts"] >= 10 > free.stats["charts"]
+    # each chart (faces joined through shared UV vertices) holds at most the limit of surface
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(bounded.vmapping)
+    edges = np.concatenate([bounded.faces[:, [0, 1]], bounded.faces[:, [1, 2]]])
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    face_area = face_normals(v, f)[1]
+    chart_area = np.bincount(label[bounded.faces[:, 0]], weights=face_area)
+    assert chart_area.max() <= limit * 1.0001
+    with pytest.raises(ValueError, match="max_chart_area"):
+        uv_atlas(v, f, resolution=256, max_chart_area=-1.0)
+
+
 # ------------------------------------------------------------------------------------------- codecs
 def test_ply_round_trip_and_open3d_reads_it(tmp_path):
     v, f, _ = extract_mesh(sphere_sdf, BOUNDS, 16)
