@@ -119,8 +119,10 @@ FIGURES = (  # (metric key of evaluate's overall figures, title, better: "low" |
     ("roughness_mae", "roughness MAE", "low", "materials"),
     ("relit_psnr_db", "relit PSNR (dB)", "high", "relighting"),
     ("comparable_relit_psnr_db", "comparable relit PSNR (dB)", "high", "relighting"),
+    ("composited_relit_psnr_db", "composited relit PSNR (dB; both images over black)", "high", "relighting"),
     ("relightset_image_psnr_db", "relighting set image PSNR (dB)", "high", "relighting"),
     ("comparable_relightset_image_psnr_db", "comparable relighting set image PSNR (dB)", "high", "relighting"),
+    ("composited_relightset_image_psnr_db", "composited relighting set image PSNR (dB)", "high", "relighting"),
     ("relightset_normal_mean_deg", "relighting set normals (deg)", "low", "relighting"),
     ("relightset_albedo_psnr_db", "relighting set albedo PSNR (dB)", "high", "relighting"),
 )
@@ -129,7 +131,8 @@ the specular-out normals; the held-out table 1 is the plain albedo and the ``nor
 the README's default-capture figures), the photometric maps' held-out normals beside it; the ``comparable_*`` mesh
 figures are over the truth a camera sees, away from an open mesh's boundary (``evaluation.release.MESH_METRICS``),
 the ``comparable_*`` relit figures without the pixels where the truth shows an open mesh's inside
-(``evaluation.release.comparable_exclude``)."""
+(``evaluation.release.comparable_exclude``), the ``composited_*`` ones with both images compared as they are over
+black (``stages.numerics.metrics.relit_psnr``'s ``composited``)."""
 
 
 def figures_of(overall: dict) -> dict[str, float]:

@@ -508,8 +508,8 @@ def evaluate_workers() -> int:
 
 
 RELIGHTSET_METRICS = ("relightset_image_psnr_db", "relightset_normal_mean_deg", "relightset_albedo_psnr_db",
-                      "comparable_relightset_image_psnr_db")
-RELIT_METRICS = ("relit_psnr_db", "comparable_relit_psnr_db", "relit_normal_mean_deg")
+                      "comparable_relightset_image_psnr_db", "composited_relightset_image_psnr_db")
+RELIT_METRICS = ("relit_psnr_db", "comparable_relit_psnr_db", "composited_relit_psnr_db", "relit_normal_mean_deg")
 
 
 def comparable_exclude(true: dict[str, np.ndarray]) -> np.ndarray:
@@ -850,7 +850,9 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
     camera (:class:`synthetic.relight.TruthRelighter`, kept in ``cache_dir`` by :class:`RelitTruthCache`
     when given): PSNR after a common exposure (:func:`stages.numerics.metrics.relit_psnr`), per view and
     environment, averaged; ``comparable_relit_psnr_db``, the same over the pixels where the truth shows no inside
-    of an open mesh (:func:`comparable_exclude`; on a closed mesh within a hair of the plain figure); and
+    of an open mesh (:func:`comparable_exclude`; on a closed mesh within a hair of the plain figure);
+    ``composited_relit_psnr_db``, the same with both images as they are over black (``relit_psnr``'s
+    ``composited``: a silhouette pixel counts with its coverage in both, not as 0 below its mask's threshold); and
     ``relit_normal_mean_deg``, the released shading normals
     (``renders/<view>/normal.exr``) against the true subject's, mean angle over the pixels both masks cover,
     averaged over views."""
@@ -863,6 +865,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
 
     values: list[float] = []
     comparable_values: list[float] = []
+    composited_values: list[float] = []
     normal_values: list[float] = []
     for action_id in ok_ids:
         view = rel.action(action_id)
@@ -873,7 +876,7 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
         lights = relit_truth_lights(cams)
         cache = RelitTruthCache(cache_dir, truth_dir, action_id, lights) if cache_dir is not None else None
         truth = None  # built on the first render the cache does not hold
-        scores, comparable = [], []
+        scores, comparable, composited = [], [], []
         normal_errors: dict[str, float] = {}
         for env_record in envs:
             env, _ = load_environment(env_record["name"], find_environment(env_record["name"], capture_root))
@@ -891,6 +894,8 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                 score = relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"], true["mask"])
                 scores.append(score["psnr_db"])
                 comparable.append(_comparable_psnr(relit[..., :3], relit[..., 3] >= 0.5, true, score))
+                composited.append(float(relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"], true["mask"],
+                                                   composited=True)["psnr_db"]))
                 if cam["camera_id"] not in normal_errors:  # the true normals do not depend on the environment
                     both = (relit[..., 3] >= 0.5) & np.asarray(true["mask"], bool)
                     if both.any():
@@ -903,16 +908,21 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                                  environment=env_record["label"]))
                 rows.append(_row(action_id, cam["camera_id"], "comparable_relit_psnr_db", "all", comparable[-1],
                                  run_id, environment=env_record["label"]))
+                rows.append(_row(action_id, cam["camera_id"], "composited_relit_psnr_db", "all", composited[-1],
+                                 run_id, environment=env_record["label"]))
         if scores:
             per_action.setdefault(action_id, {})["relit_psnr_db"] = float(np.mean(scores))
             per_action[action_id]["comparable_relit_psnr_db"] = float(np.mean(comparable))
+            per_action[action_id]["composited_relit_psnr_db"] = float(np.mean(composited))
             values.append(float(np.mean(scores)))
             comparable_values.append(float(np.mean(comparable)))
+            composited_values.append(float(np.mean(composited)))
         if normal_errors:
             per_action.setdefault(action_id, {})["relit_normal_mean_deg"] = float(np.mean(list(normal_errors.values())))
             normal_values.append(float(np.mean(list(normal_errors.values()))))
     out = {"relit_psnr_db": float(np.mean(values)),
-           "comparable_relit_psnr_db": float(np.mean(comparable_values))} if values else {}
+           "comparable_relit_psnr_db": float(np.mean(comparable_values)),
+           "composited_relit_psnr_db": float(np.mean(composited_values))} if values else {}
     if normal_values:
         out["relit_normal_mean_deg"] = float(np.mean(normal_values))
     return out
@@ -931,6 +941,14 @@ def _comparable_note(overall: dict[str, float], metric: str) -> str:
     if comparable is None or abs(comparable - overall[metric]) < 5e-3:
         return ""
     return f"; comparable {comparable:.2f} dB (without the truth's open-mesh insides)"
+
+
+def _composited_note(overall: dict[str, float], metric: str) -> str:
+    """``"; composited X dB (...)"`` for the summary when ``metric`` has a ``composited_`` figure, else ``""``."""
+    composited = overall.get(f"composited_{metric}")
+    if composited is None:
+        return ""
+    return f"; composited {composited:.2f} dB (both images over black, no mask threshold)"
 
 
 def _relighter(relighters: dict[tuple[str, int], Any] | None, capture_root: Path, action_id: str, lights: int,
@@ -955,7 +973,8 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
     """How faithful the relighting set is: each example against the simulator's subject rendered from the same
     camera under the same rotated map (:class:`synthetic.relight.TruthRelighter`): image PSNR after a common
     exposure (:func:`stages.numerics.metrics.relit_psnr`; ``comparable_*`` without the pixels where the truth
-    shows the inside of an open mesh, :func:`comparable_exclude`), camera-frame normals' mean angle and albedo
+    shows the inside of an open mesh, :func:`comparable_exclude`; ``composited_*`` with both images as they are
+    over black, ``relit_psnr``'s ``composited``), camera-frame normals' mean angle and albedo
     PSNR (clipped to [0, 1]) over the pixels both masks cover. Per action and over the set."""
     import json as _json
     import math
@@ -1009,18 +1028,21 @@ def _relightset_overall(release: Path, rel: Any, truth_dir: Path, ok_ids: list[s
             mask = maps_["mask"]
             true_mask = np.asarray(true["mask"], bool)
             both = mask & true_mask
-            action_scores = scores.setdefault(action_id, {"image": [], "normal": [], "albedo": [], "comparable": []})
+            action_scores = scores.setdefault(action_id, {"image": [], "normal": [], "albedo": [], "comparable": [],
+                                                          "composited": []})
             if not true_mask.any() or not both.any():
                 continue
             image_score = relit_psnr(maps_["image"], mask, true["radiance"], true_mask)
             action_scores["image"].append(image_score["psnr_db"])
             action_scores["comparable"].append(_comparable_psnr(maps_["image"], mask, true, image_score))
+            action_scores["composited"].append(float(relit_psnr(maps_["image"], mask, true["radiance"], true_mask,
+                                                                composited=True)["psnr_db"]))
             true_normals_cam = np.asarray(true["normals_world"], np.float64) @ pose[:, :3].T
             action_scores["normal"].append(float(angular_error_deg(maps_["normal"][both], true_normals_cam[both]).mean()))
             diff = np.clip(maps_["albedo"][both], 0, 1) - np.clip(np.asarray(true["albedo"])[both], 0, 1)
             action_scores["albedo"].append(_psnr_from_mse(float(np.mean(diff ** 2))))
     out: dict[str, float] = {}
-    names = dict(zip(("image", "normal", "albedo", "comparable"), RELIGHTSET_METRICS))
+    names = dict(zip(("image", "normal", "albedo", "comparable", "composited"), RELIGHTSET_METRICS))
     for kind, metric in names.items():
         values = []
         for action_id, action_scores in scores.items():
@@ -1139,12 +1161,13 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"{o.get('albedo_intrinsic_psnr_db', float('nan')):.2f} dB (vs the simulator's albedo)")
     if "relit_psnr_db" in o:
         print(f"  relit novel views     : PSNR {o['relit_psnr_db']:.2f} dB against the true subject under the same environments"
-              + _comparable_note(o, "relit_psnr_db"))
+              + _comparable_note(o, "relit_psnr_db") + _composited_note(o, "relit_psnr_db"))
     if "relit_normal_mean_deg" in o:
         print(f"  relit shading normals : {o['relit_normal_mean_deg']:.2f} deg mean against the true subject's")
     if "relightset_image_psnr_db" in o:
         print(f"  relighting set        : image PSNR {o['relightset_image_psnr_db']:.2f} dB, normals (camera frame) "
               f"{o.get('relightset_normal_mean_deg', float('nan')):.2f} deg, albedo PSNR "
               f"{o.get('relightset_albedo_psnr_db', float('nan')):.2f} dB against the true subject"
-              + _comparable_note(o, "relightset_image_psnr_db"))
+              + _comparable_note(o, "relightset_image_psnr_db")
+              + _composited_note(o, "relightset_image_psnr_db"))
     print(f"  actions               : {int(o.get('actions_ok', 0))} ok, {int(o.get('actions_failed', 0))} failed")

@@ -240,7 +240,8 @@ def downsample_to(
 
 
 def relit_psnr(pred_rgb: np.ndarray, pred_mask: np.ndarray, true_rgb: np.ndarray, true_mask: np.ndarray,
-               percentile: float = 99.0, exclude: np.ndarray | None = None) -> dict[str, float]:
+               percentile: float = 99.0, exclude: np.ndarray | None = None,
+               composited: bool = False) -> dict[str, float]:
     """PSNR of a relit HDR image against the ground-truth rendering, after a common exposure.
 
     HDR radiance has no fixed peak, so both images are scaled by ``1 / p`` with ``p`` the ``percentile``
@@ -248,6 +249,11 @@ def relit_psnr(pred_rgb: np.ndarray, pred_mask: np.ndarray, true_rgb: np.ndarray
     the error is taken over the union of both masks (a silhouette error counts; outside its mask an image
     is 0), less the ``exclude`` pixels. The exposure does not depend on ``exclude``: a figure with pixels left
     out is on the same scale as the one without.
+
+    ``composited``: both images as they are, premultiplied by their own pixel coverage (what either shows over
+    black), nothing zeroed outside a mask; the error over every pixel where either mask holds or either image
+    is non-zero, less ``exclude``. A silhouette pixel a quarter covered then counts as the quarter of its
+    colour it is, in both images, instead of as 0 or as the whole pixel on the side of its mask's threshold.
 
     Args:
         pred_rgb, true_rgb: (H, W, 3) linear radiance; pred_mask, true_mask: (H, W) bool.
@@ -269,11 +275,16 @@ def relit_psnr(pred_rgb: np.ndarray, pred_mask: np.ndarray, true_rgb: np.ndarray
         raise ValueError(f"exclude must be {pred.shape[:2]}, got {np.shape(exclude)}")
     if not tm.any():
         raise ValueError("the truth mask is empty: nothing to compare")
-    pred = np.where(pm[..., None], np.nan_to_num(pred, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
-    true = np.where(tm[..., None], true, 0.0)
+    pred = np.nan_to_num(pred, nan=0.0, posinf=0.0, neginf=0.0)
+    true = np.nan_to_num(true, nan=0.0, posinf=0.0, neginf=0.0)
+    union = pm | tm
+    if composited:
+        union |= np.any(pred != 0, axis=-1) | np.any(true != 0, axis=-1)
+    else:
+        pred = np.where(pm[..., None], pred, 0.0)
+        true = np.where(tm[..., None], true, 0.0)
     peak = float(np.percentile(true[tm], percentile))
     scale = 1.0 / peak if peak > 0 else 1.0
-    union = pm | tm
     if exclude is not None:
         union &= ~np.asarray(exclude, bool)
         if not union.any():

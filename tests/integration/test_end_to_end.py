@@ -833,11 +833,12 @@ def test_metrics_answer_naive_sql(first_run, evaluated):
     envs = con.execute("SELECT DISTINCT environment FROM metrics WHERE metric = 'relit_psnr_db'").fetchall()
     assert sorted(e for (e,) in envs) == ["procedural_sky", "procedural_studio"]
     assert con.execute("SELECT COUNT(*) FROM metrics WHERE environment IS NOT NULL AND metric NOT IN "
-                       "('relit_psnr_db', 'comparable_relit_psnr_db')").fetchone()[0] == 0
-    # the comparable relit rows pair with the plain ones, view by view and environment by environment
-    assert con.execute("SELECT COUNT(*) FROM metrics a JOIN metrics b USING (action_id, camera_id, environment) "
-                       "WHERE a.metric = 'relit_psnr_db' AND b.metric = 'comparable_relit_psnr_db'"
-                       ).fetchone()[0] == averages["relit_psnr_db"][2] == averages["comparable_relit_psnr_db"][2]
+                       "('relit_psnr_db', 'comparable_relit_psnr_db', 'composited_relit_psnr_db')").fetchone()[0] == 0
+    # the comparable and composited relit rows pair with the plain ones, view by view and environment by environment
+    for other in ("comparable_relit_psnr_db", "composited_relit_psnr_db"):
+        assert con.execute("SELECT COUNT(*) FROM metrics a JOIN metrics b USING (action_id, camera_id, environment) "
+                           "WHERE a.metric = 'relit_psnr_db' AND b.metric = ?", [other]
+                           ).fetchone()[0] == averages["relit_psnr_db"][2] == averages[other][2]
     assert con.execute("SELECT unit FROM summary WHERE metric = 'actions_ok'").fetchone()[0] == "count"
     # the stages' own statistics are named after the stage and are per view
     assert con.execute("SELECT COUNT(*) FROM metrics WHERE source = 'photometric' AND "

@@ -118,3 +118,32 @@ def test_excluded_pixels_leave_the_error_not_the_exposure():
         relit_psnr(pred, mask, true, mask, exclude=np.ones_like(mask))
     with pytest.raises(ValueError, match="exclude must be"):
         relit_psnr(pred, mask, true, mask, exclude=exclude[1:])
+
+
+def test_composited_counts_partly_covered_pixels_with_their_coverage():
+    """A silhouette pixel both images cover a quarter of (premultiplied: a quarter of the colour) is no error
+    composited; thresholded at 0.5 it is 0 in the image under its mask's threshold and the whole quarter in the
+    other. Hand-computed on a 2 x 2 scene: one full pixel, one quarter-covered pixel, two empty ones."""
+    true = np.zeros((2, 2, 3))
+    true[0, 0] = 4.0  # full pixel; the peak (99th percentile on the truth's mask) is 4: scale 1/4
+    true[0, 1] = 1.0  # a quarter of 4
+    true_mask = np.array([[True, True], [False, False]])  # the truth counts the quarter pixel in (a tie rule)
+    pred = true.copy()
+    pred_mask = np.array([[True, False], [False, False]])  # our alpha 0.25 < 0.5: out of our mask
+    plain = relit_psnr(pred, pred_mask, true, true_mask)
+    # thresholded: our quarter pixel is zeroed, error 1/4 (after scale) on one of two pixels
+    assert plain["pixels"] == 2 and plain["rmse"] == pytest.approx(math.sqrt(0.25 ** 2 / 2))
+    composited = relit_psnr(pred, pred_mask, true, true_mask, composited=True)
+    assert composited["pixels"] == 2 and composited["psnr_db"] == pytest.approx(120.0)
+    assert composited["scale"] == plain["scale"] == pytest.approx(0.25)
+    # a coverage we misjudge still counts: 0.5 of the colour where the truth has 0.25
+    pred[0, 1] = 2.0
+    assert relit_psnr(pred, pred_mask, true, true_mask, composited=True)["rmse"] == pytest.approx(
+        math.sqrt(0.25 ** 2 / 2))
+    # a pixel only one image shows (no mask holds it) joins the compared pixels
+    pred[1, 1] = 1.0
+    out = relit_psnr(pred, pred_mask, true, true_mask, composited=True)
+    assert out["pixels"] == 3 and out["rmse"] == pytest.approx(math.sqrt(2 * 0.25 ** 2 / 3))
+    # exclude still leaves pixels out
+    exclude = np.array([[False, True], [False, True]])
+    assert relit_psnr(pred, pred_mask, true, true_mask, exclude=exclude, composited=True)["pixels"] == 1
