@@ -158,14 +158,16 @@ def tone_gain(pred: np.ndarray, pred_mask: np.ndarray, true: np.ndarray, true_ma
 
 def score(pred: np.ndarray, pred_mask: np.ndarray, true: dict) -> dict[str, float]:
     """PSNR (:func:`stages.numerics.metrics.relit_psnr`, the evaluation's) and SSIM of the images at its common
-    exposure, clipped to [0, 1], over the union of the masks."""
+    exposure, clipped to [0, 1], over the union of the masks; ``composited_psnr_db``, the evaluation's composited
+    figure (both images as they are over black, no mask threshold)."""
     from stages.numerics.metrics import relit_psnr, ssim
 
     result = relit_psnr(pred, pred_mask, true["radiance"], true["mask"])
+    composited = relit_psnr(pred, pred_mask, true["radiance"], true["mask"], composited=True)
     union = pred_mask | true["mask"]
     a = np.clip(np.where(pred_mask[..., None], pred, 0.0) * result["scale"], 0, 1)
     b = np.clip(np.where(true["mask"][..., None], true["radiance"], 0.0) * result["scale"], 0, 1)
-    return {"psnr_db": result["psnr_db"], "ssim": ssim(a, b, union)}
+    return {"psnr_db": result["psnr_db"], "ssim": ssim(a, b, union), "composited_psnr_db": composited["psnr_db"]}
 
 
 def project_onto(scene: Any, points: np.ndarray) -> np.ndarray:
@@ -644,10 +646,11 @@ def markdown(report: dict) -> str:
                 f"{report['shading']['supersample']} x {report['shading']['supersample']}."
                 if report["shading"].get("supersample", 1) != 1 else "")
              + (" **Quick run: not measurements.**" if report["quick"] else ""), "",
-             "| row | PSNR dB | SSIM | dB recovered |", "|---|---:|---:|---:|"]
+             "| row | PSNR dB | SSIM | dB recovered | composited PSNR dB |", "|---|---:|---:|---:|---:|"]
     for label, m in s.items():
         rec = f"{m['recovered_db']:+.2f}" if "recovered_db" in m else ""
-        lines.append(f"| {label} | {m['psnr_db']:.2f} | {m['ssim']:.4f} | {rec} |")
+        composited = f"{m['composited_psnr_db']:.2f}" if "composited_psnr_db" in m else ""
+        lines.append(f"| {label} | {m['psnr_db']:.2f} | {m['ssim']:.4f} | {rec} | {composited} |")
     sil = report["silhouette"]
     lines += ["", f"## The silhouette band ({SILHOUETTE_BAND_PX} px of either outline, and the pixels in one mask "
               f"only; {sil['n']} images)", "",

@@ -212,6 +212,9 @@ def test_relit_budget_quick_mode_scores_the_capture_grid_truth_against_a_finer_o
     stage = ceiling["rows"]["stage"]
     assert stage["capture_grid_db"] == pytest.approx(report["summary"]["stage"]["psnr_db"], abs=1e-9)
     assert "The metric's ceiling" in (out / "bench_relit_budget.md").read_text()
+    # every row is scored both ways: the evaluation's thresholded PSNR and its composited one
+    assert all(5.0 < row["composited_psnr_db"] < 130.0 for row in report["summary"].values()), report["summary"]
+    assert "composited PSNR dB" in (out / "bench_relit_budget.md").read_text()
 
 
 def test_gaps_quick_mode_scores_each_rule_on_the_same_holes(quick_run):
