@@ -6,9 +6,10 @@ normal textures from the photometric maps. This bench runs :class:`stages.textur
 ``run``, configs ``dataclasses.replace(TexturesConfig(), atlas_faces=N)``) on one action of a run's work folder
 (``make dataset``: its geometry, photometric and decode artifacts) for :data:`FACE_BUDGETS` plus the stage's and the
 production preset's budgets, then at the stage's budget for :data:`CHART_AREAS` (``atlas_max_chart_area_m2``:
-xatlas grows and flattens a few large charts for most of its time), and scores each baked albedo texture as ``ultrastage evaluate`` does
-(:func:`evaluation.release.texture_in_camera`): seen through its own textured mesh from every true camera, on the
-pixels where the truth has the subject and the mesh is hit, PSNR against the simulator's albedo (peak 1). Time:
+xatlas grows and flattens a few large charts for most of its time), and scores each baked albedo texture as
+``ultrastage evaluate`` does (:func:`evaluation.release.texture_in_camera`): seen through its own textured mesh from
+every true camera, on the pixels where the truth has the subject and the mesh is hit, PSNR against the simulator's
+albedo (peak 1). Time:
 the stage's CPU seconds (decimation, atlas, bake and writing; one process, numeric threads as the machine gives).
 
 Baseline in the same process: the same run with the mesh not decimated (the budget set above its face count), so
@@ -154,8 +155,8 @@ def markdown(report: dict) -> str:
         name = str(r["atlas_faces"]) + "".join(f" ({p})" for p in r["presets"])
         ratio = f"{r['cpu_s'] / base['cpu_s']:.2f}" if base else "-"
         area = r.get("max_chart_area_m2", 0.0)
-        lines.append(f"| {name} | {area:g}{' (no limit)' if area == 0 else ''} | {r['faces']} | {r['cpu_s']:.2f} | {ratio} | "
-                     f"{r['atlas_s']:.2f} | {r['bake_s']:.2f} | {r['albedo_psnr_db']:.2f} | "
+        lines.append(f"| {name} | {area:g}{' (no limit)' if area == 0 else ''} | {r['faces']} | {r['cpu_s']:.2f} | "
+                     f"{ratio} | {r['atlas_s']:.2f} | {r['bake_s']:.2f} | {r['albedo_psnr_db']:.2f} | "
                      f"{100 * r['truth_pixels_hit']:.1f}% |")
     return "\n".join(lines) + "\n"
 

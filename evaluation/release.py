@@ -894,8 +894,8 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                 score = relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"], true["mask"])
                 scores.append(score["psnr_db"])
                 comparable.append(_comparable_psnr(relit[..., :3], relit[..., 3] >= 0.5, true, score))
-                composited.append(float(relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"], true["mask"],
-                                                   composited=True)["psnr_db"]))
+                composited.append(float(relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"],
+                                                   true["mask"], composited=True)["psnr_db"]))
                 if cam["camera_id"] not in normal_errors:  # the true normals do not depend on the environment
                     both = (relit[..., 3] >= 0.5) & np.asarray(true["mask"], bool)
                     if both.any():

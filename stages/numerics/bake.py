@@ -678,8 +678,9 @@ def atlas_textures(vertices: np.ndarray, faces: np.ndarray, views: list[BakeView
                    texture_size: int, padding: int, max_views: int, depth_tolerance_m: float,
                    min_cos: float, max_chart_area_m2: float = 0.0) -> AtlasTextures:
     """The mesh (V, 3) / (F, 3) decimated to ``atlas_faces``, its UV atlas of ``texture_size`` texels with
-    ``padding`` between charts and charts of at most ``max_chart_area_m2`` (0: no limit), and the views' images baked into it (:func:`bake_textures`: each texel blends its
-    ``max_views`` most frontal views within ``depth_tolerance_m`` of the mesh and above ``min_cos``)."""
+    ``padding`` between charts and charts of at most ``max_chart_area_m2`` (0: no limit), and the views' images
+    baked into it (:func:`bake_textures`: each texel blends its ``max_views`` most frontal views within
+    ``depth_tolerance_m`` of the mesh and above ``min_cos``)."""
     from stages.numerics.mesh import decimate, uv_atlas
 
     start = time.perf_counter()
