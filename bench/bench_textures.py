@@ -181,21 +181,17 @@ def main() -> int:
     from pipeline.codecs.mesh import read_ply
 
     probe = AlbedoProbe(truth, args.action)
+    settings = [(faces, None, f"atlas_faces {faces}") for faces in budgets(args.quick)]
+    settings += [(default_config().atlas_faces, area, f"atlas_max_chart_area_m2 {area:g}")
+                 for area in chart_areas(args.quick)[1:]]
     rows = []
-    for faces in budgets(args.quick):
-        row = run_budget(work, capture, args.action, faces, probe)
+    for faces, area, label in settings:
+        row = run_budget(work, capture, args.action, faces, probe, area)
         row["presets"] = [name for name, cfg in (("default", default_config()), ("production", production_config()))
-                          if cfg.atlas_faces == faces and cfg.atlas_max_chart_area_m2 == row["max_chart_area_m2"]]
+                          if (cfg.atlas_faces, cfg.atlas_max_chart_area_m2) == (faces, row["max_chart_area_m2"])]
         rows.append(row)
-        print(f"atlas_faces {faces}: {row['faces']} faces, {row['cpu_s']:.2f} s CPU, "
-              f"albedo {row['albedo_psnr_db']:.2f} dB", flush=True)
-    for area in chart_areas(args.quick)[1:]:
-        row = run_budget(work, capture, args.action, default_config().atlas_faces, probe, area)
-        row["presets"] = [name for name, cfg in (("default", default_config()), ("production", production_config()))
-                          if cfg.atlas_faces == row["atlas_faces"] and cfg.atlas_max_chart_area_m2 == area]
-        rows.append(row)
-        print(f"atlas_max_chart_area_m2 {area:g}: {row['faces']} faces, {row['cpu_s']:.2f} s CPU, "
-              f"albedo {row['albedo_psnr_db']:.2f} dB", flush=True)
+        print(f"{label}: {row['faces']} faces, {row['cpu_s']:.2f} s CPU, albedo {row['albedo_psnr_db']:.2f} dB",
+              flush=True)
     _, mesh_faces = read_ply(latest_artifact(work, "geometry", args.action) / "mesh" / "mesh.ply")
     report = {"action": args.action, "quick": args.quick, "texture_size": default_config().texture_size,
               "mesh_faces": int(len(mesh_faces)), "rows": rows}
