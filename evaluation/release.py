@@ -891,13 +891,14 @@ def _relit_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dic
                     true = truth.render(*args)
                     if cache is not None:
                         cache.save(key, true)
-                score = relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"], true["mask"])
+                rgb, mask = relit[..., :3], relit[..., 3] >= 0.5
+                score = relit_psnr(rgb, mask, true["radiance"], true["mask"])
                 scores.append(score["psnr_db"])
-                comparable.append(_comparable_psnr(relit[..., :3], relit[..., 3] >= 0.5, true, score))
-                composited.append(float(relit_psnr(relit[..., :3], relit[..., 3] >= 0.5, true["radiance"],
-                                                   true["mask"], composited=True)["psnr_db"]))
+                comparable.append(_comparable_psnr(rgb, mask, true, score))
+                composited.append(float(relit_psnr(rgb, mask, true["radiance"], true["mask"],
+                                                   composited=True)["psnr_db"]))
                 if cam["camera_id"] not in normal_errors:  # the true normals do not depend on the environment
-                    both = (relit[..., 3] >= 0.5) & np.asarray(true["mask"], bool)
+                    both = mask & np.asarray(true["mask"], bool)
                     if both.any():
                         normal = view.render_gbuffer(cam["camera_id"])["normal"]
                         error = float(angular_error_deg(normal[both], np.asarray(true["normals_world"])[both]).mean())
