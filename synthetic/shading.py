@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from . import geometry
+from . import geometry, kernels
 from .rig import Camera, LedSphere
 from .subject import ActionSubject
 
@@ -180,12 +180,15 @@ def ggx_weights(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, a
 
     normals, view (towards the camera): (N, 3) unit; light_dirs: (C, 3) unit; alpha (GGX alpha =
     roughness**2), f0: (N,). Vis = G2 / (4 n.l n.v) with the height-correlated Smith G2; Schlick F.
-    With float32 directions (the renderer's case) the (N, C) terms are computed in a few reused buffers
-    (:func:`_ggx_weights_float32`: the same float32 operations in the same order, so the same bits).
+    With float32 directions (the renderer's case) the (N, C) terms are computed in one fused C loop
+    (:func:`synthetic.kernels.ggx_terms`), else in a few reused buffers (:func:`_ggx_weights_float32`); both do
+    the formula's float32 operations in the same order, so all three give the same bits.
     """
     a2 = (alpha * alpha).astype(np.float32)[:, None]
     f0 = f0.astype(np.float32)[:, None]
     if normals.dtype == view.dtype == light_dirs.dtype == np.float32:
+        if kernels.kernel_available():
+            return _ggx_fused(normals, view, light_dirs, a2, f0)
         return _ggx_weights_float32(normals, view, light_dirs, a2, f0)
     return _ggx_weights_formula(normals, view, light_dirs, a2, f0)
 
@@ -490,16 +493,40 @@ def specular_radiance(normals: np.ndarray, view: np.ndarray, roughness: np.ndarr
     alpha = roughness.astype(np.float32) ** 2
     pixel_levels = level_of(alpha, lighting.levels)
     out = np.zeros((len(normals), 9), np.float32)
+    # the fused loop takes the visibility too, where the dtypes are the renderer's
+    fused = (normals.dtype == view.dtype == bary.dtype == np.float32 and kernels.kernel_available()
+             and all(c.directions.dtype == np.float32 for c in lighting.clusters)
+             and all(v.dtype == np.uint8 for v in lighting.cluster_visibility))
+    a2 = (alpha * alpha).astype(np.float32)[:, None]
+    f0_column = f0.astype(np.float32)[:, None]
     for level_index, (clusters, cluster_vis) in enumerate(zip(lighting.clusters, lighting.cluster_visibility)):
         members = np.nonzero(pixel_levels == level_index)[0]
         chunk = max(64, CHUNK_ELEMENTS // len(clusters.directions))
         for start in range(0, len(members), chunk):
             sel = members[start:start + chunk]
-            weights = ggx_weights(normals[sel], view[sel], clusters.directions, alpha[sel], f0[sel])
             t, b = tri[sel], bary[sel] * np.float32(1.0 / 255.0)
-            vis = cluster_vis[t[:, 0]] * b[:, 0:1]
-            vis += cluster_vis[t[:, 1]] * b[:, 1:2]
-            vis += cluster_vis[t[:, 2]] * b[:, 2:3]
-            weights *= vis
+            if fused:
+                weights = _ggx_fused(normals[sel], view[sel], clusters.directions, a2[sel], f0_column[sel],
+                                     cluster_vis, t, b)
+            else:
+                weights = ggx_weights(normals[sel], view[sel], clusters.directions, alpha[sel], f0[sel])
+                vis = cluster_vis[t[:, 0]] * b[:, 0:1]
+                vis += cluster_vis[t[:, 1]] * b[:, 1:2]
+                vis += cluster_vis[t[:, 2]] * b[:, 2:3]
+                weights *= vis
             out[sel] = weights @ clusters.irradiance
     return out
+
+
+def _ggx_fused(normals: np.ndarray, view: np.ndarray, light_dirs: np.ndarray, a2: np.ndarray, f0: np.ndarray,
+               cluster_vis: np.ndarray | None = None, tri: np.ndarray | None = None,
+               bary: np.ndarray | None = None) -> np.ndarray:
+    """:func:`ggx_weights` of float32 inputs (a2, f0: (N, 1) float32) by the fused loop of :mod:`synthetic.kernels`
+    (which must be available), and with ``cluster_vis`` (V, C) uint8, ``tri`` (N, 3) and ``bary`` (N, 3) float32
+    (barycentrics over 255) times the lights' visibility as :func:`specular_radiance` interpolates it; the bits of
+    the numpy steps either way."""
+    nl = normals @ light_dirs.T
+    nv = np.maximum(np.sum(normals * view, axis=1, keepdims=True), 1e-3)
+    lambda_v = np.sqrt(nv * nv * (1.0 - a2) + a2)
+    kernels.ggx_terms(nl, view @ light_dirs.T, nv, lambda_v, a2, f0, cluster_vis, tri, bary)
+    return nl

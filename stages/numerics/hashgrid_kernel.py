@@ -5,9 +5,8 @@ operations, so it returns the torch march's values bit for bit).
 
 :class:`stages.numerics.sdf.HashEncoding` computes the same with torch operations; on a CPU those allocate and
 walk about thirty (N, L, 8, F)-sized temporaries per step, which made the encoding more than half of an SDF
-training step. This module's C source is compiled once per machine with the system's C compiler into
-``$ULTRASTAGE_KERNEL_CACHE`` (default ``~/.cache/ultrastage/kernels``), loaded with :mod:`ctypes`, and wrapped
-in an autograd function. Where no C compiler is found (or ``ULTRASTAGE_HASHGRID_KERNEL=torch``), for CUDA
+training step. This module's C source is compiled once per machine (:func:`pipeline.ckernel.load_kernel`)
+and wrapped in an autograd function. Where no C compiler is found (or ``ULTRASTAGE_HASHGRID_KERNEL=torch``), for CUDA
 tensors, and where torch runs on more than :data:`MAX_TORCH_THREADS` threads, the encoding keeps its torch
 path; :func:`kernel_available` says whether the kernel is there. The two paths agree to float rounding
 (relative differences about 1e-7, tests/unit/numerics/test_hashgrid_kernel.py), so which one ran is not part
@@ -20,15 +19,11 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
 import os
-import shutil
-import subprocess
-import sys
-import tempfile
-from pathlib import Path
 
 import torch
+
+from pipeline.ckernel import load_kernel
 
 _SOURCE = r"""
 #include <stdint.h>
@@ -222,54 +217,20 @@ MAX_TORCH_THREADS = 2
 """The encoding uses the kernel (one thread) only where torch runs on at most this many threads: with more,
 torch's own operations spread over the cores (the geometry stage of `make dataset` trains each action on one)."""
 
-_FLAGS = ("-O3", "-shared", "-fPIC", "-std=c99")
-
-
-def _cache_dir() -> Path:
-    root = os.environ.get("ULTRASTAGE_KERNEL_CACHE")
-    return Path(root) if root else Path.home() / ".cache" / "ultrastage" / "kernels"
-
-
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL | None:
     """The compiled kernel (compiled on first use, then loaded from the cache), or None where it cannot be."""
     if os.environ.get("ULTRASTAGE_HASHGRID_KERNEL", "").lower() == "torch":
         return None
-    compiler = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
-    if compiler is None:
-        return None
-    digest = hashlib.sha256((_SOURCE + " ".join(_FLAGS) + sys.platform).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"hashgrid_{digest}.so"
-    try:
-        if not target.exists():
-            target.parent.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-                source = Path(tmp) / "hashgrid.c"
-                source.write_text(_SOURCE)
-                built = Path(tmp) / target.name
-                proc = subprocess.run([compiler, *_FLAGS, "-o", str(built), str(source), "-lm"],
-                                      capture_output=True, text=True)
-                if proc.returncode != 0:
-                    print(f"hash-grid kernel: {compiler} failed ({proc.stderr.strip()[:300]}); the torch path is "
-                          "used", file=sys.stderr)
-                    return None
-                os.replace(built, target)  # atomic: processes compiling side by side each install a whole file
-        lib = ctypes.CDLL(str(target))
-    except OSError as exc:  # an unwritable cache folder, a library that does not load: torch's path still works
-        print(f"hash-grid kernel: {target}: {exc}; the torch path is used", file=sys.stderr)
-        return None
     i64, f32p, i64p = ctypes.c_int64, ctypes.POINTER(ctypes.c_float), ctypes.POINTER(ctypes.c_int64)
-    lib.hashgrid_forward.argtypes = [f32p, i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p,
-                                     f32p]
-    lib.hashgrid_forward.restype = None
-    lib.hashgrid_backward.argtypes = [i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p,
-                                      f32p, f32p]
-    lib.hashgrid_backward.restype = None
     u8p = ctypes.POINTER(ctypes.c_uint8)
-    lib.proposal_march.argtypes = [f32p, i64, i64, i64, f32p, f32p, ctypes.c_float, i64, f32p, f32p, f32p, f32p,
-                                   i64, f32p, u8p, f32p]
-    lib.proposal_march.restype = None
-    return lib
+    return load_kernel("hash-grid", _SOURCE, {
+        "hashgrid_forward": ([f32p, i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p, f32p],
+                             None),
+        "hashgrid_backward": ([i64, f32p, i64, i64, i64, f32p, i64p, i64, ctypes.c_uint32, f32p, f32p, f32p, f32p],
+                              None),
+        "proposal_march": ([f32p, i64, i64, i64, f32p, f32p, ctypes.c_float, i64, f32p, f32p, f32p, f32p, i64, f32p,
+                            u8p, f32p], None)}, fallback="the torch path")
 
 
 def kernel_available() -> bool:

@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -453,6 +456,56 @@ def test_ggx_weights_in_place_are_the_formula_bit_for_bit():
         wide = normals.astype(np.float64)  # other dtypes take the formula
         assert np.array_equal(ggx_weights(wide, views, lights, alpha, f0[:, 0]),
                               _ggx_weights_formula(wide, views, lights, squared, f0))
+
+
+def test_the_fused_ggx_loop_gives_the_numpy_bits_with_and_without_visibility(monkeypatch):
+    """synthetic.kernels' loop (ggx_weights' float32 path, and specular_radiance's weights times the corners'
+    visibility) against the numpy steps it replaces, bit for bit: the capture does not depend on whether a C
+    compiler was there."""
+    from synthetic import geometry, kernels, shading
+    from synthetic.shading import _ggx_weights_formula, ggx_weights, specular_radiance
+
+    if not kernels.kernel_available():
+        pytest.skip("no C compiler here: the numpy path is the only one")
+    rng = np.random.default_rng(11)
+    n, vertices = 500, 40
+    normals = geometry.normalize(rng.normal(size=(n, 3))).astype(np.float32)
+    views = geometry.normalize(rng.normal(size=(n, 3)) + 1.5 * normals).astype(np.float32)
+    views[:4] = -normals[:4]  # back-facing views: n.v clamped
+    lights = geometry.fibonacci_sphere(300).astype(np.float32)
+    normals[4:8], views[4:8] = lights[:4], -lights[:4]  # 1 + v.l = 0 for one light each
+    alpha = rng.uniform(0.05, 0.9, n).astype(np.float32) ** 2
+    f0 = rng.uniform(0.02, 0.05, n).astype(np.float32)
+    squared = (alpha * alpha).astype(np.float32)[:, None]
+    assert np.array_equal(ggx_weights(normals, views, lights, alpha, f0).view(np.uint32),
+                          _ggx_weights_formula(normals, views, lights, squared, f0[:, None]).view(np.uint32))
+
+    table = rng.uniform(0.0, 2.0, (len(lights), 9)).astype(np.float32)
+    visible = rng.integers(0, 256, (vertices, len(lights)), dtype=np.uint8)
+    lighting = shading.SurfaceLighting(np.zeros((vertices, 9), np.float32), np.zeros(vertices, np.float32),
+                                       shading.EXACT_LEVELS, (shading.cluster_leds(lights, table, None),), (visible,))
+    tri = rng.integers(0, vertices, (n, 3))
+    bary = rng.dirichlet(np.ones(3), n).astype(np.float32) * np.float32(255)
+    roughness = np.sqrt(alpha)
+    fused = specular_radiance(normals, views, roughness, f0, tri, bary, lighting)
+    monkeypatch.setattr(kernels, "kernel_available", lambda: False)
+    reference = specular_radiance(normals, views, roughness, f0, tri, bary, lighting)
+    assert np.any(reference != 0)
+    assert np.array_equal(fused.view(np.uint32), reference.view(np.uint32))
+
+
+@pytest.mark.parametrize("setting", ["forced", "unwritable cache"])
+def test_the_numpy_path_is_taken_when_forced_or_when_the_ggx_loop_cannot_be_built(setting, tmp_path):
+    code = "from synthetic import kernels; print(kernels.kernel_available())"
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    extra = ({"ULTRASTAGE_SIM_KERNEL": "numpy"} if setting == "forced"
+             else {"ULTRASTAGE_KERNEL_CACHE": str(blocker / "kernels")})  # a folder under a regular file
+    out = subprocess.run([sys.executable, "-c", code], env=os.environ | extra, capture_output=True, text=True,
+                         check=True, cwd=Path(__file__).resolve().parents[3])
+    assert out.stdout.strip() == "False"
+    if setting != "forced":
+        assert "the numpy path is used" in out.stderr and "a_file" in out.stderr
 
 
 def test_vertex_visibility_traces_every_vertex_led_pair_above_the_horizon():
