@@ -41,7 +41,7 @@ def _scalar(image: np.ndarray) -> np.ndarray:
     return image[..., 0] if image.ndim == 3 else image
 
 
-DIRECTION_SWEEP = (64, 128)
+DIRECTION_SWEEP = (64, 128, 256)
 """Occlusion directions measured besides the stage's ``occlusion_directions`` (time against normal error)."""
 
 
@@ -131,7 +131,7 @@ def measure_action(work: Path, truth: Path, action: str, session: str, stride: i
                                     (released_albedo - true_albedo)[scored]))
         if cfg.occlusion:  # the released fit's occlusion traced over fewer directions than the stage's
             fitted = fits["materials"][0]
-            for n_dirs in DIRECTION_SWEEP + (cfg.occlusion_directions,):
+            for n_dirs in sorted(set(DIRECTION_SWEEP) | {cfg.occlusion_directions}):
                 t1 = time.perf_counter()
                 swept, _ = deocclude_view(scene, cam.K, cam.cam_from_world, fitted, n_dirs,
                                           cfg.occlusion_min_visible)

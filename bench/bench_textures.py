@@ -43,7 +43,7 @@ from _release import latest_artifact  # noqa: E402
 FACE_BUDGETS = (5_000, 10_000, 20_000, 40_000, 100_000)
 """Atlas face budgets measured besides the stage's default and the production preset's."""
 QUICK_FACE_BUDGETS = (1_000, 3_000)
-CHART_AREAS = (0.1, 0.05, 0.02, 0.01)
+CHART_AREAS = (0.0, 0.1, 0.05, 0.02, 0.01)
 """Largest charts (square metres) measured at the stage's face budget besides the stage's own limit."""
 QUICK_CHART_AREAS = (0.02,)
 

@@ -72,12 +72,16 @@ PRESETS: dict[str, PipelineConfig] = {
     # Full-resolution 24 MP captures on a GPU: maps at half the sensor resolution are what the SDF uses. The relit
     # views shade one sample a pixel: supersampling's gain falls as the pixels shrink (on the default capture +0.17 dB
     # at 320 px wide, +0.12 at 640) and it costs 4 x the stage's CPU, about 35 CPU minutes an action at 3008 x 2008
-    # (README); the relighting set's 512 px examples keep 2, as the default capture's views.
+    # (README); the relighting set's 512 px examples keep 2, as the default capture's views. The atlas keeps its
+    # charts whole and the de-occlusion of the maps traces 256 directions: the cheaper settings the default preset
+    # takes for make dataset's minutes were measured at the default capture's size only.
     "production": PipelineConfig(decode=DecodeConfig(demosaic="AHD", half_size=True),
                                  geometry=GeometryConfig(sdf=SDF_PRESETS["production"], mesh_resolution=1024,
                                                          face_budget=500_000, first_pass_iterations=0,
                                                          first_pass_mesh_resolution=0, deocclude_directions=256),
-                                 textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4),
+                                 textures=TexturesConfig(atlas_faces=100_000, texture_size=4096, max_views=4,
+                                                         atlas_max_chart_area_m2=0.0),
+                                 diffuse_normals=DiffuseNormalsConfig(occlusion_directions=256),
                                  materials=MaterialsConfig(texture_size=1024, occlusion_size=2048),
                                  relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128,
                                                        shading=ViewShading(supersample=1)),
