@@ -91,8 +91,13 @@ def boundary_edges(faces: np.ndarray) -> np.ndarray:
     if len(f) == 0:
         return np.zeros((0, 2), np.int64)
     edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
-    return unique[counts == 1]
+    if edges.min() < 0:
+        raise ValueError("faces must hold non-negative vertex indices")
+    # one int64 key per edge, ordered as the (a, b) pairs are: a 1-D unique, many times faster than rows'
+    stride = int(edges.max()) + 1
+    keys, counts = np.unique(edges[:, 0] * stride + edges[:, 1], return_counts=True)
+    once = keys[counts == 1]
+    return np.stack([once // stride, once % stride], axis=1)
 
 
 def hole_caps(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -145,6 +145,24 @@ def test_boundary_edges_and_caps_of_open_and_closed_meshes():
     assert len(boundary_edges(sq_f)) == 4
 
 
+def test_boundary_edges_are_the_sorted_pairs_one_face_uses():
+    """Against a direct count over the faces' sorted vertex pairs: the pairs, their order (a, then b) and dtype;
+    a pair three faces use is not boundary; a negative index is refused."""
+    rng = np.random.default_rng(3)
+    faces = rng.integers(0, 40, (300, 3))
+    faces = np.concatenate([faces, faces[:20], faces[20:25], faces[20:25]])  # pairs used twice and three times
+    counts: dict[tuple[int, int], int] = {}
+    for face in faces:
+        for a, b in ((face[0], face[1]), (face[1], face[2]), (face[2], face[0])):
+            key = (int(min(a, b)), int(max(a, b)))
+            counts[key] = counts.get(key, 0) + 1
+    expected = np.array(sorted(k for k, c in counts.items() if c == 1), np.int64).reshape(-1, 2)
+    edges = boundary_edges(faces)
+    assert edges.dtype == np.int64 and np.array_equal(edges, expected)
+    with pytest.raises(ValueError, match="non-negative"):
+        boundary_edges(np.array([[0, 1, -2]]))
+
+
 def test_cameras_seeing_a_sphere_from_one_side():
     v, f = sphere(0.1)
     pts, nrm = sample_surface(v, f, 4000, seed=1)
