@@ -11,6 +11,9 @@
 4. Pixel integration (SimConfig.supersample): time per camera and error of the radiance and the true
    normals with 1 ray per pixel and with the default s x s, against 4 x 4 rays per pixel (the pixel
    integral, nearly converged), one action, 8 cameras.
+5. The GGX shading's fused C loop (:mod:`synthetic.kernels`) against the numpy steps it replaces, in the same
+   process: the exact per-LED renders of part 2's cameras both ways, seconds per camera, their ratio
+   (``x_numpy``) and whether the radiance is the same to the bit.
 
     python bench/bench_simulate.py --out bench/out [--quick]
 
@@ -85,6 +88,35 @@ def specular_clusters_vs_exact(config: SimConfig, cameras: list[int]) -> dict:
     result["psnr_db"] = round(10 * np.log10(1.0 / max(mse, 1e-20)), 2)
     result["relative_rms"] = round(float(np.sqrt(mse / np.mean(np.concatenate(reference)))), 5)
     return result
+
+
+def fused_ggx_vs_numpy(config: SimConfig, cameras: list[int]) -> dict:
+    """Part 5: the exact per-LED renders of ``cameras`` with the fused GGX loop and with the numpy steps."""
+    from synthetic import kernels
+
+    if not kernels.kernel_available():
+        return {"skipped": "no C compiler: only the numpy steps run here"}
+    mesh_path = resolve_mesh(config.mesh)
+    base = load_base_subject(str(mesh_path) if mesh_path else None, config.subdivisions if mesh_path else 0)
+    session = make_session(config, base, 0)
+    subject, scene, lighting = prepare_action(dataclasses.replace(config, specular_led_clusters=False), base,
+                                              session, 0)
+    renders, seconds = {}, {}
+    available = kernels.kernel_available
+    for name in ("fused", "numpy"):
+        kernels.kernel_available = available if name == "fused" else (lambda: False)
+        try:
+            start = time.perf_counter()
+            renders[name] = [shading.render_view(scene, subject, lighting, session.leds, session.cameras[c])
+                             for c in cameras]
+            seconds[name] = (time.perf_counter() - start) / len(cameras)
+        finally:
+            kernels.kernel_available = available
+    same = all(np.array_equal(a.radiance.view(np.uint32), b.radiance.view(np.uint32))
+               for a, b in zip(renders["fused"], renders["numpy"]))
+    return {"cameras": len(cameras), "fused_s_per_camera": round(seconds["fused"], 4),
+            "numpy_s_per_camera": round(seconds["numpy"], 4),
+            "x_numpy": round(seconds["numpy"] / max(seconds["fused"], 1e-9), 2), "same_bits": bool(same)}
 
 
 def pixel_integration(config: SimConfig, cameras: list[int], reference: int = 4) -> dict:
@@ -215,6 +247,8 @@ def main() -> int:
         result["ratio_normals_presensor"] = ratio_normal_errors(config, cameras)
         result["pixel_integration"] = pixel_integration(config, cameras)
         print(f"pixel integration: {result['pixel_integration']}", flush=True)
+        result["fused_ggx_vs_numpy"] = fused_ggx_vs_numpy(config, cameras)
+        print(f"fused GGX loop vs numpy steps: {result['fused_ggx_vs_numpy']}", flush=True)
     (out / "bench_simulate.json").write_text(json.dumps(result, indent=1) + "\n")
     plot(result, out)
     print(json.dumps({k: v for k, v in result.items() if k not in ("default_capture", "quick")}, indent=1))

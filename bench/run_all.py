@@ -92,7 +92,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "sdf_sharpness": "no speed figure (accuracy per sharpness and mask kind; CPU seconds per row)",
     "silhouette": "the SDF's mesh as it is, no refinement (its row; the step's seconds per row)",
     "sg": "the map's order-2 SH projection (`x_sh_projection`)",
-    "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration",
+    "simulate": "exact per-LED GGX for the specular LED clusters; 4 x 4 rays per pixel for the pixel integration; "
+                "the numpy steps for the fused GGX loop (`x_numpy`)",
     "specular_normals": "eq. 1's ratio (the `eq1` row)",
     "subjects": "no speed figure (the pipeline's accuracy per subject: `make panel`)",
     "panel_set": "the trivial baselines on the same test examples (accuracy, not speed: `make panel`)",

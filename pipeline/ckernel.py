@@ -53,7 +53,8 @@ def load_kernel(name: str, source: str, signatures: dict[str, tuple[list[Any], A
                 proc = subprocess.run([compiler, *flags, "-o", str(built), str(path), "-lm"],
                                       capture_output=True, text=True)
                 if proc.returncode != 0:
-                    print(f"{name} kernel: {compiler} failed ({proc.stderr.strip()[:300]}); {fallback} is used", file=sys.stderr)
+                    print(f"{name} kernel: {compiler} failed ({proc.stderr.strip()[:300]}); {fallback} is used",
+                          file=sys.stderr)
                     return None
                 os.replace(built, target)  # atomic: processes compiling side by side each install a whole file
         lib = ctypes.CDLL(str(target))

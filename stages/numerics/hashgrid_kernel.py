@@ -5,9 +5,9 @@ operations, so it returns the torch march's values bit for bit).
 
 :class:`stages.numerics.sdf.HashEncoding` computes the same with torch operations; on a CPU those allocate and
 walk about thirty (N, L, 8, F)-sized temporaries per step, which made the encoding more than half of an SDF
-training step. This module's C source is compiled once per machine (:func:`pipeline.ckernel.load_kernel`)
-and wrapped in an autograd function. Where no C compiler is found (or ``ULTRASTAGE_HASHGRID_KERNEL=torch``), for CUDA
-tensors, and where torch runs on more than :data:`MAX_TORCH_THREADS` threads, the encoding keeps its torch
+training step. This module's C source is compiled once per machine (:func:`pipeline.ckernel.load_kernel`) and
+wrapped in an autograd function. Where no C compiler is found (or ``ULTRASTAGE_HASHGRID_KERNEL=torch``), for
+CUDA tensors, and where torch runs on more than :data:`MAX_TORCH_THREADS` threads, the encoding keeps its torch
 path; :func:`kernel_available` says whether the kernel is there. The two paths agree to float rounding
 (relative differences about 1e-7, tests/unit/numerics/test_hashgrid_kernel.py), so which one ran is not part
 of a stage's cache key.
