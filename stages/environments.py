@@ -105,10 +105,11 @@ def _claim_is_stale(claim: Path) -> bool:
 
 
 def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path | None,
-                wait: bool = True) -> Any:
-    """:func:`stages.numerics.sg.fit_sg_environment` of a map, kept in ``cache_dir/sg_fits/`` under the hash of
-    the map's float32 bytes, the fit's settings and the fitting code, so a map is fitted once per work folder
-    (both actions and both stages of a session use the same maps). None as ``cache_dir``: no memo.
+                wait: bool = True, iterations: int = 300) -> Any:
+    """:func:`stages.numerics.sg.fit_sg_environment` of a map (``iterations`` of its optimiser), kept in
+    ``cache_dir/sg_fits/`` under the hash of the map's float32 bytes, the fit's settings and the fitting code, so a
+    map is fitted once per work folder (both actions and both stages of a session use the same maps). None as
+    ``cache_dir``: no memo.
 
     A process fitting a map claims it (``<fit>.claim``, holding its pid, removed when the fit is stored): the
     two actions' relight stages start together and ask for the same maps, and a map another process is
@@ -120,9 +121,9 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
     from stages.numerics.sg import SGLobes, fit_sg_environment
 
     if cache_dir is None:
-        return fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+        return fit_sg_environment(env, sg_lobes, iterations=iterations, fit_height=fit_height)
     digest = hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes())
-    digest.update(repr((env.shape, int(sg_lobes), int(fit_height))).encode())
+    digest.update(repr((env.shape, int(sg_lobes), int(fit_height), int(iterations))).encode())
     digest.update(Path(sg.__file__).read_bytes())
     path = Path(cache_dir) / "sg_fits" / f"{digest.hexdigest()[:32]}.json"
     claim = path.with_suffix(".claim")
@@ -152,7 +153,7 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
             os.close(fd)
             if (lobes := stored()) is not None:  # stored between the look and the claim
                 return lobes
-            lobes = fit_sg_environment(env, sg_lobes, fit_height=fit_height)
+            lobes = fit_sg_environment(env, sg_lobes, iterations=iterations, fit_height=fit_height)
             tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
             tmp.write_text(json.dumps(lobes.numpy().to_dict()))
             os.replace(tmp, path)
@@ -162,9 +163,9 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
 
 
 def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Path], sg_lobes: int, fit_height: int,
-                     log: Any, cache_dir: Path | None = None) -> list[dict[str, Any]]:
+                     log: Any, cache_dir: Path | None = None, iterations: int = 300) -> list[dict[str, Any]]:
     """Each requested environment loaded (its file from ``raw_inputs['environment/<label>']``) and fitted with
-    ``sg_lobes`` spherical Gaussians: records ``name``, ``requested``, ``label``, ``source``, ``lobes``,
+    ``sg_lobes`` spherical Gaussians (``iterations`` of the fit's optimiser, :func:`fit_sg_memo`): records ``name``, ``requested``, ``label``, ``source``, ``lobes``,
     ``fit_seconds``, ``fit_errors``. Missing maps become the procedural sky, once, with a warning."""
     from stages.numerics.sg import sg_fit_errors
 
@@ -190,7 +191,8 @@ def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Pat
         for record, env in zip(environments, maps):
             if record["lobes"] is None:
                 t0 = time.perf_counter()
-                record["lobes"] = fit_sg_memo(env, sg_lobes, fit_height, cache_dir, wait=wait)
+                record["lobes"] = fit_sg_memo(env, sg_lobes, fit_height, cache_dir, wait=wait,
+                                              iterations=iterations)
                 record["fit_seconds"] += time.perf_counter() - t0
     for record, env in zip(environments, maps):
         errors = sg_fit_errors(env, record["lobes"])

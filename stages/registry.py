@@ -73,8 +73,9 @@ PRESETS: dict[str, PipelineConfig] = {
     # views shade one sample a pixel: supersampling's gain falls as the pixels shrink (on the default capture +0.17 dB
     # at 320 px wide, +0.12 at 640) and it costs 4 x the stage's CPU, about 35 CPU minutes an action at 3008 x 2008
     # (README); the relighting set's 512 px examples keep 2, as the default capture's views. The atlas keeps its
-    # charts whole and the de-occlusion of the maps traces 256 directions: the cheaper settings the default preset
-    # takes for make dataset's minutes were measured at the default capture's size only.
+    # charts whole, the de-occlusion of the maps traces 256 directions and the SG fits run 300 iterations: the
+    # cheaper settings the default preset takes for make dataset's minutes were measured at the default capture's
+    # size only.
     "production": PipelineConfig(decode=DecodeConfig(demosaic="AHD", half_size=True),
                                  geometry=GeometryConfig(sdf=SDF_PRESETS["production"], mesh_resolution=1024,
                                                          face_budget=500_000, first_pass_iterations=0,
@@ -83,9 +84,10 @@ PRESETS: dict[str, PipelineConfig] = {
                                                          atlas_max_chart_area_m2=0.0),
                                  diffuse_normals=DiffuseNormalsConfig(occlusion_directions=256),
                                  materials=MaterialsConfig(texture_size=1024, occlusion_size=2048),
-                                 relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128,
+                                 relight=RelightConfig(novel_views=6, sg_lobes=64, fit_height=128, fit_iterations=300,
                                                        shading=ViewShading(supersample=1)),
-                                 relightset=RelightSetConfig(size=512, sg_lobes=64, fit_height=128)),
+                                 relightset=RelightSetConfig(size=512, sg_lobes=64, fit_height=128,
+                                                             fit_iterations=300)),
     # Quick looks: cheapest demosaic, in-process execution, a short SDF schedule.
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
                            geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000,

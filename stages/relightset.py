@@ -84,6 +84,11 @@ class RelightSetConfig(Documented):
     """Spherical Gaussians fitted to each environment map."""
     fit_height: int = checked(64, ge=4)
     """Rows of the downsampled map the SG fit works on."""
+    fit_iterations: int = checked(150, ge=0)
+    """Iterations of the SG fit's L-BFGS (:func:`stages.numerics.sg.fit_sg_environment`; 0: the starting lobes
+    with their best amplitudes). On the default capture's five maps 150 take 1.9-2.8 CPU s a map against 3.6-5.7 s
+    at 300, the irradiance error 0.008-0.010 -> 0.008-0.011 (relative L2), and the relit views and the relighting
+    set move by under 0.005 dB."""
     png_level: float = checked(0.8, gt=0.0)
     """The tone-mapped PNG puts the 99th percentile of the subject's radiance at this linear level."""
     shading: ViewShading = field(default_factory=ViewShading)
@@ -215,7 +220,8 @@ class _ActionPool:
         from stages.environments import fit_sg_memo
 
         if index not in self._fits:
-            self._fits[index] = fit_sg_memo(self.env(index), self.cfg.sg_lobes, self.cfg.fit_height, self.cache_dir)
+            self._fits[index] = fit_sg_memo(self.env(index), self.cfg.sg_lobes, self.cfg.fit_height, self.cache_dir,
+                                            iterations=self.cfg.fit_iterations)
         return self._fits[index]
 
 
@@ -367,7 +373,7 @@ class RelightSetStage(Stage):
         return {"format": RENDER_FORMAT, "version": self.version, "upstream": ctx.upstream_keys,
                 "code": code_digests(self.code_module, self.code_packages),
                 "size": cfg.size, "margin": cfg.margin, "sg_lobes": cfg.sg_lobes, "fit_height": cfg.fit_height,
-                "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
+                "fit_iterations": cfg.fit_iterations, "png_level": cfg.png_level, "shading": asdict(cfg.shading)}
 
     @staticmethod
     def _previous_examples(ctx: StageContext) -> dict[str, tuple[dict[str, Any], Path]]:
