@@ -494,18 +494,13 @@ def test_the_fused_ggx_loop_gives_the_numpy_bits_with_and_without_visibility(mon
     assert np.array_equal(fused.view(np.uint32), reference.view(np.uint32))
 
 
-@pytest.mark.parametrize("setting", ["forced", "unwritable cache"])
-def test_the_numpy_path_is_taken_when_forced_or_when_the_ggx_loop_cannot_be_built(setting, tmp_path):
-    code = "from synthetic import kernels; print(kernels.kernel_available())"
-    blocker = tmp_path / "a_file"
-    blocker.write_text("")
-    extra = ({"ULTRASTAGE_SIM_KERNEL": "numpy"} if setting == "forced"
-             else {"ULTRASTAGE_KERNEL_CACHE": str(blocker / "kernels")})  # a folder under a regular file
-    out = subprocess.run([sys.executable, "-c", code], env=os.environ | extra, capture_output=True, text=True,
+def test_the_numpy_path_is_taken_when_asked_for():
+    """``ULTRASTAGE_SIM_KERNEL=numpy`` leaves the fused loop out (a library that cannot be built is
+    pipeline.ckernel's case, tested there)."""
+    out = subprocess.run([sys.executable, "-c", "from synthetic import kernels; print(kernels.kernel_available())"],
+                         env=os.environ | {"ULTRASTAGE_SIM_KERNEL": "numpy"}, capture_output=True, text=True,
                          check=True, cwd=Path(__file__).resolve().parents[3])
     assert out.stdout.strip() == "False"
-    if setting != "forced":
-        assert "the numpy path is used" in out.stderr and "a_file" in out.stderr
 
 
 def test_vertex_visibility_traces_every_vertex_led_pair_above_the_horizon():
