@@ -76,8 +76,9 @@ class DiffuseNormalsConfig(Documented):
     come closer to the simulator's normals, most where much of the cosine-weighted sphere is hidden
     (bench/bench_diffuse_normals.py measures the error with and without). About 1 s per camera."""
     occlusion_directions: int = checked(128, ge=16)
-    """Directions (Fibonacci sphere) of the visibility. On the default capture 256 cost 4-5 CPU s more an action
-    for 0.01 deg of the relit views' shading normals (bench/bench_diffuse_normals.py sweeps it)."""
+    """Directions (Fibonacci sphere) of the visibility. On the default capture 256 cost 4-5 CPU s more an action;
+    128 with ``textures.atlas_max_chart_area_m2`` 0.05 (measured together) cost the relit views' shading normals
+    0.01 deg and the relit views 0.02 dB (bench/bench_diffuse_normals.py sweeps it)."""
     occlusion_min_visible: float = checked(0.1, ge=0.0, lt=1.0)
     """Pixels whose cosine-weighted visible fraction is below this keep the fitted normal."""
     previews: bool = True

@@ -165,8 +165,9 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
 def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Path], sg_lobes: int, fit_height: int,
                      log: Any, cache_dir: Path | None = None, iterations: int = 300) -> list[dict[str, Any]]:
     """Each requested environment loaded (its file from ``raw_inputs['environment/<label>']``) and fitted with
-    ``sg_lobes`` spherical Gaussians (``iterations`` of the fit's optimiser, :func:`fit_sg_memo`): records ``name``, ``requested``, ``label``, ``source``, ``lobes``,
-    ``fit_seconds``, ``fit_errors``. Missing maps become the procedural sky, once, with a warning."""
+    ``sg_lobes`` spherical Gaussians (``iterations`` of the fit's optimiser, :func:`fit_sg_memo`): records
+    ``name``, ``requested``, ``label``, ``source``, ``lobes``, ``fit_seconds``, ``fit_errors``. Missing maps become
+    the procedural sky, once, with a warning."""
     from stages.numerics.sg import sg_fit_errors
 
     environments: list[dict[str, Any]] = []

@@ -42,7 +42,8 @@ class TexturesConfig(Documented):
     atlas_max_chart_area_m2: float = checked(0.05, ge=0.0)
     """Largest chart of the atlas in square metres (0: no limit; xatlas' ``max_chart_area``). Growing and flattening
     a body's few large charts is most of xatlas' time: on the default capture 0.05 takes the stage from 14.2 to
-    10.7 CPU s an action for 0.02 dB of relit views (bench/bench_textures.py sweeps it)."""
+    10.7 CPU s an action, and with ``diffuse_normals.occlusion_directions`` 128 as well (measured together) the
+    relit views lose 0.02 dB (bench/bench_textures.py sweeps it)."""
     max_views: int = checked(3, ge=1)
     """A texel blends at most this many of the cameras that see it (the most frontal)."""
     depth_tolerance_m: float = checked(0.01, gt=0.0)
