@@ -4,7 +4,8 @@
 (pixels, lights) array, most of the simulator's and of the relit references' shading time. The loop here does
 the same IEEE float32 operations in the same order per element, so it gives the numpy chain's bits
 (tests/unit/synthetic/test_simulator.py compares them bit for bit); the (N, 3) x (3, C) products and the
-per-pixel terms stay numpy's. Where no C compiler is found (or ``ULTRASTAGE_SIM_KERNEL=numpy``) the numpy chain
+per-pixel terms stay numpy's. Where the loop cannot be built or loaded (no C compiler, a compile error, an unwritable
+cache; :func:`pipeline.ckernel.load_kernel` says why) or ``ULTRASTAGE_SIM_KERNEL=numpy`` is set, the numpy chain
 runs, with the same result.
 """
 from __future__ import annotations
