@@ -20,6 +20,7 @@ import json
 import os
 import shutil
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -486,14 +487,24 @@ def write_release_page(release: str | Path) -> Path:
     run = json.loads(run_path.read_text()) if run_path.is_file() else {}
 
     made: list[tuple[str, str | None, str | None]] = []
+    # The thumbnails are written by a pool of threads while the page's text is put together: reading the EXR,
+    # resizing and the PNG encoding release the GIL for most of their time.
+    pool = ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, 8)))
+    pending: dict[str, Any] = {}  # one job per thumbnail file, however often the page shows it
 
     def make_thumb(source_rel: str, kind: str, out_rel: str) -> str:
-        _write_thumbnail(root, source_rel, kind, out_rel)
+        if out_rel not in pending:
+            pending[out_rel] = pool.submit(_write_thumbnail, root, source_rel, kind, out_rel)
         action_id, camera = out_rel.split("/")[1], out_rel.rsplit("/", 1)[-1][:-4].rsplit("_", 1)[-1]
         made.append((out_rel, action_id, None if camera == "action" else camera))
         return out_rel
 
-    text = page_html(root, actions, assets, summary, metrics, examples, run, make_thumb)
+    try:
+        text = page_html(root, actions, assets, summary, metrics, examples, run, make_thumb)
+        for future in pending.values():
+            future.result()  # the first thumbnail that failed raises here
+    finally:
+        pool.shutdown(cancel_futures=True)
     _remove_stale_thumbnails(root, {p for p, _, _ in made})
     tmp = root / f".{PAGE}.{os.getpid()}.tmp"
     try:

@@ -61,6 +61,23 @@ def test_page_shows_accuracy_failures_and_rewrites_only_stale_thumbnails(release
     assert verify_release(release_dir).ok
 
 
+def test_a_thumbnail_that_fails_raises_and_leaves_the_previous_page(release_dir):
+    """The thumbnails are written on a thread pool: the first one that fails raises from write_release_page,
+    naming its file, and the page is not replaced."""
+    import pytest
+
+    page = write_release_page(release_dir)
+    before = page.read_bytes()
+    for thumb in (release_dir / "page").rglob("*.png"):
+        thumb.unlink()  # made again from their sources, one of which is now unreadable
+    broken = release_dir / "actions" / "A0000" / "albedo" / "00001.exr"
+    broken.write_bytes(b"not an EXR file")
+    with pytest.raises(Exception, match=r"00001\.exr"):
+        write_release_page(release_dir)
+    assert page.read_bytes() == before
+    assert not list(release_dir.glob(".index.html.*.tmp"))
+
+
 def test_relighting_set_grid_with_split_and_environment_labels(release_dir):
     example = {"example_id": "A0000_03", "split": "test", "environment_name": "studio_small_03_1k",
                "image_png": "relight/A0000_03/image.png", "albedo_png": "relight/A0000_03/albedo.png",
