@@ -21,12 +21,16 @@ from stages.numerics.novel_view import ViewShading
 from stages.numerics.specular_normals import SpecularConfig
 from stages.relight import RelightConfig, RelightStage
 from stages.relightset import RelightSetConfig, RelightSetStage
+from stages.stage_names import STAGE_NAMES
 from stages.textures import TexturesConfig, TexturesStage
 
 STAGE_CLASSES: tuple[type[Stage], ...] = (CamerasStage, ColourStage, LightsStage, PlatesStage, DecodeStage,
                                           PhotometricStage, GeometryStage, TexturesStage,
                                           MaterialsStage, DiffuseNormalsStage, RelightStage, RelightSetStage,
                                           ExportsStage)
+if tuple(cls.name for cls in STAGE_CLASSES) != STAGE_NAMES:
+    raise RuntimeError(f"stages.stage_names.STAGE_NAMES {STAGE_NAMES} does not list the registry's stages "
+                       f"{tuple(cls.name for cls in STAGE_CLASSES)}: update it with the registry")
 
 CODE_PACKAGES: tuple[str, ...] = ("stages", "artifacts", "calibration", "synthetic", "pipeline.codecs")
 """The project's packages whose code can change a stage's output: a stage's cache key holds the digests of its

@@ -427,9 +427,9 @@ def cmd_predict(args: argparse.Namespace) -> int:
 
 
 def _stage_names() -> list[str]:
-    from stages.registry import STAGE_CLASSES
+    from stages.stage_names import STAGE_NAMES
 
-    return [cls.name for cls in STAGE_CLASSES]
+    return list(STAGE_NAMES)
 
 
 def _add_stage_choice(p: argparse.ArgumentParser, stage_names: list[str]) -> None:

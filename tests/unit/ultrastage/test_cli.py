@@ -51,6 +51,20 @@ def test_only_and_from_list_the_stages_and_reject_others(command, capsys):
     assert sub.parse_args(args + ["--from", STAGE_CLASSES[-1].name]).from_stage == STAGE_CLASSES[-1].name
 
 
+def test_the_parser_lists_the_stages_without_importing_them():
+    """Every command's parser offers the stage names, yet building it imports no stage (torch, open3d): a command
+    that needs none starts without them."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from ultrastage.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('torch', 'open3d', 'stages.registry') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+    assert [cls.name for cls in STAGE_CLASSES] == list(_subparsers(build_parser())["run"]._option_string_actions[
+        "--only"].choices)
+
+
 def test_summary_fits_100_columns_and_names_what_failed():
     from rich.console import Console
 
