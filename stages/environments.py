@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.claims import claim_is_stale, try_claim
 from pipeline.errors import InputError
 
 PROCEDURAL_PREFIX = "procedural:"
@@ -85,25 +86,6 @@ CLAIM_STALE_S = 900.0
 """A fit's claim file older than this is taken for the claim of a process that died (a fit takes seconds)."""
 
 
-def _claim_is_stale(claim: Path) -> bool:
-    """Whether a claim file's process is gone (its pid is not running here) or the claim is older than
-    :data:`CLAIM_STALE_S`."""
-    try:
-        pid = int(claim.read_text().strip() or "0")
-        age = time.time() - claim.stat().st_mtime
-    except (OSError, ValueError):
-        return False  # being written or just removed: look again
-    if age > CLAIM_STALE_S:
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except (PermissionError, OSError):
-        return False
-    return False
-
-
 def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path | None,
                 wait: bool = True, iterations: int = 300) -> Any:
     """:func:`stages.numerics.sg.fit_sg_environment` of a map (``iterations`` of its optimiser), kept in
@@ -138,10 +120,8 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
 
     path.parent.mkdir(parents=True, exist_ok=True)
     while (lobes := stored()) is None:
-        try:
-            fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            if _claim_is_stale(claim):
+        if not try_claim(claim):
+            if claim_is_stale(claim, CLAIM_STALE_S):
                 claim.unlink(missing_ok=True)
             elif not wait:
                 return None
@@ -149,8 +129,6 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
                 time.sleep(0.1)
             continue
         try:
-            os.write(fd, str(os.getpid()).encode())
-            os.close(fd)
             if (lobes := stored()) is not None:  # stored between the look and the claim
                 return lobes
             lobes = fit_sg_environment(env, sg_lobes, iterations=iterations, fit_height=fit_height)
