@@ -188,33 +188,70 @@ def _visibility_key(capture_record: Path, action_id: str, lights: int) -> str:
     return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
 
 
+VISIBILITY_CLAIM_STALE_S = 900.0
+"""A visibility trace's claim older than this is taken over even if its pid runs (a trace takes seconds: the
+default capture's 10-15 s an action; this bounds the wait on a pid reused after a crash, at the price of tracing
+twice when a trace starved at the lowest priority takes longer)."""
+
+
 def _cached_visibility(folder: Path, capture_record: Path, action_id: str, subject, directions: np.ndarray
                        ) -> np.ndarray:
     """(V, L) bool visibility of ``directions`` from the subject's vertices: read from ``folder`` when an
     earlier evaluation (or :func:`prefetch_visibility`) traced it, else traced and kept there (bit-packed,
-    written under a temporary name and renamed, so a reader never sees half a file)."""
+    written under a temporary name and renamed, so a reader never sees half a file).
+
+    The process tracing it holds a claim (:mod:`pipeline.claims`) while it does: another that needs the same
+    visibility waits for it instead of tracing it twice (the evaluation after ``ultrastage run`` for the
+    prefetch still tracing beside it), and takes the trace over when that process is gone."""
     import os
+    import time
+
+    from pipeline.claims import claim_is_stale, try_claim
 
     path = Path(folder) / f"{_visibility_key(capture_record, action_id, len(directions))}.npy"
+    claim = path.with_name(path.name + ".claim")
     n_vertices, n_lights = len(subject.vertices_world), len(directions)
-    if path.is_file():
+
+    def stored() -> np.ndarray | None:
+        if path.is_file():
+            try:
+                packed = np.load(path)
+                if packed.shape == (n_vertices, (n_lights + 7) // 8):
+                    return np.unpackbits(packed, axis=1, count=n_lights).astype(bool)
+            except (OSError, ValueError):
+                pass  # unreadable (e.g. a disk error): traced again below and rewritten
+        return None
+
+    claimed = False
+    while (visible := stored()) is None:
         try:
-            packed = np.load(path)
-            if packed.shape == (n_vertices, (n_lights + 7) // 8):
-                return np.unpackbits(packed, axis=1, count=n_lights).astype(bool)
-        except (OSError, ValueError):
-            pass  # unreadable (e.g. a disk error): traced again below and rewritten
-    scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
-    visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world, directions)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            claimed = try_claim(claim)
+        except OSError:
+            break  # a folder that cannot be written: trace without a claim
+        if claimed:
+            visible = stored()  # stored between the look and the claim
+            break
+        if claim_is_stale(claim, VISIBILITY_CLAIM_STALE_S):
+            claim.unlink(missing_ok=True)
+        else:
+            time.sleep(0.1)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as handle:
-            np.save(handle, np.packbits(visible, axis=1))
-        os.replace(tmp, path)
-    except OSError:
-        pass  # a cache that cannot be written costs the next evaluation the tracing, nothing else
-    return visible
+        if visible is not None:
+            return visible
+        scene = shading.raycasting_scene(subject.vertices_world, subject.triangles)
+        visible = shading.vertex_visibility(scene, subject.vertices_world, subject.normals_world, directions)
+        try:
+            tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+            with open(tmp, "wb") as handle:
+                np.save(handle, np.packbits(visible, axis=1))
+            os.replace(tmp, path)
+        except OSError:
+            pass  # a cache that cannot be written costs the next evaluation the tracing, nothing else
+        return visible
+    finally:
+        if claimed:
+            claim.unlink(missing_ok=True)
 
 
 def prefetch_visibility(capture_dir: str | Path, folder: str | Path, lights: int = DEFAULT_LIGHTS,

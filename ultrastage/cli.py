@@ -238,8 +238,10 @@ def _start_truth_prefetch(capture: Path, work: Path, stages: list[Any]) -> Any:
 
     lights = relit_truth_lights(next(iter(opened.sessions.values())).rig["cameras"])
     folder = truth_visibility_folder(work / RELIT_CACHE)
-    # os.nice in the child itself: a preexec_fn is not safe once the parent runs threads
-    script = ("import os, sys; os.nice(19); from synthetic.relight import prefetch_visibility; "
+    # os.nice in the child itself: a preexec_fn is not safe once the parent runs threads. SIGTERM exits through
+    # the finally blocks, so the claim of a trace it is stopped in is removed.
+    script = ("import os, signal, sys; os.nice(19); signal.signal(signal.SIGTERM, lambda *_: sys.exit(143)); "
+              "from synthetic.relight import prefetch_visibility; "
               "prefetch_visibility(sys.argv[1], sys.argv[2], int(sys.argv[3]))")
     return subprocess.Popen([sys.executable, "-c", script, str(capture), str(folder), str(lights)],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -288,16 +290,19 @@ def cmd_run(args: argparse.Namespace, plan_only: bool = False) -> int:
                               progress=on_done, view_progress=on_view, stage_progress=on_progress,
                               record={"preset": args.preset, **({"through": args.through} if args.through else {}),
                                       **layout})
+        metrics = None
+        if not args.no_evaluate and truth.is_dir() and result.published:
+            from evaluation.release import evaluate_release_cached
+
+            # The prefetch goes on beside the evaluation: a trace it has not finished is waited for (it holds a
+            # claim, and a waiting process leaves it the core), not traced again from the start.
+            summary, cached = evaluate_release_cached(release, truth, work, run_id=result.run_id)
+            print(f"{'evaluate':<12} {'release':<8} "
+                  f"{'cached  release unchanged since its last evaluation' if cached else 'ran'}")
+            metrics = summary.per_action
+            result.metrics = metrics
     finally:
         _stop(prefetch)
-    metrics = None
-    if not args.no_evaluate and truth.is_dir() and result.published:
-        from evaluation.release import evaluate_release_cached
-
-        summary, cached = evaluate_release_cached(release, truth, work, run_id=result.run_id)
-        print(f"{'evaluate':<12} {'release':<8} {'cached  release unchanged since its last evaluation' if cached else 'ran'}")
-        metrics = summary.per_action
-        result.metrics = metrics
     _summary(result, metrics)
     if metrics:
         from evaluation.release import print_overall

@@ -237,6 +237,47 @@ def test_visibility_kept_on_disk_renders_the_same(relighter, capture, cameras, t
     assert np.array_equal(np.load(kept), packed)
 
 
+def test_a_visibility_another_process_is_tracing_is_waited_for_not_traced_again(relighter, capture, tmp_path,
+                                                                                monkeypatch):
+    """While a live process holds the trace's claim, _cached_visibility waits for its file instead of tracing;
+    a claim whose process is gone is taken over, traced here and removed."""
+    import os
+    import threading
+
+    from synthetic import relight, shading
+
+    folder = tmp_path / "visibility"
+    directions = relighter.directions
+    want = relight._cached_visibility(folder, capture / "capture.json", "A0000", relighter.subject, directions)
+    (kept,) = folder.glob("*.npy")
+    packed = kept.read_bytes()
+    kept.unlink()
+    claim = kept.with_name(kept.name + ".claim")
+    claim.write_text(str(os.getpid()))  # a live process (this one) is tracing it
+
+    def finish_the_trace():  # what the claim's holder does: store the file, then drop the claim
+        kept.write_bytes(packed)
+        claim.unlink()
+
+    traced = []
+    real_trace = shading.vertex_visibility
+    monkeypatch.setattr(shading, "vertex_visibility", lambda *a, **k: traced.append(1) or real_trace(*a, **k))
+    timer = threading.Timer(0.5, finish_the_trace)
+    timer.start()
+    try:
+        got = relight._cached_visibility(folder, capture / "capture.json", "A0000", relighter.subject, directions)
+    finally:
+        timer.join()
+    np.testing.assert_array_equal(got, want)
+    assert traced == []
+    # the claim of a process that is gone: traced here, stored, and no claim left behind
+    kept.unlink()
+    claim.write_text("999999999")
+    got = relight._cached_visibility(folder, capture / "capture.json", "A0000", relighter.subject, directions)
+    np.testing.assert_array_equal(got, want)
+    assert traced == [1] and kept.read_bytes() == packed and not claim.exists()
+
+
 def test_relighter_refuses_unknown_actions_and_real_captures(capture, relighter, cameras, tmp_path):
     with pytest.raises(ValueError, match="unknown action id 'A0042'"):
         TruthRelighter(capture, "A0042", lights=LIGHTS)

@@ -121,8 +121,9 @@ def test_truth_prefetch_traces_the_visibility_beside_the_run(tmp_path):
             break
         time.sleep(0.01)
     assert niceness == 19
-    _stop(running)  # stopped mid-way: nothing half-written is left
+    _stop(running)  # stopped mid-way: nothing half-written is left, nor the claim of a trace it was in
     assert running.poll() is not None
+    assert not list((tmp_path / "other").rglob("*.claim"))
     assert not list((tmp_path / "other").rglob("*.tmp"))
 
 
