@@ -77,6 +77,7 @@ SPEED_BASELINES: dict[str, str | None] = {
     "materials": "gathering the texels' observations the fits read (`x_gather`)",
     "memory": "the imports alone (memory, not speed)",
     "normal_error_sources": "no speed figure (accuracy per simulated effect)",
+    "page": "the same thumbnails written on one thread (`x_one_thread`)",
     "photometric": "a memory copy of the same bytes, and a naive numpy chain (`ratio_to_memcpy`, "
                    "`speedup_over_naive`)",
     "pipeline": "the cold run for the cached rerun (`cached_over_cold`)",
@@ -150,7 +151,7 @@ def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
 
 SHARED_RUN_LANE = frozenset({
     "bench_diffuse_normals", "bench_end_to_end", "bench_gaps", "bench_gbuffer", "bench_geometry",
-    "bench_gpu_production", "bench_heldout_field", "bench_materials", "bench_panel_set", "bench_projection",
+    "bench_gpu_production", "bench_heldout_field", "bench_materials", "bench_page", "bench_panel_set", "bench_projection",
     "bench_relight", "bench_relight_window", "bench_relightset", "bench_relit_budget", "bench_sdf_schedule", "bench_sdf_sharpness",
     "bench_silhouette", "bench_textures"})
 """The benches whose quick mode reads the shared tiny run (bench/_quick.py's ``quick_run``): with ``--lanes 2`` they

@@ -454,19 +454,23 @@ def page_html(root: Path, actions: list[dict], assets: list[dict], summary: list
 # the action: read the release, write the page and its thumbnails, register them
 
 
-def write_release_page(release: str | Path) -> Path:
+def write_release_page(release: str | Path, threads: int | None = None) -> Path:
     """Write ``RELEASE/index.html`` and the thumbnails it shows, and list them in the assets table (rows of
-    kind 'page' and 'page_thumbnail' replace the previous page's).
+    kind 'page' and 'page_thumbnail' replace the previous page's). ``threads``: the thumbnails' thread pool (default
+    one per core, at most 8; bench/bench_page.py times it against 1).
 
     Returns:
         The path of index.html.
 
     Raises:
         ReleaseError: the folder holds no manifests.
+        ValueError: ``threads`` is not an integer >= 1.
     """
     from manifests.consumer import open_release
     from manifests.writer import asset_row, replace_rows
 
+    if threads is not None and (isinstance(threads, bool) or int(threads) != threads or threads < 1):
+        raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
     root = Path(release)
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -489,7 +493,7 @@ def write_release_page(release: str | Path) -> Path:
     made: list[tuple[str, str | None, str | None]] = []
     # The thumbnails are written by a pool of threads while the page's text is put together: reading the EXR,
     # resizing and the PNG encoding release the GIL for most of their time.
-    pool = ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, 8)))
+    pool = ThreadPoolExecutor(int(threads) if threads is not None else max(1, min(os.cpu_count() or 1, 8)))
     pending: dict[str, Any] = {}  # one job per thumbnail file, however often the page shows it
 
     def make_thumb(source_rel: str, kind: str, out_rel: str) -> str:

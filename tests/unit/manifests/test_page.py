@@ -76,6 +76,9 @@ def test_a_thumbnail_that_fails_raises_and_leaves_the_previous_page(release_dir)
         write_release_page(release_dir)
     assert page.read_bytes() == before
     assert not list(release_dir.glob(".index.html.*.tmp"))
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="threads"):
+            write_release_page(release_dir, threads=bad)
 
 
 def test_relighting_set_grid_with_split_and_environment_labels(release_dir):
