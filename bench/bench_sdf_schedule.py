@@ -36,7 +36,7 @@ from _quick import QUICK_HELP, quick_run  # noqa: E402
 from _release import latest_artifact  # noqa: E402
 
 # (first pass steps, second pass steps); the stage default is inserted first.
-SCHEDULES = ((1800, 1800), (600, 1500), (600, 1200), (400, 1200))
+SCHEDULES = ((600, 1800), (150, 1800), (1800, 1800), (600, 1500), (600, 1200), (400, 1200))
 QUICK_SCHEDULES = ((300, 400),)
 QUICK_STEP_DIVISOR = 60
 
