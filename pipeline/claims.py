@@ -15,7 +15,6 @@ from pathlib import Path
 def try_claim(claim: Path) -> bool:
     """Create ``claim`` holding this process's pid; False when it exists already (another process holds it).
     OSError (e.g. an unwritable folder) is the caller's."""
-    fd = None
     try:
         fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
     except FileExistsError:

@@ -4,8 +4,8 @@ glibc serves an allocation above its mmap threshold (at most 32 MiB, however it 
 gives it back with ``munmap`` when freed, so every page of it faults in again the next time. The SDF's training
 steps, the simulator's ray chunks and the evaluation's renders allocate and free arrays of tens of MiB thousands of
 times: a cold ``make dataset`` took 9.3 million minor page faults and 35.6 s of system time. With the threshold at
-256 MiB, the heap's top kept up to 512 MiB before it is trimmed and grown 64 MiB at a time, the same run took 1.3
-million faults and 18.3 s (``ultrastage run`` on the default capture, the same figures to the last digit).
+256 MiB, the heap's top kept up to 512 MiB before it is trimmed and grown 64 MiB at a time, the same run took 1.27
+million faults and 16.9 s (``ultrastage run`` on the default capture, the same figures to the last digit).
 Arrays above 256 MiB (the production preset's full-resolution images) are still mapped and unmapped.
 """
 from __future__ import annotations
