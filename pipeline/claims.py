@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 def try_claim(claim: Path) -> bool:
@@ -45,3 +49,25 @@ def claim_is_stale(claim: Path, stale_after_s: float) -> bool:
     except OSError:  # e.g. PermissionError: a live process of another user
         return False
     return False
+
+
+def await_or_claim(stored: Callable[[], T | None], claim: Path, stale_after_s: float, wait: bool = True,
+                   poll_s: float = 0.1) -> tuple[T | None, bool]:
+    """Wait until ``stored()`` gives the result or this process holds ``claim``: ``(result, False)`` once it is
+    stored (by another process, or between the look and the claim), ``(None, True)`` when this process must
+    produce it (store it, then remove ``claim``), ``(None, False)`` when another live process holds the claim and
+    ``wait`` is False. A stale claim (:func:`claim_is_stale`) is removed and claimed again. OSError from creating
+    the claim (e.g. an unwritable folder) is the caller's."""
+    while (result := stored()) is None:
+        if try_claim(claim):
+            result = stored()
+            if result is not None:
+                claim.unlink(missing_ok=True)
+            return result, result is None
+        if claim_is_stale(claim, stale_after_s):
+            claim.unlink(missing_ok=True)
+        elif not wait:
+            return None, False
+        else:
+            time.sleep(poll_s)
+    return result, False

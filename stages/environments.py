@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.claims import claim_is_stale, try_claim
+from pipeline.claims import await_or_claim
 from pipeline.errors import InputError
 
 PROCEDURAL_PREFIX = "procedural:"
@@ -119,25 +119,17 @@ def fit_sg_memo(env: np.ndarray, sg_lobes: int, fit_height: int, cache_dir: Path
         return None
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    while (lobes := stored()) is None:
-        if not try_claim(claim):
-            if claim_is_stale(claim, CLAIM_STALE_S):
-                claim.unlink(missing_ok=True)
-            elif not wait:
-                return None
-            else:
-                time.sleep(0.1)
-            continue
+    while True:  # the fit is returned as stored, read back from its file
+        lobes, claimed = await_or_claim(stored, claim, CLAIM_STALE_S, wait=wait)
+        if not claimed:
+            return lobes
         try:
-            if (lobes := stored()) is not None:  # stored between the look and the claim
-                return lobes
             lobes = fit_sg_environment(env, sg_lobes, iterations=iterations, fit_height=fit_height)
             tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
             tmp.write_text(json.dumps(lobes.numpy().to_dict()))
             os.replace(tmp, path)
         finally:
             claim.unlink(missing_ok=True)
-    return lobes
 
 
 def fit_environments(requested_names: tuple[str, ...], raw_inputs: dict[str, Path], sg_lobes: int, fit_height: int,

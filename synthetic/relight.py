@@ -204,9 +204,8 @@ def _cached_visibility(folder: Path, capture_record: Path, action_id: str, subje
     visibility waits for it instead of tracing it twice (the evaluation after ``ultrastage run`` for the
     prefetch still tracing beside it), and takes the trace over when that process is gone."""
     import os
-    import time
 
-    from pipeline.claims import claim_is_stale, try_claim
+    from pipeline.claims import await_or_claim
 
     path = Path(folder) / f"{_visibility_key(capture_record, action_id, len(directions))}.npy"
     claim = path.with_name(path.name + ".claim")
@@ -222,20 +221,11 @@ def _cached_visibility(folder: Path, capture_record: Path, action_id: str, subje
                 pass  # unreadable (e.g. a disk error): traced again below and rewritten
         return None
 
-    claimed = False
-    while (visible := stored()) is None:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            claimed = try_claim(claim)
-        except OSError:
-            break  # a folder that cannot be written: trace without a claim
-        if claimed:
-            visible = stored()  # stored between the look and the claim
-            break
-        if claim_is_stale(claim, VISIBILITY_CLAIM_STALE_S):
-            claim.unlink(missing_ok=True)
-        else:
-            time.sleep(0.1)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        visible, claimed = await_or_claim(stored, claim, VISIBILITY_CLAIM_STALE_S)
+    except OSError:  # a folder that cannot be written: trace without a claim
+        visible, claimed = None, False
     try:
         if visible is not None:
             return visible
