@@ -181,7 +181,8 @@ class GeometryStage(Stage):
         torch.save(result.field.to_state(), out / "sdf" / "sdf.pt")
         (out / "sdf" / "training.json").write_text(json.dumps(
             {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
-             "history": result.history, "deocclusion": fitted.deocclusion, "first_pass": fitted.first_pass},
+             "history": result.history, "deocclusion": fitted.deocclusion, "first_pass": fitted.first_pass,
+             "schedule": {"subject_pixel_m": fitted.subject_pixel_m, "iterations": list(fitted.iterations)}},
             indent=1, default=float))
         write_ply(ArtifactWriter(self.name, out).path("mesh"), vertices, faces, normals=vertex_normals(vertices, faces))
         if cfg.previews:
@@ -189,6 +190,7 @@ class GeometryStage(Stage):
             _loss_plot(writer.path("sdf_losses_preview"), result.history)
             write_png(writer.path("mesh_normals_preview"), _normals_comparison(vertices, faces, views))
         return {"cameras": len(views), "train_seconds": fitted.train_seconds, "passes": fitted.passes,
+                "iterations": list(fitted.iterations),
                 "faces_extracted": int(mesh_stats["faces_extracted"]), "mesh_faces": int(len(faces)),
                 "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
                 "deocclusion": fitted.deocclusion, "silhouette": silhouette,

@@ -96,7 +96,7 @@ PRESETS: dict[str, PipelineConfig] = {
     "fast": PipelineConfig(decode=DecodeConfig(demosaic="LINEAR"),
                            geometry=GeometryConfig(sdf=SDF_PRESETS["test"], mesh_resolution=256, face_budget=50_000,
                                                    deocclude_iterations=60, first_pass_iterations=0,
-                                                   first_pass_mesh_resolution=0),
+                                                   first_pass_mesh_resolution=0, fine_pixel_m=0.0),
                            textures=TexturesConfig(atlas_faces=10_000, texture_size=512),
                            materials=MaterialsConfig(max_views=8, occlusion_rays=32),
                            relight=RelightConfig(novel_views=2, sg_lobes=16,
@@ -107,7 +107,8 @@ PRESETS: dict[str, PipelineConfig] = {
     # The test suite's tiny captures (a few cameras, ~100 px): every stage runs, in seconds.
     "test": PipelineConfig(geometry=GeometryConfig(sdf=SDF_PRESETS["test"], min_views=4, mesh_resolution=96,
                                                    face_budget=20_000, previews=True, deocclude_iterations=60,
-                                                   first_pass_iterations=0, first_pass_mesh_resolution=0),
+                                                   first_pass_iterations=0, first_pass_mesh_resolution=0,
+                                                   fine_pixel_m=0.0),
                            textures=TexturesConfig(atlas_faces=3_000, texture_size=256),
                            exports=ExportsConfig(colmap_points=5_000),
                            materials=MaterialsConfig(texture_size=64, max_views=4, median_neighbours=16,

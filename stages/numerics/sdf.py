@@ -71,6 +71,8 @@ __all__ = [
     "SDFField",
     "train_sdf",
     "render_view",
+    "mask_centre",
+    "subject_footprint_m",
     "resolve_device",
     "default_stage_box",
     "fit_to_signed_distance",
@@ -565,6 +567,41 @@ def subject_pixel_m(cams: Sequence[tuple[np.ndarray, np.ndarray]], point: np.nda
     if not footprints:
         raise ValueError(f"the point {point.tolist()} is behind every camera")
     return float(np.median(footprints))
+
+
+def mask_centre(views: Sequence[SDFView]) -> np.ndarray:
+    """(3,) the point nearest, in the least-squares sense, to the rays through the centroids of the views' masks
+    (views with an empty mask do not count): where the subject is, before any hull.
+
+    Raises:
+        ValueError: fewer than two masks hold a pixel, or their rays are parallel.
+    """
+    rows, rhs = np.zeros((3, 3)), np.zeros(3)
+    used = 0
+    for view in views:
+        ys, xs = np.nonzero(np.asarray(view.mask, bool))
+        if len(xs) == 0:
+            continue
+        K, T = np.asarray(view.K, np.float64), np.asarray(view.cam_from_world, np.float64)
+        direction, _ = pixel_rays(K, T, np.float64(xs.mean()), np.float64(ys.mean()))
+        projector = np.eye(3) - np.outer(direction, direction)
+        rows += projector
+        rhs += projector @ camera_centre(T)
+        used += 1
+    if used < 2 or np.linalg.cond(rows) > 1e8:
+        raise ValueError(f"the subject's centre needs two masks whose rays cross ({used} mask(s) hold a pixel)")
+    return np.linalg.solve(rows, rhs)
+
+
+def subject_footprint_m(views: Sequence[SDFView]) -> float:
+    """The footprint of one pixel at the subject, metres: :func:`subject_pixel_m` at :func:`mask_centre` (the
+    training's own figure, ``stats["subject_pixel_m"]``, is taken at the hull's centre, known only once the hull is).
+
+    Raises:
+        ValueError: as :func:`mask_centre`, or the centre is behind every camera.
+    """
+    cams = [(np.asarray(v.K, np.float64), np.asarray(v.cam_from_world, np.float64)) for v in views]
+    return subject_pixel_m(cams, mask_centre(views))
 
 
 def sharpness_for_pixels(config: SDFConfig, pixel_m: float) -> SDFConfig:

@@ -1,6 +1,8 @@
 """Stage modules: the hand-checkable parts of their wiring."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -202,6 +204,63 @@ def test_contact_sheet_labels_each_tile_with_its_camera():
     assert np.array_equal(label_picture(pics[0], "cam 00001"), sheet[0:40, 80:160])
     with pytest.raises(ValueError, match="2 labels for 3 pictures"):
         contact_sheet(pics, labels=["a", "b"])
+
+
+def test_schedule_for_footprint_raises_the_steps_of_finely_seen_subjects_only():
+    from stages.geometry import GeometryConfig
+    from stages.numerics.sdf_mesh import schedule_for_footprint
+
+    cfg = GeometryConfig(first_pass_iterations=150, fine_pixel_m=0.004, fine_first_pass_iterations=600,
+                         fine_iterations=1800)
+    cfg = dataclasses.replace(cfg, sdf=dataclasses.replace(cfg.sdf, iterations=1500))
+    assert schedule_for_footprint(cfg, 0.005) is cfg and schedule_for_footprint(cfg, 0.004) is cfg
+    fine = schedule_for_footprint(cfg, 0.0011)
+    assert (fine.first_pass_iterations, fine.sdf.iterations) == (600, 1800)
+    assert dataclasses.replace(fine, first_pass_iterations=150, sdf=cfg.sdf) == cfg  # nothing else changes
+    # never lowered; a first pass over the whole schedule (0) stays so
+    long = dataclasses.replace(cfg, first_pass_iterations=900, sdf=dataclasses.replace(cfg.sdf, iterations=20000))
+    assert (schedule_for_footprint(long, 0.001).first_pass_iterations,
+            schedule_for_footprint(long, 0.001).sdf.iterations) == (900, 20000)
+    assert schedule_for_footprint(dataclasses.replace(cfg, first_pass_iterations=0), 0.001).first_pass_iterations == 0
+    off = dataclasses.replace(cfg, fine_pixel_m=0.0)
+    assert schedule_for_footprint(off, 1e-5) is off
+    with pytest.raises(ValueError, match="pixel_m"):
+        schedule_for_footprint(cfg, 0.0)
+    # the presets with their own short schedules keep them
+    from stages.registry import PRESETS
+    assert all(PRESETS[name].geometry.fine_pixel_m == 0.0 for name in ("test", "fast", "gate"))
+    assert PRESETS["default"].geometry.fine_pixel_m == 0.004
+
+
+def test_sdf_mesh_trains_the_fine_schedule_only_for_a_finely_seen_subject():
+    import torch
+
+    from stages.geometry import GeometryConfig
+    from stages.numerics.sdf import SDF_PRESETS
+    from stages.numerics.sdf_mesh import sdf_mesh
+    from tests.unit.numerics.test_sdf import sphere_views
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        views = sphere_views(n=6, size=32)
+        pixel_m = 2.0 / views[0].K[0, 0]  # the sphere's centre is 2 m along every optical axis
+        sdf = dataclasses.replace(SDF_PRESETS["test"], iterations=20, hull_init_steps=10, log_every=5)
+        base = GeometryConfig(sdf=sdf, first_pass_iterations=10, fine_first_pass_iterations=15, fine_iterations=25,
+                              mesh_resolution=32, first_pass_mesh_resolution=32, deocclude_directions=16,
+                              face_budget=2000)
+        lines: list[str] = []
+        coarse = sdf_mesh(views, dataclasses.replace(base, fine_pixel_m=pixel_m / 2), log=lines.append)
+        assert coarse.iterations == (10, 20) and coarse.subject_pixel_m == pytest.approx(pixel_m, rel=1e-3)
+        assert not any("per pixel" in line for line in lines)
+        fine = sdf_mesh(views, dataclasses.replace(base, fine_pixel_m=pixel_m * 2), log=lines.append)
+        assert fine.iterations == (15, 25) and fine.first_pass["stats"]["iterations"] == 15
+        assert fine.result.stats["iterations"] == 25
+        assert sum("SDF steps 15 + 25 instead of 10 + 20" in line for line in lines) == 1
+        off = sdf_mesh(views, dataclasses.replace(base, fine_pixel_m=0.0))
+        assert off.subject_pixel_m is None and off.iterations == (10, 20)
+    finally:
+        torch.set_num_threads(previous)
 
 
 def test_pass_configs_give_each_pass_its_steps():

@@ -123,11 +123,13 @@ def test_sdf_schedule_default_row_is_the_stage_default():
         rows = bench.schedules(quick)
         assert rows[0] == (base.first_pass_iterations, base.sdf.iterations)
         assert len(set(rows)) == len(rows)
-        assert bench.schedule_config(*rows[0]) == base
+        # the footprint rule off, so that a capture seen finer than fine_pixel_m runs the steps asked
+        assert bench.schedule_config(*rows[0]) == dataclasses.replace(base, fine_pixel_m=0.0)
     # a schedule changes only the two step counts
     other = bench.schedule_config(1800, 1800)
     assert other.sdf == dataclasses.replace(base.sdf, iterations=1800)
-    assert dataclasses.replace(other, sdf=base.sdf, first_pass_iterations=base.first_pass_iterations) == base
+    assert dataclasses.replace(other, sdf=base.sdf, first_pass_iterations=base.first_pass_iterations,
+                               fine_pixel_m=base.fine_pixel_m) == base
     # the Pareto front: b is beaten by a on both axes; c is slower but better
     rows = [{"cpu_s": 10, "chamfer_mm": 1.5}, {"cpu_s": 12, "chamfer_mm": 1.6}, {"cpu_s": 20, "chamfer_mm": 1.3}]
     assert bench.pareto(rows) == [True, False, True]

@@ -21,8 +21,10 @@ from stages.numerics.sdf import (
     SDFView,
     _draw_rays,
     fit_to_signed_distance,
+    mask_centre,
     render_view,
     sharpness_for_pixels,
+    subject_footprint_m,
     subject_pixel_m,
     train_sdf,
 )
@@ -335,6 +337,25 @@ def test_subject_pixel_m_is_the_median_depth_over_focal():
     assert subject_pixel_m(cams[:2], np.array([0.0, 0.0, -1.0])) == pytest.approx(0.002)
     with pytest.raises(ValueError, match="behind every camera"):
         subject_pixel_m([(K, away)], np.zeros(3))
+
+
+def test_mask_centre_crosses_the_rays_through_the_masks_centroids():
+    # A sphere 0.1 m off the origin: every view's mask is symmetric about the sphere's projection, so the rays
+    # through the centroids meet at its centre.
+    offset = np.array([0.1, -0.05, 0.08])
+    views = [dataclasses.replace(v, cam_from_world=np.concatenate(
+        [v.cam_from_world[:, :3], (v.cam_from_world[:, 3] - v.cam_from_world[:, :3] @ offset)[:, None]], axis=1))
+        for v in sphere_views(n=6, size=41)]
+    assert mask_centre(views) == pytest.approx(offset, abs=2e-3)
+    # depth 2 m along each optical axis over the focal length
+    assert subject_footprint_m(views) == pytest.approx(2.0 / views[0].K[0, 0], rel=1e-3)
+    # an empty mask does not count; one mask alone fixes no point
+    empty = dataclasses.replace(views[0], mask=np.zeros_like(views[0].mask))
+    assert mask_centre([empty] + views[1:]) == pytest.approx(offset, abs=2e-3)
+    with pytest.raises(ValueError, match="1 mask"):
+        mask_centre([empty, views[1]])
+    with pytest.raises(ValueError, match="two masks"):
+        mask_centre([views[0], views[0]])  # the same ray twice
 
 
 def test_sharpness_for_pixels_raises_only_the_final_sharpness_of_fine_pixels():
