@@ -122,13 +122,15 @@ def schedule_for_footprint(cfg: SDFMeshConfig, pixel_m: float) -> SDFMeshConfig:
     """``cfg`` with the step counts a subject seen at ``pixel_m`` metres per pixel trains with: below
     ``cfg.fine_pixel_m`` the first pass's steps raised to ``fine_first_pass_iterations`` (unless it runs the whole
     schedule, 0) and ``sdf.iterations`` to ``fine_iterations``; never lowered. ``cfg`` itself when the rule is
-    off or the pixels are not finer."""
+    off, the pixels are not finer or the steps are already at least those."""
     if not pixel_m > 0:
         raise ValueError(f"pixel_m must be positive, got {pixel_m}")
     if not pixel_m < cfg.fine_pixel_m:
         return cfg
     first = cfg.first_pass_iterations and max(cfg.first_pass_iterations, cfg.fine_first_pass_iterations)
     second = max(cfg.sdf.iterations, cfg.fine_iterations)
+    if (first, second) == (cfg.first_pass_iterations, cfg.sdf.iterations):
+        return cfg
     return dataclasses.replace(cfg, first_pass_iterations=first, sdf=dataclasses.replace(cfg.sdf, iterations=second))
 
 
