@@ -22,7 +22,7 @@ Growth: per stage a log-log least-squares fit ``seconds = a * pixels ** k`` over
 width x height), its exponent ``k`` and the extrapolation to the production sensor (6016 x 4016, **extrapolated**,
 never measured here). The neural SDF (``geometry``) trains a fixed number of steps of a fixed number of rays and
 samples (raised once, to ``geometry.fine_first_pass_iterations`` + ``fine_iterations``, where the subject is seen
-finer than ``geometry.fine_pixel_m``: the default body wider than about 400 px), so its training does not
+finer than ``geometry.fine_pixel_m``: the default body wider than about 360 px), so its training does not
 grow with the pixels; what grows is reading the 32 views, the visual hull
 carved from their masks and the bank of rays worth drawing (built over every pixel), and the held-out and
 G-buffer work of the stages after it that read full-size maps.

@@ -50,14 +50,16 @@ class SDFMeshConfig(Documented):
     seeds, `ultrastage run --config` on copies of one store) 150 steps against 600 save about 17 CPU s an action
     and move relit views 27.32 -> 27.34 dB, Chamfer 1.065 -> 1.058 mm, held-out normals 3.66 -> 3.69 deg and the
     intrinsic albedo texture 33.36 -> 33.28 dB (means of the two seeds)."""
-    fine_pixel_m: float = checked(0.004, ge=0.0)
+    fine_pixel_m: float = checked(0.0045, ge=0.0)
     """Subjects seen finer than this, metres per pixel at the subject (:func:`stages.numerics.sdf.subject_footprint_m`:
     the median over the views), train at least ``fine_first_pass_iterations`` and ``fine_iterations`` steps
-    (:func:`schedule_for_footprint`; 0 = off). Below 4 mm the cpu preset's ``inv_s_end_per_pixel`` raises the SDF's
-    final sharpness, and a sharper surface takes more steps to settle: on the ICT head (1.1 mm pixels, ``inv_s``
-    about 2,900) 150 + 1,500 steps against 600 + 1,800 cost relit views 0.8 dB and Chamfer 0.3 mm, and on the
-    default body at 640 px (2.5 mm, two SDF seeds) 0.3 dB of relit views and 0.7-0.9 dB of the relighting set,
-    while the panel's bodies (4.6-6.0 mm pixels) keep the shorter schedule."""
+    (:func:`schedule_for_footprint`; 0 = off). The finer the pixels, the less often each pixel's ray is drawn, and
+    below 4 mm the cpu preset's ``inv_s_end_per_pixel`` also raises the SDF's final sharpness, which takes more
+    steps to settle. 150 + 1,500 steps against 600 + 1,800 cost (two SDF seeds where two are given): the default
+    body at 384 px (4.2 mm) 0.10-0.23 dB of relit views and 0.27-0.78 dB of the relighting set, at 640 px (2.5 mm)
+    0.3 dB and 0.7-0.9 dB, the ICT head (1.1 mm) 0.8 dB of relit views and 0.3 mm of Chamfer; at the default
+    capture's 5.0 mm 0.05-0.07 dB of relit views, for 29 CPU s an action that `make dataset` cannot spare, so
+    it and the panel's bodies (4.6-6.0 mm pixels) keep the shorter schedule."""
     fine_first_pass_iterations: int = checked(600, ge=1)
     """The first pass's least steps for a subject seen finer than ``fine_pixel_m`` (a ``first_pass_iterations`` of
     0, the whole schedule, stays 0)."""

@@ -228,7 +228,7 @@ def test_schedule_for_footprint_raises_the_steps_of_finely_seen_subjects_only():
     # the presets with their own short schedules keep them
     from stages.registry import PRESETS
     assert all(PRESETS[name].geometry.fine_pixel_m == 0.0 for name in ("test", "fast", "gate"))
-    assert PRESETS["default"].geometry.fine_pixel_m == 0.004
+    assert PRESETS["default"].geometry.fine_pixel_m == 0.0045
 
 
 def test_sdf_mesh_trains_the_fine_schedule_only_for_a_finely_seen_subject():
