@@ -182,7 +182,7 @@ class GeometryStage(Stage):
         (out / "sdf" / "training.json").write_text(json.dumps(
             {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
              "history": result.history, "deocclusion": fitted.deocclusion, "first_pass": fitted.first_pass,
-             "schedule": {"subject_pixel_m": fitted.subject_pixel_m, "iterations": list(fitted.iterations)}},
+             "schedule": {"subject_pixel_m": fitted.subject_pixel_m}},
             indent=1, default=float))
         write_ply(ArtifactWriter(self.name, out).path("mesh"), vertices, faces, normals=vertex_normals(vertices, faces))
         if cfg.previews:

@@ -191,8 +191,12 @@ class SDFMesh:
     subject_pixel_m: float | None = None
     """The subject's pixel footprint the schedule was chosen for (:func:`schedule_for_footprint`; None with the
     rule off)."""
-    iterations: tuple[int, ...] = ()
-    """The steps each pass trained."""
+
+    @property
+    def iterations(self) -> tuple[int, ...]:
+        """The steps each pass trained (from the passes' own statistics)."""
+        first = (int(self.first_pass["stats"]["iterations"]),) if self.first_pass is not None else ()
+        return first + (int(self.result.stats["iterations"]),)
 
 
 def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
@@ -278,5 +282,4 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
                                                   start=result.start, index=2)
     return SDFMesh(result=result, vertices=vertices, faces=faces, mesh_stats=mesh_stats, deocclusion=deocclusion,
                    first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start,
-                   second_pass_start_s=second_start, subject_pixel_m=pixel_m,
-                   iterations=(first.iterations,) + ((second.iterations,) if second is not None else ()))
+                   second_pass_start_s=second_start, subject_pixel_m=pixel_m)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import time
 
-from pipeline.claims import claim_is_stale, try_claim
+from pipeline.claims import await_or_claim, claim_is_stale, try_claim
 
 
 def test_a_claim_is_taken_once_and_holds_the_pid(tmp_path):
@@ -31,18 +31,12 @@ def test_stale_when_the_process_is_gone_or_the_claim_is_old(tmp_path):
     assert not claim_is_stale(claim, 60.0)  # just removed: look again
 
 
-def test_await_or_claim_returns_the_stored_result_or_the_claim():
-    import tempfile
-    from pathlib import Path
-
-    from pipeline.claims import await_or_claim
-
-    with tempfile.TemporaryDirectory() as tmp:
-        claim = Path(tmp) / "result.claim"
-        assert await_or_claim(lambda: 7, claim, 60.0) == (7, False) and not claim.exists()
-        assert await_or_claim(lambda: None, claim, 60.0) == (None, True)  # ours to produce
-        assert claim.read_text() == str(os.getpid())
-        assert await_or_claim(lambda: None, claim, 60.0, wait=False) == (None, False)  # a live holder
-        answers = iter([None, 5])  # stored between the look and the claim: the claim is given back
-        claim.write_text("999999999")  # and a dead holder's claim is taken over first
-        assert await_or_claim(lambda: next(answers), claim, 60.0) == (5, False) and not claim.exists()
+def test_await_or_claim_returns_the_stored_result_or_the_claim(tmp_path):
+    claim = tmp_path / "result.claim"
+    assert await_or_claim(lambda: 7, claim, 60.0) == (7, False) and not claim.exists()
+    assert await_or_claim(lambda: None, claim, 60.0) == (None, True)  # ours to produce
+    assert claim.read_text() == str(os.getpid())
+    assert await_or_claim(lambda: None, claim, 60.0, wait=False) == (None, False)  # a live holder
+    answers = iter([None, 5])  # stored between the look and the claim: the claim is given back
+    claim.write_text("999999999")  # and a dead holder's claim is taken over first
+    assert await_or_claim(lambda: next(answers), claim, 60.0) == (5, False) and not claim.exists()
