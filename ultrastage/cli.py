@@ -136,7 +136,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     overrides = {k: v for k, v in {"mesh": args.mesh, "actions": args.actions, "width": args.width,
                                    "seed": args.seed, "pose_variation": args.pose_variation, "body": args.body,
-                                   "hair": args.hair, "garment": args.garment}.items()
+                                   "hair": args.hair, "garment": args.garment,
+                                   "fold_amplitude_m": args.fold_amplitude}.items()
                  if v is not None}
     try:
         config = dataclasses.replace(SimConfig(), **overrides)
@@ -499,6 +500,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--garment", type=float, metavar="FRACTION",
                    help="0..1: fraction of the actions (drawn per action) wearing a loose skirt (default 0; "
                         "MakeHuman subject only)")
+    p.add_argument("--fold-amplitude", type=float, metavar="M",
+                   help="peak displacement of the clothes' folds along the normal, metres (default 0.004; 0: no "
+                        "folds)")
     p.add_argument("--actions", type=int, help="number of actions")
     p.add_argument("--width", type=int, help="image width in pixels (height follows the D750's 2:3 portrait)")
     p.add_argument("--seed", type=int, help="random seed")

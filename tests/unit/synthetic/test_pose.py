@@ -187,3 +187,28 @@ def test_unreadable_mesh_files_are_refused_naming_the_file(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["corrupt.glb", "empty.ply", "points.ply"]  # nothing written
     code = main(["simulate", "--out", str(tmp_path / "out"), "--pose-variation", "2"])
     assert code == 2 and "pose_variation" in capsys.readouterr().err
+
+
+@needs_shared
+def test_fold_amplitude_zero_leaves_the_clothes_unfolded_and_every_other_draw_alike(makehuman, tmp_path, monkeypatch,
+                                                                                    capsys):
+    import synthetic
+    from synthetic.simulate import action_subject
+    from ultrastage.cli import main
+
+    folded = action_subject(SimConfig(mesh=str(MAKEHUMAN)), makehuman, 0)
+    flat = action_subject(SimConfig(mesh=str(MAKEHUMAN), fold_amplitude_m=0.0), makehuman, 0)
+    yawed = makehuman.vertices @ geometry.yaw_matrix(flat.yaw_rad).T
+    assert flat.yaw_rad == folded.yaw_rad and flat.skin_name == folded.skin_name
+    assert np.allclose(flat.vertices_rest, makehuman.vertices, atol=1e-12)
+    assert np.allclose(flat.vertices_world, yawed, atol=1e-12)
+    moved = np.linalg.norm(folded.vertices_rest - makehuman.vertices, axis=1)
+    assert 0.002 < moved.max() <= 0.005 + 1e-9    # the default 4 mm peak, drawn within x0.75-1.25
+    # the command line's --fold-amplitude reaches the simulator's config, and a negative one is refused
+    seen = {}
+    monkeypatch.setattr(synthetic, "simulate", lambda out, config, **kw: seen.setdefault("config", config))
+    monkeypatch.setattr("pipeline.store.swap_into_place", lambda tmp, out: None)
+    assert main(["simulate", "--out", str(tmp_path / "out"), "--fold-amplitude", "0"]) == 0
+    assert seen["config"].fold_amplitude_m == 0.0
+    assert main(["simulate", "--out", str(tmp_path / "out"), "--fold-amplitude", "-0.001"]) == 2
+    assert "fold_amplitude_m" in capsys.readouterr().err
