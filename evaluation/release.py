@@ -777,12 +777,25 @@ def relit_truth_lights(cameras: list[dict]) -> int:
     return 2048 if largest >= 256 else 512
 
 
+def simulator_digest(folder: Path) -> str:
+    """sha256 hex over the Python files of ``folder`` (the simulator's package): each file's name and its
+    :func:`pipeline.hashing.source_digest`, so comments, docstrings and layout do not count, as for a stage's key."""
+    import hashlib
+
+    from pipeline.hashing import source_digest
+
+    digest = hashlib.sha256()
+    for path in sorted(Path(folder).glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + source_digest(path).encode() + b"\0")
+    return digest.hexdigest()
+
+
 class RelitTruthCache:
     """The simulator's renders of one action's true subject (``radiance``, ``mask``) kept on disk, so that
     evaluating a changed release does not render the same reference again (about 100 s of the default
     capture's 146 s evaluation).
 
-    A render's key is the sha256 of a sorted record: the simulator's source files, the capture's
+    A render's key is the sha256 of a sorted record: the simulator's code (:func:`simulator_digest`), the capture's
     ``capture.json``, the action's ``truth.json`` and true mesh (file digests), the light count, the camera
     (K, pose, size) and the environment map's bytes and shape. Files are written under a temporary name and
     renamed."""
@@ -795,12 +808,10 @@ class RelitTruthCache:
         def digest(path: Path) -> str:
             return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else "absent"
 
-        simulator = hashlib.sha256()
-        for path in sorted(Path(synthetic.__file__).parent.glob("*.py")):
-            simulator.update(path.name.encode() + b"\0" + path.read_bytes())
         truth = Path(truth_dir) / action_id
         self.folder = Path(folder)
-        self.record = {"format": 3, "simulator": simulator.hexdigest(), "lights": int(lights),
+        self.record = {"format": 4, "simulator": simulator_digest(Path(synthetic.__file__).parent),
+                       "lights": int(lights),
                        "capture": digest(Path(truth_dir).parent / "capture.json"),
                        "truth": digest(truth / "truth.json"), "mesh": digest(truth / "mesh.ply")}
 

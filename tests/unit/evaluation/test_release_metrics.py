@@ -15,7 +15,7 @@ import pytest
 
 from evaluation.release import (RelitTruthCache, _AlbedoSums, _ErrorPool, _MapsAction, _maps_combine,
                                 _means_over_actions, _mesh_overall, _psnr_from_mse, _relit_parts, camera_errors,
-                                evaluate_camera, relit_truth_lights, summary_rows)
+                                evaluate_camera, relit_truth_lights, simulator_digest, summary_rows)
 from pipeline.codecs.mesh import write_ply
 from stages.numerics.meshmetrics import mesh_metrics
 from synthetic.rig import look_at
@@ -301,6 +301,23 @@ def test_relit_truth_lights_by_size():
     assert relit_truth_lights([{"width": 96, "height": 144}]) == 512
     assert relit_truth_lights([{"width": 160, "height": 255}, {"width": 100, "height": 256}]) == 2048
     assert relit_truth_lights([]) == 512
+
+
+def test_simulator_digest_keeps_docstrings_and_comments_out(tmp_path: Path):
+    """The truth renders' key holds the simulator's code, not its text: a docstring or comment edit keeps it, a
+    code edit, a new file or a renamed one changes it."""
+    (tmp_path / "a.py").write_text('"""Module."""\nX = 1\n')
+    (tmp_path / "notes.txt").write_text("not python")
+    key = simulator_digest(tmp_path)
+    (tmp_path / "a.py").write_text('"""Module, documented again."""\n# a comment\nX = 1\n')
+    (tmp_path / "notes.txt").write_text("other")
+    assert simulator_digest(tmp_path) == key
+    (tmp_path / "a.py").write_text('"""Module."""\nX = 2\n')
+    changed = simulator_digest(tmp_path)
+    (tmp_path / "b.py").write_text("Y = 0\n")
+    added = simulator_digest(tmp_path)
+    (tmp_path / "b.py").rename(tmp_path / "c.py")
+    assert len({key, changed, added, simulator_digest(tmp_path)}) == 4
 
 
 def test_relit_truth_cache_round_trip_and_keys(tmp_path: Path):
