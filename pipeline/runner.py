@@ -501,10 +501,9 @@ def _write_release_docs(release: Path, config: Any, capture: Capture) -> None:
              "carve them; held-out and relit views show skin there); the mesh keeps only the smooth part of "
              "detail a few pixels across, such as cloth folds (on the default capture's 3-5 mm folds seen at 5 mm "
              "a pixel its trunk lies a median 0.4-0.5 mm outside the truth, 0.15 mm without the folds, which are "
-             "a quarter of its Chamfer); the white-light "
-             "albedo still contains ambient "
-             "occlusion (textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh "
-             "smooths creases); albedo holds the white light's specular reflection (6-10% head-on, more at grazing "
+             "a quarter of its Chamfer); the white-light albedo still contains ambient occlusion "
+             "(textures/albedo_deoccluded.exr divides the mesh's occlusion out, partly: the mesh smooths "
+             "creases); albedo holds the white light's specular reflection (6-10% head-on, more at grazing "
              "views on the simulator; albedo_diffuse takes the fitted one out); roughness assumes Fresnel F0 = "
              f"{_materials_f0(config)} everywhere (skin's; cloth's is nearer 0.04); relit views have no "
              "interreflections; see metrics.parquet.",
