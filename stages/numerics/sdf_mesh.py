@@ -190,7 +190,7 @@ class SDFMesh:
     one pass."""
     subject_pixel_m: float | None = None
     """The subject's pixel footprint the schedule was chosen for (:func:`schedule_for_footprint`; None with the
-    rule off)."""
+    rule off or when the views give no footprint)."""
 
     @property
     def iterations(self) -> tuple[int, ...]:
@@ -205,7 +205,7 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
              checkpoint: Callable[[int, int, Any], None] | None = None) -> SDFMesh:
     """The mesh of the neural SDF trained on ``views`` (:class:`stages.numerics.sdf.SDFView`) as ``cfg`` asks:
     :func:`pass_configs`' passes with the steps :func:`schedule_for_footprint` gives the subject's pixel footprint
-    (``log`` is told when they are raised), the second on :func:`second_pass_views` of the first mesh. ``progress(step,
+    (``log`` is told when they are raised, or when the views give no footprint), the second on :func:`second_pass_views` of the first mesh. ``progress(step,
     steps, message)`` is told about once per tenth of both passes' steps; ``log`` gets one line about the second
     pass; ``checkpoint(pass, iteration, field)`` (pass 1 or 2) is :func:`stages.numerics.sdf.train_sdf`'s
     checkpoint hook of each pass (every ``log_every`` steps). ``label`` names the fit in errors.
