@@ -5,8 +5,11 @@ every rule below decides those holes again, and each hole's pixels are scored ag
 
 - ``fill every hole``: the masks as the single-view cleanup leaves them (the baseline, no decision);
 - ``open every hole``: the opposite single-view rule;
-- ``across views``: :func:`stages.numerics.gaps.see_through_holes` with the stage's :class:`GapConfig` (what
-  ``make dataset`` ships), beside a sweep of its ``max_blocked`` and ``min_votes``.
+- ``across views``: :func:`stages.numerics.gaps.see_through_holes` with the stage's :class:`GapConfig`, beside a
+  sweep of its ``max_blocked`` and ``min_votes``;
+- ``gradient ratios``: :func:`stages.numerics.gaps.backdrop_holes` alone (one view at a time), at the stage's
+  ``backdrop_ratio_max`` and beside it;
+- ``across views or gradient ratios (stage)``: either test opens a hole (what ``make dataset`` ships).
 
 Scored in pixels: the true gaps opened and left filled, the subject's surface opened (a dark patch taken for a gap:
 the error that carves tunnels into the mesh) and kept, and the masks' IoU with the truth on the views with holes;
@@ -31,15 +34,20 @@ from _report import write_report  # noqa: E402
 from _release import check_inputs, parse_release_args, release_parser, store_artifacts  # noqa: E402
 
 SWEEP = (("max_blocked", 0.25), ("max_blocked", 0.75), ("min_votes", 3))
-"""The stage's config with one field changed, one row each."""
+"""The stage's config with one field of the test across views changed, one row each."""
+RATIO_SWEEP = (0.1, 0.3)
+"""Other ``backdrop_ratio_max`` of the gradient-ratio test alone, one row each."""
+STAGE = "across views or gradient ratios (stage)"
+"""The row of the stage's own rule."""
 
 
 def action_views(release: Path, truth: Path, action: str) -> dict:
-    """The action's calibrated views with filled holes: ids, filled masks, holes, true masks and cameras."""
+    """The action's calibrated views with filled holes: ids, filled masks, holes, true masks, cameras and the decoded
+    gradient images of the views with holes (None for the others)."""
     from pipeline.codecs.image import mask_from_png, read_png
 
     art = store_artifacts(release, action, ("decode", "photometric"))
-    views: dict = {"ids": [], "filled": [], "holes": [], "truth": [], "K": [], "T": []}
+    views: dict = {"ids": [], "filled": [], "holes": [], "truth": [], "K": [], "T": [], "pos": [], "neg": []}
     for cam_id, cam in sorted(art.cameras().items()):
         mask = art.mask(cam_id)
         path = art.path("filled_holes", cam_id)
@@ -50,6 +58,8 @@ def action_views(release: Path, truth: Path, action: str) -> dict:
         views["truth"].append(mask_from_png(read_png(truth / action / "mask" / f"{cam_id}.png")))
         views["K"].append(cam.K)
         views["T"].append(cam.cam_from_world)
+        views["pos"].append(art.exr("pos", cam_id) if holes.any() else None)
+        views["neg"].append(art.exr("neg", cam_id) if holes.any() else None)
     return views
 
 
@@ -72,17 +82,22 @@ def score(views: dict, opened: list[np.ndarray]) -> dict:
 
 
 def rules() -> list[tuple[str, object]]:
-    """(row name, GapConfig or a single-view rule's name)."""
+    """(row name, rule): a single-view rule's name (``fill``, ``open``), or ``(tests, GapConfig)`` with tests a
+    subset of ``across`` and ``ratio``."""
     from stages.numerics.gaps import GapConfig
 
     base = GapConfig()
-    return ([("fill every hole", "fill"), ("open every hole", "open"), ("across views (stage)", base)]
-            + [(f"across views, {field} {value}", dataclasses.replace(base, **{field: value}))
-               for field, value in SWEEP])
+    return ([("fill every hole", "fill"), ("open every hole", "open"), (STAGE, ({"across", "ratio"}, base)),
+             ("across views", ({"across"}, base))]
+            + [(f"across views, {field} {value}", ({"across"}, dataclasses.replace(base, **{field: value})))
+               for field, value in SWEEP]
+            + [(f"gradient ratios {base.backdrop_ratio_max:g}", ({"ratio"}, base))]
+            + [(f"gradient ratios {value:g}", ({"ratio"}, dataclasses.replace(base, backdrop_ratio_max=value)))
+               for value in RATIO_SWEEP])
 
 
 def measure_action(release: Path, truth: Path, action: str) -> dict:
-    from stages.numerics.gaps import see_through_holes
+    from stages.numerics.gaps import backdrop_holes, see_through_holes
     from stages.numerics.hull import default_stage_box, subject_box
 
     views = action_views(release, truth, action)
@@ -97,10 +112,17 @@ def measure_action(release: Path, truth: Path, action: str) -> dict:
         elif not any(h.any() for h in views["holes"]):
             opened = [np.zeros_like(h) for h in views["holes"]]
         else:
-            if box is None:
-                box = subject_box(views["filled"], views["K"], views["T"],
-                                  default_stage_box(list(zip(views["K"], views["T"]))))
-            opened = see_through_holes(views["filled"], views["holes"], views["K"], views["T"], box, rule).gaps
+            tests, config = rule
+            opened = [np.zeros_like(h) for h in views["holes"]]
+            if "across" in tests:
+                if box is None:
+                    box = subject_box(views["filled"], views["K"], views["T"],
+                                      default_stage_box(list(zip(views["K"], views["T"]))))
+                opened = see_through_holes(views["filled"], views["holes"], views["K"], views["T"], box, config).gaps
+            if "ratio" in tests:
+                opened = [o | backdrop_holes(h, m, p, n, config.backdrop_ratio_max)[0]
+                          if h.any() else o
+                          for o, h, m, p, n in zip(opened, views["holes"], views["filled"], views["pos"], views["neg"])]
         rows[name] = score(views, opened) | {"seconds": time.perf_counter() - start}
     return rows
 
@@ -134,7 +156,7 @@ def _f(value, digits: int) -> str:
 
 
 def markdown(report: dict) -> str:
-    lines = [f"# Filled holes decided across views ({report['release']}{'; quick: not measurements' if report['quick'] else ''})", "",
+    lines = [f"# Filled holes decided ({report['release']}{'; quick: not measurements' if report['quick'] else ''})", "",
              "Pixels of the holes the masks' cleanup filled, by the true mask: a true gap opened is right, a surface "
              "opened (a dark patch taken for a gap) is the error that carves the mesh.", "",
              "| rule | gaps opened (px) | gaps left (px) | share of gaps opened (worst action) | surface opened (px, "
@@ -146,8 +168,8 @@ def markdown(report: dict) -> str:
                      f"({r['worst_action_surface_opened_px']}) | {r['surface_kept_px']} | {_f(r['mask_iou'], 4)} | "
                      f"{r['seconds_per_action']:.2f} |")
     lines += ["", "Per action (the stage's rule): " + "; ".join(
-        f"{a}: {r['across views (stage)']['gap_opened_px']} gap px opened, {r['across views (stage)']['gap_left_px']} "
-        f"left, {r['across views (stage)']['surface_opened_px']} surface px opened"
+        f"{a}: {r[STAGE]['gap_opened_px']} gap px opened, {r[STAGE]['gap_left_px']} "
+        f"left, {r[STAGE]['surface_opened_px']} surface px opened"
         for a, r in report["actions"].items()), ""]
     return "\n".join(lines)
 
@@ -184,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     per_action = {}
     for action in actions:
         per_action[action] = measure_action(release, truth, action)
-        stage = per_action[action]["across views (stage)"]
+        stage = per_action[action][STAGE]
         print(f"{action}: {stage['gap_opened_px']} gap px opened, {stage['surface_opened_px']} surface px opened "
               f"({stage['seconds']:.1f} s)", flush=True)
     report = {"release": str(release), "capture": str(capture), "quick": bool(args.quick), "actions": per_action,

@@ -24,7 +24,7 @@ from artifacts.layout import ArtifactWriter, released_files
 from artifacts.camera import Camera
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.exr_headers import EXR_HEADERS
-from stages.numerics.gaps import GapConfig, see_through_holes
+from stages.numerics.gaps import GapConfig, backdrop_holes, see_through_holes
 from stages.numerics.hull import default_stage_box, subject_box
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
                                          foreground_mask_and_holes, normals_with_alpha, open_holes,
@@ -52,8 +52,8 @@ class PhotometricConfig(Documented):
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     """Edge-preserving denoising of the albedo maps (and of ``normal_alpha`` when asked)."""
     gaps: GapConfig = field(default_factory=GapConfig)
-    """The holes the masks filled, decided across the views: those the cameras see through (between an arm and
-    the torso) go back to background in the mask and the maps; dark patches stay filled
+    """The holes the masks filled, decided across the views and by their gradient ratios: those the cameras see
+    through (between an arm and the torso) go back to background in the mask and the maps; dark patches stay filled
     (:mod:`stages.numerics.gaps`)."""
 
 
@@ -121,14 +121,17 @@ def write_gaps_sheet(out: ArtifactWriter, views: list[str], holes: list[np.ndarr
 
 
 def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Decide the views' filled holes across the views (:func:`stages.numerics.gaps.see_through_holes`) and
-    put the gaps back to background in the stage's maps of the views that have them: mask, ``normal_alpha``
-    (normals and alpha 0), albedo and the previews. ``view_stats`` gets each view's new mask fraction and its
-    opened pixels. Returns the decision's record (holes, gaps, pixels, seconds), said in one log line."""
+    """Decide the views' filled holes: a hole is background when the views see through it
+    (:func:`stages.numerics.gaps.see_through_holes`) or when its gradient ratios are the backdrop's around it
+    (:func:`stages.numerics.gaps.backdrop_holes`, unless ``backdrop_ratio_max`` is 0). Put those back to background
+    in the stage's maps of the views that have them: mask, ``normal_alpha`` (normals and alpha 0), albedo and the
+    previews. ``view_stats`` gets each view's new mask fraction and its opened pixels. Returns the decision's record
+    (holes, gaps by each test, pixels, seconds), said in one log line."""
     if not config.gaps.enabled:
         return {"enabled": False}
     out = ArtifactWriter("photometric", ctx.out_dir)
-    cameras = ActionArtifacts(ctx.upstream).calibrated_cameras()
+    upstream = ActionArtifacts(ctx.upstream)
+    cameras = upstream.calibrated_cameras()
     views = [v for v in sorted(view_stats) if v in cameras and "mask_fraction" in view_stats[v]]
     holes = {v: (mask_from_png(read_png(out.path("filled_holes", v))) if out.path("filled_holes", v).exists()
                  else None) for v in views}
@@ -147,8 +150,19 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
         ctx.log.warning(f"{ctx.scope_id}: filled holes left as they are: {exc}")
         return {"enabled": True, "skipped": str(exc)}
     decision = see_through_holes(filled, hole_maps, Ks, Ts, box, config.gaps)
+    seen_through = sum(r["gap"] for per_view in decision.holes for r in per_view)
+    gaps, by_ratio = list(decision.gaps), 0
+    if config.gaps.backdrop_ratio_max > 0:
+        for i, (v, mask, hole) in enumerate(zip(views, filled, hole_maps)):
+            if not hole.any():
+                continue
+            backdrop, records = backdrop_holes(hole, mask, upstream.exr("pos", v), upstream.exr("neg", v),
+                                               config.gaps.backdrop_ratio_max)
+            # both tests label the hole map's 8-connected components alike: their records pair up
+            by_ratio += sum(mine["backdrop"] and not theirs["gap"] for mine, theirs in zip(records, decision.holes[i]))
+            gaps[i] = gaps[i] | backdrop
     opened = 0
-    for v, mask, gap in zip(views, filled, decision.gaps):
+    for v, mask, gap in zip(views, filled, gaps):
         if not gap.any() and np.array_equal(mask, masks[v]):
             continue
         normal_alpha, albedo, mask = open_holes(read_exr(out.path("normal_alpha", v)), read_exr(out.path("albedo", v)),
@@ -164,19 +178,20 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
         view_stats[v]["gap_pixels"] = int(gap.sum())
         opened += int(gap.sum())
     if config.previews:
-        write_gaps_sheet(out, views, hole_maps, decision.gaps)
-    records = [r for per_view in decision.holes for r in per_view]
-    record = {"enabled": True, "holes": len(records), "gaps": sum(r["gap"] for r in records),
+        write_gaps_sheet(out, views, hole_maps, gaps)
+    record = {"enabled": True, "holes": sum(len(per_view) for per_view in decision.holes),
+              "gaps": seen_through + by_ratio, "gaps_seen_through": seen_through, "gaps_by_ratio": by_ratio,
               "opened_pixels": opened, "seconds": round(time.perf_counter() - start, 2)}
-    ctx.log.info(f"{ctx.scope_id}: {record['gaps']} of {record['holes']} filled holes are gaps the cameras see "
-                 f"through: {opened} pixels back to background ({record['seconds']:.1f} s)")
+    ctx.log.info(f"{ctx.scope_id}: {record['gaps']} of {record['holes']} filled holes are background ({seen_through} "
+                 f"seen through across the views, {by_ratio} more by their gradient ratios): {opened} pixels back to "
+                 f"background ({record['seconds']:.1f} s)")
     return record
 
 
 class PhotometricStage(Stage):
     name = "photometric"
-    # 7: the normal sheet's tiles are labelled with their camera ids
-    version = "7"
+    # 8: filled holes whose gradient ratios are the backdrop's go back to background too
+    version = "8"
     scope = "action"
     requires = ("decode", "plates", "lights")
     outputs = ("normal_alpha", "albedo", "mask", "filled_holes", "previews")

@@ -1,4 +1,5 @@
-"""The photometric stage's finalize opens the filled holes the views see through, in every map it wrote."""
+"""The photometric stage's finalize opens the filled holes the views see through, or whose gradient ratios are the
+backdrop's, in every map it wrote."""
 from __future__ import annotations
 
 import json
@@ -14,20 +15,43 @@ from stages.photometric import PhotometricConfig, open_gaps, write_gaps_sheet
 from tests.unit.numerics.test_gaps import BLOCK, FRAME, SIZE, box_mask, filled, ring_cameras
 
 
-def _stage_folder(tmp_path, boxes):
+SURFACE_RATIO = np.array([0.6, 0.0, 0.0], np.float32)
+BACKDROP_RATIO = np.array([0.03, -0.02, 0.01], np.float32)
+
+
+def _gradients(shown_surface):
+    """Decoded gradient images (pos, neg) of a view: the surface's ratio where ``shown_surface``, the backdrop's
+    elsewhere, at one brightness (under the white light a dark patch and the backdrop look alike)."""
+    ratio = np.where(shown_surface[..., None], SURFACE_RATIO, BACKDROP_RATIO)
+    return (0.05 * (1 + ratio)).astype(np.float32), (0.05 * (1 - ratio)).astype(np.float32)
+
+
+def _stage_folder(tmp_path, boxes, patch_in=None):
     """A photometric task's folder after its views ran (filled masks, their holes, flat maps) and its decode
-    upstream (the cameras), for the 12 ring cameras looking at ``boxes``."""
+    upstream (the cameras and the gradient images), for the 12 ring cameras looking at ``boxes``. ``patch_in``:
+    camera id -> (H, W) bool, a hole the mask step left in that view (a dark patch, or a slit only it sees
+    through), filled like the others; its gradient images show a surface there unless the key ends in ``:slit``."""
     cams = ring_cameras()
     ids = [f"{i:05d}" for i in range(len(cams))]
     decode = tmp_path / "decode"
-    decode.mkdir(parents=True)
+    for product in ("pos", "neg"):
+        (decode / product).mkdir(parents=True)
     (decode / "cameras.json").write_text(json.dumps({"cameras": [
         {"camera_id": cid, "K": K.tolist(), "cam_from_world": T.tolist(), "width": SIZE, "height": SIZE}
         for cid, (K, T) in zip(ids, cams)]}))
     out = ArtifactWriter("photometric", tmp_path / "out")
     holes, stats = {}, {}
+    patches = {key.split(":")[0]: (value, key.endswith(":slit")) for key, value in (patch_in or {}).items()}
     for cid, (K, T) in zip(ids, cams):
         mask, hole = filled(box_mask(K, T, boxes))
+        shown = mask & ~hole
+        if cid in patches:
+            patch, slit = patches[cid]
+            hole = hole | (patch & mask)
+            shown = shown & ~patch if slit else shown
+        pos, neg = _gradients(shown)
+        write_exr(decode / "pos" / f"{cid}.exr", pos)
+        write_exr(decode / "neg" / f"{cid}.exr", neg)
         for product in ("normal_alpha", "albedo", "mask", "filled_holes", "normal_preview"):
             out.path(product, cid).parent.mkdir(parents=True, exist_ok=True)
         normal_alpha = np.zeros((SIZE, SIZE, 4), np.float32)
@@ -52,6 +76,7 @@ def test_finalize_opens_the_frame_in_mask_normals_albedo_and_stats(tmp_path):
     seen_through = [cid for cid, h in holes.items() if h.sum() >= 20]
     assert record["gaps"] >= len(seen_through) >= 4 and record["opened_pixels"] >= sum(
         int(holes[c].sum()) for c in seen_through)
+    assert record["gaps"] == record["gaps_seen_through"] + record["gaps_by_ratio"]
     for cid in seen_through:
         mask = mask_from_png(read_png(out.path("mask", cid)))
         normal_alpha = read_exr(out.path("normal_alpha", cid))
@@ -78,6 +103,31 @@ def test_finalize_leaves_a_block_without_holes_and_can_be_turned_off(tmp_path):
     off = PhotometricConfig(gaps=GapConfig(enabled=False))
     assert open_gaps(ctx, off, stats) == {"enabled": False}
     assert all(np.array_equal(read_png(out.path("mask", cid)), before[cid]) for cid in holes)
+
+
+def _patch(size=SIZE):
+    patch = np.zeros((size, size), bool)
+    patch[30:34, 28:36] = True  # on the block's face in every view
+    return patch
+
+
+def test_a_dark_patch_one_view_leaves_stays_filled_a_slit_it_sees_through_opens(tmp_path):
+    """A hole in one view only: the views together cannot tell (no second view sees it); its gradient ratios can:
+    a dark surface's stay filled, the backdrop's open."""
+    ctx, out, holes, stats = _stage_folder(tmp_path / "patch", BLOCK, {"00003": _patch()})
+    record = open_gaps(ctx, PhotometricConfig(), stats)
+    assert record["holes"] == 1 and record["gaps"] == 0 and record["opened_pixels"] == 0
+    assert mask_from_png(read_png(out.path("mask", "00003")))[_patch()].all()
+    ctx, out, holes, stats = _stage_folder(tmp_path / "slit", BLOCK, {"00003:slit": _patch()})
+    record = open_gaps(ctx, PhotometricConfig(), stats)
+    assert (record["holes"], record["gaps_seen_through"], record["gaps_by_ratio"]) == (1, 0, 1)
+    assert record["opened_pixels"] == _patch().sum()
+    assert not mask_from_png(read_png(out.path("mask", "00003")))[_patch()].any()
+    assert (read_exr(out.path("normal_alpha", "00003"))[_patch()] == 0).all()
+    # the ratio test off: the views alone leave it filled
+    ctx, out, holes, stats = _stage_folder(tmp_path / "slit_off", BLOCK, {"00003:slit": _patch()})
+    off = PhotometricConfig(gaps=GapConfig(backdrop_ratio_max=0.0))
+    assert open_gaps(ctx, off, stats)["opened_pixels"] == 0
 
 
 def test_gaps_sheet_paints_opened_holes_red_and_kept_ones_blue(tmp_path):

@@ -123,3 +123,103 @@ def test_ray_batches_of_any_size_give_the_same_answer():
     assert whole.any() and not whole.all()  # the bars block, the opening does not
     np.testing.assert_array_equal(_blocked_rays(*args, chunk=1), whole)
     np.testing.assert_array_equal(_blocked_rays(*args, chunk=1000), whole)
+
+
+# ---------------------------------------------------------------------------------- the gradient-ratio test
+
+BACKDROP_RATIO = np.array([0.03, -0.02, 0.01], np.float32)
+"""The backdrop's ratio d in the synthetic frames below: the stage's inside is lit nearly alike by both gradients."""
+
+
+def gradient_frames(seed=0, size=96, noise=0.02):
+    """A synthetic view under the two gradients: a disk-shaped subject (mask) on a dim backdrop, two holes inside
+    it. Returns (pos, neg, mask with holes filled, holes, slot, patch): the slot shows the backdrop, the patch is
+    a dark surface facing +x (ratio (0.6, 0, 0)), as dark as the backdrop under the white light."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:size, 0:size]
+    subject = (rows - size / 2) ** 2 + (cols - size / 2) ** 2 < (0.4 * size) ** 2
+    slot = subject & (np.abs(cols - 0.35 * size) < 2) & (np.abs(rows - size / 2) < 12)
+    patch = subject & (np.abs(cols - 0.65 * size) < 4) & (np.abs(rows - size / 2) < 4)
+    level = np.full((size, size), 0.035, np.float32)            # backdrop and dark patch: alike under white light
+    level[subject & ~slot & ~patch] = 0.4
+    ratio = np.broadcast_to(BACKDROP_RATIO, (size, size, 3)).copy()
+    ratio[subject & ~slot] = (0.6, 0.0, 0.0)                    # every surface faces +x here
+    total = (2 * level)[..., None] * (1 + noise * rng.standard_normal((size, size, 3)))
+    pos, neg = (total * (1 + ratio) / 2).astype(np.float32), (total * (1 - ratio) / 2).astype(np.float32)
+    return pos, neg, subject, slot | patch, slot, patch
+
+
+def test_gradient_ratio_hand_computed_and_undefined_pixels():
+    from stages.numerics.gaps import gradient_ratio
+
+    pos = np.array([[[3.0, 1.0, 0.0], [np.inf, 2.0, 1.0]]], np.float32)
+    neg = np.array([[[1.0, 1.0, 0.0], [1.0, -2.0, 3.0]]], np.float32)
+    d = gradient_ratio(pos, neg)
+    assert d.shape == (1, 2, 3) and d.dtype == np.float32
+    np.testing.assert_allclose(d[0, 0, :2], [0.5, 0.0])
+    assert np.isnan(d[0, 0, 2]) and np.isnan(d[0, 1, 0]) and np.isnan(d[0, 1, 1])  # 0 / 0, inf, pos + neg = 0
+    assert d[0, 1, 2] == pytest.approx(-0.5)
+    with pytest.raises(ValueError, match="one shape"):
+        gradient_ratio(pos, neg[:, :1])
+
+
+def test_a_hole_showing_the_backdrop_opens_a_dark_surface_stays():
+    from stages.numerics.gaps import backdrop_holes
+
+    pos, neg, mask, holes, slot, patch = gradient_frames()
+    backdrop, records = backdrop_holes(holes, mask, pos, neg)
+    np.testing.assert_array_equal(backdrop, slot)
+    assert [r["backdrop"] for r in records] == [True, False]           # label order: the slot's column first
+    assert records[0]["ratio_distance"] < 0.05 and records[1]["ratio_distance"] == pytest.approx(0.58, abs=0.05)
+    assert [r["pixels"] for r in records] == [int(slot.sum()), int(patch.sum())]
+    # a hole's brightness under the white light plays no part: the patch matches the backdrop there
+    assert np.isclose(pos[patch].sum(-1).mean() + neg[patch].sum(-1).mean(),
+                      pos[~mask].sum(-1).mean() + neg[~mask].sum(-1).mean(), rtol=0.05)
+    off, _ = backdrop_holes(holes, mask, pos, neg, max_distance=0.0)
+    assert not off.any()
+
+
+def test_a_slot_mostly_covered_by_the_subject_stays_filled():
+    """A slot's pixels partly covered by the subject read as the surface's ratio: while most of its pixels show the
+    backdrop it opens, once most read as surface its median is a surface's and it stays filled."""
+    from stages.numerics.gaps import backdrop_holes
+
+    pos, neg, mask, _, slot, _ = gradient_frames()
+    rows, cols = np.nonzero(slot)
+    for share, opens in ((1 / 3, True), (2 / 3, False)):
+        covered = np.zeros_like(slot)
+        k = int(share * len(rows))
+        covered[rows[:k], cols[:k]] = True
+        total = pos + neg
+        mixed_pos = np.where(covered[..., None], total * (1 + 0.6) / 2, pos)       # ratio (0.6, 0, 0) there
+        mixed_neg = np.where(covered[..., None], total * (1 - 0.6) / 2, neg)
+        mixed_pos[..., 1:], mixed_neg[..., 1:] = pos[..., 1:], neg[..., 1:]
+        backdrop, records = backdrop_holes(slot, mask, mixed_pos, mixed_neg)
+        assert backdrop.any() == opens, (share, records)
+
+
+def test_a_hole_far_from_the_outline_is_compared_with_the_whole_backdrop():
+    from stages.numerics.gaps import backdrop_holes
+
+    pos, neg, mask, holes, slot, _ = gradient_frames()
+    near, _ = backdrop_holes(slot, mask, pos, neg, ring_px=25)
+    far, records = backdrop_holes(slot, mask, pos, neg, ring_px=2)      # no backdrop pixel within 2 px
+    np.testing.assert_array_equal(near, far)
+    assert far.any() and records[0]["ratio_distance"] < 0.05
+    # a frame without backdrop pixels has nothing to compare with: the hole stays filled
+    none, records = backdrop_holes(slot, np.ones_like(mask), pos, neg, ring_px=2)
+    assert not none.any() and records == [{"pixels": int(slot.sum()), "ratio_distance": None, "backdrop": False}]
+
+
+def test_backdrop_holes_no_holes_and_bad_inputs():
+    from stages.numerics.gaps import backdrop_holes
+
+    pos, neg, mask, holes, _, _ = gradient_frames()
+    backdrop, records = backdrop_holes(np.zeros_like(holes), mask, pos, neg)
+    assert not backdrop.any() and records == []
+    with pytest.raises(ValueError, match="share one"):
+        backdrop_holes(holes[:10], mask, pos, neg)
+    with pytest.raises(ValueError, match="max_distance"):
+        backdrop_holes(holes, mask, pos, neg, max_distance=-0.1)
+    with pytest.raises(ValueError, match="ring_px"):
+        backdrop_holes(holes, mask, pos, neg, ring_px=0)
