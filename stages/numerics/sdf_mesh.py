@@ -80,11 +80,33 @@ class SDFMeshConfig(Documented):
     the uniform rays."""
     second_pass_error_floor_deg: float = checked(10.0, ge=0.0)
     """Normal disagreement below which a pixel gets no extra rays (the photometric normals' own noise)."""
+    second_pass_carve_weight: float = checked(90.0, ge=0.0)
+    """Sample weight (in the normal misses' degrees) of the pixels the first mesh covers more than
+    ``_CARVE_INSET_PX`` inside its outline where the mask says background: a gap between limbs the masks open
+    that the first fit webbed over (one view's background alone carves it slowly). Those rays count in the mask
+    loss (:attr:`stages.numerics.sdf.SDFView.sample_weight`). 0 = none."""
+
+
+_CARVE_INSET_PX = 2
+"""Pixels the first mesh covers within this distance of its outline are not carving pixels: there the mask and the
+mesh differ by the outline's own sub-pixel error."""
+
+
+def carve_pixels(mask: np.ndarray, mesh_hit: np.ndarray, inset_px: int = _CARVE_INSET_PX) -> np.ndarray:
+    """(H, W) bool: background pixels of ``mask`` that the mesh's render ``mesh_hit`` (H, W) bool covers more than
+    ``inset_px`` pixels inside its outline (a hole in the mask the mesh spans)."""
+    from scipy import ndimage
+
+    mask, mesh_hit = np.asarray(mask, bool), np.asarray(mesh_hit, bool)
+    if mask.shape != mesh_hit.shape or mask.ndim != 2:
+        raise ValueError(f"mask {mask.shape} and mesh_hit {mesh_hit.shape} must be one (H, W) shape")
+    inner = ndimage.binary_erosion(mesh_hit, iterations=inset_px, border_value=0) if inset_px > 0 else mesh_hit
+    return inner & ~mask
 
 
 def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarray, directions: int = 256,
-                         min_visible: float = 0.1,
-                         error_floor_deg: float | None = None) -> tuple[list[Any], dict[str, float]]:
+                         min_visible: float = 0.1, error_floor_deg: float | None = None,
+                         carve_weight: float = 0.0) -> tuple[list[Any], dict[str, float]]:
     """The SDF views with their normals' occlusion by the mesh ``vertices``/``faces`` divided out (valid pixels
     only; the rest keep theirs) and the mean statistics of :func:`stages.numerics.shadowing.deocclude_view`
     over the views.
@@ -92,7 +114,8 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     With ``error_floor_deg`` each view also gets a ``sample_weight``: by how many degrees more than that the
     mesh's normal misses the de-occluded one (valid pixels the mesh covers; 0 elsewhere), and the statistics
     ``error_weighted_fraction`` (share of the valid pixels with a weight) and ``error_mean_deg`` (mean miss
-    over the valid pixels the mesh covers)."""
+    over the valid pixels the mesh covers). With ``carve_weight`` above 0 as well, the :func:`carve_pixels` of
+    the mesh and the view's mask get that weight, and ``carve_pixels`` (their count over the views) is said."""
     from stages.numerics.metrics import angular_error_deg
     from stages.numerics.raycast import mesh_scene, render_mesh
     from stages.numerics.shadowing import deocclude_view
@@ -112,12 +135,18 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
             covered = valid & (render["depth_m"] > 0)
             miss = np.where(covered, angular_error_deg(render["normals_world"], fixed), 0.0)
             miss = np.nan_to_num(miss, nan=0.0, posinf=0.0, neginf=0.0)
-            changes["sample_weight"] = np.maximum(miss - float(error_floor_deg), 0.0).astype(np.float32)
-            record = record | {"error_weighted_fraction": float((changes["sample_weight"] > 0).sum() / max(valid.sum(), 1)),
+            weight = np.maximum(miss - float(error_floor_deg), 0.0).astype(np.float32)
+            record = record | {"error_weighted_fraction": float((weight > 0).sum() / max(valid.sum(), 1)),
                                "error_mean_deg": float(miss[covered].mean()) if covered.any() else 0.0}
+            if carve_weight > 0:
+                carve = carve_pixels(view.mask, render["hit"])
+                weight[carve] = np.float32(carve_weight)
+                record["carve_pixels"] = float(carve.sum())
+            changes["sample_weight"] = weight
         out.append(dataclasses.replace(view, **changes))
         records.append(record)
-    stats = {k: float(np.mean([r[k] for r in records])) for k in records[0]} if records else {}
+    stats = {k: float(np.sum([r[k] for r in records]) if k == "carve_pixels" else np.mean([r[k] for r in records]))
+             for k in records[0]} if records else {}
     return out, stats
 
 
@@ -161,8 +190,10 @@ def second_pass_views(cfg: SDFMeshConfig, views: list[Any], vertices: np.ndarray
                       faces: np.ndarray) -> tuple[list[Any], dict[str, float]]:
     """The second SDF pass's views as ``cfg`` asks for them: :func:`deoccluded_sdf_views` of the first mesh,
     with sample weights when ``cfg.second_pass_importance`` draws a share of the rays by them."""
+    weighted = cfg.second_pass_importance > 0
     return deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions, cfg.deocclude_min_visible,
-                                cfg.second_pass_error_floor_deg if cfg.second_pass_importance > 0 else None)
+                                cfg.second_pass_error_floor_deg if weighted else None,
+                                cfg.second_pass_carve_weight if weighted else 0.0)
 
 
 @dataclass(frozen=True)
@@ -271,6 +302,9 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
         weighted = (f"; {100 * deocclusion['error_weighted_fraction']:.1f}% of the pixels, where the first mesh "
                     f"misses the normals by > {cfg.second_pass_error_floor_deg:g} deg, draw "
                     f"{100 * cfg.second_pass_importance:.0f}% of the rays") if "error_weighted_fraction" in deocclusion else ""
+        if "carve_pixels" in deocclusion:
+            weighted += (f", with the {int(deocclusion['carve_pixels'])} background pixels of the masks it spans, to "
+                         f"carve them")
         if log is not None:
             log(f"second SDF pass on de-occluded normals (mean turn "
                 f"{deocclusion['occlusion_correction_mean_deg']:.2f} deg, {deocclusion['seconds']:.1f} s{weighted})")

@@ -90,6 +90,24 @@ def test_occlusion_configs_check_their_fields():
             DiffuseNormalsConfig(**bad)
 
 
+def test_carve_pixels_are_the_masks_holes_the_mesh_spans_away_from_its_outline():
+    from stages.numerics.sdf_mesh import carve_pixels
+
+    hit = np.zeros((20, 20), bool)
+    hit[4:16, 4:16] = True                      # the mesh's render: a 12 px square
+    mask = hit.copy()
+    mask[9:11, 9:11] = False                    # a hole in the mask the mesh spans
+    mask[4:16, 4] = False                       # the mask's outline one column inside the mesh's
+    carve = carve_pixels(mask, hit)
+    expected = np.zeros_like(hit)
+    expected[9:11, 9:11] = True
+    np.testing.assert_array_equal(carve, expected)
+    np.testing.assert_array_equal(carve_pixels(mask, hit, inset_px=0), hit & ~mask)
+    assert not carve_pixels(hit, hit).any()
+    with pytest.raises(ValueError, match="one"):
+        carve_pixels(mask, hit[:10])
+
+
 def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
     from stages.geometry import GeometryConfig
     from stages.numerics.sdf_mesh import deoccluded_sdf_views, second_pass_views
@@ -121,6 +139,21 @@ def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
     assert np.all(weight[outside] == 0) and np.all(weight[~valid] == 0)
     assert stats["error_weighted_fraction"] == pytest.approx(100 / valid.sum())
     assert stats["error_mean_deg"] == pytest.approx(30.0 * 100 / valid.sum(), rel=0.02)
+    # a hole in the mask the floor spans gets the carving weight, and its count is said
+    holed = dataclasses.replace(view, mask=view.mask.copy(), normal_valid=valid.copy())
+    holed.mask[24:27, 24:27] = False
+    holed.normal_valid[24:27, 24:27] = False
+    (carved,), carved_stats = deoccluded_sdf_views([holed], floor_v, floor_f, directions=64, error_floor_deg=10.0,
+                                                   carve_weight=90.0)
+    np.testing.assert_array_equal(carved.sample_weight[24:27, 24:27], 90.0)
+    np.testing.assert_allclose(carved.sample_weight[10:20, 10:20], 20.0, atol=0.5)
+    assert carved_stats["carve_pixels"] == 9.0
+    (staged_holed,), _ = second_pass_views(GeometryConfig(deocclude_directions=64), [holed], floor_v, floor_f)
+    np.testing.assert_array_equal(staged_holed.sample_weight, carved.sample_weight)
+    (uncarved,), uncarved_stats = second_pass_views(GeometryConfig(deocclude_directions=64,
+                                                                   second_pass_carve_weight=0.0),
+                                                    [holed], floor_v, floor_f)
+    assert np.all(uncarved.sample_weight[24:27, 24:27] == 0) and "carve_pixels" not in uncarved_stats
     # the stage asks for the weights only when it draws a share of the rays by them
     (staged,), _ = second_pass_views(GeometryConfig(deocclude_directions=64), [view], floor_v, floor_f)
     np.testing.assert_array_equal(staged.sample_weight, weight)

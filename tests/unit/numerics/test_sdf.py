@@ -442,6 +442,24 @@ def test_draw_rays_follows_the_sample_weights():
     assert torch.equal(a, b) and torch.equal(a, torch.randint(0, 5, (100,), generator=torch.Generator().manual_seed(1)))
 
 
+def test_mask_loss_counts_the_uniform_rays_and_the_important_ones_on_the_background():
+    """The mask BCE's mean over the uniformly drawn rays, plus the importance-drawn rays whose mask is background
+    (drawn there to carve it); importance-drawn rays inside the mask do not count."""
+    from stages.numerics.sdf import _mask_loss
+
+    opacity = torch.tensor([0.5, 0.9, 0.8, 0.3], dtype=torch.float64, requires_grad=True)
+    target = torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    ray = torch.tensor([0, 1, 2, 3])
+    loss = _mask_loss(opacity, target, ray, rays_per_batch=6, n_important=2)
+    expected = (-math.log(1 - 0.9) - math.log(0.8) - math.log(1 - 0.3)) / (6 - 2)
+    assert float(loss) == pytest.approx(expected, rel=1e-9)
+    loss.backward()
+    assert opacity.grad[0] == 0 and opacity.grad[1] > 0  # the important ray inside the mask has no say
+    # without an importance share every rendered ray counts
+    assert float(_mask_loss(opacity.detach(), target, ray, 6, 0)) == pytest.approx(
+        (-math.log(0.5) - math.log(0.1) - math.log(0.8) - math.log(0.7)) / 6, rel=1e-9)
+
+
 def test_importance_sampling_needs_weights_and_changes_the_draws():
     views = sphere_views(n=4, size=24)
     uniform = train_sdf(views, TINY, bounds=BOUNDS)
