@@ -145,9 +145,19 @@ def test_second_pass_sample_weights_mark_where_the_mesh_misses_the_normals():
     holed.normal_valid[24:27, 24:27] = False
     (carved,), carved_stats = deoccluded_sdf_views([holed], floor_v, floor_f, directions=64, error_floor_deg=10.0,
                                                    carve_weight=90.0)
-    np.testing.assert_array_equal(carved.sample_weight[24:27, 24:27], 90.0)
+    # at weight 90 the 9 pixels would hold 810 / (810 + ~2000) of the weights: scaled down to the cap's share
+    from stages.numerics.sdf_mesh import _CARVE_SHARE_MAX
+
     np.testing.assert_allclose(carved.sample_weight[10:20, 10:20], 20.0, atol=0.5)
-    assert carved_stats["carve_pixels"] == 9.0
+    others = float(carved.sample_weight.sum() - carved.sample_weight[24:27, 24:27].sum())
+    np.testing.assert_allclose(carved.sample_weight[24:27, 24:27],
+                               _CARVE_SHARE_MAX / (1 - _CARVE_SHARE_MAX) * others / 9, rtol=1e-5)
+    assert carved_stats["carve_pixels"] == 9.0 and carved_stats["carve_share"] == pytest.approx(_CARVE_SHARE_MAX)
+    # under the cap the weight stays as given
+    (light,), light_stats = deoccluded_sdf_views([holed], floor_v, floor_f, directions=64, error_floor_deg=10.0,
+                                                 carve_weight=10.0)
+    np.testing.assert_array_equal(light.sample_weight[24:27, 24:27], 10.0)
+    assert light_stats["carve_share"] == pytest.approx(90.0 / (90.0 + others), rel=1e-4)
     (staged_holed,), _ = second_pass_views(GeometryConfig(deocclude_directions=64), [holed], floor_v, floor_f)
     np.testing.assert_array_equal(staged_holed.sample_weight, carved.sample_weight)
     (uncarved,), uncarved_stats = second_pass_views(GeometryConfig(deocclude_directions=64,
