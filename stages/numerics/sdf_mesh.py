@@ -84,7 +84,10 @@ class SDFMeshConfig(Documented):
     """Sample weight (in the normal misses' degrees) of the pixels the first mesh covers more than
     ``_CARVE_INSET_PX`` inside its outline where the mask says background: a gap between limbs the masks open
     that the first fit webbed over (one view's background alone carves it slowly). Those rays count in the mask
-    loss (:attr:`stages.numerics.sdf.SDFView.sample_weight`). 0 = none."""
+    loss (:attr:`stages.numerics.sdf.SDFView.sample_weight`); together they draw at most ``_CARVE_SHARE_MAX`` of
+    the importance-drawn rays. 0 = none. On the procedural subject, whose slots the masks open by their gradient
+    ratios, Chamfer 1.89 -> 1.59 mm at SDF seed 0 (2.14 before the slots opened; seed 1: 1.97 -> 1.51 with both);
+    the default capture moves within a seed's spread."""
 
 
 _CARVE_INSET_PX = 2
@@ -92,9 +95,10 @@ _CARVE_INSET_PX = 2
 mesh differ by the outline's own sub-pixel error."""
 _CARVE_SHARE_MAX = 0.2
 """The carving pixels draw at most this share of the second pass's importance-drawn rays (their weights scaled
-down when they would draw more): the rest stay with the pixels whose normals the first mesh misses. Uncapped, the
-ICT head's first mesh spans 14,000 background pixels of its masks, which drew about 40% of those rays, and its
-relit views lost 0.5 dB."""
+down when they would draw more): the rest stay with the pixels whose normals the first mesh misses. The ICT head's
+first mesh spans 14,000 background pixels of its masks, which uncapped drew about 40% of those rays (relit views
+-0.53 dB against no carving; capped, -0.43 dB); the procedural subject's 4,862 draw 12%, the default capture's
+about 470 an action 2-3%."""
 
 
 def carve_pixels(mask: np.ndarray, mesh_hit: np.ndarray, inset_px: int = _CARVE_INSET_PX) -> np.ndarray:
