@@ -97,7 +97,7 @@ def rules() -> list[tuple[str, object]]:
 
 
 def measure_action(release: Path, truth: Path, action: str) -> dict:
-    from stages.numerics.gaps import backdrop_holes, see_through_holes
+    from stages.numerics.gaps import background_holes, backdrop_holes, see_through_holes
     from stages.numerics.hull import default_stage_box, subject_box
 
     views = action_views(release, truth, action)
@@ -113,16 +113,18 @@ def measure_action(release: Path, truth: Path, action: str) -> dict:
             opened = [np.zeros_like(h) for h in views["holes"]]
         else:
             tests, config = rule
-            opened = [np.zeros_like(h) for h in views["holes"]]
-            if "across" in tests:
-                if box is None:
-                    box = subject_box(views["filled"], views["K"], views["T"],
-                                      default_stage_box(list(zip(views["K"], views["T"]))))
+            if "across" in tests and box is None:
+                box = subject_box(views["filled"], views["K"], views["T"],
+                                  default_stage_box(list(zip(views["K"], views["T"]))))
+            if tests == {"across", "ratio"}:
+                gradients = [(p, n) if p is not None else None for p, n in zip(views["pos"], views["neg"])]
+                opened = background_holes(views["filled"], views["holes"], views["K"], views["T"], box, gradients,
+                                          config)[0]
+            elif tests == {"across"}:
                 opened = see_through_holes(views["filled"], views["holes"], views["K"], views["T"], box, config).gaps
-            if "ratio" in tests:
-                opened = [o | backdrop_holes(h, m, p, n, config.backdrop_ratio_max)[0]
-                          if h.any() else o
-                          for o, h, m, p, n in zip(opened, views["holes"], views["filled"], views["pos"], views["neg"])]
+            else:
+                opened = [backdrop_holes(h, m, p, n, config.backdrop_ratio_max)[0] if h.any() else np.zeros_like(h)
+                          for h, m, p, n in zip(views["holes"], views["filled"], views["pos"], views["neg"])]
         rows[name] = score(views, opened) | {"seconds": time.perf_counter() - start}
     return rows
 

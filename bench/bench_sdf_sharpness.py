@@ -10,7 +10,8 @@ mesh) once per (masks, ``inv_s_end``):
 - masks ``pipeline``: the released masks (the photometric stage's);
 - masks ``centre``: an oracle, each view's mask replaced by the pixels whose centre ray meets the truth mesh (traced
   with open3d from the view's calibrated camera) and the normals kept only there;
-- masks ``recomputed``: the photometric stage's :func:`stages.numerics.photometric.foreground_mask` run again on
+- masks ``recomputed``: the photometric stage's masks (:func:`stages.numerics.photometric.foreground_mask_and_holes`
+  and the filled holes' decision, :func:`stages.numerics.gaps.background_holes`) made again on
   the action's decoded white images and the session's clean plates (from the run's store, ``<release>.work``) with
   the run's photometric parameters (its ``config.yaml``) and ``--mask-params`` changed
   (:class:`stages.numerics.photometric.PhotometricParams` fields, e.g. ``close_radius=0,majority_radius=0``), the
@@ -139,14 +140,17 @@ def parse_mask_params(text: str) -> dict:
 
 
 def recomputed_masks(release: Path, action: str, views: list, mask_params: dict) -> list[np.ndarray]:
-    """(H, W) bool per view: the photometric stage's foreground mask of the view's decoded white image against its
-    clean plate (the run's store beside ``release``), with the run's photometric parameters (its ``config.yaml``)
-    and ``mask_params`` changed."""
+    """(H, W) bool per view: the photometric stage's masks made again from the views' decoded images and clean
+    plates (the run's store beside ``release``), with the run's photometric config (its ``config.yaml``) and
+    ``mask_params`` changed: each view's foreground mask with its small holes filled, then the filled holes decided
+    as the stage decides them (:func:`stages.numerics.gaps.background_holes`)."""
     import yaml
 
     from pipeline.config import from_dict, merge
     from stages.geometry import load_sdf_views
-    from stages.numerics.photometric import foreground_mask
+    from stages.numerics.gaps import background_holes
+    from stages.numerics.hull import default_stage_box, subject_box
+    from stages.numerics.photometric import foreground_mask_and_holes
     from stages.photometric import PhotometricConfig
 
     art = store_artifacts(release, action, ("decode", "photometric"), ("plates",))
@@ -155,9 +159,21 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
         raise ValueError(f"the store beside {release} does not hold the release's views of {action}")
     path = release / "config.yaml"
     record = (yaml.safe_load(path.read_text()) or {}).get("photometric") or {}
-    params = merge(from_dict(PhotometricConfig, record, where=f"{path}: photometric").params, mask_params,
-                   "--mask-params")
-    return [foreground_mask(art.exr("full_on", camera=cam)[..., :3], art.plate(cam), params) for cam in ids]
+    config = from_dict(PhotometricConfig, record, where=f"{path}: photometric")
+    params = merge(config.params, mask_params, "--mask-params")
+    masks, holes = zip(*(foreground_mask_and_holes(art.exr("full_on", camera=cam)[..., :3], art.plate(cam), params)
+                         for cam in ids))
+    if not config.gaps.enabled or not any(h.any() for h in holes):
+        return list(masks)
+    Ks, Ts = [v.K for v in store_views], [v.cam_from_world for v in store_views]
+    try:
+        box = subject_box(list(masks), Ks, Ts, default_stage_box(list(zip(Ks, Ts))))
+    except ValueError:  # the stage leaves the holes filled then
+        return list(masks)
+    gradients = [(art.exr("pos", camera=cam), art.exr("neg", camera=cam)) if h.any() else None
+                 for cam, h in zip(ids, holes)]
+    gaps, _ = background_holes(list(masks), list(holes), Ks, Ts, box, gradients, config.gaps)
+    return [m & ~g for m, g in zip(masks, gaps)]
 
 
 def run_row(args: tuple) -> dict:

@@ -24,7 +24,7 @@ from artifacts.layout import ArtifactWriter, released_files
 from artifacts.camera import Camera
 from stages.numerics.denoise import DenoiseConfig, joint_bilateral
 from stages.exr_headers import EXR_HEADERS
-from stages.numerics.gaps import GapConfig, backdrop_holes, see_through_holes
+from stages.numerics.gaps import GapConfig, background_holes
 from stages.numerics.hull import default_stage_box, subject_box
 from stages.numerics.photometric import (PhotometricParams, corrected_normals, facing_away_fraction,
                                          foreground_mask_and_holes, normals_with_alpha, open_holes,
@@ -149,18 +149,10 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
     except ValueError as exc:  # no hull: the masks disagree; the geometry stage says so, the holes stay filled
         ctx.log.warning(f"{ctx.scope_id}: filled holes left as they are: {exc}")
         return {"enabled": True, "skipped": str(exc)}
-    decision = see_through_holes(filled, hole_maps, Ks, Ts, box, config.gaps)
-    seen_through = sum(r["gap"] for per_view in decision.holes for r in per_view)
-    gaps, by_ratio = list(decision.gaps), 0
-    if config.gaps.backdrop_ratio_max > 0:
-        for i, (v, mask, hole) in enumerate(zip(views, filled, hole_maps)):
-            if not hole.any():
-                continue
-            backdrop, records = backdrop_holes(hole, mask, upstream.exr("pos", v), upstream.exr("neg", v),
-                                               config.gaps.backdrop_ratio_max)
-            # both tests label the hole map's 8-connected components alike: their records pair up
-            by_ratio += sum(mine["backdrop"] and not theirs["gap"] for mine, theirs in zip(records, decision.holes[i]))
-            gaps[i] = gaps[i] | backdrop
+    gradients = [(upstream.exr("pos", v), upstream.exr("neg", v)) if hole.any() and config.gaps.backdrop_ratio_max > 0
+                 else None for v, hole in zip(views, hole_maps)]
+    gaps, counts = background_holes(filled, hole_maps, Ks, Ts, box, gradients, config.gaps)
+    seen_through, by_ratio = counts["seen_through"], counts["by_ratio"]
     opened = 0
     for v, mask, gap in zip(views, filled, gaps):
         if not gap.any() and np.array_equal(mask, masks[v]):
@@ -179,7 +171,7 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
         opened += int(gap.sum())
     if config.previews:
         write_gaps_sheet(out, views, hole_maps, gaps)
-    record = {"enabled": True, "holes": sum(len(per_view) for per_view in decision.holes),
+    record = {"enabled": True, "holes": counts["holes"],
               "gaps": seen_through + by_ratio, "gaps_seen_through": seen_through, "gaps_by_ratio": by_ratio,
               "opened_pixels": opened, "seconds": round(time.perf_counter() - start, 2)}
     ctx.log.info(f"{ctx.scope_id}: {record['gaps']} of {record['holes']} filled holes are background ({seen_through} "

@@ -28,7 +28,7 @@ from artifacts.camera import camera_centre, check_bounds, pixel_coordinates, pix
 from pipeline.config import Documented, checked
 from stages.numerics.hull import check_camera
 
-__all__ = ["GapConfig", "GapDecision", "backdrop_holes", "see_through_holes"]
+__all__ = ["GapConfig", "GapDecision", "background_holes", "backdrop_holes", "see_through_holes"]
 
 
 @dataclass(frozen=True)
@@ -230,6 +230,41 @@ def backdrop_holes(holes: np.ndarray, mask: np.ndarray, pos: np.ndarray, neg: np
         if is_backdrop:
             backdrop[r0:r1, c0:c1] |= hole
     return backdrop, records
+
+
+def background_holes(masks: Sequence[np.ndarray], holes: Sequence[np.ndarray], Ks: Sequence[np.ndarray],
+                     cam_from_worlds: Sequence[np.ndarray], bounds: np.ndarray,
+                     gradients: Sequence[tuple[np.ndarray, np.ndarray] | None],
+                     config: GapConfig = GapConfig()) -> tuple[list[np.ndarray], dict[str, int]]:
+    """The filled holes either test calls background: seen through across the views (:func:`see_through_holes`)
+    or, where a view's gradient images are given and ``config.backdrop_ratio_max`` is above 0, whose gradient
+    ratios are the backdrop's (:func:`backdrop_holes`).
+
+    Args:
+        masks, holes, Ks, cam_from_worlds, bounds: as :func:`see_through_holes`.
+        gradients: per view ``(pos, neg)`` (H, W, 3) decoded gradient images, or None (that view's holes are
+            decided across the views only).
+        config: both tests' thresholds.
+
+    Returns:
+        ``(gaps, counts)``: per view (H, W) bool, the hole pixels that are background; ``holes`` (all views'),
+        ``seen_through`` (opened across the views) and ``by_ratio`` (opened by the ratios alone).
+    """
+    if len(gradients) != len(masks):
+        raise ValueError(f"gradients must have one entry per view ({len(masks)}), got {len(gradients)}")
+    decision = see_through_holes(masks, holes, Ks, cam_from_worlds, bounds, config)
+    seen_through = sum(r["gap"] for per_view in decision.holes for r in per_view)
+    gaps, by_ratio = list(decision.gaps), 0
+    if config.backdrop_ratio_max > 0:
+        for i, (mask, hole, pair) in enumerate(zip(masks, holes, gradients)):
+            if pair is None or not np.any(hole):
+                continue
+            backdrop, records = backdrop_holes(hole, mask, pair[0], pair[1], config.backdrop_ratio_max)
+            # both tests label the hole map's 8-connected components alike: their records pair up
+            by_ratio += sum(mine["backdrop"] and not theirs["gap"] for mine, theirs in zip(records, decision.holes[i]))
+            gaps[i] = gaps[i] | backdrop
+    return gaps, {"holes": sum(len(per_view) for per_view in decision.holes), "seen_through": int(seen_through),
+                  "by_ratio": int(by_ratio)}
 
 
 def _blocked_rays(K: np.ndarray, T: np.ndarray, rows: np.ndarray, cols: np.ndarray, masks: list[np.ndarray],

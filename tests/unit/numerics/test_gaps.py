@@ -223,3 +223,28 @@ def test_backdrop_holes_no_holes_and_bad_inputs():
         backdrop_holes(holes, mask, pos, neg, max_distance=-0.1)
     with pytest.raises(ValueError, match="ring_px"):
         backdrop_holes(holes, mask, pos, neg, ring_px=0)
+
+
+def test_background_holes_opens_what_either_test_opens():
+    """The frame's openings (seen through across the views) and one view's slit only its gradient ratios call
+    backdrop: both open, and the counts say which test opened what; a view without gradient images is decided
+    across the views only."""
+    from stages.numerics.gaps import background_holes
+
+    cams = ring_cameras()
+    Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
+    masks, holes = map(list, zip(*(filled(box_mask(K, T, BLOCK)) for K, T in cams)))
+    slit = np.zeros((SIZE, SIZE), bool)
+    slit[30:34, 28:36] = True
+    holes[3] = holes[3] | (slit & masks[3])
+    ratio = np.where(masks[3][..., None] & ~slit[..., None], np.float32([0.6, 0, 0]), np.float32([0.03, -0.02, 0.01]))
+    pos, neg = (0.05 * (1 + ratio)).astype(np.float32), (0.05 * (1 - ratio)).astype(np.float32)
+    gradients = [None] * len(cams)
+    gradients[3] = (pos, neg)
+    gaps, counts = background_holes(masks, holes, Ks, Ts, BOUNDS, gradients)
+    np.testing.assert_array_equal(gaps[3], slit & masks[3])
+    assert counts == {"holes": 1, "seen_through": 0, "by_ratio": 1}
+    gaps, counts = background_holes(masks, holes, Ks, Ts, BOUNDS, [None] * len(cams))
+    assert not any(g.any() for g in gaps) and counts == {"holes": 1, "seen_through": 0, "by_ratio": 0}
+    with pytest.raises(ValueError, match="one entry per view"):
+        background_holes(masks, holes, Ks, Ts, BOUNDS, [None])
