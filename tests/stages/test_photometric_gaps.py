@@ -12,18 +12,8 @@ from pipeline.codecs.image import mask_from_png, read_png, write_png
 from pipeline.stage import StageContext
 from stages.numerics.gaps import GapConfig
 from stages.photometric import PhotometricConfig, open_gaps, write_gaps_sheet
-from tests.unit.numerics.test_gaps import BLOCK, FRAME, SIZE, box_mask, filled, ring_cameras
-
-
-SURFACE_RATIO = np.array([0.6, 0.0, 0.0], np.float32)
-BACKDROP_RATIO = np.array([0.03, -0.02, 0.01], np.float32)
-
-
-def _gradients(shown_surface):
-    """Decoded gradient images (pos, neg) of a view: the surface's ratio where ``shown_surface``, the backdrop's
-    elsewhere, at one brightness (under the white light a dark patch and the backdrop look alike)."""
-    ratio = np.where(shown_surface[..., None], SURFACE_RATIO, BACKDROP_RATIO)
-    return (0.05 * (1 + ratio)).astype(np.float32), (0.05 * (1 - ratio)).astype(np.float32)
+from tests.unit.numerics.test_gaps import (BLOCK, FRAME, SIZE, block_slit, box_mask, filled, gradient_images,
+                                           ring_cameras)
 
 
 def _stage_folder(tmp_path, boxes, patch_in=None):
@@ -49,7 +39,7 @@ def _stage_folder(tmp_path, boxes, patch_in=None):
             patch, slit = patches[cid]
             hole = hole | (patch & mask)
             shown = shown & ~patch if slit else shown
-        pos, neg = _gradients(shown)
+        pos, neg = gradient_images(shown)
         write_exr(decode / "pos" / f"{cid}.exr", pos)
         write_exr(decode / "neg" / f"{cid}.exr", neg)
         for product in ("normal_alpha", "albedo", "mask", "filled_holes", "normal_preview"):
@@ -105,27 +95,21 @@ def test_finalize_leaves_a_block_without_holes_and_can_be_turned_off(tmp_path):
     assert all(np.array_equal(read_png(out.path("mask", cid)), before[cid]) for cid in holes)
 
 
-def _patch(size=SIZE):
-    patch = np.zeros((size, size), bool)
-    patch[30:34, 28:36] = True  # on the block's face in every view
-    return patch
-
-
 def test_a_dark_patch_one_view_leaves_stays_filled_a_slit_it_sees_through_opens(tmp_path):
     """A hole in one view only: the views together cannot tell (no second view sees it); its gradient ratios can:
     a dark surface's stay filled, the backdrop's open."""
-    ctx, out, holes, stats = _stage_folder(tmp_path / "patch", BLOCK, {"00003": _patch()})
+    ctx, out, holes, stats = _stage_folder(tmp_path / "patch", BLOCK, {"00003": block_slit()})
     record = open_gaps(ctx, PhotometricConfig(), stats)
     assert record["holes"] == 1 and record["gaps"] == 0 and record["opened_pixels"] == 0
-    assert mask_from_png(read_png(out.path("mask", "00003")))[_patch()].all()
-    ctx, out, holes, stats = _stage_folder(tmp_path / "slit", BLOCK, {"00003:slit": _patch()})
+    assert mask_from_png(read_png(out.path("mask", "00003")))[block_slit()].all()
+    ctx, out, holes, stats = _stage_folder(tmp_path / "slit", BLOCK, {"00003:slit": block_slit()})
     record = open_gaps(ctx, PhotometricConfig(), stats)
     assert (record["holes"], record["gaps_seen_through"], record["gaps_by_ratio"]) == (1, 0, 1)
-    assert record["opened_pixels"] == _patch().sum()
-    assert not mask_from_png(read_png(out.path("mask", "00003")))[_patch()].any()
-    assert (read_exr(out.path("normal_alpha", "00003"))[_patch()] == 0).all()
+    assert record["opened_pixels"] == block_slit().sum()
+    assert not mask_from_png(read_png(out.path("mask", "00003")))[block_slit()].any()
+    assert (read_exr(out.path("normal_alpha", "00003"))[block_slit()] == 0).all()
     # the ratio test off: the views alone leave it filled
-    ctx, out, holes, stats = _stage_folder(tmp_path / "slit_off", BLOCK, {"00003:slit": _patch()})
+    ctx, out, holes, stats = _stage_folder(tmp_path / "slit_off", BLOCK, {"00003:slit": block_slit()})
     off = PhotometricConfig(gaps=GapConfig(backdrop_ratio_max=0.0))
     assert open_gaps(ctx, off, stats)["opened_pixels"] == 0
 

@@ -129,6 +129,22 @@ def test_ray_batches_of_any_size_give_the_same_answer():
 
 BACKDROP_RATIO = np.array([0.03, -0.02, 0.01], np.float32)
 """The backdrop's ratio d in the synthetic frames below: the stage's inside is lit nearly alike by both gradients."""
+SURFACE_RATIO = np.array([0.6, 0.0, 0.0], np.float32)
+"""A surface's ratio d in those frames: it faces +x."""
+
+
+def block_slit(size=SIZE):
+    """(size, size) bool: a small rectangle on the block's face in every ring camera's view (BLOCK)."""
+    slit = np.zeros((size, size), bool)
+    slit[30:34, 28:36] = True
+    return slit
+
+
+def gradient_images(shown_surface):
+    """Decoded gradient images (pos, neg) (H, W, 3) of a view: SURFACE_RATIO where ``shown_surface`` (H, W) bool,
+    BACKDROP_RATIO elsewhere, at one brightness (under the white light a dark patch and the backdrop look alike)."""
+    ratio = np.where(np.asarray(shown_surface, bool)[..., None], SURFACE_RATIO, BACKDROP_RATIO)
+    return (0.05 * (1 + ratio)).astype(np.float32), (0.05 * (1 - ratio)).astype(np.float32)
 
 
 def gradient_frames(seed=0, size=96, noise=0.02):
@@ -143,7 +159,7 @@ def gradient_frames(seed=0, size=96, noise=0.02):
     level = np.full((size, size), 0.035, np.float32)            # backdrop and dark patch: alike under white light
     level[subject & ~slot & ~patch] = 0.4
     ratio = np.broadcast_to(BACKDROP_RATIO, (size, size, 3)).copy()
-    ratio[subject & ~slot] = (0.6, 0.0, 0.0)                    # every surface faces +x here
+    ratio[subject & ~slot] = SURFACE_RATIO                      # every surface faces +x here
     total = (2 * level)[..., None] * (1 + noise * rng.standard_normal((size, size, 3)))
     pos, neg = (total * (1 + ratio) / 2).astype(np.float32), (total * (1 - ratio) / 2).astype(np.float32)
     return pos, neg, subject, slot | patch, slot, patch
@@ -234,13 +250,10 @@ def test_background_holes_opens_what_either_test_opens():
     cams = ring_cameras()
     Ks, Ts = [K for K, _ in cams], [T for _, T in cams]
     masks, holes = map(list, zip(*(filled(box_mask(K, T, BLOCK)) for K, T in cams)))
-    slit = np.zeros((SIZE, SIZE), bool)
-    slit[30:34, 28:36] = True
+    slit = block_slit()
     holes[3] = holes[3] | (slit & masks[3])
-    ratio = np.where(masks[3][..., None] & ~slit[..., None], np.float32([0.6, 0, 0]), np.float32([0.03, -0.02, 0.01]))
-    pos, neg = (0.05 * (1 + ratio)).astype(np.float32), (0.05 * (1 - ratio)).astype(np.float32)
     gradients = [None] * len(cams)
-    gradients[3] = (pos, neg)
+    gradients[3] = gradient_images(masks[3] & ~slit)
     gaps, counts = background_holes(masks, holes, Ks, Ts, BOUNDS, gradients)
     np.testing.assert_array_equal(gaps[3], slit & masks[3])
     assert counts == {"holes": 1, "seen_through": 0, "by_ratio": 1}
