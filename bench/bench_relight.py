@@ -193,19 +193,13 @@ class ActionScene:
 
         h, w = int(cam["height"]), int(cam["width"])
         t0 = time.perf_counter()
-        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
-                                depth_tolerance_m=CONFIG.shading.depth_tolerance_m,
-                                normal_fusion_m=CONFIG.shading.normal_fusion_m,
-                                rim_normal_px=CONFIG.shading.rim_normal_px,
-                                mesh_normal_weight=CONFIG.shading.mesh_normal_weight)
+        gb = novel_view_gbuffer(self.asset, cam["K"], cam["cam_from_world"], h, w, **CONFIG.shading.gbuffer_options())
         alpha, edge_mask = silhouette_alpha(gb["mask"], pixel_coverage(
             cam["K"], cam["cam_from_world"], h, w, CONFIG.shading.coverage_samples, self.asset.scene,
             centre_hit=gb["hit"]))
         stage_seconds = time.perf_counter() - t0
         white = gb if self.asset_white is self.asset else novel_view_gbuffer(
-            self.asset_white, cam["K"], cam["cam_from_world"], h, w, sources=CONFIG.shading.sources,
-            depth_tolerance_m=CONFIG.shading.depth_tolerance_m, normal_fusion_m=CONFIG.shading.normal_fusion_m,
-            rim_normal_px=CONFIG.shading.rim_normal_px, mesh_normal_weight=CONFIG.shading.mesh_normal_weight)
+            self.asset_white, cam["K"], cam["cam_from_world"], h, w, **CONFIG.shading.gbuffer_options())
         pix = gb["pix"]
         full = {k: gb[f"normal_{k}"] for k in ("reprojected", "mesh", "fused")}
         for width in FUSION_WIDTHS_M:  # as the stage's fused normals, rim fade included: only the split differs

@@ -420,9 +420,8 @@ def budget_view(ab: ActionBudget, cam: dict, env_records: list[dict], rows: dict
             if key[2]:
                 gb = _gbuffer_from_truth(gbuffer(frozenset({"geometry", "albedo"})), true0, K, pose, shading.normals)
             else:
-                gb = timed("gbuffer", novel_view_gbuffer, ab.assets[key[:2]], K, pose, h, w, sources=shading.sources,
-                           depth_tolerance_m=shading.depth_tolerance_m, normal_fusion_m=shading.normal_fusion_m,
-                           rim_normal_px=shading.rim_normal_px, mesh_normal_weight=shading.mesh_normal_weight)
+                gb = timed("gbuffer", novel_view_gbuffer, ab.assets[key[:2]], K, pose, h, w,
+                           **shading.gbuffer_options())
             gbuffers[key] = gb
         return gbuffers[key]
 

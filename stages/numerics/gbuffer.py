@@ -26,6 +26,17 @@ The contributions are blended with per-source weights (``weighting``):
   (sampled) normal and its ray to the camera: photometric normals and albedo degrade toward the
   silhouette (foreshortened, mixed pixels), so grazing observations count less.
 
+A source's pixels on either side of its own occlusion edges (within ``source_edge_px`` of a jump over
+``source_edge_jump_m`` in its mesh depth, :func:`depth_edges`; not its silhouette against the background, which
+its valid mask already trims) hold a mix of the occluder and the surface behind it: the camera's footprint,
+optics and demosaicing blur across the jump, and the depth test, which keeps an occluder's own pixels out,
+cannot tell. Their taps count :data:`SOURCE_EDGE_WEIGHT` of a tap off the edge in a source's soft visibility
+(the sample itself stays the plain interpolation), so another source that sees the point clearly outweighs
+that source and a point seen only there keeps it. On the default capture's held-out views (1 px, 0.05 m) the
+albedo SSIM against the photometric maps is 0.9756 (0.9745 with every pixel alike) and the specular-free
+normals 3.61 deg off (3.66); on the procedural subject, whose arms and belt occlude its torso in every view,
+the SSIM is 0.9696 (0.9675).
+
 A source map is read at the point's projection with Keys' cubic convolution (Catmull-Rom) where all 16
 taps of the 4 x 4 neighbourhood are visible and valid, bilinearly elsewhere (``interpolation="bilinear"``
 everywhere): the bilinear kernel low-passes the source texture once more. On the default capture's held-out
@@ -57,6 +68,14 @@ __all__ = ["SourceView", "WEIGHTINGS", "INTERPOLATIONS", "nearest_views", "sourc
 
 WEIGHTINGS = ("uniform", "angle", "angle_distance", "angle_distance_grazing")
 INTERPOLATIONS = ("bilinear", "cubic")
+SOURCE_EDGE_PX = 1
+"""Default radius of the sources' occlusion edges (:func:`depth_edges`) whose pixels count for little."""
+SOURCE_EDGE_JUMP_M = 0.05
+"""Default depth jump of a source's occlusion edge, metres."""
+SOURCE_EDGE_WEIGHT = 0.01
+_EDGE_MODE = "tap"
+_EDGE_CUBIC = False
+"""The bilinear weight of a tap on a source's occlusion edge, relative to a tap off it."""
 
 
 @dataclass(frozen=True)
@@ -159,12 +178,51 @@ def _keys_weights(t: np.ndarray, a: float = -0.5) -> tuple[np.ndarray, ...]:
             -(a + 2) * t3 + (2 * a + 3) * t2 - a * t, -a * (t3 - t2))
 
 
+def depth_edges(depth_m: np.ndarray, radius_px: int = 1, jump_m: float = 0.03) -> np.ndarray:
+    """The surface pixels of a depth map that lie within ``radius_px`` of an occlusion edge: another surface
+    pixel in their (2 r + 1)^2 neighbourhood is nearer or farther by more than ``jump_m``.
+
+    A camera pixel on either side of an occlusion edge mixes both surfaces (its footprint, the optics, the
+    demosaicing), so its photometric albedo and normal belong to neither; the silhouette against the
+    background (depth 0) is not an edge here (the maps' alpha already marks it).
+
+    Args:
+        depth_m: (H, W) camera z of the surface (0 = none).
+        radius_px: neighbourhood radius (0: no pixel is an edge).
+        jump_m: the depth difference that makes an edge, metres (> 0).
+
+    Returns:
+        (H, W) bool.
+    """
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got {depth.shape}")
+    if int(radius_px) != radius_px or radius_px < 0:
+        raise ValueError(f"radius_px must be a non-negative integer, got {radius_px}")
+    if not (jump_m > 0) or not np.isfinite(jump_m):
+        raise ValueError(f"jump_m must be positive, got {jump_m}")
+    surface = np.isfinite(depth) & (depth > 0)
+    if radius_px == 0 or not surface.any():
+        return np.zeros(depth.shape, bool)
+    size = 2 * int(radius_px) + 1
+    nearest = minimum_filter(np.where(surface, depth, np.inf), size=size, mode="nearest")
+    farthest = maximum_filter(np.where(surface, depth, 0.0), size=size, mode="nearest")
+    return surface & ((depth - nearest > jump_m) | (farthest - depth > jump_m))
+
+
 def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, valid: np.ndarray,
                        maps: tuple[np.ndarray, ...], tolerance: float,
-                       interpolation: str = "bilinear") -> tuple[np.ndarray, list[np.ndarray]]:
+                       interpolation: str = "bilinear", edge: np.ndarray | None = None,
+                       edge_weight: float = 1.0) -> tuple[np.ndarray, list[np.ndarray]]:
     """Lookup of ``maps`` at the projections of ``point_cam`` (N, 3) using only taps whose depth matches
     the point's z and where ``valid``; returns the used bilinear taps' weight sum (N,) (the soft
     visibility) and the renormalised bilinear samples (N, C) per map (0 where nothing was used).
+
+    ``edge`` (H, W) bool (:func:`depth_edges`) marks taps whose bilinear weight counts ``edge_weight`` in the
+    visibility (not in the sample): a source whose taps of a point lie on its occlusion edges weighs that much
+    less in the blend, while its sample stays the unbiased interpolation.
 
     ``interpolation="cubic"`` replaces the bilinear sample by Keys' cubic convolution over the 4 x 4 taps
     where all 16 are visible and valid (bilinear elsewhere: at silhouettes and occlusion boundaries a
@@ -191,11 +249,13 @@ def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, 
         return uc, vc, use
 
     coverage = np.zeros(len(z), np.float32)
+    visibility = np.zeros(len(z), np.float32)
     sums = [np.zeros((len(z), m.shape[-1]), np.float32) for m in maps]
     for du, dv, bw in ((0, 0, (1 - fu) * (1 - fv)), (1, 0, fu * (1 - fv)), (0, 1, (1 - fu) * fv), (1, 1, fu * fv)):
         uc, vc, use = tap(du, dv)
         bw = np.where(use, bw, 0.0).astype(np.float32)
         coverage += bw
+        visibility += bw if edge is None else bw * np.where(edge[vc, uc], np.float32(edge_weight), np.float32(1.0))
         for acc, m in zip(sums, maps):
             acc += bw[:, None] * m[vc, uc]
     inv = np.divide(1.0, coverage, out=np.zeros_like(coverage), where=coverage > 1e-6)
@@ -212,7 +272,7 @@ def _sample_consistent(point_cam: np.ndarray, K: np.ndarray, depth: np.ndarray, 
                 for acc, m in zip(cubic, maps):
                     acc += cw[:, None] * m[vc, uc]
         samples = [np.where(whole[:, None], c, b) for c, b in zip(cubic, samples)]
-    return coverage * (coverage > 1e-6), samples
+    return visibility * (coverage > 1e-6), samples
 
 
 def _lift(depth: np.ndarray, K: np.ndarray, P: np.ndarray):
@@ -236,7 +296,8 @@ def _lift_points(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, P: 
 
 def _source_terms(sources: Sequence[SourceView], i: int, pts: np.ndarray, to_target: np.ndarray,
                   density_target: np.ndarray, depth_tolerance_m: float, weighting: str, angle_sigma_deg: float,
-                  interpolation: str) -> dict[str, np.ndarray]:
+                  interpolation: str, edge_px: int = 0,
+                  edge_jump_m: float = SOURCE_EDGE_JUMP_M) -> dict[str, np.ndarray]:
     """One source's look at the points (N, 3): its samples ``normal``/``albedo`` (N, 3), soft
     ``visibility``, the angle ``theta`` at the point between the rays to the target and to the source,
     ``log_density`` (log of the source's sampling density over the target's), ``cos_source`` and
@@ -244,8 +305,9 @@ def _source_terms(sources: Sequence[SourceView], i: int, pts: np.ndarray, to_tar
     heuristic blend ``weight`` of ``weighting`` (module docstring), all (N,)."""
     s_normal, s_albedo, s_valid, s_depth, s_K, s_P = _check_source(i, sources[i])
     pc = pts @ s_P[:, :3].T + s_P[:, 3]
+    edge = depth_edges(s_depth, edge_px, edge_jump_m) if edge_px else None
     visibility, (nrm, alb) = _sample_consistent(pc, s_K, s_depth, s_valid, (s_normal, s_albedo),
-                                                float(depth_tolerance_m), interpolation)
+                                                float(depth_tolerance_m), interpolation, edge, SOURCE_EDGE_WEIGHT)
     if interpolation == "cubic":  # the kernel's negative lobes may overshoot below 0 at a dark edge
         alb = np.maximum(alb, 0.0)
     to_src = camera_centre(s_P) - pts
@@ -266,6 +328,13 @@ def _source_terms(sources: Sequence[SourceView], i: int, pts: np.ndarray, to_tar
     return {"normal": nrm, "albedo": alb, "visibility": visibility, "theta": theta,
             "log_density": np.log(np.maximum(density, 1e-12)), "cos_source": cos_source,
             "cos_target": np.einsum("ij,ij->i", nrm64, to_target), "weight": np.where(np.isfinite(wgt), wgt, 0.0)}
+
+
+def _check_edges(edge_px: int, edge_jump_m: float) -> None:
+    if int(edge_px) != edge_px or edge_px < 0:
+        raise ValueError(f"source_edge_px must be a non-negative integer, got {edge_px}")
+    if not (edge_jump_m > 0) or not np.isfinite(edge_jump_m):
+        raise ValueError(f"source_edge_jump_m must be positive, got {edge_jump_m}")
 
 
 def _stack_terms(terms: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -309,7 +378,8 @@ def source_candidates(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
                       sources: Sequence[SourceView], k: int = 6, depth_tolerance_m: float = 0.01,
                       weighting: str = "angle_distance_grazing", angle_sigma_deg: float = 20.0,
                       subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
-                      interpolation: str = "cubic") -> dict[str, np.ndarray]:
+                      interpolation: str = "cubic", source_edge_px: int = SOURCE_EDGE_PX,
+                      source_edge_jump_m: float = SOURCE_EDGE_JUMP_M) -> dict[str, np.ndarray]:
     """What each of the ``k`` nearest sources offers every target pixel with a depth, before blending (the
     input of a learned blend, :mod:`stages.numerics.learned_blend`).
 
@@ -319,9 +389,11 @@ def source_candidates(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
     """
     depth, K, P, chosen = _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, weighting,
                                    angle_sigma_deg, subject_centre, None, interpolation)
+    _check_edges(source_edge_px, source_edge_jump_m)
     rows, cols, pts, to_target, density_target = _lift(depth, K, P)
     cand = _stack_terms([_source_terms(sources, int(i), pts, to_target, density_target, depth_tolerance_m,
-                                       weighting, angle_sigma_deg, interpolation) for i in chosen])
+                                       weighting, angle_sigma_deg, interpolation, source_edge_px, source_edge_jump_m)
+                         for i in chosen])
     return cand | {"rows": rows, "cols": cols, "sources": chosen}
 
 
@@ -331,7 +403,8 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
                       subject_centre: Sequence[float] = (0.0, 0.0, 0.0),
                       source_indices: Sequence[int] | None = None,
                       interpolation: str = "cubic", blend=None,
-                      subpixel: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                      subpixel: dict[str, np.ndarray] | None = None, source_edge_px: int = SOURCE_EDGE_PX,
+                      source_edge_jump_m: float = SOURCE_EDGE_JUMP_M) -> dict[str, np.ndarray]:
     """Normal and albedo maps of a target camera blended from the ``k`` nearest visible source views.
 
     Args:
@@ -356,6 +429,9 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
             albedo and normal over the rays that hit and were seen by a source, as a camera pixel
             integrates its square, instead of their centre's. Meant for the pixels at an occlusion edge
             (:func:`stages.numerics.raycast.occlusion_edges`), where the centre sample takes one side wholly.
+        source_edge_px, source_edge_jump_m: a source's pixels within ``source_edge_px`` of its own occlusion
+            edges (:func:`depth_edges`, a jump over ``source_edge_jump_m``) are taps of weight
+            :data:`SOURCE_EDGE_WEIGHT` (0 px: every tap counts alike; module docstring).
 
     Returns:
         ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,
@@ -368,8 +444,9 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
     depth, K, P, chosen = _prepare(target_depth_m, K, cam_from_world, sources, k, depth_tolerance_m, weighting,
                                    angle_sigma_deg, subject_centre, source_indices, interpolation)
     h, w = depth.shape
+    _check_edges(source_edge_px, source_edge_jump_m)
     terms_kw = dict(depth_tolerance_m=depth_tolerance_m, weighting=weighting, angle_sigma_deg=angle_sigma_deg,
-                    interpolation=interpolation)
+                    interpolation=interpolation, edge_px=int(source_edge_px), edge_jump_m=float(source_edge_jump_m))
     rows, cols, pts, to_target, density_target = _lift(depth, K, P)
     normal_px, albedo_px, weight_px, count, ok = _blend_points(sources, chosen, blend, pts, to_target,
                                                                density_target, terms_kw)

@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.config import Documented, checked
 from artifacts.camera import Camera
+from stages.numerics.gbuffer import SOURCE_EDGE_JUMP_M, SOURCE_EDGE_PX
 
 HALF_MAX = 60000.0
 """Radiance is clipped here before it is written as half float (max 65504)."""
@@ -51,13 +52,16 @@ class ActionAsset:
 def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
                        sources: int = 6, depth_tolerance_m: float = 0.01, blend: Any = None,
                        normal_fusion_m: float = 0.015, rim_normal_px: float = 4.0,
-                       mesh_normal_weight: float = 0.5) -> dict[str, np.ndarray]:
+                       mesh_normal_weight: float = 0.5, source_edge_px: int = SOURCE_EDGE_PX,
+                       source_edge_jump_m: float = SOURCE_EDGE_JUMP_M) -> dict[str, np.ndarray]:
     """The G-buffer of one novel camera (step 1 of the module docstring); ``blend`` a trained
     :class:`stages.numerics.learned_blend.LearnedBlend` or None (the heuristic weights); ``normal_fusion_m``
     the frequency split of ``normal_fused`` on the surface (metres; the Gaussian's sigma, turned into pixels
     at the mask's median depth); ``rim_normal_px`` the rim inside the silhouette over which ``normal_fused``
     fades to the mesh's normals (pixels, :func:`stages.numerics.gbuffer.fade_rim_normals`; 0: no fade);
-    ``mesh_normal_weight`` the mesh normals' share in ``normal_fused`` inside that rim.
+    ``mesh_normal_weight`` the mesh normals' share in ``normal_fused`` inside that rim; ``source_edge_px`` and
+    ``source_edge_jump_m`` the sources' occlusion edges that count little (:func:`stages.numerics.gbuffer.
+    reproject_gbuffer`).
 
     Returns (H, W[, C]) maps ``mask`` (the mesh's silhouette where a source or the atlas gives an albedo),
     ``hit`` (the pixel-centre rays that meet the mesh),
@@ -78,7 +82,7 @@ def novel_view_gbuffer(asset: ActionAsset, K: np.ndarray, cam_from_world: np.nda
     seen = render_mesh(None, None, K, pose, h, w, scene=asset.scene)
     depth = np.where(seen["hit"], seen["depth_m"], 0.0).astype(np.float32)
     gbuffer = reproject_gbuffer(depth, K, pose, asset.sources, k=sources, depth_tolerance_m=depth_tolerance_m,
-                                blend=blend)
+                                blend=blend, source_edge_px=source_edge_px, source_edge_jump_m=source_edge_jump_m)
     reprojected = gbuffer["valid"]
     # Pixels the mesh covers but no source sees (about 1%) take the baked albedo and the mesh's normal.
     uv, on_atlas = render_uvs(asset.atlas_scene, asset.atlas.faces, asset.atlas.uvs, K, pose, h, w)
@@ -176,6 +180,12 @@ class ViewShading(Documented):
     """Nearest captured views the G-buffer is reprojected from (the paper's 6)."""
     depth_tolerance_m: float = checked(0.01, gt=0.0)
     """A source pixel is visible when its mesh depth agrees with the point's within this, metres."""
+    source_edge_px: int = checked(SOURCE_EDGE_PX, ge=0)
+    """A captured view's pixels within this of its own occlusion edges (a depth jump over ``source_edge_jump_m``
+    in its mesh depth, :func:`stages.numerics.gbuffer.depth_edges`) count 1% of a pixel off them in that view's
+    blend weight: a pixel there mixes the occluder and the surface behind it. 0: every pixel counts alike."""
+    source_edge_jump_m: float = checked(SOURCE_EDGE_JUMP_M, gt=0.0)
+    """The depth jump, metres, of a captured view's occlusion edge for ``source_edge_px``."""
     normal_fusion_m: float = checked(0.015, gt=0.0)
     """Frequency split of the "fused" normals: the Gaussian's sigma on the surface, metres (turned into pixels
     at each novel view's median depth; 3 px on the default capture)."""
@@ -280,6 +290,13 @@ class ViewShading(Documented):
     under 3 environments against 1.2 s for the closed forms, beside 2.8 s of tracing 256 directions (6.5 s for
     512)."""
 
+    def gbuffer_options(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`novel_view_gbuffer` these settings give (all but ``blend``)."""
+        return {"sources": self.sources, "depth_tolerance_m": self.depth_tolerance_m,
+                "normal_fusion_m": self.normal_fusion_m, "rim_normal_px": self.rim_normal_px,
+                "mesh_normal_weight": self.mesh_normal_weight, "source_edge_px": self.source_edge_px,
+                "source_edge_jump_m": self.source_edge_jump_m}
+
 
 def relight_view(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray, height: int, width: int,
                  environments: Sequence[Any], shading: ViewShading = ViewShading(), blend: Any = None,
@@ -335,20 +352,15 @@ def _relight_frame(asset: ActionAsset, K: np.ndarray, cam_from_world: np.ndarray
                    directions: np.ndarray | None) -> dict[str, Any]:
     """:func:`relight_view` on every pixel of an ``h x w`` frame."""
     factor = int(shading.supersample)
-    gb = novel_view_gbuffer(asset, K, cam_from_world, h, w, sources=shading.sources,
-                            depth_tolerance_m=shading.depth_tolerance_m, blend=blend,
-                            normal_fusion_m=shading.normal_fusion_m, rim_normal_px=shading.rim_normal_px,
-                            mesh_normal_weight=shading.mesh_normal_weight)
+    gb = novel_view_gbuffer(asset, K, cam_from_world, h, w, blend=blend, **shading.gbuffer_options())
     view = shade_gbuffer(gb, asset.scene, K, cam_from_world, environments if factor == 1 else [], shading,
                          directions=directions)
     if factor > 1 and len(environments):
         fine_K = supersampled_intrinsics(K, factor)
         fine_shading = dataclasses.replace(shading, rim_normal_px=shading.rim_normal_px * factor,
                                            coverage_samples=-(-shading.coverage_samples // factor), supersample=1)
-        fine_gb = novel_view_gbuffer(asset, fine_K, cam_from_world, h * factor, w * factor, sources=shading.sources,
-                                     depth_tolerance_m=shading.depth_tolerance_m,
-                                     normal_fusion_m=shading.normal_fusion_m, rim_normal_px=fine_shading.rim_normal_px,
-                                     mesh_normal_weight=shading.mesh_normal_weight)
+        fine_gb = novel_view_gbuffer(asset, fine_K, cam_from_world, h * factor, w * factor,
+                                     **fine_shading.gbuffer_options())
         fine = shade_gbuffer(fine_gb, asset.scene, fine_K, cam_from_world, environments, fine_shading,
                              directions=directions)
         view["images"] = [box_mean(image, factor) for image in fine["images"]]

@@ -240,3 +240,22 @@ def test_sg_fit_memo_waits_for_the_process_fitting_the_map(tmp_path, monkeypatch
     # only the studio map fitted here, at once, and the sky map taken from the other process when it landed
     assert len(fits) == 1 and order == ["fit", "other"]
     assert all(r["lobes"] is not None and "fit_errors" in r for r in records) and not _claims(fresh)
+
+
+def test_gbuffer_options_are_every_setting_of_the_novel_views_gbuffer():
+    """``ViewShading.gbuffer_options`` feeds each call of ``novel_view_gbuffer`` (the stage's views at both
+    sample grids, the benches): a parameter it leaves out would silently keep its default there."""
+    import inspect
+
+    from stages.numerics.novel_view import novel_view_gbuffer
+
+    params = set(inspect.signature(novel_view_gbuffer).parameters) - {"asset", "K", "cam_from_world", "height",
+                                                                       "width", "blend"}
+    shading = ViewShading(source_edge_px=0, source_edge_jump_m=0.2, rim_normal_px=2.0)
+    options = shading.gbuffer_options()
+    assert set(options) == params
+    assert (options["source_edge_px"], options["source_edge_jump_m"], options["rim_normal_px"]) == (0, 0.2, 2.0)
+    with pytest.raises(ValueError, match="source_edge_px"):
+        ViewShading(source_edge_px=-1)
+    with pytest.raises(ValueError, match="source_edge_jump_m"):
+        ViewShading(source_edge_jump_m=0.0)

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.numerics.gbuffer import (INTERPOLATIONS, WEIGHTINGS, SourceView, _sample_consistent, camera_centre,
-                                     fade_rim_normals, fuse_normals, nearest_views, reproject_gbuffer,
-                                     shading_normals)
+from stages.numerics.gbuffer import (INTERPOLATIONS, SOURCE_EDGE_WEIGHT, WEIGHTINGS, SourceView,
+                                     _sample_consistent, camera_centre, depth_edges, fade_rim_normals, fuse_normals,
+                                     nearest_views, reproject_gbuffer, shading_normals)
 from stages.numerics.metrics import angular_error_deg
 from stages.numerics.raycast import camera_rays
 from synthetic.rig import look_at as rig_look_at
@@ -179,7 +179,8 @@ def test_occluder_hides_source_and_gets_no_weight():
     assert np.abs(both["albedo"] - target["albedo"])[seen1].max() < 0.03
 
 
-def _plane_lookup(u: float, v: float, interpolation: str, valid: np.ndarray | None = None):
+def _plane_lookup(u: float, v: float, interpolation: str, valid: np.ndarray | None = None,
+                  edge: np.ndarray | None = None, edge_weight: float = 1.0):
     """A source at constant depth 2 m (K = identity: pixel column i at u = i, row j at v = j)
     holding the map u^2 + 3 v; the point projecting to (u, v) is looked up."""
     h, w = 12, 16
@@ -189,7 +190,7 @@ def _plane_lookup(u: float, v: float, interpolation: str, valid: np.ndarray | No
     values = (uu ** 2 + 3 * vv)[..., None]
     valid = np.ones((h, w), bool) if valid is None else valid
     point = np.array([[u * 2.0, v * 2.0, 2.0]])
-    vis, (sample,) = _sample_consistent(point, Kp, depth, valid, (values,), 0.01, interpolation)
+    vis, (sample,) = _sample_consistent(point, Kp, depth, valid, (values,), 0.01, interpolation, edge, edge_weight)
     return float(vis[0]), float(sample[0, 0])
 
 
@@ -500,3 +501,70 @@ def test_shading_normals_fuse_then_fade_the_rim():
     assert not np.allclose(fused[3, 3:13], base[3, 3:13], atol=1e-3)         # (the ring did change)
     np.testing.assert_array_equal(shading_normals(detail, base, mask, 2.0, 0.0), fused)
     assert np.all(out[~mask] == 0)
+
+
+def test_depth_edges_marks_both_sides_of_an_occlusion_edge_and_not_the_silhouette():
+    depth = np.zeros((10, 12), np.float32)
+    depth[1:9, 1:11] = 2.0  # a wall, background around it
+    depth[3:7, 4:8] = 1.5  # a box 0.5 m in front of it
+    edges = depth_edges(depth, radius_px=1, jump_m=0.03)
+    assert edges.shape == depth.shape and edges.dtype == bool
+    expected = np.zeros_like(edges)
+    expected[2:8, 3:9] = True  # the box's outline grown by 1 px: the wall's ring and the box's own
+    expected[4:6, 5:7] = False  # the box's inside, 2 px from the jump
+    assert np.array_equal(edges, expected)
+    assert not edges[depth == 0].any()  # the silhouette against the background is not an edge
+    assert depth_edges(depth, radius_px=1, jump_m=0.6).sum() == 0  # a 0.5 m jump under a 0.6 m threshold
+    assert depth_edges(depth, radius_px=0).sum() == 0
+    assert depth_edges(depth, radius_px=2, jump_m=0.03)[4:6, 5:7].all()  # 2 px reaches the inside
+    with pytest.raises(ValueError, match="radius_px"):
+        depth_edges(depth, radius_px=-1)
+    with pytest.raises(ValueError, match="jump_m"):
+        depth_edges(depth, jump_m=0.0)
+    with pytest.raises(ValueError, match="depth_m"):
+        depth_edges(depth[0])
+
+
+def test_an_edge_tap_lowers_the_visibility_not_the_sample():
+    u, v = 7.3, 4.6  # bilinear taps (col, row) (7, 4) 0.28, (8, 4) 0.12, (7, 5) 0.42, (8, 5) 0.18
+    edge = np.zeros((12, 16), bool)
+    edge[5, 8] = True
+    for interpolation in INTERPOLATIONS:
+        plain_vis, plain = _plane_lookup(u, v, interpolation)
+        vis, sample = _plane_lookup(u, v, interpolation, edge=edge, edge_weight=0.01)
+        assert plain_vis == pytest.approx(1.0, abs=1e-5)
+        assert vis == pytest.approx(0.28 + 0.12 + 0.42 + 0.18 * 0.01, abs=1e-5)
+        assert sample == pytest.approx(plain, abs=1e-5)  # the interpolation itself is not biased
+    edge[:] = True
+    assert _plane_lookup(u, v, "cubic", edge=edge, edge_weight=0.01)[0] == pytest.approx(0.01, abs=1e-6)
+
+
+def test_source_edges_keep_an_occluders_bleed_out_of_the_blend():
+    """Source 0 sees a bright occluder in front of the main sphere and its pixels mix across the occlusion
+    edge (a 3 x 3 box blur, as a camera's footprint and demosaicing do); source 1 sees the main sphere
+    clear. Counting source 0's edge pixels for little keeps the occluder's colour out of the target."""
+    from scipy.ndimage import uniform_filter
+
+    P0, P1 = ring_camera(-10.0), ring_camera(20.0)
+    eye0 = camera_centre(P0)
+    occluder = (0.5 * eye0 / np.linalg.norm(eye0) * 1.5, 0.15)
+    r0 = render_spheres(P0, [MAIN, occluder], occluder_albedo=1.0)
+    mixed = uniform_filter(r0["albedo"], size=(3, 3, 1), mode="nearest")
+    src0 = SourceView(normal=r0["normal"], albedo=mixed, valid=r0["hit"], K=K, cam_from_world=P0, depth_m=r0["depth_m"])
+    src1 = source_from(P1, [MAIN])
+    target_P = ring_camera(5.0)
+    target = render_spheres(target_P, [MAIN])
+    runs = {px: reproject_gbuffer(target["depth_m"], K, target_P, [src0, src1], k=2, depth_tolerance_m=0.05,
+                                  source_edge_px=px) for px in (0, 1)}
+    inner = interior(target["hit"]) & runs[0]["valid"] & runs[1]["valid"]
+    err = {px: np.abs(out["albedo"] - target["albedo"]).max(axis=-1)[inner] for px, out in runs.items()}
+    bled = err[0] > 0.02  # where the occluder's colour reached the target without the edge weight
+    assert bled.sum() > 10
+    assert err[1][bled].mean() < 0.25 * err[0][bled].mean()
+    assert err[1].max() < err[0].max()
+    assert np.array_equal(runs[0]["valid"], runs[1]["valid"])  # nothing lost: the edge taps still count a little
+    assert 0 < SOURCE_EDGE_WEIGHT < 0.1
+    with pytest.raises(ValueError, match="source_edge_px"):
+        reproject_gbuffer(target["depth_m"], K, target_P, [src0, src1], source_edge_px=-1)
+    with pytest.raises(ValueError, match="source_edge_jump_m"):
+        reproject_gbuffer(target["depth_m"], K, target_P, [src0, src1], source_edge_jump_m=0.0)
