@@ -117,7 +117,7 @@ def f(gb, pix, values):
 """
     found = copied_constants(source, numerics_constants())
     assert found == ["line 7: assigns HALF_MAX, a constant of stages/numerics/novel_view.py: import it",
-                     "line 3: ROUGH_FLOOR = 0.05 is the value of ROUGHNESS_MIN: import it",
+                     "line 3: ROUGH_FLOOR = 0.05 is the value of SOURCE_EDGE_JUMP_M, ROUGHNESS_MIN: import it",
                      "line 4: HALF = 60000 is the value of HALF_MAX: import it",
-                     "line 8: clip bound 0.05 is the value of ROUGHNESS_MIN: import it",
+                     "line 8: clip bound 0.05 is the value of SOURCE_EDGE_JUMP_M, ROUGHNESS_MIN: import it",
                      "line 9: clip bound 60000 is the value of HALF_MAX: import it"]
