@@ -182,6 +182,7 @@ class GeometryStage(Stage):
         (out / "sdf" / "training.json").write_text(json.dumps(
             {"bounds": np.asarray(result.bounds).tolist(), "cameras": ids, "stats": result.stats,
              "history": result.history, "deocclusion": fitted.deocclusion, "first_pass": fitted.first_pass,
+             "third_pass": fitted.third_pass,
              "schedule": {"subject_pixel_m": fitted.subject_pixel_m}},
             indent=1, default=float))
         write_ply(ArtifactWriter(self.name, out).path("mesh"), vertices, faces, normals=vertex_normals(vertices, faces))
@@ -194,6 +195,8 @@ class GeometryStage(Stage):
                 "faces_extracted": int(mesh_stats["faces_extracted"]), "mesh_faces": int(len(faces)),
                 "mesh_vertices": int(len(vertices)), "bounds": np.asarray(result.bounds).tolist(),
                 "deocclusion": fitted.deocclusion, "silhouette": silhouette,
+                "third_pass": None if fitted.third_pass is None else
+                {k: v for k, v in fitted.third_pass.items() if k != "second_pass"},
                 "sdf": {k: v for k, v in result.stats.items() if isinstance(v, (int, float, str))},
                 "mesh": {k: v for k, v in mesh_stats.items() if isinstance(v, (int, float, str))}}
 

@@ -88,8 +88,23 @@ class SDFMeshConfig(Documented):
     the importance-drawn rays. 0 = none. On the procedural subject, whose slots the masks open by their gradient
     ratios, Chamfer 1.89 -> 1.59 mm at SDF seed 0 (2.14 before the slots opened; seed 1: 1.97 -> 1.51 with both);
     the default capture moves within a seed's spread."""
+    third_pass_iterations: int = checked(900, ge=0)
+    """Steps of a third pass, which continues the second pass's field at the final sharpness on the normals
+    de-occluded against the second mesh (the sample weights stay the first mesh's), run when that de-occlusion
+    turns more than ``third_pass_turned_share`` of the valid pixels' normals by over ``_TURN_DEG`` from the first
+    mesh's (:func:`turned_share`, on every ``_DECISION_STRIDE``-th view). The first mesh webs the gaps between
+    limbs a short pass cannot open, and eq. 1's normals inside them, de-occluded against the web, stay wrong until a
+    mesh without it de-occludes them. 0: no third pass (nor the second de-occlusion that decides it)."""
+    third_pass_turned_share: float = checked(0.08, ge=0.0, le=1.0)
+    """The share of the valid pixels whose de-occluded normal turns by over ``_TURN_DEG`` between the first and the
+    second mesh above which the third pass runs."""
 
 
+_DECISION_STRIDE = 4
+"""The third pass's decision de-occludes every this-many-th view (:attr:`SDFMeshConfig.third_pass_turned_share`)."""
+_TURN_DEG = 5.0
+"""The turn of a pixel's de-occluded normal between the first and the second mesh that counts for
+``third_pass_turned_share``."""
 _CARVE_INSET_PX = 2
 """Pixels the first mesh covers within this distance of its outline are not carving pixels: there the mask and the
 mesh differ by the outline's own sub-pixel error."""
@@ -162,6 +177,23 @@ def deoccluded_sdf_views(views: list[Any], vertices: np.ndarray, faces: np.ndarr
     if carves:
         stats["carve_share"] = _cap_carve_share(out, carves, _CARVE_SHARE_MAX)
     return out, stats
+
+
+def turned_share(before: list[Any], after: list[Any], turn_deg: float = _TURN_DEG) -> float:
+    """The share of the views' valid pixels (``normal_valid``) whose ``normals_world`` turn by more than
+    ``turn_deg`` degrees from ``before`` to ``after`` (two lists of the same views, e.g. de-occluded against two
+    meshes); 0 without valid pixels."""
+    from stages.numerics.metrics import angular_error_deg
+
+    if len(before) != len(after):
+        raise ValueError(f"turned_share: {len(before)} views before, {len(after)} after")
+    turned = valid = 0
+    for a, b in zip(before, after):
+        mask = np.asarray(a.normal_valid, bool)
+        angle = np.nan_to_num(angular_error_deg(a.normals_world, b.normals_world), nan=0.0)
+        turned += int((mask & (angle > turn_deg)).sum())
+        valid += int(mask.sum())
+    return turned / valid if valid else 0.0
 
 
 def _cap_carve_share(views: list[Any], carves: list[np.ndarray], share_max: float) -> float:
@@ -242,7 +274,7 @@ class SDFMesh:
     first_pass: dict[str, Any] | None
     """The first pass's stats, history and face count when there were two."""
     passes: int
-    """1 or 2."""
+    """1, 2 or 3."""
     train_seconds: float
     """Wall time of the passes, meshing included."""
     second_pass_start_s: float = 0.0
@@ -251,12 +283,17 @@ class SDFMesh:
     subject_pixel_m: float | None = None
     """The subject's pixel footprint the schedule was chosen for (:func:`schedule_for_footprint`; None with the
     rule off or when the views give no footprint)."""
+    third_pass: dict[str, Any] | None = None
+    """The third pass's decision (``turned_share``, ``ran``, ``deocclusion_seconds``) and, when it ran, the second
+    pass's stats, history and face count; None when it was not considered."""
 
     @property
     def iterations(self) -> tuple[int, ...]:
         """The steps each pass trained (from the passes' own statistics)."""
         first = (int(self.first_pass["stats"]["iterations"]),) if self.first_pass is not None else ()
-        return first + (int(self.result.stats["iterations"]),)
+        second = ((int(self.third_pass["second_pass"]["stats"]["iterations"]),)
+                  if self.third_pass is not None and self.third_pass["ran"] else ())
+        return first + second + (int(self.result.stats["iterations"]),)
 
 
 def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
@@ -265,10 +302,13 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
              checkpoint: Callable[[int, int, Any], None] | None = None) -> SDFMesh:
     """The mesh of the neural SDF trained on ``views`` (:class:`stages.numerics.sdf.SDFView`) as ``cfg`` asks:
     :func:`pass_configs`' passes with the steps :func:`schedule_for_footprint` gives the subject's pixel footprint
-    (``log`` is told when they are raised, or when the views give no footprint), the second on :func:`second_pass_views` of the first mesh. ``progress(step,
-    steps, message)`` is told about once per tenth of both passes' steps; ``log`` gets one line about the second
-    pass; ``checkpoint(pass, iteration, field)`` (pass 1 or 2) is :func:`stages.numerics.sdf.train_sdf`'s
-    checkpoint hook of each pass (every ``log_every`` steps). ``label`` names the fit in errors.
+    (``log`` is told when they are raised, or when the views give no footprint), the second on
+    :func:`second_pass_views` of the first mesh, and a third (``third_pass_iterations``) when the normals
+    de-occluded against the second mesh turn from the first's by :func:`turned_share` over
+    ``third_pass_turned_share``. ``progress(step, steps, message)`` is told about once per tenth of the passes'
+    steps; ``log`` gets one line about the second pass and one about the third; ``checkpoint(pass, iteration,
+    field)`` (pass 1, 2 or 3) is :func:`stages.numerics.sdf.train_sdf`'s checkpoint hook of each pass (every
+    ``log_every`` steps). ``label`` names the fit in errors.
 
     Raises:
         RuntimeError: a pass gave no usable surface.
@@ -295,16 +335,15 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
                 f"SDF steps {steps(chosen)} instead of {steps(cfg)}")
         cfg = chosen
     first, second = pass_configs(cfg)
-    total = first.iterations + (second.iterations if second is not None else 0)
-    reported = {"tenth": 0, "done": 0}
+    reported = {"tenth": 0, "done": 0, "total": first.iterations + (second.iterations if second is not None else 0)}
 
     def on_log(iteration: int, record: dict[str, float]) -> None:
         # train_sdf calls every log_every steps; show about one line per tenth of the whole schedule
         step = reported["done"] + iteration
-        tenth = 10 * step // max(total, 1)
+        tenth = 10 * step // max(reported["total"], 1)
         if tenth > reported["tenth"] and progress is not None:
             reported["tenth"] = tenth
-            progress(step, total, f"SDF loss {record.get('loss', float('nan')):.4f}")
+            progress(step, reported["total"], f"SDF loss {record.get('loss', float('nan')):.4f}")
 
     def fit(sdf_views: list[Any], config: Any, init: Any = None, resolution: int = cfg.mesh_resolution,
             start: Any = None, index: int = 1):
@@ -321,7 +360,7 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
 
     result, vertices, faces, mesh_stats = fit(views, first, resolution=(
         cfg.first_pass_mesh_resolution or cfg.mesh_resolution) if second is not None else cfg.mesh_resolution)
-    first_pass = None
+    first_pass = third_pass = None
     deocclusion: dict[str, float] = {}
     second_start = 0.0
     if second is not None:
@@ -340,9 +379,38 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
         first_pass = {"stats": result.stats, "history": result.history, "mesh_faces": int(len(faces))}
         # the same masks and cameras: the first pass's hull and pre-fitted field are the second's start
         second_start = time.perf_counter() - start
+        fitted_start = result.start
         result, vertices, faces, mesh_stats = fit(sdf_views, second,
                                                   result.field if cfg.deocclude_iterations > 0 else None,
-                                                  start=result.start, index=2)
+                                                  start=fitted_start, index=2)
+        if cfg.third_pass_iterations > 0:
+            tick = time.perf_counter()
+            # the decision reads every _DECISION_STRIDE-th view: a share of pixels needs no more, and the subjects
+            # that need no third pass pay a quarter of a de-occlusion for it
+            sampled = slice(None, None, _DECISION_STRIDE)
+            again, _ = deoccluded_sdf_views(views[sampled], vertices, faces, cfg.deocclude_directions,
+                                            cfg.deocclude_min_visible)
+            share = turned_share(sdf_views[sampled], again)
+            third_pass = {"turned_share": share, "ran": share > cfg.third_pass_turned_share}
+            if third_pass["ran"] and _DECISION_STRIDE > 1:
+                again, _ = deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions,
+                                                cfg.deocclude_min_visible)
+            third_pass["deocclusion_seconds"] = time.perf_counter() - tick
+            if log is not None:
+                log(f"{100 * share:.1f}% of the valid pixels' normals turn by over {_TURN_DEG:g} deg de-occluded against "
+                    f"the second mesh: " + (f"a third SDF pass of {cfg.third_pass_iterations} steps"
+                                            if third_pass["ran"] else "no third pass"))
+            if third_pass["ran"]:
+                third_pass["second_pass"] = {"stats": result.stats, "history": result.history,
+                                             "mesh_faces": int(len(faces))}
+                third = dataclasses.replace(second, iterations=cfg.third_pass_iterations,
+                                            inv_s_start=second.inv_s_end, coarse_to_fine=0.0,
+                                            warmup_iterations=min(second.warmup_iterations, cfg.third_pass_iterations))
+                reported["total"] += third.iterations
+                third_views = [dataclasses.replace(a, sample_weight=b.sample_weight) for a, b in zip(again, sdf_views)]
+                result, vertices, faces, mesh_stats = fit(third_views, third, result.field, start=fitted_start,
+                                                          index=3)
+                passes = 3
     return SDFMesh(result=result, vertices=vertices, faces=faces, mesh_stats=mesh_stats, deocclusion=deocclusion,
                    first_pass=first_pass, passes=passes, train_seconds=time.perf_counter() - start,
-                   second_pass_start_s=second_start, subject_pixel_m=pixel_m)
+                   second_pass_start_s=second_start, subject_pixel_m=pixel_m, third_pass=third_pass)

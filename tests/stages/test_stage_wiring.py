@@ -327,3 +327,66 @@ def test_pass_configs_give_each_pass_its_steps():
     for bad in ({"first_pass_iterations": -1}, {"first_pass_mesh_resolution": -2}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             GeometryConfig(**bad)
+
+
+def test_turned_share_counts_valid_pixels_turned_past_the_angle():
+    from stages.numerics.sdf import SDFView
+    from stages.numerics.sdf_mesh import turned_share
+
+    size = 10
+    up = np.tile(np.array([0.0, 1.0, 0.0], np.float32), (size, size, 1))
+
+    def view(normals, valid):
+        return SDFView(normals_world=normals, normal_valid=valid, mask=np.ones((size, size), bool), K=np.eye(3),
+                       cam_from_world=np.eye(3, 4))
+
+    def tilted(deg):
+        a = np.radians(deg)
+        return np.array([np.sin(a), np.cos(a), 0.0], np.float32)
+
+    turned = up.copy()
+    turned[0, :] = tilted(10.0)   # 10 pixels past 5 deg
+    turned[1, :5] = tilted(3.0)   # 5 pixels under it
+    turned[9, :] = tilted(40.0)   # 10 pixels past it, but not valid
+    valid = np.ones((size, size), bool)
+    valid[9, :] = False
+    before, after = [view(up, valid)] * 2, [view(turned, valid), view(up, valid)]
+    assert turned_share(before, after) == pytest.approx(10 / 180)
+    assert turned_share(before, after, turn_deg=2.0) == pytest.approx(15 / 180)
+    assert turned_share(before, before) == 0.0
+    assert turned_share([view(up, np.zeros((size, size), bool))], [view(turned, np.zeros((size, size), bool))]) == 0.0
+    with pytest.raises(ValueError, match="views"):
+        turned_share(before, after[:1])
+
+
+def test_a_third_pass_runs_only_when_the_second_meshs_deocclusion_turns_the_normals(monkeypatch):
+    import torch
+
+    import stages.numerics.sdf_mesh as sdf_mesh_module
+    from stages.geometry import GeometryConfig
+    from stages.numerics.sdf import SDF_PRESETS
+    from tests.unit.numerics.test_sdf import sphere_views
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        views = sphere_views(n=6, size=32)
+        sdf = dataclasses.replace(SDF_PRESETS["test"], iterations=20, hull_init_steps=10, log_every=5)
+        cfg = GeometryConfig(sdf=sdf, first_pass_iterations=10, mesh_resolution=32, first_pass_mesh_resolution=32,
+                             deocclude_directions=16, face_budget=2000, fine_pixel_m=0.0, third_pass_iterations=15)
+        lines: list[str] = []
+        # a lone sphere occludes nothing: both meshes de-occlude alike, no third pass
+        plain = sdf_mesh_module.sdf_mesh(views, cfg, log=lines.append)
+        assert plain.third_pass["turned_share"] < cfg.third_pass_turned_share and not plain.third_pass["ran"]
+        assert plain.passes == 2 and plain.iterations == (10, 20)
+        assert sum("no third pass" in line for line in lines) == 1
+        monkeypatch.setattr(sdf_mesh_module, "turned_share", lambda before, after: 0.5)
+        third = sdf_mesh_module.sdf_mesh(views, cfg, log=lines.append)
+        assert third.third_pass["ran"] and third.passes == 3 and third.iterations == (10, 20, 15)
+        assert third.third_pass["second_pass"]["stats"]["iterations"] == 20
+        assert sum("a third SDF pass of 15 steps" in line for line in lines) == 1
+        assert np.all(np.isfinite(third.vertices)) and len(third.faces) > 0
+        off = sdf_mesh_module.sdf_mesh(views, dataclasses.replace(cfg, third_pass_iterations=0))
+        assert off.third_pass is None and off.iterations == (10, 20)
+    finally:
+        torch.set_num_threads(previous)
