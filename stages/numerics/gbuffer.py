@@ -73,9 +73,7 @@ SOURCE_EDGE_PX = 1
 SOURCE_EDGE_JUMP_M = 0.05
 """Default depth jump of a source's occlusion edge, metres."""
 SOURCE_EDGE_WEIGHT = 0.01
-_EDGE_MODE = "tap"
-_EDGE_CUBIC = False
-"""The bilinear weight of a tap on a source's occlusion edge, relative to a tap off it."""
+"""What a tap on a source's occlusion edge counts in that source's soft visibility, relative to a tap off it."""
 
 
 @dataclass(frozen=True)
@@ -178,7 +176,8 @@ def _keys_weights(t: np.ndarray, a: float = -0.5) -> tuple[np.ndarray, ...]:
             -(a + 2) * t3 + (2 * a + 3) * t2 - a * t, -a * (t3 - t2))
 
 
-def depth_edges(depth_m: np.ndarray, radius_px: int = 1, jump_m: float = 0.03) -> np.ndarray:
+def depth_edges(depth_m: np.ndarray, radius_px: int = SOURCE_EDGE_PX,
+                jump_m: float = SOURCE_EDGE_JUMP_M) -> np.ndarray:
     """The surface pixels of a depth map that lie within ``radius_px`` of an occlusion edge: another surface
     pixel in their (2 r + 1)^2 neighbourhood is nearer or farther by more than ``jump_m``.
 
@@ -430,8 +429,8 @@ def reproject_gbuffer(target_depth_m: np.ndarray, K: np.ndarray, cam_from_world:
             integrates its square, instead of their centre's. Meant for the pixels at an occlusion edge
             (:func:`stages.numerics.raycast.occlusion_edges`), where the centre sample takes one side wholly.
         source_edge_px, source_edge_jump_m: a source's pixels within ``source_edge_px`` of its own occlusion
-            edges (:func:`depth_edges`, a jump over ``source_edge_jump_m``) are taps of weight
-            :data:`SOURCE_EDGE_WEIGHT` (0 px: every tap counts alike; module docstring).
+            edges (:func:`depth_edges`, a jump over ``source_edge_jump_m``) count :data:`SOURCE_EDGE_WEIGHT` in
+            that source's soft visibility, hence its blend weight (0 px: every pixel counts alike; module docstring).
 
     Returns:
         ``normal`` (H, W, 3) float32 unit world normals (0 where invalid), ``albedo`` (H, W, 3) float32,

@@ -397,9 +397,9 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
                                                 cfg.deocclude_min_visible)
             third_pass["deocclusion_seconds"] = time.perf_counter() - tick
             if log is not None:
-                log(f"{100 * share:.1f}% of the valid pixels' normals turn by over {_TURN_DEG:g} deg de-occluded against "
-                    f"the second mesh: " + (f"a third SDF pass of {cfg.third_pass_iterations} steps"
-                                            if third_pass["ran"] else "no third pass"))
+                log(f"{100 * share:.1f}% of the valid pixels' normals turn by over {_TURN_DEG:g} deg de-occluded "
+                    f"against the second mesh: " + (f"a third SDF pass of {cfg.third_pass_iterations} steps"
+                                                    if third_pass["ran"] else "no third pass"))
             if third_pass["ran"]:
                 third_pass["second_pass"] = {"stats": result.stats, "history": result.history,
                                              "mesh_faces": int(len(faces))}
