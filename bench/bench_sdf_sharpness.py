@@ -170,8 +170,7 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
         box = subject_box(list(masks), Ks, Ts, default_stage_box(list(zip(Ks, Ts))))
     except ValueError:  # the stage leaves the holes filled then
         return list(masks)
-    gradients = [(art.exr("pos", camera=cam), art.exr("neg", camera=cam)) if h.any() else None
-                 for cam, h in zip(ids, holes)]
+    gradients = [lambda cam=cam: (art.exr("pos", camera=cam), art.exr("neg", camera=cam)) for cam in ids]
     gaps, _ = background_holes(list(masks), list(holes), Ks, Ts, box, gradients, config.gaps)
     return [m & ~g for m, g in zip(masks, gaps)]
 

@@ -149,8 +149,8 @@ def open_gaps(ctx: StageContext, config: PhotometricConfig, view_stats: dict[str
     except ValueError as exc:  # no hull: the masks disagree; the geometry stage says so, the holes stay filled
         ctx.log.warning(f"{ctx.scope_id}: filled holes left as they are: {exc}")
         return {"enabled": True, "skipped": str(exc)}
-    gradients = [(upstream.exr("pos", v), upstream.exr("neg", v)) if hole.any() and config.gaps.backdrop_ratio_max > 0
-                 else None for v, hole in zip(views, hole_maps)]
+    # read on demand: one view's pair held at a time
+    gradients = [lambda v=v: (upstream.exr("pos", v), upstream.exr("neg", v)) for v in views]
     gaps, counts = background_holes(filled, hole_maps, Ks, Ts, box, gradients, config.gaps)
     seen_through, by_ratio = counts["seen_through"], counts["by_ratio"]
     opened = 0

@@ -19,7 +19,7 @@ the surface the neural SDF fits. Two tests tell them apart:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -29,6 +29,10 @@ from pipeline.config import Documented, checked
 from stages.numerics.hull import check_camera
 
 __all__ = ["GapConfig", "GapDecision", "background_holes", "backdrop_holes", "see_through_holes"]
+
+
+GradientPair = tuple[np.ndarray, np.ndarray]
+"""A view's decoded gradient images ``(pos, neg)``, each (H, W, 3)."""
 
 
 @dataclass(frozen=True)
@@ -234,7 +238,7 @@ def backdrop_holes(holes: np.ndarray, mask: np.ndarray, pos: np.ndarray, neg: np
 
 def background_holes(masks: Sequence[np.ndarray], holes: Sequence[np.ndarray], Ks: Sequence[np.ndarray],
                      cam_from_worlds: Sequence[np.ndarray], bounds: np.ndarray,
-                     gradients: Sequence[tuple[np.ndarray, np.ndarray] | None],
+                     gradients: Sequence[GradientPair | Callable[[], GradientPair | None] | None],
                      config: GapConfig = GapConfig()) -> tuple[list[np.ndarray], dict[str, int]]:
     """The filled holes either test calls background: seen through across the views (:func:`see_through_holes`)
     or, where a view's gradient images are given and ``config.backdrop_ratio_max`` is above 0, whose gradient
@@ -243,7 +247,9 @@ def background_holes(masks: Sequence[np.ndarray], holes: Sequence[np.ndarray], K
     Args:
         masks, holes, Ks, cam_from_worlds, bounds: as :func:`see_through_holes`.
         gradients: per view ``(pos, neg)`` (H, W, 3) decoded gradient images, or None (that view's holes are
-            decided across the views only).
+            decided across the views only), or a function of no argument that returns either: called only for a
+            view with holes while the ratio test is on, so a caller that reads images on demand holds one view's
+            at a time (a 24 MP pair is 0.6 GB of float32).
         config: both tests' thresholds.
 
     Returns:
@@ -258,6 +264,9 @@ def background_holes(masks: Sequence[np.ndarray], holes: Sequence[np.ndarray], K
     if config.backdrop_ratio_max > 0:
         for i, (mask, hole, pair) in enumerate(zip(masks, holes, gradients)):
             if pair is None or not np.any(hole):
+                continue
+            pair = pair() if callable(pair) else pair
+            if pair is None:
                 continue
             backdrop, records = backdrop_holes(hole, mask, pair[0], pair[1], config.backdrop_ratio_max)
             # both tests label the hole map's 8-connected components alike: their records pair up

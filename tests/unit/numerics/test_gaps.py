@@ -259,5 +259,17 @@ def test_background_holes_opens_what_either_test_opens():
     assert counts == {"holes": 1, "seen_through": 0, "by_ratio": 1}
     gaps, counts = background_holes(masks, holes, Ks, Ts, BOUNDS, [None] * len(cams))
     assert not any(g.any() for g in gaps) and counts == {"holes": 1, "seen_through": 0, "by_ratio": 0}
+    # read on demand: only the view with holes is asked for its images, and they decide alike
+    asked = []
+
+    def loader(i):
+        def load():
+            asked.append(i)
+            return gradients[i]
+        return load
+
+    lazy_gaps, lazy_counts = background_holes(masks, holes, Ks, Ts, BOUNDS, [loader(i) for i in range(len(cams))])
+    assert asked == [3] and lazy_counts == {"holes": 1, "seen_through": 0, "by_ratio": 1}
+    np.testing.assert_array_equal(lazy_gaps[3], slit & masks[3])
     with pytest.raises(ValueError, match="one entry per view"):
         background_holes(masks, holes, Ks, Ts, BOUNDS, [None])
