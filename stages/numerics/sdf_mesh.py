@@ -392,9 +392,12 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
                                             cfg.deocclude_min_visible)
             share = turned_share(sdf_views[sampled], again)
             third_pass = {"turned_share": share, "ran": share > cfg.third_pass_turned_share}
-            if third_pass["ran"] and _DECISION_STRIDE > 1:
-                again, _ = deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions,
-                                                cfg.deocclude_min_visible)
+            if third_pass["ran"] and _DECISION_STRIDE > 1:  # the views the decision left out, then all in order
+                rest = [i for i in range(len(views)) if i % _DECISION_STRIDE]
+                others, _ = deoccluded_sdf_views([views[i] for i in rest], vertices, faces, cfg.deocclude_directions,
+                                                 cfg.deocclude_min_visible)
+                by_index = dict(zip(range(0, len(views), _DECISION_STRIDE), again)) | dict(zip(rest, others))
+                again = [by_index[i] for i in range(len(views))]
             third_pass["deocclusion_seconds"] = time.perf_counter() - tick
             if log is not None:
                 log(f"{100 * share:.1f}% of the valid pixels' normals turn by over {_TURN_DEG:g} deg de-occluded "

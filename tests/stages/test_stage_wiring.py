@@ -381,8 +381,16 @@ def test_a_third_pass_runs_only_when_the_second_meshs_deocclusion_turns_the_norm
         assert plain.passes == 2 and plain.iterations == (10, 20)
         assert sum("no third pass" in line for line in lines) == 1
         monkeypatch.setattr(sdf_mesh_module, "turned_share", lambda before, after: 0.5)
+        import stages.numerics.sdf as sdf_module
+
+        trained, train = [], sdf_module.train_sdf
+        monkeypatch.setattr(sdf_module, "train_sdf", lambda v, *a, **k: trained.append(v) or train(v, *a, **k))
         third = sdf_mesh_module.sdf_mesh(views, cfg, log=lines.append)
         assert third.third_pass["ran"] and third.passes == 3 and third.iterations == (10, 20, 15)
+        # the third pass's views: every view once, in order (the decision's sample and the rest put together),
+        # each with the second pass's sample weight
+        assert [np.array_equal(a.cam_from_world, b.cam_from_world) for a, b in zip(trained[2], views)] == [True] * 6
+        assert all(a.sample_weight is b.sample_weight for a, b in zip(trained[2], trained[1]))
         assert third.third_pass["second_pass"]["stats"]["iterations"] == 20
         assert sum("a third SDF pass of 15 steps" in line for line in lines) == 1
         assert np.all(np.isfinite(third.vertices)) and len(third.faces) > 0
