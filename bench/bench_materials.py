@@ -15,7 +15,8 @@ is hit) and compared with the simulator's roughness and albedo maps.
    the mesh reaches it), ``min_cos`` 0.2/0.4/0.6 (the most grazing view a fit takes; the observations are
    gathered once at the lowest limit and each fit keeps the views within its own), ``specular_cone_deg`` 0 (no
    mirror-cone test)/8/25 and the test off at ``min_cos`` 0.4 (each cone traced once, as the stage traces it),
-   ``albedo_max_views`` 0/4/16 and ``median_neighbours`` 1/25/100/200, one change at a time from the stage's
+   ``albedo_max_views`` 0/4/16, ``median_neighbours`` 1/25/100/200 and the albedo guide of the median
+   (``median_albedo_m`` / ``median_albedo_neighbours``: :data:`ALBEDO_GUIDE_SWEEP`), one change at a time from the stage's
    defaults (a change equal to the default is left out), with the fit time (``fit_roughness``, both fits with
    ``albedo_max_views``, ``--threads`` torch threads; ``x_gather``: as a ratio to gathering the
    observations it fits, in the same process) and the smoothing time. Per variant also the PSNR against the truth
@@ -77,6 +78,9 @@ VARIANT_CHANGES = [("specular_model sg", {"specular_model": "sg"}),
                    ("albedo_max_views 4", {"albedo_max_views": 4}),
                    ("albedo_max_views 16", {"albedo_max_views": 16})]
 MEDIAN_NEIGHBOURS_SWEEP = (1, 25, 100, 200)
+ALBEDO_GUIDE_SWEEP = ((0.0, 1), (0.15, 1), (0.05, 32), (0.15, 16), (0.3, 32))
+"""(median_albedo_m, median_albedo_neighbours) of the albedo-guided median's sweep on the default fit (0: nearest on
+the surface alone); the stage's default is added."""
 OCCLUSION_RAYS_SWEEP = (16, 64, 128)
 MIN_OCCLUSION_SWEEP = (0.1, 0.2, 0.4)
 
@@ -246,7 +250,8 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     visibility_s = time.perf_counter() - t0
     out = {"texels": int(len(points)), "gathered_views": max_k, "gather_s": round(gather_s, 2),
            "texel_visibility_s": round(visibility_s, 2),
-           "mean_valid_views": round(float(obs["valid"].sum(axis=1).mean()), 2), "variants": [], "neighbours": []}
+           "mean_valid_views": round(float(obs["valid"].sum(axis=1).mean()), 2), "variants": [], "neighbours": [],
+           "albedo_guide": []}
 
     scene = mesh_scene(data["vertices"], data["faces"])
     mirror_open: dict[float, np.ndarray] = {}  # cone half-angle -> (P, K) the stage's mirror-cone test
@@ -290,7 +295,7 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
         fit_s = time.perf_counter() - t0
         fitted = rms != NO_VIEWS_RESIDUAL
         t0 = time.perf_counter()
-        smooth, _ = published_roughness(points, rough, fitted, visibility, cfg)
+        smooth, _ = published_roughness(points, rough, fitted, visibility, cfg, albedo)
         median_s = time.perf_counter() - t0
         score = probe.roughness_errors(texel_texture(smooth, covered))
         raw = probe.roughness_errors(texel_texture(rough, covered))
@@ -312,11 +317,22 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
     for neighbours in sweep(MEDIAN_NEIGHBOURS_SWEEP, base.median_neighbours):
         t0 = time.perf_counter()
         smooth, _ = published_roughness(points, rough, fitted, visibility,
-                                        dataclasses.replace(base, median_neighbours=neighbours))
+                                        dataclasses.replace(base, median_neighbours=neighbours), albedo)
         median_s = time.perf_counter() - t0
         score = probe.roughness_errors(texel_texture(smooth, covered))
         out["neighbours"].append({"median_neighbours": neighbours, "median_s": round(median_s, 2),
                                   "mae": round(score["mae"], 4), "bias": round(score["bias"], 4)})
+    for guide_m, guide_neighbours in sorted(set(ALBEDO_GUIDE_SWEEP) | {(base.median_albedo_m,
+                                                                        base.median_albedo_neighbours)}):
+        cfg = dataclasses.replace(base, median_albedo_m=guide_m, median_albedo_neighbours=guide_neighbours)
+        t0 = time.perf_counter()
+        smooth, _ = published_roughness(points, rough, fitted, visibility, cfg, albedo)
+        median_s = time.perf_counter() - t0
+        texture = texel_texture(smooth, covered)
+        score = probe.roughness_errors(texture)
+        out["albedo_guide"].append({"median_albedo_m": guide_m, "median_albedo_neighbours": guide_neighbours,
+                                    "median_s": round(median_s, 2), "mae": round(score["mae"], 4),
+                                    "bias": round(score["bias"], 4), "by_true_level": probe.by_level(texture)})
     median_fit = float(np.median(rough[fitted])) if fitted.any() else 0.5
     truth_mean = float(np.mean(probe.roughness))
     truth_median = float(np.median(probe.roughness))
@@ -326,7 +342,7 @@ def roughness_section(data: dict, probe: TruthProbe, base: MaterialsConfig, prog
                                             ("constant_truth_median_oracle", truth_median))}
     out["baselines"]["released_texture"] = _round(probe.roughness_errors(data["released"]["roughness"]))
     out["default_by_true_level"] = probe.by_level(
-        texel_texture(published_roughness(points, rough, fitted, visibility, base)[0], covered))
+        texel_texture(published_roughness(points, rough, fitted, visibility, base, albedo)[0], covered))
     return out
 
 
@@ -395,6 +411,10 @@ def markdown(report: dict) -> str:
         for n in r["neighbours"]:
             lines.append(f"| default, median_neighbours {n['median_neighbours']} | {n['mae']:.4f} | {n['bias']:+.4f} "
                          f"| | | | | {n['median_s']:.2f} |")
+        for g in r.get("albedo_guide", []):
+            lines.append(f"| default, median_albedo_m {g['median_albedo_m']:g}, median_albedo_neighbours "
+                         f"{g['median_albedo_neighbours']} | {g['mae']:.4f} | {g['bias']:+.4f} | | | | | "
+                         f"{g['median_s']:.2f} |")
         for name, b in r["baselines"].items():
             value = f" = {b['value']:.3f}" if "value" in b else ""
             lines.append(f"| baseline: {name}{value} | {b['mae']:.4f} | {b['bias']:+.4f} | | 0 | | |")
@@ -405,10 +425,12 @@ def markdown(report: dict) -> str:
         lines += ["", "The fitted mean per true roughness, per variant:", "",
                   "| roughness variant | " + " | ".join(f"{v:.2f}" for v in true_levels) + " |",
                   "|---|" + "---|" * len(true_levels)]
-        for v in r["variants"]:
+        guided = [(f"default, median_albedo_m {g['median_albedo_m']:g}, median_albedo_neighbours "
+                   f"{g['median_albedo_neighbours']}", g) for g in r.get("albedo_guide", [])]
+        for label, v in [(v["variant"], v) for v in r["variants"]] + guided:
             means = {x["true_roughness"]: x["pred_mean"] for x in v.get("by_true_level", [])}
-            lines.append(f"| {v['variant']} | " + " | ".join(f"{means[t]:.3f}" if t in means else "-"
-                                                              for t in true_levels) + " |")
+            lines.append(f"| {label} | " + " | ".join(f"{means[t]:.3f}" if t in means else "-"
+                                                      for t in true_levels) + " |")
         a = entry["albedo"]
         floors = [float(f) for f in a["baked_over_truth_visibility_psnr_db"]]
         lines += ["", f"Albedo PSNR vs truth: baked (white-light) texture **{a['baked_psnr_db']:.2f} dB** (median "

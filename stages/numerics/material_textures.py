@@ -59,6 +59,16 @@ class MaterialTexturesConfig(Documented):
     """Upper bound of the fitted perceptual roughness."""
     median_neighbours: int = checked(100, ge=1)
     """Texels (nearest on the surface) whose median gives the published roughness; 1 = no smoothing."""
+    median_albedo_m: float = checked(0.15, ge=0.0)
+    """The median's neighbours are nearest in albedo too (:func:`albedo_guide`, the log of each channel of the
+    baked white-light albedo): a unit of log-albedo difference counts as this many metres on the surface (0:
+    nearest on the surface alone). A material narrower than the median's neighbourhood keeps its own roughness:
+    on the default capture the shiny belt (0.25) came out 0.37 in the relit views without it, the median of the
+    cloth around it (``python bench/bench_materials.py`` and the README's *Albedo-guided roughness median*)."""
+    median_albedo_neighbours: int = checked(32, ge=1)
+    """The guide's log-albedo is each texel's mean over its this many nearest texels on the surface: a pattern
+    finer than that (a plaid's stripes) stays one material, whose stripes the per-texel fit would otherwise
+    split by their albedo (1: each texel's own albedo)."""
     median_min_visibility: float = checked(0.95, ge=0.0, le=1.0)
     """Only texels whose ambient visibility on the mesh (cosine-weighted visible fraction, ``occlusion_rays``
     rays) reaches this vote in that median; the others take the median of their nearest voters. The fit
@@ -98,31 +108,71 @@ def texel_uvs(covered: np.ndarray) -> np.ndarray:
     return np.stack([(cols + 0.5) / size, 1.0 - (rows + 0.5) / size], axis=1)
 
 
-def surface_median(points: np.ndarray, values: np.ndarray, usable: np.ndarray, neighbours: int) -> np.ndarray:
-    """Median of ``values`` over each point's ``neighbours`` nearest usable points in 3D, (N,) float32.
+def surface_median(points: np.ndarray, values: np.ndarray, usable: np.ndarray, neighbours: int,
+                   guide: np.ndarray | None = None, guide_m: float = 0.0) -> np.ndarray:
+    """Median of ``values`` over each point's ``neighbours`` nearest usable points, (N,) float32.
 
-    points: (N, 3); values: (N,); usable: (N,) bool (e.g. points that had observations). With no usable
-    point (or ``neighbours`` 1) the values come back unchanged."""
+    points: (N, 3) metres; values: (N,); usable: (N,) bool (e.g. points that had observations). "Nearest" is in
+    3D, or with ``guide`` (N, F) and ``guide_m`` > 0 in the joint space of the points and ``guide_m`` times the
+    guide's features (a unit of feature difference counts as ``guide_m`` metres). With no usable point (or
+    ``neighbours`` 1) the values come back unchanged."""
     from scipy.spatial import cKDTree
 
     values = np.asarray(values, np.float32)
     if neighbours <= 1 or not usable.any():
         return values.copy()
+    if not (np.isfinite(guide_m) and guide_m >= 0):
+        raise ValueError(f"guide_m must be finite and >= 0, got {guide_m}")
+    coords = np.asarray(points, np.float64)
+    if guide is not None and guide_m > 0:
+        guide = np.asarray(guide, np.float64).reshape(len(coords), -1)
+        if not np.all(np.isfinite(guide)):
+            raise ValueError("guide holds NaN or Inf")
+        coords = np.hstack([coords, guide_m * guide])
     k = int(min(neighbours, usable.sum()))
-    _, nearest = cKDTree(points[usable]).query(points, k=k)
+    _, nearest = cKDTree(coords[usable]).query(coords, k=k)
     nearest = nearest.reshape(len(points), k)
     return np.median(values[usable][nearest], axis=1).astype(np.float32)
 
 
 def roughness_median(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
-                     min_visibility: float, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+                     min_visibility: float, neighbours: int, albedo: np.ndarray | None = None,
+                     albedo_guide_m: float = 0.0, albedo_neighbours: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """The published roughness: each texel's median over its ``neighbours`` nearest *voters*, the fitted
     texels (``fitted`` (N,) bool) whose ``visibility`` (N,) reaches ``min_visibility`` (every fitted texel
-    when none does). points (N, 3), roughness (N,). Returns the (N,) float32 median and the (N,) bool voters."""
+    when none does); nearest on the surface and, with ``albedo`` (N, 3) and ``albedo_guide_m`` > 0, in albedo
+    (:func:`albedo_guide` over ``albedo_neighbours``, a unit of it counting ``albedo_guide_m`` metres). points
+    (N, 3), roughness (N,). Returns the (N,) float32 median and the (N,) bool voters."""
     voters = np.asarray(fitted, bool) & (np.asarray(visibility) >= min_visibility)
     if not voters.any():
         voters = np.asarray(fitted, bool)
-    return surface_median(points, roughness, voters, neighbours), voters
+    guide = albedo_guide(albedo, points, albedo_neighbours) if albedo is not None and albedo_guide_m > 0 else None
+    return surface_median(points, roughness, voters, neighbours, guide, albedo_guide_m), voters
+
+
+ALBEDO_GUIDE_FLOOR = 0.02
+"""Albedo below which :func:`albedo_guide` no longer tells values apart (its log is taken of the albedo clipped
+here): a texel's noise and dark creases there are not another material."""
+
+
+def albedo_guide(albedo: np.ndarray, points: np.ndarray | None = None, neighbours: int = 1) -> np.ndarray:
+    """The features (N, 3) float64 the roughness median compares albedos by: the natural log of each channel,
+    clipped below at :data:`ALBEDO_GUIDE_FLOOR` (a ratio between two albedos, not their difference, tells
+    materials apart: a dark belt against dark cloth as a pale shirt against pale skin), averaged over each
+    point's ``neighbours`` nearest ``points`` (N, 3) in 3D (itself included; 1: no average), so a pattern finer
+    than that neighbourhood reads as one material. albedo (N, 3), a non-finite value taken as the floor."""
+    albedo = np.nan_to_num(np.asarray(albedo, np.float64), nan=0.0, posinf=1.0, neginf=0.0)
+    guide = np.log(np.clip(albedo, ALBEDO_GUIDE_FLOOR, None))
+    if int(neighbours) != neighbours or neighbours < 1:
+        raise ValueError(f"neighbours must be a positive integer, got {neighbours}")
+    if neighbours > 1 and len(guide) > 1:
+        from scipy.spatial import cKDTree
+
+        if points is None or np.shape(points) != (len(guide), 3):
+            raise ValueError(f"points must be ({len(guide)}, 3) to average the guide over neighbours")
+        _, nearest = cKDTree(np.asarray(points, np.float64)).query(points, k=int(min(neighbours, len(guide))))
+        guide = guide[nearest].mean(axis=1)
+    return guide
 
 
 def mirror_cone_open(points, normals, view_dirs, valid, scene, cone_deg: float, rays: int = 8,
@@ -239,11 +289,12 @@ def fit_texel_materials(observed: np.ndarray, view_dirs: np.ndarray, valid: np.n
 
 
 def published_roughness(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
-                        cfg: MaterialTexturesConfig) -> tuple[np.ndarray, np.ndarray]:
+                        cfg: MaterialTexturesConfig, albedo: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Step 3: :func:`roughness_median` with the config's voters and neighbours, within the config's bounds
     (0.5 where no texel voted). Returns the (N,) float32 roughness and the (N,) bool voters."""
     smooth, voters = roughness_median(points, roughness, fitted, visibility, cfg.median_min_visibility,
-                                      cfg.median_neighbours)
+                                      cfg.median_neighbours, albedo, cfg.median_albedo_m,
+                                      cfg.median_albedo_neighbours)
     return np.clip(np.nan_to_num(smooth, nan=0.5), cfg.roughness_min, cfg.roughness_max), voters
 
 
@@ -345,7 +396,7 @@ def material_textures(vertices: np.ndarray, faces: np.ndarray, atlas: Any, albed
     fitted = fit_rms != NO_VIEWS_RESIDUAL
     # texels the body shadows from part of the stage fit too rough: they take their unshadowed neighbours'
     texel_visibility = ambient_occlusion(points, normals, mesh, rays=cfg.occlusion_rays)
-    smooth, voters = published_roughness(points, roughness, fitted, texel_visibility, cfg)
+    smooth, voters = published_roughness(points, roughness, fitted, texel_visibility, cfg, albedo)
     timings["fit_s"] = time.perf_counter() - t0
     if progress is not None:
         progress(2, 3, f"roughness fitted in {timings['fit_s']:.1f} s")

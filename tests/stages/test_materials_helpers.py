@@ -8,8 +8,9 @@ import pytest
 from pipeline.codecs.mesh import write_obj
 from pipeline.errors import InputError
 from artifacts.facade import fitted_f0, load_atlas_mesh
-from stages.numerics.material_textures import (MaterialTexturesConfig, diffuse_ratio_of, fit_texel_materials,
-                                               fit_texel_roughness, roughness_median, surface_median, texel_uvs)
+from stages.numerics.material_textures import (ALBEDO_GUIDE_FLOOR, MaterialTexturesConfig, albedo_guide,
+                                               diffuse_ratio_of, fit_texel_materials, fit_texel_roughness,
+                                               roughness_median, surface_median, texel_uvs)
 from stages.numerics.bake import sample_texture
 from stages.numerics.mesh import uv_atlas, vertex_normals
 
@@ -52,6 +53,54 @@ def test_median_identity_cases():
     np.testing.assert_array_equal(same, values)
     assert same is not values  # a copy
     np.testing.assert_array_equal(surface_median(pts, values, np.zeros(20, bool), neighbours=5), values)
+
+
+def test_guided_median_keeps_a_narrow_strip_of_another_material():
+    """A strip one texel tall (a shiny belt, 0.25) across a patch of cloth (0.7), 20 x 5 texels 1 cm apart: the
+    plain median over 15 neighbours (about 2 cm around) gives the strip the cloth's roughness; guided by the albedo
+    (the strip darker by a factor e, a unit of log-albedo counting as 1 m) each texel's 15 nearest are its own
+    material's (the strip holds 20), so every texel, the noisy ones too, takes its own material's roughness."""
+    xs, ys = np.meshgrid(np.arange(20) * 0.01, np.arange(5) * 0.01)
+    points = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    belt = np.isclose(ys.ravel(), 0.02)
+    roughness = np.where(belt, 0.25, 0.7).astype(np.float32)
+    roughness[[3, 45, 50]] = [0.9, 0.6, 0.1]  # noisy texels: two of the cloth, one of the strip
+    albedo = np.where(belt[:, None], np.exp(-2.0), np.exp(-1.0)) * np.ones((len(points), 3))
+    everyone = np.ones(len(points), bool)
+    plain = surface_median(points, roughness, everyone, neighbours=15)
+    assert np.all(plain[belt] == np.float32(0.7))  # the strip is lost
+    guided = surface_median(points, roughness, everyone, 15, albedo_guide(albedo), guide_m=1.0)
+    np.testing.assert_array_equal(guided[belt], np.float32(0.25))
+    np.testing.assert_array_equal(guided[~belt], np.float32(0.7))
+    # guide_m 0 (or no guide) is the plain median
+    np.testing.assert_array_equal(surface_median(points, roughness, everyone, 15, albedo_guide(albedo), 0.0), plain)
+    same, _ = roughness_median(points, roughness, everyone, np.ones(len(points)), 0.95, 15, albedo, 1.0)
+    np.testing.assert_array_equal(same, guided)
+    with pytest.raises(ValueError, match="guide_m"):
+        surface_median(points, roughness, everyone, 15, albedo_guide(albedo), guide_m=-1.0)
+    with pytest.raises(ValueError, match="NaN"):
+        surface_median(points, roughness, everyone, 15, np.full((len(points), 3), np.nan), guide_m=1.0)
+
+
+def test_albedo_guide_hand_values():
+    albedo = np.array([[1.0, np.e ** -1, 0.5], [0.0, -0.1, np.nan], [np.inf, 0.02, 0.03]])
+    guide = albedo_guide(albedo)
+    assert guide.shape == (3, 3) and guide.dtype == np.float64 and np.all(np.isfinite(guide))
+    np.testing.assert_allclose(guide[0], [0.0, -1.0, np.log(0.5)])
+    np.testing.assert_allclose(guide[1], np.log(ALBEDO_GUIDE_FLOOR))  # dark, negative and NaN: the floor
+    np.testing.assert_allclose(guide[2], [0.0, np.log(0.02), np.log(0.03)])  # +Inf reads as 1
+    # averaged over each point's nearest (itself included): stripes 1 cm apart, alternating e^-1 and e^-3, read as
+    # one material of e^-2 over 4 neighbours (two of each) in the interior; a unit strip far off keeps its own
+    points = np.stack([np.r_[np.arange(8) * 0.01, 1.0], np.zeros(9), np.zeros(9)], axis=1)
+    stripes = np.exp(np.r_[np.where(np.arange(8) % 2 == 0, -1.0, -3.0), 0.0])[:, None] * np.ones((9, 3))
+    np.testing.assert_allclose(albedo_guide(stripes, points, 1), np.log(stripes))
+    averaged = albedo_guide(stripes, points, 4)
+    assert np.ptp(averaged[2:6, 0]) < np.ptp(np.log(stripes)[2:6, 0]) / 2
+    np.testing.assert_allclose(albedo_guide(stripes, points, 2)[8], np.log(stripes[8]) / 2 + np.log(stripes[7]) / 2)
+    with pytest.raises(ValueError, match="neighbours"):
+        albedo_guide(stripes, points, 0)
+    with pytest.raises(ValueError, match="points"):
+        albedo_guide(stripes, None, 4)
 
 
 # ---------------------------------------------------------------------------------- load_atlas_mesh
