@@ -16,9 +16,9 @@ is hit) and compared with the simulator's roughness and albedo maps.
    gathered once at the lowest limit and each fit keeps the views within its own), ``specular_cone_deg`` 0 (no
    mirror-cone test)/8/25 and the test off at ``min_cos`` 0.4 (each cone traced once, as the stage traces it),
    ``albedo_max_views`` 0/4/16, ``median_neighbours`` 1/25/100/200 and the albedo guide of the median
-   (``median_albedo_m`` / ``median_albedo_neighbours``: :data:`ALBEDO_GUIDE_SWEEP`), one change at a time from the stage's
-   defaults (a change equal to the default is left out), with the fit time (``fit_roughness``, both fits with
-   ``albedo_max_views``, ``--threads`` torch threads; ``x_gather``: as a ratio to gathering the
+   (``median_albedo_m`` / ``median_albedo_neighbours``: :data:`ALBEDO_GUIDE_SWEEP`), one change at a time from
+   the stage's defaults (a change equal to the default is left out), with the fit time (``fit_roughness``, both
+   fits with ``albedo_max_views``, ``--threads`` torch threads; ``x_gather``: as a ratio to gathering the
    observations it fits, in the same process) and the smoothing time. Per variant also the PSNR against the truth
    of the intrinsic albedo texture its diffuse ratio gives (the baked albedo times the ratio, the released
    occlusion texture divided out, as the stage).

@@ -63,8 +63,9 @@ class MaterialTexturesConfig(Documented):
     """The median's neighbours are nearest in albedo too (:func:`albedo_guide`, the log of each channel of the
     baked white-light albedo): a unit of log-albedo difference counts as this many metres on the surface (0:
     nearest on the surface alone). A material narrower than the median's neighbourhood keeps its own roughness:
-    on the default capture the shiny belt (0.25) came out 0.37 in the relit views without it, the median of the
-    cloth around it (``python bench/bench_materials.py`` and the README's *Albedo-guided roughness median*)."""
+    on the default capture the shiny belt (0.25) reads 0.30 / 0.34 (A0000 / A0001) with it and 0.37 / 0.38 without,
+    the median of the cloth around it (``python bench/bench_materials.py``, its guide rows; the README's *The
+    albedo-guided roughness median*)."""
     median_albedo_neighbours: int = checked(32, ge=1)
     """The guide's log-albedo is each texel's mean over its this many nearest texels on the surface: a pattern
     finer than that (a plaid's stripes) stays one material, whose stripes the per-texel fit would otherwise
@@ -289,9 +290,11 @@ def fit_texel_materials(observed: np.ndarray, view_dirs: np.ndarray, valid: np.n
 
 
 def published_roughness(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarray, visibility: np.ndarray,
-                        cfg: MaterialTexturesConfig, albedo: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Step 3: :func:`roughness_median` with the config's voters and neighbours, within the config's bounds
-    (0.5 where no texel voted). Returns the (N,) float32 roughness and the (N,) bool voters."""
+                        cfg: MaterialTexturesConfig,
+                        albedo: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Step 3: :func:`roughness_median` with the config's voters, neighbours and albedo guide (``albedo`` (N, 3):
+    the texels' white-light albedo; None: nearest on the surface alone), within the config's bounds (0.5 where no
+    texel voted). Returns the (N,) float32 roughness and the (N,) bool voters."""
     smooth, voters = roughness_median(points, roughness, fitted, visibility, cfg.median_min_visibility,
                                       cfg.median_neighbours, albedo, cfg.median_albedo_m,
                                       cfg.median_albedo_neighbours)
