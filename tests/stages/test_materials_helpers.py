@@ -95,7 +95,7 @@ def test_albedo_guide_hand_values():
     stripes = np.exp(np.r_[np.where(np.arange(8) % 2 == 0, -1.0, -3.0), 0.0])[:, None] * np.ones((9, 3))
     np.testing.assert_allclose(albedo_guide(stripes, points, 1), np.log(stripes))
     averaged = albedo_guide(stripes, points, 4)
-    assert np.ptp(averaged[2:6, 0]) < np.ptp(np.log(stripes)[2:6, 0]) / 2
+    np.testing.assert_allclose(averaged[2:6], -2.0)
     np.testing.assert_allclose(albedo_guide(stripes, points, 2)[8], np.log(stripes[8]) / 2 + np.log(stripes[7]) / 2)
     with pytest.raises(ValueError, match="neighbours"):
         albedo_guide(stripes, points, 0)
