@@ -147,7 +147,9 @@ def roughness_median(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarr
     voters = np.asarray(fitted, bool) & (np.asarray(visibility) >= min_visibility)
     if not voters.any():
         voters = np.asarray(fitted, bool)
-    guide = albedo_guide(albedo, points, albedo_neighbours) if albedo is not None and albedo_guide_m > 0 else None
+    # the guide's k-d tree over every texel is wasted where the median returns the values as they are
+    guided = albedo is not None and albedo_guide_m > 0 and neighbours > 1 and voters.any()
+    guide = albedo_guide(albedo, points, albedo_neighbours) if guided else None
     return surface_median(points, roughness, voters, neighbours, guide, albedo_guide_m), voters
 
 

@@ -82,6 +82,23 @@ def test_guided_median_keeps_a_narrow_strip_of_another_material():
         surface_median(points, roughness, everyone, 15, np.full((len(points), 3), np.nan), guide_m=1.0)
 
 
+def test_roughness_median_of_one_neighbour_builds_no_guide(monkeypatch):
+    """With one neighbour the median is the values themselves: the albedo guide (a k-d tree over every texel)
+    is not built."""
+    from stages.numerics import material_textures
+
+    def no_guide(*args, **kwargs):
+        raise AssertionError("the guide was built")
+
+    monkeypatch.setattr(material_textures, "albedo_guide", no_guide)
+    points = np.random.default_rng(0).uniform(size=(50, 3))
+    roughness = np.linspace(0.1, 0.9, 50).astype(np.float32)
+    albedo = np.full((50, 3), 0.3)
+    same, voters = roughness_median(points, roughness, np.ones(50, bool), np.ones(50), 0.5, 1, albedo, 0.15, 32)
+    np.testing.assert_array_equal(same, roughness)
+    assert voters.all()
+
+
 def test_albedo_guide_hand_values():
     albedo = np.array([[1.0, np.e ** -1, 0.5], [0.0, -0.1, np.nan], [np.inf, 0.02, 0.03]])
     guide = albedo_guide(albedo)
