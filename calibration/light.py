@@ -36,6 +36,7 @@ __all__ = [
     "ideal_light_model",
     "fit_light_model",
     "correct_normals",
+    "gradient_ratio",
     "sphere_normals",
     "angular_error_deg",
 ]
@@ -175,6 +176,25 @@ def fit_light_model(d: np.ndarray, normals_true: np.ndarray, degree: int = 2, ri
     residual = dd - phi @ coefficients.T
     rms = float(np.sqrt(np.mean(np.sum(residual ** 2, axis=1))))
     return LightModel(degree, coefficients, rms, int(len(dd)))
+
+
+def gradient_ratio(pos: np.ndarray, neg: np.ndarray, min_total: float = 0.0) -> np.ndarray:
+    """Per-channel gradient ratio ``d = (pos - neg) / (pos + neg)`` (H, W, 3) float32 of the two decoded gradient
+    images (H, W, 3) (further channels ignored); NaN where ``pos + neg`` is not above ``min_total`` (>= 0) or
+    either is not finite. The division runs in the inputs' precision (float32 at least)."""
+    pos = np.asarray(pos)
+    neg = np.asarray(neg)
+    if pos.ndim != 3 or pos.shape[:2] != neg.shape[:2] or min(pos.shape[-1], neg.shape[-1]) < 3:
+        raise ValueError(f"pos and neg must be (H, W, 3) images of one shape, got {pos.shape} and {neg.shape}")
+    if not min_total >= 0:
+        raise ValueError(f"min_total must be >= 0, got {min_total}")
+    dtype = np.result_type(pos.dtype, neg.dtype, np.float32)
+    pos = pos[..., :3].astype(dtype, copy=False)
+    neg = neg[..., :3].astype(dtype, copy=False)
+    total = pos + neg
+    ok = np.isfinite(total) & (total > min_total)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        return np.where(ok, (pos - neg) / np.where(ok, total, 1.0), np.nan).astype(np.float32)
 
 
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

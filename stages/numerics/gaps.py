@@ -25,6 +25,7 @@ import numpy as np
 from scipy import ndimage
 
 from artifacts.camera import camera_centre, check_bounds, pixel_coordinates, pixel_rays, ray_box
+from calibration.light import gradient_ratio
 from pipeline.config import Documented, checked
 from stages.numerics.hull import check_camera
 
@@ -155,19 +156,6 @@ def see_through_holes(
             if is_gap:
                 gaps[v] |= labels == i
     return GapDecision(gaps, records)
-
-
-def gradient_ratio(pos: np.ndarray, neg: np.ndarray) -> np.ndarray:
-    """Per-channel gradient ratio ``d = (pos - neg) / (pos + neg)`` (H, W, 3) float32 of the two decoded gradient
-    images (H, W, 3); NaN where ``pos + neg`` is not positive or either is not finite."""
-    pos = np.asarray(pos, np.float32)[..., :3]
-    neg = np.asarray(neg, np.float32)[..., :3]
-    if pos.ndim != 3 or pos.shape != neg.shape:
-        raise ValueError(f"pos and neg must be (H, W, 3) images of one shape, got {pos.shape} and {neg.shape}")
-    total = pos + neg
-    ok = np.isfinite(total) & (total > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(ok, (pos - neg) / np.where(ok, total, 1.0), np.nan).astype(np.float32)
 
 
 def backdrop_holes(holes: np.ndarray, mask: np.ndarray, pos: np.ndarray, neg: np.ndarray,

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from calibration.light import LightModel, correct_normals, fit_light_model, sphere_normals
+from calibration.light import LightModel, correct_normals, fit_light_model, gradient_ratio, sphere_normals
 
 
 def sphere_samples(pos: np.ndarray, neg: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray,
@@ -23,9 +23,9 @@ def sphere_samples(pos: np.ndarray, neg: np.ndarray, K: np.ndarray, cam_from_wor
     normals, mask = sphere_normals(np.asarray(K), np.asarray(cam_from_world), pos.shape[1], pos.shape[0],
                                    np.asarray(centre), float(radius_m))
     mask = ndimage.binary_erosion(mask, iterations=erode_px)
-    total = pos + neg
-    good = mask & np.all(total > 1e-3, axis=-1) & np.all(np.isfinite(total), axis=-1)
-    return ((pos - neg) / np.maximum(total, 1e-6))[good], normals[good]
+    ratio = gradient_ratio(pos, neg, min_total=1e-3)
+    good = mask & np.all(np.isfinite(ratio), axis=-1)
+    return ratio[good], normals[good]
 
 
 def _mean_angle(a: np.ndarray, b: np.ndarray) -> float:

@@ -28,7 +28,7 @@ import numexpr as ne
 import numpy as np
 from scipy import ndimage
 
-from calibration.light import LightModel, correct_normals
+from calibration.light import LightModel, correct_normals, gradient_ratio
 from pipeline.config import Documented, checked
 from stages.numerics import numeric_threads
 
@@ -911,8 +911,7 @@ def corrected_normals(pos: np.ndarray, neg: np.ndarray, model: LightModel, mask:
                       iterations: int) -> np.ndarray:
     """Normals (H, W, 3) from the gradient ratio of ``pos``/``neg`` (H, W, 3) through the fitted light model
     (:func:`calibration.light.correct_normals`, ``iterations`` Gauss-Newton steps), 0 outside ``mask`` (H, W)."""
-    total = pos + neg
-    d = np.where(total > 1e-6, (pos - neg) / np.maximum(total, 1e-6), 0.0).astype(np.float32)
+    d = np.nan_to_num(gradient_ratio(pos, neg, min_total=1e-6), nan=0.0)
     normals = np.zeros_like(d)
     if mask.any():
         normals[mask] = correct_normals(d[mask], model, iterations=iterations).astype(np.float32)

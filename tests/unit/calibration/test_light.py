@@ -258,3 +258,32 @@ def test_diligent_ball_gradient_ratio_with_light_calibration():
     assert uncorrected > 20.0
     assert corrected < 0.3 * uncorrected and corrected < 10.0
     assert checker_corrected < ls_error
+
+
+def test_gradient_ratio_hand_computed_and_undefined_pixels():
+    from calibration.light import gradient_ratio
+
+    pos = np.array([[[3.0, 1.0, 0.0], [np.inf, 2.0, 1.0]]], np.float32)
+    neg = np.array([[[1.0, 1.0, 0.0], [1.0, -2.0, 3.0]]], np.float32)
+    d = gradient_ratio(pos, neg)
+    assert d.shape == (1, 2, 3) and d.dtype == np.float32
+    np.testing.assert_allclose(d[0, 0, :2], [0.5, 0.0])
+    assert np.isnan(d[0, 0, 2]) and np.isnan(d[0, 1, 0]) and np.isnan(d[0, 1, 1])  # 0 / 0, inf, pos + neg = 0
+    assert d[0, 1, 2] == pytest.approx(-0.5)
+    with pytest.raises(ValueError, match="one shape"):
+        gradient_ratio(pos, neg[:, :1])
+    with pytest.raises(ValueError, match="min_total"):
+        gradient_ratio(pos, neg, min_total=-1.0)
+
+
+def test_gradient_ratio_floor_alpha_and_precision():
+    """``min_total`` leaves dim pixels undefined; a fourth channel is ignored; float64 frames are divided in
+    float64 (the float32 result is their quotient rounded once)."""
+    from calibration.light import gradient_ratio
+
+    pos = np.array([[[3e-4, 0.6, 0.2, 9.0]]])
+    neg = np.array([[[1e-4, 0.2, 0.1, 9.0]]])
+    d = gradient_ratio(pos, neg, min_total=1e-3)
+    assert d.shape == (1, 1, 3) and np.isnan(d[0, 0, 0])
+    np.testing.assert_array_equal(d[0, 0, 1:], np.float32([(0.6 - 0.2) / (0.6 + 0.2), (0.2 - 0.1) / (0.2 + 0.1)]))
+    assert gradient_ratio(pos, neg)[0, 0, 0] == np.float32(0.5)

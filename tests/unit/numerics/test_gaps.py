@@ -165,20 +165,6 @@ def gradient_frames(seed=0, size=96, noise=0.02):
     return pos, neg, subject, slot | patch, slot, patch
 
 
-def test_gradient_ratio_hand_computed_and_undefined_pixels():
-    from stages.numerics.gaps import gradient_ratio
-
-    pos = np.array([[[3.0, 1.0, 0.0], [np.inf, 2.0, 1.0]]], np.float32)
-    neg = np.array([[[1.0, 1.0, 0.0], [1.0, -2.0, 3.0]]], np.float32)
-    d = gradient_ratio(pos, neg)
-    assert d.shape == (1, 2, 3) and d.dtype == np.float32
-    np.testing.assert_allclose(d[0, 0, :2], [0.5, 0.0])
-    assert np.isnan(d[0, 0, 2]) and np.isnan(d[0, 1, 0]) and np.isnan(d[0, 1, 1])  # 0 / 0, inf, pos + neg = 0
-    assert d[0, 1, 2] == pytest.approx(-0.5)
-    with pytest.raises(ValueError, match="one shape"):
-        gradient_ratio(pos, neg[:, :1])
-
-
 def test_a_hole_showing_the_backdrop_opens_a_dark_surface_stays():
     from stages.numerics.gaps import backdrop_holes
 
