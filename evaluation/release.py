@@ -581,12 +581,12 @@ MESH_METRICS = ("chamfer_mm", "chamfer_pred_to_gt_mm", "chamfer_gt_to_pred_mm", 
                 "comparable_chamfer_mm", "comparable_chamfer_pred_to_gt_mm", "comparable_chamfer_gt_to_pred_mm",
                 "comparable_fscore_1mm", "comparable_fscore_5mm", "comparable_gt_area_fraction",
                 "comparable_pred_area_fraction", "gt_unseen_area_fraction", "gt_boundary_area_fraction",
-                "pred_far_from_truth_area_fraction")
+                "pred_far_from_truth_area_fraction", "pred_seen_through_area_fraction")
 """The plain Chamfer / F-score figures over the whole of both meshes, and the ``comparable_*`` ones beside them
 over what the capture can show (:mod:`stages.numerics.meshmetrics`: truth seen by at least one of the session's
 true cameras and over 1 cm from the truth's open boundary; prediction left out only within 5 mm of truth that is
 not comparable, or within an opening's radius of the fan that closes it), with the shares of area each leaves
-out."""
+out, and the share of the prediction off the truth in space a camera sees through."""
 
 
 def _mesh_cameras(truth_dir: Path, session_id: str) -> list[Any]:

@@ -28,7 +28,10 @@ comparable (:func:`comparable_truth`):
   opening, never an error larger than the tolerance (or, at an opening, than the opening's radius).
 
 The areas left out are reported (``comparable_gt_area_fraction``, ``comparable_pred_area_fraction``, the truth's
-``gt_unseen_area_fraction`` and ``gt_boundary_area_fraction``), so a figure is never read without its share.
+``gt_unseen_area_fraction`` and ``gt_boundary_area_fraction``), so a figure is never read without its share. Beside
+them ``pred_seen_through_area_fraction`` says how much of the prediction lies off the truth in space the cameras
+see through (a floater, a surface closing a cavity that some camera looks into): an error the capture itself
+contradicts, hence the reconstruction's, not the metric's.
 """
 from __future__ import annotations
 
@@ -296,7 +299,10 @@ def mesh_metrics(pred_v: np.ndarray, pred_f: np.ndarray, gt_v: np.ndarray, gt_f:
         surface kept), ``gt_unseen_area_fraction`` (truth no camera sees), ``gt_boundary_area_fraction``
         (truth within ``boundary_margin_m`` of its open boundary) and ``pred_far_from_truth_area_fraction``
         (prediction counted although its closest truth is not comparable, for lying farther than
-        ``comparable_tolerance_m`` from it).
+        ``comparable_tolerance_m`` from it) and ``pred_seen_through_area_fraction`` (prediction farther than
+        ``comparable_tolerance_m`` from the truth in space a camera sees through: its line of sight to the point
+        meets the closed truth beyond it, so the capture shows that surface is not there; a surface closing an
+        opening, within the opening's radius, does not count).
         Where one side has no comparable sample (no camera sees the truth), the comparable distances and
         scores are left out and only the area shares are given.
 
@@ -333,7 +339,7 @@ def mesh_metrics(pred_v: np.ndarray, pred_f: np.ndarray, gt_v: np.ndarray, gt_f:
     out.update(_threshold_scores(d_pg, d_gp, thresholds_m))
     if cameras is not None:
         keep_gt, keep_pred, shares = _comparable_samples(gv, gf, gt_pts, pred_pts, cameras, boundary_margin_m,
-                                                         comparable_tolerance_m, visibility_tolerance_m)
+                                                         comparable_tolerance_m, visibility_tolerance_m, d_pg)
         if keep_gt.any() and keep_pred.any():
             out.update({
                 "comparable_chamfer_mm": float(500.0 * (d_pg[keep_pred].mean() + d_gp[keep_gt].mean())),
@@ -363,9 +369,10 @@ def _threshold_scores(d_pg: np.ndarray, d_gp: np.ndarray, thresholds_m: tuple[fl
 
 def _comparable_samples(gv: np.ndarray, gf: np.ndarray, gt_pts: np.ndarray, pred_pts: np.ndarray,
                         cameras: Sequence[MeshCamera], boundary_margin_m: float, tolerance_m: float,
-                        visibility_tolerance_m: float) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+                        visibility_tolerance_m: float, pred_to_truth_m: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """The comparable truth samples (n,) bool, the kept prediction samples (m,) bool (module docstring) and the
-    area shares of :func:`mesh_metrics`."""
+    area shares of :func:`mesh_metrics`; ``pred_to_truth_m`` (m,) each prediction sample's distance to the truth."""
     import open3d as o3d
 
     truth = comparable_truth(gv, gf, gt_pts, cameras, boundary_margin_m, visibility_tolerance_m)
@@ -393,7 +400,16 @@ def _comparable_samples(gv: np.ndarray, gf: np.ndarray, gt_pts: np.ndarray, pred
         allowed[on_cap] = np.maximum(radius[loop[face]], tolerance_m)
     far = ~nearest_comparable & (distance > allowed)
     keep_pred = nearest_comparable | far
+    # prediction off the truth where a camera's line of sight passes it and meets the truth beyond: surface the
+    # capture contradicts (a surface closing an opening of the truth, within the opening's radius of its fan, is
+    # not: there the cameras see into an open mesh)
+    off = (np.asarray(pred_to_truth_m) > tolerance_m) & ~(on_cap & (distance <= allowed))
+    seen_through = np.zeros(len(pred_pts), bool)
+    if off.any():
+        seen_through[off] = cameras_seeing(closed_v, np.concatenate([gf, cap_f]), pred_pts[off], cameras,
+                                           visibility_tolerance_m) > 0
     return truth["comparable"], keep_pred, {
+        "pred_seen_through_area_fraction": float(seen_through.mean()),
         "comparable_gt_area_fraction": float(truth["comparable"].mean()),
         "comparable_pred_area_fraction": float(keep_pred.mean()),
         "gt_unseen_area_fraction": float((~truth["seen"]).mean()),

@@ -194,6 +194,9 @@ def test_open_hemisphere_truth_against_closed_sphere_prediction():
     # the lower half and the band's mirror on the upper half are left out of the prediction: 45% kept
     assert m["comparable_pred_area_fraction"] == pytest.approx(0.45, abs=0.02)
     assert m["pred_far_from_truth_area_fraction"] == 0.0
+    # the lower half closes the opening, within its radius of the fan: not a surface the cameras contradict,
+    # though the ring's lower cameras see the space it stands in
+    assert m["pred_seen_through_area_fraction"] == 0.0
     # the plain figures are the ones mesh_metrics gives without cameras
     plain = mesh_metrics(pv, pf, gv, gf, n_samples=40_000)
     assert plain["chamfer_mm"] == m["chamfer_mm"] and "comparable_chamfer_mm" not in plain
@@ -228,6 +231,8 @@ def test_comparable_figures_keep_errors_larger_than_the_tolerance():
         if counted:  # 20 mm is an error no rule may hide: the pushed samples still count, at their distance
             assert m["pred_far_from_truth_area_fraction"] > 0.2
             assert m["comparable_chamfer_pred_to_gt_mm"] > 5.0
+            # but inside the truth, behind its seen front, no camera sees through them
+            assert m["pred_seen_through_area_fraction"] == 0.0
         else:
             assert m["pred_far_from_truth_area_fraction"] == 0.0
             assert m["comparable_chamfer_pred_to_gt_mm"] < 0.3
@@ -238,6 +243,9 @@ def test_comparable_figures_keep_errors_larger_than_the_tolerance():
     pf = np.concatenate([gf, ff + len(gv)])
     m = mesh_metrics(pv, pf, gv, gf, n_samples=40_000, cameras=ring_cameras())
     assert m["comparable_chamfer_pred_to_gt_mm"] == pytest.approx(m["chamfer_pred_to_gt_mm"], rel=0.02)
+    # the floater hangs in space the ring's cameras see through: its share of the prediction's area,
+    # 0.02^2 / (0.1^2 + 0.02^2) = 3.8%, all of it seen through
+    assert m["pred_seen_through_area_fraction"] == pytest.approx(0.02 ** 2 / (r ** 2 + 0.02 ** 2), abs=0.004)
     assert m["comparable_pred_area_fraction"] == 1.0
 
 
