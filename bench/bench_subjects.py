@@ -102,6 +102,7 @@ FIGURES = (  # (metric key of evaluate's overall figures, title, better: "low" |
     ("comparable_chamfer_gt_to_pred_mm", "comparable gt->pred (mm)", "low", "mesh"),
     ("comparable_fscore_1mm", "comparable F-score @1 mm", "high", "mesh"),
     ("gt_unseen_area_fraction", "truth area no camera sees", "low", "mesh"),
+    ("pred_seen_through_area_fraction", "mesh area off the truth where a camera sees through", "low", "mesh"),
     ("normal_consistency", "normal consistency", "high", "mesh"),
     ("heldout_albedo_psnr_db", "held-out albedo PSNR (dB)", "high", "table 1"),
     ("heldout_albedo_ssim", "held-out albedo SSIM", "high", "table 1"),

@@ -359,6 +359,23 @@ def test_turned_share_counts_valid_pixels_turned_past_the_angle():
         turned_share(before, after[:1])
 
 
+def test_on_pixel_lattice_keeps_the_valid_pixels_of_every_step_th_row_and_column():
+    from stages.numerics.sdf_mesh import on_pixel_lattice
+
+    valid = np.ones((5, 4), bool)
+    valid[0, 2] = False
+    views = [dataclasses.make_dataclass("V", ["normal_valid", "name"])(valid, "a")]
+    (kept,) = on_pixel_lattice(views, 2)
+    expected = np.zeros((5, 4), bool)
+    expected[[0, 0, 2, 2, 4, 4], [0, 2, 0, 2, 0, 2]] = True
+    expected[0, 2] = False  # not valid to start with
+    np.testing.assert_array_equal(kept.normal_valid, expected)
+    assert kept.name == "a" and views[0].normal_valid is valid and valid.sum() == 19  # the input untouched
+    np.testing.assert_array_equal(on_pixel_lattice(views, 1)[0].normal_valid, valid)
+    with pytest.raises(ValueError, match="step"):
+        on_pixel_lattice(views, 0)
+
+
 def test_a_third_pass_runs_only_when_the_second_meshs_deocclusion_turns_the_normals(monkeypatch):
     import torch
 
@@ -380,13 +397,22 @@ def test_a_third_pass_runs_only_when_the_second_meshs_deocclusion_turns_the_norm
         assert plain.third_pass["turned_share"] < cfg.third_pass_turned_share and not plain.third_pass["ran"]
         assert plain.passes == 2 and plain.iterations == (10, 20)
         assert sum("no third pass" in line for line in lines) == 1
-        monkeypatch.setattr(sdf_mesh_module, "turned_share", lambda before, after: 0.5)
+        read: list[tuple[list, list]] = []
+        monkeypatch.setattr(sdf_mesh_module, "turned_share", lambda before, after: read.append((before, after)) or 0.5)
         import stages.numerics.sdf as sdf_module
 
         trained, train = [], sdf_module.train_sdf
         monkeypatch.setattr(sdf_module, "train_sdf", lambda v, *a, **k: trained.append(v) or train(v, *a, **k))
         third = sdf_mesh_module.sdf_mesh(views, cfg, log=lines.append)
         assert third.third_pass["ran"] and third.passes == 3 and third.iterations == (10, 20, 15)
+        # the decision read every view, on the pixel lattice only
+        (before, after), = read
+        lattice = np.zeros((32, 32), bool)
+        lattice[::2, ::2] = True
+        assert len(before) == len(after) == 6
+        for b, a, v in zip(before, after, views):
+            np.testing.assert_array_equal(b.normal_valid, np.asarray(v.normal_valid, bool) & lattice)
+            np.testing.assert_array_equal(a.normal_valid, b.normal_valid)
         # the third pass's views: every view once, in order (the decision's sample and the rest put together),
         # each with the second pass's sample weight
         assert [np.array_equal(a.cam_from_world, b.cam_from_world) for a, b in zip(trained[2], views)] == [True] * 6
