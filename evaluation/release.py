@@ -1149,6 +1149,9 @@ def print_overall(summary: EvaluationSummary) -> None:
               f"({100 * o.get('gt_unseen_area_fraction', float('nan')):.1f}% seen by no camera, "
               f"{100 * o.get('gt_boundary_area_fraction', float('nan')):.1f}% near its open boundary) and "
               f"{100 * o.get('comparable_pred_area_fraction', float('nan')):.1f}% of the mesh")
+    if "pred_seen_through_area_fraction" in o:
+        print(f"  mesh, seen through    : {100 * o['pred_seen_through_area_fraction']:.1f}% of the mesh lies over 5 mm "
+              "off the truth where a camera sees through it (surface the capture contradicts)")
     if "heldout_normal_mean_deg" in o:
         model = {1.0: "view-dependent white-light albedo", 0.0: "white-light albedo blended as it is"}.get(
             o.get("heldout_albedo_view_dependent"), "white-light albedo view-dependent for some actions")
