@@ -46,6 +46,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "specular_normals": ["--seeds", "0"],
     "subjects": None,
     "textures": ["--no-undecimated"],
+    "third_pass": ["--actions", "A0000"],
 }
 """What ``make bench`` runs smaller than the bench's own defaults (``--full``, ``make bench-full``, runs every bench
 with its own defaults): per bench (name without ``bench_``) its arguments, or None for a bench left to the full run.
@@ -99,6 +100,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "subjects": "no speed figure (the pipeline's accuracy per subject: `make panel`)",
     "panel_set": "the trivial baselines on the same test examples (accuracy, not speed: `make panel`)",
     "textures": "the stage on the undecimated mesh (`x undecimated`; `make bench-full` only)",
+    "third_pass": "no speed figure (the third SDF pass's decision share and what the pass does to the mesh; CPU "
+                  "seconds per row)",
 }
 """Per bench (name without ``bench_``): the simple baseline its speed figures are a ratio to, timed in the same
 process, or None where it has none yet (the report lists those)."""
@@ -153,7 +156,7 @@ SHARED_RUN_LANE = frozenset({
     "bench_diffuse_normals", "bench_end_to_end", "bench_gaps", "bench_gbuffer", "bench_geometry",
     "bench_gpu_production", "bench_heldout_field", "bench_materials", "bench_page", "bench_panel_set", "bench_projection",
     "bench_relight", "bench_relight_window", "bench_relightset", "bench_relit_budget", "bench_sdf_schedule", "bench_sdf_sharpness",
-    "bench_silhouette", "bench_textures"})
+    "bench_silhouette", "bench_textures", "bench_third_pass"})
 """The benches whose quick mode reads the shared tiny run (bench/_quick.py's ``quick_run``): with ``--lanes 2`` they
 run one after another in one lane and every other bench in the other. ``quick_run`` holds a lock for the life of
 the process that uses it, so a bench missing here still takes the run in turn, only later; the quick run's

@@ -92,7 +92,7 @@ class SDFMeshConfig(Documented):
     """Steps of a third pass, which continues the second pass's field at the final sharpness on the normals
     de-occluded against the second mesh (the sample weights stay the first mesh's), run when that de-occlusion
     turns more than ``third_pass_turned_share`` of the valid pixels' normals by over ``_TURN_DEG`` from the first
-    mesh's (:func:`turned_share`, on every view's pixels of a lattice of step ``_DECISION_PIXEL_STEP``). The first
+    mesh's (:func:`turned_share`, on every view's pixels of a lattice of step ``DECISION_PIXEL_STEP``). The first
     mesh webs the gaps between limbs a short pass cannot open, and eq. 1's normals inside them, de-occluded against
     the web, stay wrong until a mesh without it de-occludes them. 0: no third pass (nor the second de-occlusion
     that decides it)."""
@@ -105,7 +105,7 @@ class SDFMeshConfig(Documented):
     heavy body's 3.4% and the skirt's."""
 
 
-_DECISION_PIXEL_STEP = 2
+DECISION_PIXEL_STEP = 2
 """The third pass's decision (:attr:`SDFMeshConfig.third_pass_turned_share`) de-occludes every view's pixels on a
 lattice of this step in rows and columns (a quarter of them at 2, :func:`on_pixel_lattice`)."""
 _TURN_DEG = 5.0
@@ -320,7 +320,8 @@ class SDFMesh:
 def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
              progress: Callable[[int, int, str], None] | None = None,
              log: Callable[[str], None] | None = None,
-             checkpoint: Callable[[int, int, Any], None] | None = None) -> SDFMesh:
+             checkpoint: Callable[[int, int, Any], None] | None = None,
+             on_mesh: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> SDFMesh:
     """The mesh of the neural SDF trained on ``views`` (:class:`stages.numerics.sdf.SDFView`) as ``cfg`` asks:
     :func:`pass_configs`' passes with the steps :func:`schedule_for_footprint` gives the subject's pixel footprint
     (``log`` is told when they are raised, or when the views give no footprint), the second on
@@ -329,7 +330,8 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
     ``third_pass_turned_share``. ``progress(step, steps, message)`` is told about once per tenth of the passes'
     steps; ``log`` gets one line about the second pass and one about the third; ``checkpoint(pass, iteration,
     field)`` (pass 1, 2 or 3) is :func:`stages.numerics.sdf.train_sdf`'s checkpoint hook of each pass (every
-    ``log_every`` steps). ``label`` names the fit in errors.
+    ``log_every`` steps); ``on_mesh(pass, vertices, faces)`` is given each pass's mesh as it is made (what
+    bench/bench_third_pass.py compares). ``label`` names the fit in errors.
 
     Raises:
         RuntimeError: a pass gave no usable surface.
@@ -377,6 +379,8 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
         vertices, faces = decimate(vertices, faces, cfg.face_budget)
         if len(faces) == 0 or not np.all(np.isfinite(vertices)):
             raise RuntimeError(f"the SDF of {label} gave no usable surface (faces {len(faces)})")
+        if on_mesh is not None:
+            on_mesh(index, vertices, faces)
         return result, vertices, faces, mesh_stats | {"faces_extracted": extracted}
 
     result, vertices, faces, mesh_stats = fit(views, first, resolution=(
@@ -408,12 +412,12 @@ def sdf_mesh(views: list[Any], cfg: SDFMeshConfig, label: str = "the action",
             tick = time.perf_counter()
             # the decision reads a lattice of every view's pixels: a share of pixels needs no more, and the
             # subjects that need no third pass pay a fraction of a de-occlusion for it
-            lattice = on_pixel_lattice(views, _DECISION_PIXEL_STEP)
+            lattice = on_pixel_lattice(views, DECISION_PIXEL_STEP)
             again, _ = deoccluded_sdf_views(lattice, vertices, faces, cfg.deocclude_directions,
                                             cfg.deocclude_min_visible)
-            share = turned_share(on_pixel_lattice(sdf_views, _DECISION_PIXEL_STEP), again)
+            share = turned_share(on_pixel_lattice(sdf_views, DECISION_PIXEL_STEP), again)
             third_pass = {"turned_share": share, "ran": share > cfg.third_pass_turned_share}
-            if third_pass["ran"] and _DECISION_PIXEL_STEP > 1:  # every pixel of every view for the pass itself
+            if third_pass["ran"] and DECISION_PIXEL_STEP > 1:  # every pixel of every view for the pass itself
                 again, _ = deoccluded_sdf_views(views, vertices, faces, cfg.deocclude_directions,
                                                 cfg.deocclude_min_visible)
             third_pass["deocclusion_seconds"] = time.perf_counter() - tick

@@ -403,7 +403,11 @@ def test_a_third_pass_runs_only_when_the_second_meshs_deocclusion_turns_the_norm
 
         trained, train = [], sdf_module.train_sdf
         monkeypatch.setattr(sdf_module, "train_sdf", lambda v, *a, **k: trained.append(v) or train(v, *a, **k))
-        third = sdf_mesh_module.sdf_mesh(views, cfg, log=lines.append)
+        meshes: list[tuple[int, np.ndarray, np.ndarray]] = []
+        third = sdf_mesh_module.sdf_mesh(views, cfg, log=lines.append, on_mesh=lambda *m: meshes.append(m))
+        # each pass's mesh was told, in order, the last one the published
+        assert [m[0] for m in meshes] == [1, 2, 3]
+        assert meshes[2][1] is third.vertices and meshes[2][2] is third.faces
         assert third.third_pass["ran"] and third.passes == 3 and third.iterations == (10, 20, 15)
         # the decision read every view, on the pixel lattice only
         (before, after), = read

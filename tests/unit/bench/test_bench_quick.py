@@ -50,6 +50,21 @@ def quick_run(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
 
 
 @pytest.mark.slow
+def test_bench_third_pass_reads_the_decision_the_stage_made(quick_run):
+    """The forced third pass ran, both meshes were scored, and the bench's share on the pixel lattice, read again
+    from the passes' meshes, is the stage's own decision figure."""
+    out, proc = quick_run
+    report = json.loads((out / "bench_third_pass.json").read_text())
+    assert report["quick"] is True and 0 < report["bound"] < 1
+    (row,) = report["rows"]
+    assert row["third_pass_iterations"] == 20 and row["views"] >= 8
+    assert row["shares"]["pixel_lattice"] == pytest.approx(row["stage_turned_share"], abs=1e-12)
+    assert all(0.0 <= v <= 1.0 for v in row["shares"].values())
+    assert {"two_passes", "three_passes"} == set(row["meshes"])
+    assert all(math.isfinite(v) and v >= 0 for m in row["meshes"].values() for v in m.values())
+
+
+@pytest.mark.slow
 def test_run_all_quick_exits_0_and_says_it_is_quick(quick_run):
     out, proc = quick_run
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
