@@ -100,7 +100,7 @@ class SDFMeshConfig(Documented):
     """The share of the valid pixels whose de-occluded normal turns by over ``_TURN_DEG`` between the first and the
     second mesh above which the third pass runs. Over every view of the subject panel's stores (README, *A third SDF
     pass*) the share is 1.6-3.4% on the plain bodies and the ICT head, where the third pass moves the SDF's mesh by
-    -0.14 to +0.08 mm of Chamfer (mean -0.03: a seed's spread, at 60-120 s of CPU an action), 4.3% on the skirt
+    -0.14 to +0.08 mm of Chamfer (mean -0.03: a seed's spread, for 900 more steps), 4.3% on the skirt
     (5.26 -> 4.92 mm) and 13.7% on the procedural subject (1.81 -> 1.28 mm); the bound sits midway between the
     heavy body's 3.4% and the skirt's."""
 
