@@ -147,7 +147,12 @@ def main() -> int:
 
     torch.set_num_threads(max(1, args.threads))
     if args.panel:
-        folders = sorted(p for p in (Path(args.panel) / "subjects").iterdir() if (p / "release").is_dir())
+        subjects = Path(args.panel) / "subjects"
+        folders = [p for p in sorted(subjects.iterdir()) if (p / "release" / "config.yaml").exists()
+                   and (p / "capture" / "ground_truth" / "A0000" / "mesh.ply").exists()] if subjects.is_dir() else []
+        if not folders:
+            print(f"bench_third_pass: no subject with a release and ground truth under {subjects}; skipped")
+            return 0
         jobs = [(p.name, p / "capture", p / "release", "A0000") for p in folders]
     else:
         capture, release = Path(args.capture), Path(args.release)
