@@ -79,10 +79,10 @@ def decision_shares(views: list, first: tuple, second: tuple, cfg) -> dict[str, 
 
 def measure(name: str, capture: Path, release: Path, action: str, quick: bool) -> dict:
     """One action's row: the decision's shares, both meshes' figures and the seconds."""
-    from evaluation.release import true_cameras
+    from evaluation.release import true_mesh_cameras
     from pipeline.codecs.mesh import read_ply
     from stages.geometry import load_sdf_views
-    from stages.numerics.meshmetrics import MeshCamera, mesh_metrics
+    from stages.numerics.meshmetrics import mesh_metrics
     from stages.numerics.sdf_mesh import sdf_mesh
 
     cfg = geometry_config(release, quick)
@@ -99,9 +99,7 @@ def measure(name: str, capture: Path, release: Path, action: str, quick: bool) -
     shares_s = time.process_time() - tick
     truth = capture / "ground_truth" / action
     session = json.loads((truth / "truth.json").read_text())["session_id"]
-    cameras = [MeshCamera(np.asarray(c["K"], np.float64), np.asarray(c["cam_from_world"], np.float64),
-                          int(c["width"]), int(c["height"]))
-               for _, c in sorted(true_cameras(capture / "ground_truth", session).items())]
+    cameras = true_mesh_cameras(capture / "ground_truth", session)
     gv, gf = read_ply(truth / "mesh.ply")
     scores = {}
     for index, label in ((2, "two_passes"), (3, "three_passes")):

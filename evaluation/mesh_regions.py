@@ -182,7 +182,7 @@ def _print_table(errors: dict[str, dict[str, float]]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from evaluation.release import _mesh_cameras
+    from evaluation.release import true_mesh_cameras
     from pipeline.codecs.mesh import read_ply
 
     parser = argparse.ArgumentParser(prog="python -m evaluation.mesh_regions", description=__doc__.split("\n")[0])
@@ -198,7 +198,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     pred_v, pred_f = read_ply(args.mesh)
     garment = (truth.get("subject") or {}).get("garment") or {}
     region, names = truth_face_regions(gt_v, gt_f, int(garment.get("triangles", 0)))
-    cameras = _mesh_cameras(truth_dir, truth["session_id"])
+    cameras = true_mesh_cameras(truth_dir, truth["session_id"])
     errors = region_errors(pred_v, pred_f, gt_v, gt_f, region, names, args.samples, cameras=cameras)
     _print_table(errors)
     if args.json is not None:

@@ -589,7 +589,7 @@ not comparable, or within an opening's radius of the fan that closes it), with t
 out, and the share of the prediction off the truth in space a camera sees through."""
 
 
-def _mesh_cameras(truth_dir: Path, session_id: str) -> list[Any]:
+def true_mesh_cameras(truth_dir: Path, session_id: str) -> list[Any]:
     """The session's true cameras as :class:`stages.numerics.meshmetrics.MeshCamera` records."""
     from stages.numerics.meshmetrics import MeshCamera
 
@@ -615,7 +615,7 @@ def _mesh_overall(rel: Any, truth_dir: Path, ok_ids: list[str], per_action: dict
         pred_v, pred_f = read_ply(view.path("mesh"))
         gt_v, gt_f = read_ply(truth_mesh)
         metrics = mesh_metrics(pred_v, pred_f, gt_v, gt_f,
-                               cameras=_mesh_cameras(truth_dir, view.info["session_id"]))
+                               cameras=true_mesh_cameras(truth_dir, view.info["session_id"]))
         for key in MESH_METRICS:
             if key not in metrics:  # the comparable figures of a truth no camera sees
                 continue
