@@ -109,6 +109,11 @@ def texel_uvs(covered: np.ndarray) -> np.ndarray:
     return np.stack([(cols + 0.5) / size, 1.0 - (rows + 0.5) / size], axis=1)
 
 
+def _median_is_identity(neighbours: int, usable: np.ndarray) -> bool:
+    """Whether :func:`surface_median` returns its values unchanged: one neighbour, or no usable point."""
+    return neighbours <= 1 or not np.asarray(usable, bool).any()
+
+
 def surface_median(points: np.ndarray, values: np.ndarray, usable: np.ndarray, neighbours: int,
                    guide: np.ndarray | None = None, guide_m: float = 0.0) -> np.ndarray:
     """Median of ``values`` over each point's ``neighbours`` nearest usable points, (N,) float32.
@@ -120,7 +125,7 @@ def surface_median(points: np.ndarray, values: np.ndarray, usable: np.ndarray, n
     from scipy.spatial import cKDTree
 
     values = np.asarray(values, np.float32)
-    if neighbours <= 1 or not usable.any():
+    if _median_is_identity(neighbours, usable):
         return values.copy()
     if not (np.isfinite(guide_m) and guide_m >= 0):
         raise ValueError(f"guide_m must be finite and >= 0, got {guide_m}")
@@ -148,7 +153,7 @@ def roughness_median(points: np.ndarray, roughness: np.ndarray, fitted: np.ndarr
     if not voters.any():
         voters = np.asarray(fitted, bool)
     # the guide's k-d tree over every texel is wasted where the median returns the values as they are
-    guided = albedo is not None and albedo_guide_m > 0 and neighbours > 1 and voters.any()
+    guided = albedo is not None and albedo_guide_m > 0 and not _median_is_identity(neighbours, voters)
     guide = albedo_guide(albedo, points, albedo_neighbours) if guided else None
     return surface_median(points, roughness, voters, neighbours, guide, albedo_guide_m), voters
 
