@@ -569,3 +569,54 @@ def test_a_second_pass_reuses_the_first_ones_start_bit_for_bit():
     for other_views, config, bounds in ((cut, second, BOUNDS), (turned, dataclasses.replace(second, hidden_width=16),
                                                                 BOUNDS), (turned, second, BOUNDS * 1.1)):
         assert "start_reused" not in train_sdf(other_views, config, bounds=bounds, start=first.start).stats
+
+
+def _front_free_depths(view, inside_m):
+    """(H, W) free depths of ``view``'s pixels within the central third of the sphere's disc: ``inside_m`` behind
+    the sphere's front along each ray; and the rays' origin, directions and those depths."""
+    H, W = view.mask.shape
+    R, t = view.cam_from_world[:, :3], view.cam_from_world[:, 3]
+    o = -R.T @ t
+    rows, cols = np.mgrid[0:H, 0:W]
+    pix = np.stack([cols.ravel(), rows.ravel(), np.ones(H * W)], 1)
+    d = np.linalg.solve(view.K, pix.T).T @ R
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    b = d @ o
+    disc = b * b - (o @ o - RADIUS ** 2)
+    central = disc > (0.9 * RADIUS) ** 2  # rays well inside the outline
+    t_front = -b - np.sqrt(np.maximum(disc, 0))
+    free = np.where(central, t_front + inside_m, 0.0).reshape(H, W).astype(np.float32)
+    return free, o, d[central], t_front[central] + inside_m
+
+
+def test_free_depths_carve_the_space_a_view_sees_through(trained):
+    config = dataclasses.replace(SDF_PRESETS["test"], device="cpu", iterations=30, inv_s_start=150.0,
+                                 coarse_to_fine=0.0, warmup_iterations=2, free_space_span_m=0.04)
+    views = sphere_views()
+    free, o, d, t_free = _front_free_depths(views[0], 0.04)
+    assert (free > 0).sum() > 20
+    carved_views = [dataclasses.replace(views[0], free_depth_m=free)] + views[1:]
+    plain = train_sdf(views, config, bounds=BOUNDS, init=trained.field)
+    carved = train_sdf(carved_views, config, bounds=BOUNDS, init=trained.field)
+    # points 1-3 cm inside the front, on the rays said to be empty up to 4 cm inside
+    points = np.concatenate([o + (t_free - k)[:, None] * d for k in (0.01, 0.02, 0.03)])
+    before, after = plain.field.sdf_numpy(points), carved.field.sdf_numpy(points)
+    assert np.median(before) < -0.005  # the plain continuation keeps them inside the sphere
+    assert np.median(after) > np.median(before) + 0.005  # the free-space term pushes them out
+    assert carved.history["free"][0] > 0 and plain.history["free"] == [0.0] * len(plain.history["free"])
+    # the free-space term draws its own random numbers only where views give free depths: without them the
+    # training is the same as before the term existed (the same seed, the same field)
+    zero_free = [dataclasses.replace(v, free_depth_m=np.zeros(v.mask.shape, np.float32)) for v in views]
+    again = train_sdf(zero_free, config, bounds=BOUNDS, init=trained.field)
+    assert all(torch.equal(a, b) for a, b in zip(again.field.state_dict().values(),
+                                                   plain.field.state_dict().values()))
+
+
+def test_free_depths_are_checked():
+    views = sphere_views(n=2)
+    bad = np.full(views[0].mask.shape, -1.0, np.float32)
+    with pytest.raises(ValueError, match=r"views\[0\].free_depth_m must be finite and >= 0"):
+        train_sdf([dataclasses.replace(views[0], free_depth_m=bad)] + views[1:], TINY, bounds=BOUNDS)
+    with pytest.raises(ValueError, match=r"views\[1\].free_depth_m"):
+        train_sdf([views[0], dataclasses.replace(views[1], free_depth_m=np.zeros((3, 3), np.float32))], TINY,
+                  bounds=BOUNDS)
