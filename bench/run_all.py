@@ -28,6 +28,7 @@ MAKE_BENCH_ARGS: dict[str, list[str] | None] = {
     "calibration": ["--markers", "--widths", "320"],
     "diffuse_normals": ["--stride", "8"],
     "executor": ["--steps", "75"],
+    "free_space": ["--actions", "A0000"],
     "geometry": ["--checkpoints", "4", "--no-ablation"],
     "gpu_production": None,
     "heldout_field": ["--lengths", "100,400"],
@@ -100,6 +101,8 @@ SPEED_BASELINES: dict[str, str | None] = {
     "subjects": "no speed figure (the pipeline's accuracy per subject: `make panel`)",
     "panel_set": "the trivial baselines on the same test examples (accuracy, not speed: `make panel`)",
     "textures": "the stage on the undecimated mesh (`x undecimated`; `make bench-full` only)",
+    "free_space": "no speed figure (the free-space cue's pixels against the truth, and the SDF carved by it; CPU "
+                  "seconds per row)",
     "third_pass": "no speed figure (the third SDF pass's decision share and what the pass does to the mesh; CPU "
                   "seconds per row)",
 }
@@ -153,7 +156,7 @@ def bench_arguments(name: str, quick: bool, full: bool) -> list[str] | None:
 
 
 SHARED_RUN_LANE = frozenset({
-    "bench_diffuse_normals", "bench_end_to_end", "bench_gaps", "bench_gbuffer", "bench_geometry",
+    "bench_diffuse_normals", "bench_end_to_end", "bench_free_space", "bench_gaps", "bench_gbuffer", "bench_geometry",
     "bench_gpu_production", "bench_heldout_field", "bench_materials", "bench_page", "bench_panel_set", "bench_projection",
     "bench_relight", "bench_relight_window", "bench_relightset", "bench_relit_budget", "bench_sdf_schedule", "bench_sdf_sharpness",
     "bench_silhouette", "bench_textures", "bench_third_pass"})

@@ -65,6 +65,22 @@ def test_bench_third_pass_reads_the_decision_the_stage_made(quick_run):
 
 
 @pytest.mark.slow
+def test_bench_free_space_carves_by_the_cue_it_reports(quick_run):
+    """The cue was read on both sets of normals at every setting, and the first carve round, on the stage's own
+    SDF mesh, flagged the pixels of the cue's row at the carve's setting; both continuations were scored."""
+    out, proc = quick_run
+    report = json.loads((out / "bench_free_space.json").read_text())
+    assert report["quick"] is True
+    (row,) = report["rows"]
+    settings = {(c["normals"], c["agree_deg"], c["visible_tol_m"]): c for c in row["cue"]}
+    assert {n for n, _, _ in settings} == {"photometric", "specular-free"} and len(settings) == 8
+    cue = settings[("specular-free", 20.0, None)]
+    assert row["carve"]["carved"][0]["flagged"] == cue["flagged"]
+    assert all(c["cavity"] + c["cut"] <= c["flagged"] for c in row["cue"])
+    assert [r["flagged"] for r in row["carve"]["plain"]] == [0]
+
+
+@pytest.mark.slow
 def test_run_all_quick_exits_0_and_says_it_is_quick(quick_run):
     out, proc = quick_run
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
