@@ -1276,7 +1276,7 @@ def _free_space_loss(field_: SDFField, bank: _RayBank, config: SDFConfig, genera
     u = (torch.arange(S, device=device).float().unsqueeze(0)
          + torch.rand((len(pick), S), generator=generator).to(device)) / S
     t = t_free.unsqueeze(1) - config.free_space_span_m * u
-    t = torch.maximum(t, bank.near[ray].unsqueeze(1))
+    t = torch.minimum(torch.maximum(t, bank.near[ray].unsqueeze(1)), bank.far[ray].unsqueeze(1))  # in the bounds
     pts = bank.origins[bank.view[ray]].unsqueeze(1) + t.unsqueeze(-1) * bank.dirs[ray].unsqueeze(1)
     return F.relu(-field_(pts.reshape(-1, 3))).mean()
 
