@@ -20,8 +20,9 @@ mesh). Every round's mesh is scored against the truth (Chamfer, comparable Chamf
 the mesh off the truth where a camera sees through).
 
 ``python bench/bench_free_space.py --out bench/out [--capture C --release R] [--actions A0000] [--panel DIR
-[--subjects skirt]] [--carve-rounds 2] [--quick]`` writes OUT/bench_free_space.json and .md; about 40 CPU s an
-action for the cue, 30 s a round of 300 steps on one thread. ``--quick`` (the tests' mode): the tiny run of
+[--subjects skirt]] [--carve-rounds 2] [--quick]`` writes OUT/bench_free_space.json and .md; on one thread the cue
+(both sets of normals at the four settings) takes about 22 CPU s an action of 32 views at 320 x 480, a round of
+300 steps 22-31 s. ``--quick`` (the tests' mode): the tiny run of
 ``bench/_quick.py``, one round of 10 steps; the numbers are not measurements.
 """
 from __future__ import annotations
