@@ -39,6 +39,18 @@ def parse_release_args(parser: argparse.ArgumentParser, argv: list[str] | None =
     return args
 
 
+def release_config(release: Path, section: str, cls):
+    """The release's config of one stage: ``section`` of its ``config.yaml`` read as ``cls`` (a stage config
+    dataclass; the defaults where the section is absent or empty). Errors name the file and the section."""
+    import yaml
+
+    from pipeline.config import from_dict
+
+    path = Path(release) / "config.yaml"
+    record = (yaml.safe_load(path.read_text()) or {}).get(section) or {}
+    return from_dict(cls, record, where=f"{path}: {section}")
+
+
 def check_inputs(name: str, release: Path, capture: Path, need_truth: bool) -> tuple[bool, Path | None]:
     """``(go on, ground-truth folder or None)``. Without a release, or without a simulated capture with ground
     truth when ``need_truth``, prints why the bench ``name`` is skipped and returns ``(False, None)``; a

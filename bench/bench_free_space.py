@@ -40,7 +40,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from _release import latest_artifact, parse_release_args, release_parser, store_artifacts  # noqa: E402
+from _release import (latest_artifact, parse_release_args, release_config, release_parser,  # noqa: E402
+                      store_artifacts)
 from _report import write_report  # noqa: E402
 
 SETTINGS = ((12.0, None), (20.0, None), (12.0, 0.01), (20.0, 0.01))
@@ -52,18 +53,6 @@ CAVITY_MM = 10
 CUT_MM = 5
 """A flagged pixel whose truth lies within this (millimetres) of our mesh is a cut pixel."""
 MESH_FIGURES = ("chamfer_mm", "comparable_chamfer_mm", "fscore_1mm", "pred_seen_through_area_fraction")
-
-
-def geometry_config(release: Path):
-    """The release's geometry config (its ``config.yaml``)."""
-    import yaml
-
-    from pipeline.config import from_dict
-    from stages.geometry import GeometryConfig
-
-    path = release / "config.yaml"
-    record = (yaml.safe_load(path.read_text()) or {}).get("geometry") or {}
-    return from_dict(GeometryConfig, record, where=f"{path}: geometry")
 
 
 def diffuse_normals(work: Path, action: str, ids: list[str], views: list) -> tuple[list, list]:
@@ -172,10 +161,10 @@ def measure(name: str, capture: Path, release: Path, action: str, rounds: int, s
 
     from evaluation.release import true_mesh_cameras
     from pipeline.codecs.mesh import read_ply
-    from stages.geometry import load_sdf_views
+    from stages.geometry import GeometryConfig, load_sdf_views
     from stages.numerics.meshmetrics import mesh_metrics
 
-    cfg = geometry_config(release)
+    cfg = release_config(release, "geometry", GeometryConfig)
     work = release.with_name(release.name + ".work")
     art = store_artifacts(release, action, ("decode", "photometric"))
     ids, views = load_sdf_views(art, cfg.min_alpha)

@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import write_report  # noqa: E402
-from _release import parse_release_args, release_parser, store_artifacts  # noqa: E402
+from _release import parse_release_args, release_config, release_parser, store_artifacts  # noqa: E402
 
 INV_S = (800.0, 1600.0, 3200.0)
 QUICK_INV_S = (300.0,)
@@ -144,9 +144,7 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
     plates (the run's store beside ``release``), with the run's photometric config (its ``config.yaml``) and
     ``mask_params`` changed: each view's foreground mask with its small holes filled, then the filled holes decided
     as the stage decides them (:func:`stages.numerics.gaps.background_holes`)."""
-    import yaml
-
-    from pipeline.config import from_dict, merge
+    from pipeline.config import merge
     from stages.geometry import load_sdf_views
     from stages.numerics.gaps import background_holes
     from stages.numerics.hull import default_stage_box, subject_box
@@ -157,9 +155,7 @@ def recomputed_masks(release: Path, action: str, views: list, mask_params: dict)
     ids, store_views = load_sdf_views(art, 0.5)
     if len(ids) != len(views) or any(not np.array_equal(a.K, b.K) for a, b in zip(store_views, views)):
         raise ValueError(f"the store beside {release} does not hold the release's views of {action}")
-    path = release / "config.yaml"
-    record = (yaml.safe_load(path.read_text()) or {}).get("photometric") or {}
-    config = from_dict(PhotometricConfig, record, where=f"{path}: photometric")
+    config = release_config(release, "photometric", PhotometricConfig)
     params = merge(config.params, mask_params, "--mask-params")
     masks, holes = zip(*(foreground_mask_and_holes(art.exr("full_on", camera=cam)[..., :3], art.plate(cam), params)
                          for cam in ids))

@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from _report import write_report  # noqa: E402
-from _release import parse_release_args, release_parser, store_artifacts  # noqa: E402
+from _release import parse_release_args, release_config, release_parser, store_artifacts  # noqa: E402
 
 QUICK_THIRD_PASS_ITERATIONS = 20
 """Steps of the forced third pass in ``--quick`` mode (the test preset's schedule has none)."""
@@ -49,14 +49,9 @@ MESH_FIGURES = ("chamfer_mm", "comparable_chamfer_mm", "fscore_1mm")
 def geometry_config(release: Path, quick: bool):
     """The release's geometry config (its ``config.yaml``) with the third pass forced: bound 0, and where the
     config has no third pass the stage default's steps (``--quick``: :data:`QUICK_THIRD_PASS_ITERATIONS`)."""
-    import yaml
-
-    from pipeline.config import from_dict
     from stages.geometry import GeometryConfig
 
-    path = release / "config.yaml"
-    record = (yaml.safe_load(path.read_text()) or {}).get("geometry") or {}
-    cfg = from_dict(GeometryConfig, record, where=f"{path}: geometry")
+    cfg = release_config(release, "geometry", GeometryConfig)
     steps = (QUICK_THIRD_PASS_ITERATIONS if quick else cfg.third_pass_iterations or
              GeometryConfig().third_pass_iterations)
     return dataclasses.replace(cfg, third_pass_turned_share=0.0, third_pass_iterations=steps)
