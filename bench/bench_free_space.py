@@ -55,15 +55,12 @@ CUT_MM = 5
 MESH_FIGURES = ("chamfer_mm", "comparable_chamfer_mm", "fscore_1mm", "pred_seen_through_area_fraction")
 
 
-def diffuse_normals(work: Path, action: str, ids: list[str], views: list) -> tuple[list, list]:
-    """The diffuse_normals stage's maps of the views (world normals, and where they are valid: finite, unit, alpha
-    above 0.5 and valid in the photometric maps)."""
-    from pipeline.codecs.exr import read_exr
-
-    folder = latest_artifact(work, "diffuse_normals", action)
+def diffuse_normals(art, ids: list[str], views: list) -> tuple[list, list]:
+    """The diffuse_normals stage's maps of the views (``art``: the action's artifacts with that stage's), world
+    normals and where they are valid: finite, unit, alpha above 0.5 and valid in the photometric maps."""
     normals, valid = [], []
     for cam_id, view in zip(ids, views):
-        m = read_exr(folder / "normal_diffuse" / f"{cam_id}.exr")
+        m = art.exr("normal_diffuse", cam_id)
         n = np.nan_to_num(np.asarray(m[..., :3], np.float32))
         ok = (np.abs(np.linalg.norm(n, axis=-1) - 1.0) < 0.1) & np.asarray(view.normal_valid, bool)
         if m.shape[-1] > 3:
@@ -166,7 +163,7 @@ def measure(name: str, capture: Path, release: Path, action: str, rounds: int, s
 
     cfg = release_config(release, "geometry", GeometryConfig)
     work = release.with_name(release.name + ".work")
-    art = store_artifacts(release, action, ("decode", "photometric"))
+    art = store_artifacts(release, action, ("decode", "photometric", "diffuse_normals"))
     ids, views = load_sdf_views(art, cfg.min_alpha)
     geometry = latest_artifact(work, "geometry", action)
     vertices, faces = read_ply(geometry / "sdf" / "mesh.ply")
@@ -176,7 +173,7 @@ def measure(name: str, capture: Path, release: Path, action: str, rounds: int, s
     gv, gf = read_ply(truth / "mesh.ply")
     true_t, _ = mesh_in_views(views, gv, gf)
     offset = [np.where((t > 0) & (g > 0), g - t, np.inf) for t, g in zip(mesh_t, true_t)]
-    diffuse = diffuse_normals(work, action, ids, views)
+    diffuse = diffuse_normals(art, ids, views)
     sets = {"photometric": ([v.normals_world for v in views], [np.asarray(v.normal_valid, bool) for v in views]),
             "specular-free": diffuse}
     cue = cue_rows(sets, views, mesh_t, mesh_depth, offset)
